@@ -1,0 +1,47 @@
+"""Atomic file output: write to a temporary file, then rename over the target.
+
+A crash or an exception while writing never leaves a half-written file under
+the final name, and never destroys an existing good file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; rename it to ``path`` on success.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The final file name. Its parent folder is created if needed.
+
+    Yields
+    ------
+    pathlib.Path
+        A fresh temporary file name in the same folder (same file system, so
+        the final ``os.replace`` is atomic). The caller writes to it.
+
+    Notes
+    -----
+    On any exception the temporary file is removed and the target is left
+    untouched.
+    """
+    final = Path(path)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, final)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise

@@ -1,0 +1,503 @@
+"""Generic HDF5 data products: tables of columns with units, arrays, provenance.
+
+Every file mavispm writes between stages is an HDF5 *product* with this layout
+(see ``docs/formats.md``)::
+
+    /                    attrs: format="mavispm", kind, format_version,
+                                mavispm_version, created (ISO 8601 UTC),
+                                seed, config (JSON text), plus kind-specific attrs
+    /<table>/            a group per table (names may be nested, "epochs/e0");
+                         attrs: mavispm_table=True, nrows, table metadata
+      <column>           one 1-D dataset per column; attr "unit" (astropy string,
+                         "" for dimensionless)
+    /<array>             n-D dataset, attr "unit"
+
+Quantities in attributes are stored as the value plus an attribute
+``<name>__unit``. Writers are atomic (temporary file, then rename); readers
+validate what they read against a :class:`TableSpec` and raise
+:class:`~mavispm.core.errors.InputError` naming the file and column.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import difflib
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import astropy.units as u
+import h5py
+import numpy as np
+from astropy.table import QTable, Table
+
+from mavispm.core.atomic import atomic_path
+from mavispm.core.errors import InputError
+
+FORMAT_NAME = "mavispm"
+FORMAT_VERSION = 1
+UNIT_SUFFIX = "__unit"
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """What a table must contain.
+
+    Parameters
+    ----------
+    required : dict of str to str
+        Column name to unit string ("" for dimensionless). Columns are converted
+        to these units on read.
+    optional : dict of str to str
+        Columns that may be present; converted when present.
+    id_column : str or None
+        Column whose values must be unique, or None.
+    allow_nan : tuple of str
+        Columns in which NaN is allowed (for example errors of unmeasured stars).
+    allow_empty : bool
+        Whether a table with zero rows is valid.
+    """
+
+    required: Mapping[str, str]
+    optional: Mapping[str, str] = field(default_factory=dict)
+    id_column: str | None = "id"
+    allow_nan: tuple[str, ...] = ()
+    allow_empty: bool = True
+
+
+@dataclass
+class Product:
+    """An HDF5 product read back into memory.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+    kind : str
+    attrs : dict
+        Root attributes (quantities restored, ``config`` parsed from JSON).
+    tables : dict of str to astropy.table.QTable
+    arrays : dict of str to numpy.ndarray or astropy.units.Quantity
+    """
+
+    path: Path
+    kind: str
+    attrs: dict
+    tables: dict[str, QTable]
+    arrays: dict[str, Any]
+
+
+def provenance_attrs(config: Mapping | None = None, seed: int | None = None) -> dict:
+    """Root attributes recording how a product was made.
+
+    Parameters
+    ----------
+    config : mapping, optional
+        The full configuration used; stored as JSON text.
+    seed : int, optional
+        The random seed used (-1 is stored when there is none).
+    """
+    from mavispm import __version__
+
+    return {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "mavispm_version": __version__,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "seed": -1 if seed is None else int(seed),
+        "config": json.dumps(_jsonable(config or {}), sort_keys=True),
+    }
+
+
+def _jsonable(obj):
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, u.Quantity):
+        return {"value": _jsonable(obj.value), "unit": str(obj.unit)}
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _write_attrs(h5obj, attrs: Mapping) -> None:
+    for key, value in attrs.items():
+        if value is None:
+            continue
+        if isinstance(value, u.Quantity):
+            h5obj.attrs[key] = value.value
+            h5obj.attrs[key + UNIT_SUFFIX] = str(value.unit)
+        elif isinstance(value, (dict, list, tuple)) and not _is_numeric_seq(value):
+            h5obj.attrs[key] = json.dumps(_jsonable(value), sort_keys=True)
+        else:
+            h5obj.attrs[key] = value
+
+
+def _is_numeric_seq(value) -> bool:
+    if isinstance(value, dict):
+        return False
+    try:
+        arr = np.asarray(value)
+    except Exception:
+        return False
+    return arr.dtype.kind in "iufb" and arr.ndim == 1
+
+
+def _read_attrs(h5obj) -> dict:
+    out = {}
+    keys = set(h5obj.attrs.keys())
+    for key in keys:
+        if key.endswith(UNIT_SUFFIX) or key == "mavispm_table":
+            continue
+        value = h5obj.attrs[key]
+        if isinstance(value, bytes):
+            value = value.decode()
+        if isinstance(value, np.generic):
+            value = value.item()
+        if key + UNIT_SUFFIX in keys:
+            unit = h5obj.attrs[key + UNIT_SUFFIX]
+            value = u.Quantity(value, unit)
+        elif key == "config" and isinstance(value, str):
+            try:
+                value = json.loads(value)
+            except json.JSONDecodeError:
+                pass
+        out[key] = value
+    return out
+
+
+def _column_values(col):
+    """Return (ndarray, unit string) for a table column or array-like."""
+    if isinstance(col, u.Quantity):
+        return np.asarray(col.value), str(col.unit)
+    unit = getattr(col, "unit", None)
+    arr = np.asarray(col)
+    if arr.dtype.kind == "U":
+        arr = arr.astype("S")
+    if arr.dtype == object:
+        raise InputError("object columns cannot be stored; use numbers or strings")
+    return arr, ("" if unit is None else str(unit))
+
+
+def write_product(
+    path: str | os.PathLike,
+    kind: str,
+    *,
+    tables: Mapping[str, Any] | None = None,
+    arrays: Mapping[str, Any] | None = None,
+    attrs: Mapping[str, Any] | None = None,
+    config: Mapping | None = None,
+    seed: int | None = None,
+    compression: str | None = None,
+) -> Path:
+    """Write an HDF5 product atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file; replaced atomically, never left half-written.
+    kind : str
+        Product kind ("catalogue", "frames", "measured", "propermotions", "dynamics", ...).
+    tables : mapping of str to table, optional
+        Tables (astropy Table/QTable or mapping of column to array/Quantity). A
+        table's ``meta`` scalars and quantities become group attributes.
+    arrays : mapping of str to array or Quantity, optional
+        N-dimensional datasets (images, PSF grids).
+    attrs : mapping, optional
+        Extra root attributes (quantities allowed).
+    config, seed
+        Provenance; see :func:`provenance_attrs`.
+    compression : str, optional
+        h5py compression filter for arrays (for example "gzip").
+
+    Returns
+    -------
+    pathlib.Path
+        The final path.
+    """
+    path = Path(path)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        _write_attrs(f, provenance_attrs(config, seed))
+        f.attrs["kind"] = kind
+        _write_attrs(f, attrs or {})
+        for name, table in (tables or {}).items():
+            grp = f.create_group(name)
+            grp.attrs["mavispm_table"] = True
+            meta = dict(getattr(table, "meta", {}) or {})
+            colnames = list(table.colnames) if hasattr(table, "colnames") else list(table)
+            nrows = None
+            for cname in colnames:
+                arr, unit = _column_values(table[cname])
+                if arr.ndim != 1:
+                    raise InputError(
+                        f"table '{name}' column must be 1-D, got shape {arr.shape}", column=cname
+                    )
+                if nrows is None:
+                    nrows = len(arr)
+                elif len(arr) != nrows:
+                    raise InputError(
+                        f"table '{name}' has columns of different lengths", column=cname
+                    )
+                ds = f[name].create_dataset(cname, data=arr)
+                ds.attrs["unit"] = unit
+            grp.attrs["nrows"] = 0 if nrows is None else nrows
+            _write_attrs(grp, {k: v for k, v in meta.items() if _attr_ok(v)})
+        for name, arr in (arrays or {}).items():
+            if isinstance(arr, u.Quantity):
+                data, unit = np.asarray(arr.value), str(arr.unit)
+            else:
+                data, unit = np.asarray(arr), ""
+            ds = f.create_dataset(name, data=data, compression=compression)
+            ds.attrs["unit"] = unit
+    return path
+
+
+def _attr_ok(value) -> bool:
+    return isinstance(value, (str, int, float, bool, np.generic, u.Quantity, list, tuple, dict))
+
+
+def open_product(path: str | os.PathLike, kind: str | None = None) -> h5py.File:
+    """Open a product for reading after checking that it is one.
+
+    Raises
+    ------
+    InputError
+        If the file is missing, not HDF5, not a mavispm product, or of another kind.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("file does not exist", path=path)
+    if path.stat().st_size == 0:
+        raise InputError("file is empty", path=path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise InputError(f"not a readable HDF5 file ({exc})", path=path) from None
+    fmt = f.attrs.get("format")
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode()
+    if fmt != FORMAT_NAME:
+        f.close()
+        raise InputError("not a mavispm product (root attribute format != 'mavispm')", path=path)
+    found = f.attrs.get("kind")
+    if isinstance(found, bytes):
+        found = found.decode()
+    if kind is not None and found != kind:
+        f.close()
+        raise InputError(f"expected a '{kind}' product, found kind '{found}'", path=path)
+    return f
+
+
+def _table_groups(f: h5py.File) -> list[str]:
+    names: list[str] = []
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Group) and obj.attrs.get("mavispm_table", False):
+            names.append(name)
+
+    f.visititems(visit)
+    return names
+
+
+def _array_datasets(f: h5py.File) -> list[str]:
+    names: list[str] = []
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            parent = obj.parent
+            if not parent.attrs.get("mavispm_table", False):
+                names.append(name)
+
+    f.visititems(visit)
+    return names
+
+
+def read_table_group(grp: h5py.Group, path=None) -> QTable:
+    """Read one table group into a QTable (columns with units become Quantities)."""
+    table = QTable()
+    for cname, ds in grp.items():
+        if not isinstance(ds, h5py.Dataset):
+            continue
+        data = ds[()]
+        if data.dtype.kind == "S":
+            data = data.astype("U")
+        unit = ds.attrs.get("unit", "")
+        if isinstance(unit, bytes):
+            unit = unit.decode()
+        if unit and data.dtype.kind in "fiu":
+            try:
+                table[cname] = u.Quantity(data, unit)
+            except ValueError:
+                raise InputError(
+                    f"unit '{unit}' is not a valid astropy unit", path=path, column=cname
+                ) from None
+        else:
+            table[cname] = data
+    table.meta.update(_read_attrs(grp))
+    table.meta.pop("nrows", None)
+    return table
+
+
+def read_product(
+    path: str | os.PathLike,
+    kind: str | None = None,
+    specs: Mapping[str, TableSpec] | None = None,
+    load_arrays: bool = True,
+) -> Product:
+    """Read and validate a product.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    kind : str, optional
+        Required product kind.
+    specs : mapping of str to TableSpec, optional
+        Validation spec per table; a key ending in ``/*`` applies to every table
+        below that group (``"epochs/*"``). Tables named without a wildcard must exist.
+    load_arrays : bool
+        Whether to load array datasets (set False to skip large images).
+
+    Returns
+    -------
+    Product
+    """
+    path = Path(path)
+    specs = dict(specs or {})
+    with open_product(path, kind) as f:
+        attrs = _read_attrs(f)
+        tables = {name: read_table_group(f[name], path) for name in _table_groups(f)}
+        arrays = {}
+        if load_arrays:
+            for name in _array_datasets(f):
+                ds = f[name]
+                unit = ds.attrs.get("unit", "")
+                if isinstance(unit, bytes):
+                    unit = unit.decode()
+                data = ds[()]
+                arrays[name] = u.Quantity(data, unit, copy=False) if unit else data
+    for key, spec in specs.items():
+        if key.endswith("/*"):
+            prefix = key[:-1]
+            matched = [n for n in tables if n.startswith(prefix)]
+            if not matched:
+                raise InputError(f"no tables under '{prefix}' found", path=path)
+        else:
+            if key not in tables:
+                raise InputError(f"table '{key}' missing", path=path)
+            matched = [key]
+        for name in matched:
+            tables[name] = validate_table(tables[name], spec, path=path, table_name=name)
+    return Product(
+        path=path, kind=attrs.get("kind", kind or ""), attrs=attrs, tables=tables, arrays=arrays
+    )
+
+
+def validate_table(table, spec: TableSpec, path=None, table_name: str | None = None) -> QTable:
+    """Check a table against a spec and convert its columns to the spec's units.
+
+    Parameters
+    ----------
+    table : astropy.table.Table or QTable
+    spec : TableSpec
+    path : optional
+        File name used in error messages.
+    table_name : str, optional
+        Table name used in error messages.
+
+    Returns
+    -------
+    QTable
+        A copy with columns converted to the spec's units.
+
+    Raises
+    ------
+    InputError
+        Naming the file and column: missing or misspelled columns, wrong or
+        missing units, NaN/inf values, duplicate IDs, an empty table.
+    """
+    where = f" (table '{table_name}')" if table_name else ""
+    qt = QTable(table) if not isinstance(table, QTable) else table.copy(copy_data=False)
+    if len(qt) == 0 and not spec.allow_empty:
+        raise InputError(f"table is empty{where}; at least one row is needed", path=path)
+    colnames = list(qt.colnames)
+    for cname in spec.required:
+        if cname not in colnames:
+            close = difflib.get_close_matches(cname, colnames, n=1, cutoff=0.6)
+            close = (
+                difflib.get_close_matches(
+                    cname.lower(), [c.lower() for c in colnames], n=1, cutoff=0.6
+                )
+                or close
+            )
+            hint = f"; did you mean '{close[0]}'?" if close else f"; found {colnames}"
+            raise InputError(f"required column missing{where}{hint}", path=path, column=cname)
+    wanted = {**spec.optional, **spec.required}
+    for cname, unit in wanted.items():
+        if cname not in colnames:
+            continue
+        qt[cname] = _convert_column(qt[cname], unit, path, cname, where)
+        values = qt[cname]
+        arr = values.value if isinstance(values, u.Quantity) else np.asarray(values)
+        if arr.dtype.kind == "f" and cname not in spec.allow_nan and not np.all(np.isfinite(arr)):
+            nbad = int(np.count_nonzero(~np.isfinite(arr)))
+            raise InputError(
+                f"{nbad} NaN or infinite value(s){where}; all values must be finite",
+                path=path,
+                column=cname,
+            )
+    if spec.id_column and spec.id_column in colnames and len(qt) > 0:
+        ids = np.asarray(qt[spec.id_column])
+        uniq, counts = np.unique(ids, return_counts=True)
+        if np.any(counts > 1):
+            dup = uniq[counts > 1][:5].tolist()
+            raise InputError(f"duplicate IDs{where}: {dup}", path=path, column=spec.id_column)
+    return qt
+
+
+def _convert_column(col, unit: str, path, cname: str, where: str):
+    target = u.Unit(unit) if unit else u.dimensionless_unscaled
+    if isinstance(col, u.Quantity):
+        try:
+            return col.to(target)
+        except u.UnitConversionError:
+            raise InputError(
+                f"unit '{col.unit}' cannot be converted to '{target}'{where}",
+                path=path,
+                column=cname,
+            ) from None
+    col_unit = getattr(col, "unit", None)
+    if col_unit is not None and str(col_unit) != "":
+        try:
+            return u.Quantity(np.asarray(col), col_unit).to(target)
+        except (u.UnitConversionError, ValueError):
+            raise InputError(
+                f"unit '{col_unit}' cannot be converted to '{target}'{where}",
+                path=path,
+                column=cname,
+            ) from None
+    if unit:
+        raise InputError(
+            f"column has no unit{where}; expected a unit convertible to '{target}'",
+            path=path,
+            column=cname,
+        )
+    arr = np.asarray(col)
+    if arr.dtype.kind not in "iufb":
+        raise InputError(
+            f"expected numbers{where}, found dtype {arr.dtype}", path=path, column=cname
+        )
+    return arr
+
+
+def as_table(obj) -> Table:
+    """Return ``obj`` as an astropy Table (accepts mappings of columns)."""
+    if isinstance(obj, Table):
+        return obj
+    return QTable(dict(obj))

@@ -1,0 +1,2 @@
+"""Dynamics: dispersion profiles, Jeans models, emcee fits and IMBH model
+comparison."""

@@ -1,0 +1,2 @@
+"""Measurement: ePSF building, forced PSF fitting, cross-matching, proper
+motions and accuracy reports."""

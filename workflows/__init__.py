@@ -1,0 +1,1 @@
+"""Workflow files, the caching runner and the command-line interface."""
