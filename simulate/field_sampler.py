@@ -51,8 +51,11 @@ class SamplerResolution:
         Speed grid points per row when building the speed table.
     n_radius : int
         Points of the projected-radius CDF.
+    n_energy : int
+        Energy grid of the Eddington DF table.
     """
 
+    n_energy: int = 400
     n_rows: int = 160
     n_levels: int = 513
     n_los: int = 512
@@ -60,7 +63,7 @@ class SamplerResolution:
     n_radius: int = 4096
 
     def __post_init__(self):
-        for name in ("n_rows", "n_levels", "n_los", "n_speed", "n_radius"):
+        for name in ("n_energy", "n_rows", "n_levels", "n_los", "n_speed", "n_radius"):
             if getattr(self, name) < 8:
                 raise ValueError(f"{name} must be at least 8, got {getattr(self, name)}")
 

@@ -316,3 +316,21 @@ def build_mass_model(
     mass = norm * m_shape
     psi = _relative_potential(r, rho, mass, bh_mass)
     return MassModel(tracer, stellar_mass, bh_mass, norm, r, rho, mass, psi)
+
+
+def projected_radii(tracer: TracerProfile, n: int = 200) -> tuple[float, float]:
+    """Core radius (Sigma = Sigma_0 / 2) and projected half-mass radius [pc].
+
+    Computed from the tracer shape (cusp included) by line-of-sight integration
+    on a grid; used to scale models to observed radii.
+    """
+    r_t = tracer.truncation_radius
+    radii = np.geomspace(tracer.scale_radius * 1e-4, r_t * (1 - 1e-6), n)
+    t = np.arcsinh(np.sqrt(r_t**2 - radii**2) / radii)[:, None] * np.linspace(0, 1, 600)
+    sigma = 2 * np.trapezoid(
+        tracer.shape(radii[:, None] * np.cosh(t)) * radii[:, None] * np.cosh(t), t, axis=1
+    )
+    core = float(np.interp(0.5, sigma[::-1] / sigma[0], radii[::-1]))
+    cum = cumulative_trapezoid(sigma * 2 * np.pi * radii**2, np.log(radii), initial=0.0)
+    half = float(np.exp(np.interp(0.5, cum / cum[-1], np.log(radii))))
+    return core, half
