@@ -268,7 +268,8 @@ def central_dispersion_cored(tracer: TracerProfile, stellar_mass: float) -> floa
 def influence_radius(tracer: TracerProfile, stellar_mass: float, bh_mass: float) -> float:
     """BH influence radius ``G M_BH / sigma_0^2`` [pc] of the cored model."""
     sigma0 = central_dispersion_cored(tracer, stellar_mass)
-    return G_PC * bh_mass / sigma0**2
+    # a negligible BH still gets a resolvable (if irrelevant) cusp radius
+    return max(G_PC * bh_mass / sigma0**2, 1e-9 * tracer.scale_radius)
 
 
 def build_mass_model(
@@ -306,7 +307,7 @@ def build_mass_model(
     r_hi = tracer.truncation_radius * (1.0 - 1e-7)
     r_lo = tracer.scale_radius * 1e-6 if r_min is None else _value(r_min, "pc")
     if tracer.cusp_gamma > 0:
-        r_lo = min(r_lo, tracer.cusp_radius * 1e-4)
+        r_lo = max(min(r_lo, tracer.cusp_radius * 1e-4), tracer.scale_radius * 1e-13)
     r = np.geomspace(r_lo, r_hi, n_grid)
     shape = tracer.shape(r)
     shape = np.maximum(shape, np.finfo(float).tiny)
