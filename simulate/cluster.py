@@ -162,7 +162,7 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
     }
 
 
-def model_from_params(params: dict, n_energy: int = 400) -> ClusterModel:
+def model_from_params(params: dict, n_energy: int = 800) -> ClusterModel:
     """Rebuild the mass model and DF from a ``model_params`` dict.
 
     Parameters

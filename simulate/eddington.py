@@ -85,7 +85,7 @@ def check_isotropic_df_exists(cusp_gamma: float, bh_mass: float) -> None:
         )
 
 
-def eddington_df(model: MassModel, n_energy: int = 400, n_nodes: int = 96) -> DistributionFunction:
+def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> DistributionFunction:
     """Tabulate the isotropic DF of ``model`` by Eddington inversion.
 
     Parameters

@@ -55,7 +55,7 @@ class SamplerResolution:
         Energy grid of the Eddington DF table.
     """
 
-    n_energy: int = 400
+    n_energy: int = 800
     n_rows: int = 160
     n_levels: int = 513
     n_los: int = 512

@@ -13,11 +13,20 @@ tangential proper motion) equals the line-of-sight one, ``sigma_p(R)``.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
-from scipy.integrate import quad
+from scipy.integrate import IntegrationWarning, quad
 from scipy.interpolate import CubicSpline
 
 from mavispm.simulate.profiles import G_PC
+
+
+def _quad(fn, a, b, **kw):
+    """``scipy.integrate.quad`` value, silencing round-off warnings at tiny tails."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IntegrationWarning)
+        return quad(fn, a, b, **kw)[0]
 
 
 class JeansReference:
@@ -42,7 +51,7 @@ class JeansReference:
         s = -np.log(self.rho(r[1]) / self.rho(r[0])) / np.log(r[1] / r[0])
         mass = [4 * np.pi * self.rho(r[0]) * r[0] ** 3 / (3 - min(max(s, 0.0), 2.9))]
         for a, b in zip(r[:-1], r[1:]):
-            mass.append(mass[-1] + quad(lambda x: 4 * np.pi * x * x * self.rho(x), a, b)[0])
+            mass.append(mass[-1] + _quad(lambda x: 4 * np.pi * x * x * self.rho(x), a, b))
         self._lnm = CubicSpline(np.log(r), np.log(mass))
         self.total_mass = mass[-1]
 
@@ -51,7 +60,7 @@ class JeansReference:
 
         p = [0.0]
         for a, b in zip(r[::-1][1:], r[::-1][:-1]):
-            p.append(p[-1] + quad(jeans_integrand, a, b, limit=100)[0])
+            p.append(p[-1] + _quad(jeans_integrand, a, b, limit=100))
         p = np.array(p[::-1])
         self._r = r
         self._lnp = CubicSpline(np.log(r[:-1]), np.log(p[:-1]))
@@ -69,12 +78,12 @@ class JeansReference:
     def surface_density(self, R):
         """``Sigma(R)`` [solMass/pc^2]."""
         zmax = np.sqrt(max(self.r_max**2 - R * R, 0.0))
-        return 2 * quad(lambda z: self.rho(np.hypot(R, z)), 0, zmax, limit=200, points=[R])[0]
+        return 2 * _quad(lambda z: self.rho(np.hypot(R, z)), 0, zmax, limit=200, points=[R])
 
     def projected_dispersion2(self, R):
         """Projected 1-D velocity dispersion squared ``sigma_p^2(R)`` [(km/s)^2]."""
         zmax = np.sqrt(max(self.r_max**2 - R * R, 0.0))
-        num = quad(lambda z: self.rho_sigma2(np.hypot(R, z)), 0, zmax, limit=200, points=[R])[0]
+        num = _quad(lambda z: self.rho_sigma2(np.hypot(R, z)), 0, zmax, limit=200, points=[R])
         return 2 * num / self.surface_density(R)
 
 
