@@ -309,6 +309,36 @@ def _in_offset_field(settings, stars, distance):
     return in_square(xf, yf, 0.5 * settings.field_size + settings.margin)
 
 
+def n_stars_for_circle(
+    settings: ClusterSettings, n_circle: int, radius: float, model: ClusterModel | None = None
+) -> int:
+    """``n_stars`` that gives on average ``n_circle`` luminous stars within ``radius``.
+
+    Parameters
+    ----------
+    settings : ClusterSettings
+        Field geometry and model (no offset).
+    n_circle : int
+        Wanted mean number of luminous stars with projected radius < ``radius``.
+    radius : float
+        Projected radius [arcsec]; must fit in the field (``<= field_size / 2``).
+    model : ClusterModel, optional
+
+    Returns
+    -------
+    int
+    """
+    if not 0 < radius <= 0.5 * settings.field_size:
+        raise ValueError(f"radius must be in (0, field_size/2], got {radius} arcsec")
+    model = model or build_cluster_model(settings)
+    distance = model.params["distance"]
+    half, margin = _field_geometry(settings, distance)
+    sampler = build_field_sampler(model.mass, model.df, half, margin, settings.resolution)
+    grid, cdf = sampler.radius_grid, sampler.radius_cdf["field"]
+    fraction = float(np.interp(arcsec_to_pc(radius, distance), grid, cdf))
+    return int(round(n_circle / max(fraction, 1e-300)))
+
+
 def stars_to_epoch_tables(stars: dict, settings: ClusterSettings, distance: float) -> dict:
     """Field-frame epoch tables (``docs/formats.md`` catalogue columns) from cluster-frame stars.
 
@@ -429,6 +459,7 @@ __all__ = [
     "build_cluster_model",
     "catalogue_attrs",
     "model_from_params",
+    "n_stars_for_circle",
     "resolve_model_params",
     "sample_stars",
     "simulate_catalogue",

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mavispm.simulate import population as pop
-from mavispm.simulate.cluster import build_cluster_model, simulate_catalogue
+from mavispm.simulate.cluster import build_cluster_model, n_stars_for_circle, simulate_catalogue
 from mavispm.simulate.cluster_settings import ClusterSettings
 from mavispm.simulate.projection import (
     pm_to_velocity,
@@ -102,3 +102,13 @@ def test_offset_field_gets_about_the_requested_count():
     inside = (np.abs(t["x"].value) <= 15) & (np.abs(t["y"].value) <= 15) & t["luminous"]
     assert abs(inside.sum() - 1500) < 5 * np.sqrt(1500)
     assert np.all(np.abs(t["x"].value) <= 16 + 1e-9) and np.all(np.abs(t["y"].value) <= 16 + 1e-9)
+
+
+def test_n_stars_for_circle_gives_the_requested_inner_count():
+    base = ClusterSettings(field_size=34.0, imbh_mass=1500.0)
+    n = n_stars_for_circle(base, 2000, 17.0)
+    assert n > 2000
+    tables, _ = simulate_catalogue(base.replace(n_stars=n), seed=8)
+    t = tables["e0"]
+    inner = (np.hypot(t["x"], t["y"]).to_value(u.arcsec) < 17.0) & t["luminous"]
+    assert abs(inner.sum() - 2000) < 4 * np.sqrt(2000)
