@@ -100,10 +100,11 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
     ValueError
         Unknown preset, or a cored tracer around an IMBH (An & Evans 2006).
     """
+    observed = observed_params(settings)
     preset = get_preset(settings.preset)
     tracer_kind = settings.tracer or preset.tracer
     w0 = settings.king_w0 if settings.king_w0 is not None else preset.king_w0
-    distance = settings.distance if settings.distance is not None else preset.distance
+    distance = observed["distance"]
     mass = settings.stellar_mass if settings.stellar_mass is not None else preset.stellar_mass
     bh = float(settings.imbh_mass)
     gamma = settings.cusp_gamma
@@ -125,7 +126,7 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
             cusp_radius = influence_radius(cored, mass, ref_bh)
     tracer = TracerProfile(tracer_kind, scale, w0, gamma, cusp_radius)
     return {
-        "preset": preset.name,
+        **observed,
         "tracer": tracer_kind,
         "king_w0": w0,
         "stellar_mass": mass,
@@ -133,29 +134,46 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
         "bh_mass": bh,
         "cusp_gamma": gamma,
         "cusp_radius": cusp_radius,
-        "distance": distance,
-        "extinction_v": (
-            settings.extinction_v if settings.extinction_v is not None else preset.extinction_v
-        ),
         "truncation_radius": tracer.truncation_radius,
         "core_radius": unit_core * scale,
         "half_mass_radius_projected": unit_half * scale,
         "central_dispersion_cored": central_dispersion_cored(cored, mass),
-        "ra_center": settings.ra_center if settings.ra_center is not None else preset.ra_center,
-        "dec_center": (
-            settings.dec_center if settings.dec_center is not None else preset.dec_center
-        ),
         "units": {
+            **observed["units"],
             "stellar_mass": "solMass",
-            "bh_mass": "solMass",
             "scale_radius": "pc",
             "cusp_radius": "pc",
             "truncation_radius": "pc",
             "core_radius": "pc",
             "half_mass_radius_projected": "pc",
+            "central_dispersion_cored": "km/s",
+        },
+    }
+
+
+def observed_params(settings: ClusterSettings) -> dict:
+    """Preset-or-setting values that do not depend on the dynamical model.
+
+    Returns
+    -------
+    dict
+        ``preset``, ``bh_mass`` [solMass], ``distance`` [kpc], ``extinction_v`` [mag],
+        ``ra_center``, ``dec_center`` [deg] and their ``units``.
+    """
+    preset = get_preset(settings.preset)
+
+    def pick(key):
+        value = getattr(settings, key)
+        return getattr(preset, key) if value is None else value
+
+    return {
+        "preset": preset.name,
+        "bh_mass": float(settings.imbh_mass),
+        **{k: pick(k) for k in ("distance", "extinction_v", "ra_center", "dec_center")},
+        "units": {
+            "bh_mass": "solMass",
             "distance": "kpc",
             "extinction_v": "mag",
-            "central_dispersion_cored": "km/s",
             "ra_center": "deg",
             "dec_center": "deg",
         },
@@ -460,6 +478,7 @@ __all__ = [
     "catalogue_attrs",
     "model_from_params",
     "n_stars_for_circle",
+    "observed_params",
     "resolve_model_params",
     "sample_stars",
     "simulate_catalogue",

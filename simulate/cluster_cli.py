@@ -15,6 +15,7 @@ from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.simulate.cluster import (
     catalogue_attrs,
+    observed_params,
     resolve_model_params,
     simulate_catalogue,
     stars_to_epoch_tables,
@@ -74,23 +75,7 @@ def build_catalogue(settings: ClusterSettings, seed: int):
 
 
 def _external_params(settings: ClusterSettings) -> dict:
-    from mavispm.simulate.presets import get_preset
-
-    preset = get_preset(settings.preset)
-
-    def pick(value, default):
-        return default if value is None else value
-
-    return {
-        "preset": preset.name,
-        "external": settings.external.path,
-        "bh_mass": settings.imbh_mass,
-        "distance": pick(settings.distance, preset.distance),
-        "extinction_v": pick(settings.extinction_v, preset.extinction_v),
-        "ra_center": pick(settings.ra_center, preset.ra_center),
-        "dec_center": pick(settings.dec_center, preset.dec_center),
-        "units": {"bh_mass": "solMass", "distance": "kpc", "extinction_v": "mag"},
-    }
+    return {**observed_params(settings), "external": settings.external.path}
 
 
 def run_stage(settings: Mapping, output: Path, seed: int) -> Path:

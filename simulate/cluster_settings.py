@@ -12,6 +12,7 @@ from typing import Literal
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.field_sampler import SamplerResolution
+from mavispm.simulate.population import MassFunction
 
 PM_CONVENTIONS = ("mas_per_yr", "arcsec_per_baseline")
 
@@ -84,11 +85,11 @@ class ClusterSettings:
     pm_sys_x: float = unit_field(0.0, "mas/yr")
     pm_sys_y: float = unit_field(0.0, "mas/yr")
     include_remnants: bool = True
-    mass_min: float = unit_field(0.15, "solMass")
-    mass_break: float = unit_field(0.5, "solMass")
-    mass_max: float = unit_field(100.0, "solMass")
-    alpha_low: float = 1.3
-    alpha_high: float = 2.3
+    mass_min: float = unit_field(MassFunction.mass_min, "solMass")
+    mass_break: float = unit_field(MassFunction.mass_break, "solMass")
+    mass_max: float = unit_field(MassFunction.mass_max, "solMass")
+    alpha_low: float = MassFunction.alpha_low
+    alpha_high: float = MassFunction.alpha_high
     resolution: SamplerResolution = field(default_factory=SamplerResolution)
     external: ExternalInput = field(default_factory=ExternalInput)
 
