@@ -21,8 +21,9 @@ from mavispm.simulate.cluster import (
     stars_to_epoch_tables,
 )
 from mavispm.simulate.cluster_settings import ClusterSettings
-from mavispm.simulate.eddington import NoIsotropicDFError
+from mavispm.simulate.eddington import NoIsotropicDFError, check_isotropic_df_exists
 from mavispm.simulate.external import read_external_stars
+from mavispm.simulate.presets import get_preset
 
 
 def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
@@ -36,17 +37,12 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
     """
     obj = from_mapping(ClusterSettings, settings, source=source)
     try:
-        from mavispm.simulate.presets import get_preset
-
         get_preset(obj.preset)
     except ValueError as exc:
         raise ConfigError(str(exc), key="preset", source=source) from None
-    gamma = obj.cusp_gamma
-    if obj.imbh_mass > 0 and gamma is not None and gamma < 0.5:
+    if obj.cusp_gamma is not None:
         try:
-            from mavispm.simulate.eddington import check_isotropic_df_exists
-
-            check_isotropic_df_exists(gamma, obj.imbh_mass)
+            check_isotropic_df_exists(obj.cusp_gamma, obj.imbh_mass)
         except NoIsotropicDFError as exc:
             raise ConfigError(str(exc), key="cusp_gamma", source=source) from None
     if obj.external.path and obj.external.format == "mavisim" and not obj.external.pm_convention:

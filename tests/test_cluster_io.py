@@ -189,3 +189,19 @@ def test_same_seed_same_catalogue(tmp_path):
     np.testing.assert_array_equal(ta["x"], tb["x"])
     np.testing.assert_array_equal(ta["pm_y"], tb["pm_y"])
     assert not np.array_equal(ta["x"][:100], tc["x"][:100])
+
+
+def test_cli_reads_toml_and_names_bad_keys(tmp_path, capsys):
+    good = tmp_path / "study.toml"
+    good.write_text('[cluster]\nn_stars = 200\nfield_size = "0.25 arcmin"\nepochs = [0, 3]\n')
+    out = tmp_path / "ok.h5"
+    assert main(["simulate", "cluster", "--config", str(good), "-o", str(out)]) == 0
+    cat = read_catalogue(out)
+    assert cat.attrs["field_size"] == 15 * u.arcsec
+    assert cat.epochs["e1"].meta["epoch"] == 3 * u.yr
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[cluster]\nimbh_mas = 1500\n")
+    assert main(["simulate", "cluster", "--config", str(bad), "-o", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.toml" in err and "imbh_mas" in err and "imbh_mass" in err
+    assert not (tmp_path / "x.h5").exists()
