@@ -33,7 +33,7 @@ from scipy.special import gammainc
 G_PC = float(const.G.to_value(u.pc * u.km**2 / u.s**2 / u.solMass))
 
 #: Radial grid size of the tabulated model (log-spaced).
-N_RADIAL_GRID = 3000
+N_RADIAL_GRID = 4000
 #: Plummer models are truncated at this many scale radii (density there ~1e-15 central).
 PLUMMER_TRUNCATION = 1.0e3
 
@@ -272,6 +272,18 @@ def influence_radius(tracer: TracerProfile, stellar_mass: float, bh_mass: float)
     return max(G_PC * bh_mass / sigma0**2, 1e-9 * tracer.scale_radius)
 
 
+def radial_grid(r_lo: float, r_hi: float, n: int) -> np.ndarray:
+    """Radii [pc]: log-spaced out to ``r_hi / 2``, then log-spaced in ``r_hi - r``.
+
+    The second part resolves the outer edge, where the relative potential goes
+    to zero linearly and the low-energy end of the DF is decided.
+    """
+    n_edge = max(n // 5, 8)
+    inner = np.geomspace(r_lo, 0.5 * r_hi, n - n_edge)
+    edge = r_hi - np.geomspace(0.5 * r_hi, 1e-9 * r_hi, n_edge + 1)[1:]
+    return np.concatenate([inner, edge])
+
+
 def build_mass_model(
     tracer: TracerProfile,
     stellar_mass,
@@ -292,7 +304,7 @@ def build_mass_model(
     r_min : float or Quantity, optional
         Innermost tabulated radius [pc]; default ``1e-6`` scale radii.
     n_grid : int
-        Number of log-spaced radii.
+        Number of radii (see :func:`radial_grid`).
 
     Returns
     -------
@@ -304,11 +316,11 @@ def build_mass_model(
         raise ValueError(f"stellar mass must be positive, got {stellar_mass} solMass")
     if not (np.isfinite(bh_mass) and bh_mass >= 0):
         raise ValueError(f"IMBH mass must be >= 0, got {bh_mass} solMass")
-    r_hi = tracer.truncation_radius * (1.0 - 1e-7)
+    r_hi = tracer.truncation_radius
     r_lo = tracer.scale_radius * 1e-6 if r_min is None else _value(r_min, "pc")
     if tracer.cusp_gamma > 0:
         r_lo = max(min(r_lo, tracer.cusp_radius * 1e-4), tracer.scale_radius * 1e-13)
-    r = np.geomspace(r_lo, r_hi, n_grid)
+    r = radial_grid(r_lo, r_hi, n_grid)
     shape = tracer.shape(r)
     shape = np.maximum(shape, np.finfo(float).tiny)
     m_shape = _cumulative_mass(r, shape)

@@ -27,6 +27,18 @@ def test_plummer_df_matches_analytic():
     np.testing.assert_allclose(df.f[sel], analytic[sel], rtol=1e-3)
 
 
+@pytest.mark.parametrize("w0", [3.0, 6.3, 9.0])
+def test_king_df_is_the_lowered_isothermal(w0):
+    """Eddington inversion of King's density recovers f ~ exp(E / sigma^2) - 1."""
+    model = build_mass_model(TracerProfile("king", 2.0, w0), 1e5)
+    df = eddington_df(model)
+    sigma2 = model.psi.max() / w0
+    e = df.energy
+    sel = e > 1e-3 * model.psi.max()
+    ratio = df.f[sel] / np.expm1(e[sel] / sigma2)
+    np.testing.assert_allclose(ratio / np.median(ratio), 1.0, rtol=5e-3)
+
+
 def test_plummer_mass_and_potential_match_analytic():
     a, mass = 3.0, 2e4
     model = build_mass_model(TracerProfile("plummer", a), mass)
