@@ -29,6 +29,8 @@ from mavispm.simulate.profiles import G_PC, MassModel
 MIN_GAMMA_WITH_BH = 0.5
 #: Negative DF values below this fraction of max(f) are numerical noise and clipped.
 NEGATIVE_TOLERANCE = 1e-6
+#: Smallest step in ln E of the DF grid (finer steps amplify quadrature noise in dF/dE).
+MIN_LOG_ENERGY_STEP = 2e-3
 
 
 class NoIsotropicDFError(ValueError):
@@ -85,6 +87,15 @@ def check_isotropic_df_exists(cusp_gamma: float, bh_mass: float) -> None:
         )
 
 
+def _energy_grid(model: MassModel, psi_lo: float, psi_hi: float, n: int) -> np.ndarray:
+    """Half log-spaced in E, half at Psi(r) of log-spaced radii (resolves the core)."""
+    radii = np.geomspace(model.r[0], model.r[-1], n - n // 2)
+    nodes = np.concatenate([np.geomspace(psi_lo, psi_hi, n // 2), model.relative_potential(radii)])
+    nodes = np.clip(np.sort(nodes), psi_lo * (1 + 1e-6), psi_hi)
+    keep = np.concatenate([[True], np.diff(np.log(nodes)) > MIN_LOG_ENERGY_STEP])
+    return nodes[keep]
+
+
 def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> DistributionFunction:
     """Tabulate the isotropic DF of ``model`` by Eddington inversion.
 
@@ -93,7 +104,8 @@ def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> Di
     model : MassModel
         Normalised stellar density and total relative potential.
     n_energy : int
-        Energy grid size (log-spaced over the model's Psi range).
+        Energy grid size: half log-spaced over the model's Psi range, half at the
+        potential of log-spaced radii (fine where Psi is flat, in cores).
     n_nodes : int
         Gauss-Legendre nodes per half of the Abel integral.
 
@@ -119,7 +131,7 @@ def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> Di
     def drho_dpsi(psi):
         return np.exp(np.interp(np.log(psi), lnpsi, lng))
 
-    energy = np.geomspace(psi_lo * (1 + 1e-6), psi_hi, n_energy)
+    energy = _energy_grid(model, psi_lo, psi_hi, n_energy)
     x, w = np.polynomial.legendre.leggauss(n_nodes)
     # F(E) = int_0^E rho'(Psi) dPsi / sqrt(E - Psi); lower part Psi in [psi_lo, E/2] in ln Psi
     split = np.maximum(energy / 2.0, psi_lo)
@@ -145,6 +157,7 @@ def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> Di
         raise NoIsotropicDFError(
             f"the isotropic DF of this model is negative (f/f_max = {min_raw:.2e} at "
             f"E = {e_bad:.3g} (km/s)^2); the density cannot be supported isotropically in "
-            "this potential. Steepen the cusp (cusp_gamma) or change the IMBH mass"
+            "this potential. Steepen or widen the cusp (cusp_gamma, cusp_radius), change the "
+            "IMBH mass, or refine resolution.n_energy if the model is nearly singular"
         )
     return DistributionFunction(energy, np.maximum(f, 0.0), min_raw)

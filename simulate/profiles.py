@@ -12,8 +12,8 @@ floats in those units.
 The cusp factor ``(1 + (r_cusp / r)**2) ** (gamma / 2)`` makes the density
 ``~ r**-gamma`` well inside ``r_cusp`` and leaves it unchanged outside, as in
 N-body models of clusters around a black hole (Bahcall-Wolf like cusps,
-gamma ~ 1.55). Its default radius is the BH influence radius
-``G M_BH / sigma_0**2`` (sigma_0: central 1-D dispersion of the cored model).
+gamma ~ 1.55). Its default radius is the BH influence radius, inside which the
+cored model holds ``2 M_BH`` of stars.
 """
 
 from __future__ import annotations
@@ -266,10 +266,19 @@ def central_dispersion_cored(tracer: TracerProfile, stellar_mass: float) -> floa
 
 
 def influence_radius(tracer: TracerProfile, stellar_mass: float, bh_mass: float) -> float:
-    """BH influence radius ``G M_BH / sigma_0^2`` [pc] of the cored model."""
-    sigma0 = central_dispersion_cored(tracer, stellar_mass)
+    """BH influence radius [pc]: where the cored model encloses ``2 M_BH`` of stars.
+
+    Inside it the point mass dominates the potential gradient. (A cusp confined to
+    the smaller radius ``G M_BH / sigma_0^2`` leaves a stretch where the flat core
+    sits in a BH-dominated potential, which has no non-negative isotropic DF.)
+    """
+    core = TracerProfile(tracer.kind, tracer.scale_radius, tracer.king_w0)
+    r = np.geomspace(core.scale_radius * 1e-7, core.truncation_radius, 3000)
+    m = _cumulative_mass(r, core.shape(r))
+    target = min(2.0 * bh_mass / stellar_mass, 0.5)
+    radius = float(np.exp(np.interp(np.log(target), np.log(m / m[-1]), np.log(r))))
     # a negligible BH still gets a resolvable (if irrelevant) cusp radius
-    return max(G_PC * bh_mass / sigma0**2, 1e-9 * tracer.scale_radius)
+    return max(radius, 1e-9 * tracer.scale_radius)
 
 
 def radial_grid(r_lo: float, r_hi: float, n: int) -> np.ndarray:
