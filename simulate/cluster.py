@@ -242,6 +242,11 @@ def _field_geometry(settings, distance):
     return arcsec_to_pc(big, distance), 0.0
 
 
+def _field_sampler(settings, model: ClusterModel) -> FieldSampler:
+    half, margin = _field_geometry(settings, model.params["distance"])
+    return build_field_sampler(model.mass, model.df, half, margin, settings.resolution)
+
+
 def _offset_field_fraction(settings, sampler: FieldSampler, distance) -> float:
     """Expected fraction of the big square's stars that fall in the offset field."""
     half = 0.5 * settings.field_size
@@ -280,9 +285,8 @@ def sample_stars(settings: ClusterSettings, seed: int, model: ClusterModel | Non
     """
     model = model or build_cluster_model(settings)
     distance = model.params["distance"]
-    half, margin = _field_geometry(settings, distance)
-    sampler = build_field_sampler(model.mass, model.df, half, margin, settings.resolution)
-    offset_mode = margin == 0 and (settings.offset_x or settings.offset_y)
+    sampler = _field_sampler(settings, model)
+    offset_mode = bool(settings.offset_x or settings.offset_y)  # see _field_geometry
     n_field = settings.n_stars
     if offset_mode:
         n_field = int(
@@ -350,8 +354,7 @@ def n_stars_for_circle(
         raise ValueError(f"radius must be in (0, field_size/2], got {radius} arcsec")
     model = model or build_cluster_model(settings)
     distance = model.params["distance"]
-    half, margin = _field_geometry(settings, distance)
-    sampler = build_field_sampler(model.mass, model.df, half, margin, settings.resolution)
+    sampler = _field_sampler(settings, model)
     grid, cdf = sampler.radius_grid, sampler.radius_cdf["field"]
     fraction = float(np.interp(arcsec_to_pc(radius, distance), grid, cdf))
     return int(round(n_circle / max(fraction, 1e-300)))
