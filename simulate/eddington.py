@@ -87,16 +87,9 @@ def check_isotropic_df_exists(cusp_gamma: float, bh_mass: float) -> None:
         )
 
 
-def _energy_grid(model: MassModel, psi_lo: float, psi_hi: float, n: int) -> np.ndarray:
-    """Half log-spaced in E, half at Psi(r) of log-spaced radii (resolves the core)."""
-    radii = np.geomspace(model.r[0], model.r[-1], n - n // 2)
-    nodes = np.concatenate([np.geomspace(psi_lo, psi_hi, n // 2), model.relative_potential(radii)])
-    nodes = np.clip(np.sort(nodes), psi_lo * (1 + 1e-6), psi_hi)
-    keep = np.concatenate([[True], np.diff(np.log(nodes)) > MIN_LOG_ENERGY_STEP])
-    return nodes[keep]
-
-
-def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> DistributionFunction:
+def eddington_df(
+    model: MassModel, n_energy: int = 800, n_nodes: int | None = None
+) -> DistributionFunction:
     """Tabulate the isotropic DF of ``model`` by Eddington inversion.
 
     Parameters
@@ -106,8 +99,9 @@ def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> Di
     n_energy : int
         Energy grid size: half log-spaced over the model's Psi range, half at the
         potential of log-spaced radii (fine where Psi is flat, in cores).
-    n_nodes : int
-        Gauss-Legendre nodes per half of the Abel integral.
+    n_nodes : int, optional
+        Gauss-Legendre nodes per half of the Abel integral; default
+        ``max(96, n_energy // 8)`` (dF/dE amplifies quadrature noise on fine grids).
 
     Returns
     -------
@@ -131,8 +125,8 @@ def eddington_df(model: MassModel, n_energy: int = 800, n_nodes: int = 96) -> Di
     def drho_dpsi(psi):
         return np.exp(np.interp(np.log(psi), lnpsi, lng))
 
-    energy = _energy_grid(model, psi_lo, psi_hi, n_energy)
-    x, w = np.polynomial.legendre.leggauss(n_nodes)
+    energy = model.potential_nodes(psi_lo * (1 + 1e-6), psi_hi, n_energy, MIN_LOG_ENERGY_STEP)
+    x, w = np.polynomial.legendre.leggauss(n_nodes or max(96, n_energy // 8))
     # F(E) = int_0^E rho'(Psi) dPsi / sqrt(E - Psi); lower part Psi in [psi_lo, E/2] in ln Psi
     split = np.maximum(energy / 2.0, psi_lo)
     a, b = np.log(psi_lo), np.log(split)

@@ -42,7 +42,8 @@ class SamplerResolution:
     Parameters
     ----------
     n_rows : int
-        Rows (conditioning values) of the line-of-sight and speed tables.
+        Rows (conditioning values) of the line-of-sight and speed tables (speed rows:
+        half log-spaced in Psi, half at Psi of log-spaced radii).
     n_levels : int
         Probability levels per row.
     n_los : int
@@ -257,7 +258,7 @@ def build_field_sampler(
     psi_hi = float(model.relative_potential(rows[0] * 0.999))
     psi_lo = float(model.relative_potential(model.r_max * 0.999))
     psi_lo = max(psi_lo, psi_hi * 1e-12)
-    psi_rows = np.geomspace(psi_lo, psi_hi, res.n_rows)
+    psi_rows = model.potential_nodes(psi_lo, psi_hi, res.n_rows, 1e-4, r_lo=rows[0])
     speed = _speed_quantiles(df, psi_rows, res, levels)
     speed_table = QuantileTable(np.log(psi_rows), np.nan_to_num(speed, nan=0.5))
     return FieldSampler(

@@ -222,6 +222,24 @@ class MassModel:
         r = np.clip(np.asarray(r, float), self.r[0], self.r_max)
         return np.exp(np.interp(np.log(r), np.log(self.r), np.log(self.mass)))
 
+    def potential_nodes(
+        self, psi_lo: float, psi_hi: float, n: int, min_log_step: float, r_lo: float | None = None
+    ) -> np.ndarray:
+        """Grid of Psi values [(km/s)^2] in [psi_lo, psi_hi], ascending.
+
+        Half log-spaced in Psi, half at Psi(r) of log-spaced radii from ``r_lo``
+        (default: the grid's first radius) to the edge, so that cores, where Psi is
+        nearly flat, are resolved. Nodes closer than ``min_log_step`` in ln Psi are merged.
+        """
+        r_lo = self.r[0] if r_lo is None else r_lo
+        radii = np.geomspace(r_lo, self.r_max, n - n // 2)
+        nodes = np.concatenate(
+            [np.geomspace(psi_lo, psi_hi, n // 2), self.relative_potential(radii)]
+        )
+        nodes = np.clip(np.sort(nodes), psi_lo, psi_hi)
+        keep = np.concatenate([[True], np.diff(np.log(nodes)) > min_log_step])
+        return nodes[keep]
+
     def relative_potential(self, r) -> np.ndarray:
         """Relative potential Psi(r) [(km/s)^2] including the point mass."""
         r = np.clip(np.asarray(r, float), self.r[0], self.r_max)

@@ -83,3 +83,22 @@ def test_every_star_is_bound_and_df_nonnegative(sampled):
 def test_field_holds_requested_luminous_count(sampled):
     settings, _, stars, _ = sampled
     assert np.count_nonzero((stars["region"] == 0) & stars["luminous"]) == settings.n_stars
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("tracer", ["plummer", "king"])
+@pytest.mark.parametrize("imbh", [0.0, 1500.0])
+def test_million_star_dispersion_profiles_match_jeans(tracer, imbh):
+    """Science-grade version: 1e6 field stars, 30 bins, both tracers."""
+    settings = ClusterSettings(
+        imbh_mass=imbh, n_stars=1_000_000, tracer=tracer, include_remnants=False
+    )
+    model = build_cluster_model(settings)
+    stars, _ = sample_stars(settings, seed=21, model=model)
+    m = model.mass
+    ref = JeansReference(m.density, m.bh_mass, m.r[0], m.r_max)
+    R, v_rad, v_tan = _sky_components(stars)
+    sigma2 = sigma2_interpolator(ref, R.min(), R.max(), n=60)
+    for v in (v_rad, v_tan):
+        chi2, dof = binned_dispersion_chi2(R, v, sigma2, 30, min_per_bin=30_000)
+        assert chi2 / dof < 2.0, (chi2, dof)
