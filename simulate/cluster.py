@@ -62,7 +62,8 @@ from mavispm.simulate.projection import (
 DEFAULT_CUSP_GAMMA = 1.55
 #: Star groups in stream order: (region, luminous).
 GROUPS = (("field", True), ("frame", True), ("field", False), ("frame", False))
-ARCMIN_PER_RAD = float((1 * u.rad).to_value(u.arcmin))
+#: Largest ratio of stars drawn to stars kept for an offset field.
+MAX_OFFSET_OVERSAMPLING = 200.0
 
 
 @dataclass(frozen=True)
@@ -288,12 +289,16 @@ def sample_stars(settings: ClusterSettings, seed: int, model: ClusterModel | Non
     sampler = _field_sampler(settings, model)
     offset_mode = bool(settings.offset_x or settings.offset_y)  # see _field_geometry
     n_field = settings.n_stars
+    if sampler.region_mass["field"] <= 0 and settings.n_stars > 0:
+        raise ValueError("the field holds no cluster stars (is it beyond the tidal radius?)")
     if offset_mode:
-        n_field = int(
-            round(
-                settings.n_stars / max(_offset_field_fraction(settings, sampler, distance), 1e-12)
+        fraction = _offset_field_fraction(settings, sampler, distance)
+        if settings.n_stars > 0 and fraction * MAX_OFFSET_OVERSAMPLING < 1:
+            raise ValueError(
+                f"the offset field holds only {fraction:.1e} of the stars of the square "
+                "enclosing it; field-only sampling would need too many stars: reduce the offset"
             )
-        )
+        n_field = int(round(settings.n_stars / max(fraction, 1e-300)))
     counts = _group_counts(settings, sampler, n_field)
     mf = _mass_function(settings)
     parts = []

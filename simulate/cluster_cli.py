@@ -66,7 +66,9 @@ def build_catalogue(settings: ClusterSettings, seed: int):
             tables = stars_to_epoch_tables(stars, settings, params["distance"])
             return tables, catalogue_attrs(settings, params, f"external: {settings.external.path}")
         return simulate_catalogue(settings, seed)
-    except NoIsotropicDFError as exc:
+    except (InputError, ConfigError):
+        raise
+    except ValueError as exc:  # impossible model or geometry (incl. NoIsotropicDFError)
         raise ConfigError(str(exc)) from None
 
 

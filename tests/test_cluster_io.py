@@ -205,3 +205,10 @@ def test_cli_reads_toml_and_names_bad_keys(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "bad.toml" in err and "imbh_mas" in err and "imbh_mass" in err
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_impossible_geometry_is_a_clear_error(tmp_path):
+    out = tmp_path / "far.h5"
+    with pytest.raises(ConfigError, match="offset"):
+        run_stage({"offset_x": "30 arcmin", "tracer": "plummer"}, out, seed=0)
+    assert not out.exists()
