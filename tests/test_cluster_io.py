@@ -4,6 +4,8 @@ import astropy.units as u
 import numpy as np
 import pytest
 from astropy.table import QTable, Table
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mavispm.core.catalogue import read_catalogue
 from mavispm.core.errors import ConfigError, InputError
@@ -211,4 +213,30 @@ def test_impossible_geometry_is_a_clear_error(tmp_path):
     out = tmp_path / "far.h5"
     with pytest.raises(ConfigError, match="offset"):
         run_stage({"offset_x": "30 arcmin", "tracer": "plummer"}, out, seed=0)
+    assert not out.exists()
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    drop=st.sets(st.sampled_from(["x", "y", "z", "vx", "vy", "vz"]), max_size=3),
+    junk_row=st.integers(0, 9),
+    junk=st.sampled_from([np.nan, np.inf, -np.inf, None]),
+)
+def test_mangled_snapshots_raise_input_errors_only(tmp_path_factory, drop, junk_row, junk):
+    rng = np.random.default_rng(junk_row)
+    t = QTable({k: rng.normal(size=10) * 0.1 * u.pc for k in ("x", "y", "z")})
+    for k in ("vx", "vy", "vz"):
+        t[k] = rng.normal(size=10) * u.km / u.s
+    t["mass"] = np.full(10, 0.5) * u.solMass
+    if junk is not None:
+        t["vz"][junk_row] = junk * u.km / u.s
+    t.remove_columns(sorted(drop))
+    path = tmp_path_factory.mktemp("mangled") / "snap.ecsv"
+    t.write(path)
+    out = path.with_suffix(".h5")
+    if not drop and junk is None:
+        assert run_stage(_external(path), out, seed=0).exists()
+        return
+    with pytest.raises(InputError, match="column '(x|y|z|vx|vy|vz)'"):
+        run_stage(_external(path), out, seed=0)
     assert not out.exists()
