@@ -20,6 +20,7 @@ All outputs are in mas^2 (covariances) and arcsec (positions).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -169,6 +170,7 @@ class TiltCovariance:
         return out
 
 
+@functools.lru_cache(maxsize=16)
 def tilt_covariance_function(
     atmosphere: AtmosphereSettings, pupil: PupilSettings, max_separation: float
 ) -> TiltCovariance:
@@ -218,7 +220,10 @@ class TipTiltField:
             return
         theta = self.ngs_xy * 1000 / MAS_PER_RAD  # rad
         reach = np.hypot(*theta.T).max() if theta.size else 0.0
-        self._cov = tilt_covariance_function(atmosphere, pupil, 2 * reach + 1e-3)
+        # tabulate to a generous, rounded separation so asterisms share the table
+        needed = 2 * reach + 60.0 / 206265.0
+        step = 100.0 / 206265.0
+        self._cov = tilt_covariance_function(atmosphere, pupil, step * np.ceil(needed / step))
         n = theta.shape[0]
         self._theta = theta
         css = np.zeros((2 * n, 2 * n))
