@@ -154,7 +154,7 @@ def build_halo(
     outer_scale: float,
     control_radius_mas: float,
     stamp_half_width_mas: float,
-    n_radius: int = 8000,
+    oversampling: float = 1.0,
 ) -> Halo:
     """Compute the halo from the on-axis radial PSD.
 
@@ -169,6 +169,8 @@ def build_halo(
         Pupil diameter (m).
     r0, outer_scale : float
         Atmosphere at that wavelength (m).
+    oversampling : float
+        Sampling of the Hankel integrals relative to Nyquist (accuracy knob).
     """
     # radial PSD over a wide log grid
     f_hi = 4 * (settings.size / 2 / ARCSEC_PER_RAD) / wavelength
@@ -181,12 +183,15 @@ def build_halo(
     w = psd * 2 * np.pi * f * np.gradient(f)
     r_coarse = diameter * np.linspace(0.0, 1.0, 400) ** 2  # dense near the r -> 0 cusp
     d_coarse = 2 * ((1 - j0(2 * np.pi * r_coarse[:, None] * f[None, :])) @ w)
+    alpha_max = settings.size / 2 * np.sqrt(2) / ARCSEC_PER_RAD
+    # Nyquist in r for the largest angle, and in angle for the pupil size
+    n_radius = int(np.ceil(oversampling * 2 * diameter * alpha_max / wavelength)) + 64
+    n_alpha = int(np.ceil(oversampling * 2 * diameter * alpha_max / wavelength)) + 64
     r = np.linspace(0.0, diameter, n_radius)
     dfun = np.interp(r, r_coarse, d_coarse)
     otf = _annular_otf(r, diameter, obscuration_ratio) * np.exp(-0.5 * dfun)
     # PSF(alpha) = 2 pi int OTF(r) J0(2 pi r alpha / lambda) r dr / lambda^2, per rad^2
-    alpha_max = settings.size / 2 * np.sqrt(2) / ARCSEC_PER_RAD
-    alpha = np.linspace(0.0, alpha_max, 4000)
+    alpha = np.linspace(0.0, alpha_max, n_alpha)
     dr = r[1] - r[0]
     wr = otf * r * dr
     wr[0] *= 0.5

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError, InputError
-from mavispm.simulate.optics import OpticsSettings, build_optics
+from mavispm.simulate.optics import Optics, OpticsSettings, build_optics
 from mavispm.simulate.optics import validate_settings as _validate
 from mavispm.simulate.psf_grid import read_grid, write_grid
 
@@ -47,7 +47,13 @@ def run_stage(
     Path
         ``output``.
     """
-    s = validate_settings(settings)
+    return _build_and_write(validate_settings(settings), output, cache_dir, progress)[0]
+
+
+def _build_and_write(
+    s: OpticsSettings, output: str | Path, cache_dir: Path | None, progress: bool
+) -> tuple[Path, Optics]:
+    """Build the optics and write the grid product; returns (path, optics)."""
     optics = build_optics(s, cache_dir=cache_dir, progress=progress)
     output = Path(output)
     if optics.cache_path is not None and optics.cache_path.exists():
@@ -56,7 +62,7 @@ def run_stage(
     else:  # pragma: no cover - the cache always writes a file
         raise InputError("PSF grid cache file missing after build", path=optics.cache_path)
     write_grid(output, result, key, config=to_mapping(s))
-    return output
+    return output, optics
 
 
 def load_scene_optics(path: str | Path) -> Mapping:
@@ -79,12 +85,11 @@ def _handler(args: argparse.Namespace) -> int:
     table = load_scene_optics(args.scene) if args.scene else {}
     settings = validate_settings(table, source=str(args.scene) if args.scene else None)
     cache = Path(args.cache_dir) if args.cache_dir else None
-    out = run_stage(settings, args.output, cache_dir=cache, progress=not args.quiet)
+    out, optics = _build_and_write(settings, args.output, cache, not args.quiet)
     print(f"wrote {out}")
     if args.plots:
         from mavispm.simulate.optics_plots import draw_all
 
-        optics = build_optics(settings, cache_dir=cache, progress=False)
         for p in draw_all(optics, Path(args.plots)):
             print(f"wrote {p}")
     return 0
