@@ -26,6 +26,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from mavispm.core.config import unit_field
+from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import open_product, write_product
 from mavispm.simulate import ao_psd
 from mavispm.simulate.ao_psd import AOSettings
@@ -247,6 +248,129 @@ def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(n)[ok] * df, s[ok] / c[ok]
 
 
+@dataclass
+class ResidualPSDModel:
+    """The residual PSD of one configuration on the PSD grid.
+
+    The direction-independent parts (fitting, aliasing) are stored once; the
+    servo-lag, tomography and noise parts come per direction from the
+    tomographic operator on the control-region frequencies ``sel``.
+
+    Attributes
+    ----------
+    sampling : FourierSampling
+    fx, fy : ndarray
+        Centred frequency grid (m^-1).
+    fitting, aliasing : ndarray
+        Direction-independent PSDs (rad^2 m^2).
+    sel : ndarray of bool
+        Control-region frequencies except zero.
+    operator : TomographicOperator or None
+        None for a zero residual.
+    hf_variance : float
+        Fitting variance beyond the PSD grid (rad^2).
+    wavelength : float
+        (m)
+    """
+
+    sampling: object
+    fx: np.ndarray
+    fy: np.ndarray
+    fitting: np.ndarray
+    aliasing: np.ndarray
+    sel: np.ndarray
+    operator: object
+    hf_variance: float
+    wavelength: float
+
+    def psds(self, directions: np.ndarray, chunk: int):
+        """Yield the full PSD for each direction (rad), computing ``chunk`` at a time."""
+        base = self.fitting + self.aliasing
+        for start in range(0, directions.shape[0], chunk):
+            part = directions[start : start + chunk]
+            res = (
+                ao_psd.correction_residual_psd(self.operator, part)
+                if self.operator is not None
+                else None
+            )
+            for j in range(part.shape[0]):
+                psd = base.copy()
+                if res is not None:
+                    psd[self.sel] += res[j]
+                yield psd
+
+    def budget(self, position_arcsec=(0.0, 0.0)) -> dict[str, float]:
+        """RMS wavefront error (nm) of each term in one direction."""
+        df2 = self.sampling.df**2
+        to_nm = self.wavelength * 1e9 / (2 * np.pi)
+        out = {
+            "fitting": np.sqrt(self.fitting.sum() * df2 + self.hf_variance) * to_nm,
+            "aliasing": np.sqrt(self.aliasing.sum() * df2) * to_nm,
+            "servo_tomography": 0.0,
+            "noise": 0.0,
+        }
+        if self.operator is not None:
+            d = np.asarray([position_arcsec], float) / ARCSEC_PER_RAD
+            corr, noise = ao_psd.correction_residual_psd(self.operator, d, split=True)
+            out["servo_tomography"] = np.sqrt(corr.sum() * df2) * to_nm
+            out["noise"] = np.sqrt(noise.sum() * df2) * to_nm
+        out["total"] = float(np.sqrt(sum(v**2 for v in out.values())))
+        return {k: float(v) for k, v in out.items()}
+
+
+def residual_psd_model(
+    psf: PSFSettings,
+    pupil: PupilSettings,
+    atmosphere: AtmosphereSettings,
+    ao: AOSettings,
+    residual: bool = True,
+) -> ResidualPSDModel:
+    """Set up the PSD grid and the direction-independent terms.
+
+    Raises
+    ------
+    ConfigError
+        If the PSF pixel is coarser than Nyquist.
+    """
+    lam = psf.wavelength * 1e-9
+    try:
+        smp = fourier_sampling(
+            lam,
+            psf.pixel_scale,
+            pupil.diameter,
+            psf.pupil_sampling,
+            psf.psd_padding,
+            psf.stamp_size * 1000,
+        )
+    except ValueError as exc:
+        raise ConfigError(str(exc), key="scene.optics.psf.pixel_scale") from None
+    fx, fy = smp.frequencies()
+    r0 = fried_parameter(atmosphere, lam)
+    l0 = atmosphere.outer_scale
+    d = ao.pitch(pupil.diameter)
+    fc = ao.control_frequency(pupil.diameter)
+    fitting = np.zeros_like(fx)
+    aliasing = np.zeros_like(fx)
+    hf_var = 0.0
+    inside = ao_psd.control_mask(fx, fy, fc)
+    sel = inside & ((fx != 0) | (fy != 0))
+    op = None
+    if residual:
+        if ao.fitting:
+            fitting = ao_psd.fitting_psd(fx, fy, fc, r0, l0)
+            f_eq = smp.f_max * 2 / np.sqrt(np.pi)  # circle with the PSD grid's area
+            hf_var = von_karman_variance_beyond(f_eq, r0, l0)
+        if ao.aliasing:
+            # aliased high frequencies reach the DMs through the loop like noise
+            gain = ao_psd.noise_gain(ao)
+            aliasing[inside] = gain * ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0)
+        fxs, fys = fx[sel], fy[sel]
+        sigma_rad = 2 * np.pi * ao.lgs_slope_noise * 1e-9 / lam
+        noise = ao_psd.noise_psd(fxs, fys, d, sigma_rad) if ao.noise else np.zeros_like(fxs)
+        op = ao_psd.tomographic_operator(fxs, fys, ao, layers(atmosphere), r0, l0, noise)
+    return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam)
+
+
 def compute_fourier_grid(
     psf: PSFSettings,
     pupil: PupilSettings,
@@ -275,65 +399,24 @@ def compute_fourier_grid(
     hf_variance : float
         Fitting variance beyond the PSD grid (rad^2).
     """
-    lam = psf.wavelength * 1e-9
-    try:
-        smp = fourier_sampling(
-            lam,
-            psf.pixel_scale,
-            pupil.diameter,
-            psf.pupil_sampling,
-            psf.psd_padding,
-            psf.stamp_size * 1000,
-        )
-    except ValueError as exc:
-        from mavispm.core.errors import ConfigError
-
-        raise ConfigError(str(exc), key="scene.optics.psf.pixel_scale") from None
-    fx, fy = smp.frequencies()
+    model = residual_psd_model(psf, pupil, atmosphere, ao, residual)
+    smp = model.sampling
     otf_tel = telescope_otf(pupil, smp)
-    r0 = fried_parameter(atmosphere, lam)
-    l0 = atmosphere.outer_scale
-    d = ao.pitch(pupil.diameter)
-    fc = ao.control_frequency(pupil.diameter)
-    base = np.zeros_like(fx)
-    hf_var = 0.0
-    inside = ao_psd.control_mask(fx, fy, fc)
-    sel = inside & ((fx != 0) | (fy != 0))
-    op = None
-    if residual:
-        if ao.fitting:
-            base += ao_psd.fitting_psd(fx, fy, fc, r0, l0)
-            f_eq = smp.f_max * 2 / np.sqrt(np.pi)  # circle with the PSD grid's area
-            hf_var = von_karman_variance_beyond(f_eq, r0, l0)
-        if ao.aliasing:
-            # aliased high frequencies reach the DMs through the loop like noise
-            gain = ao_psd.noise_gain(ao)
-            base[inside] += gain * ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0)
-        fxs, fys = fx[sel], fy[sel]
-        sigma_rad = 2 * np.pi * ao.lgs_slope_noise * 1e-9 / lam
-        noise = ao_psd.noise_psd(fxs, fys, d, sigma_rad) if ao.noise else np.zeros_like(fxs)
-        op = ao_psd.tomographic_operator(fxs, fys, ao, layers(atmosphere), r0, l0, noise)
     k_dirs = positions.shape[0]
     psfs = np.empty((k_dirs, smp.n_stamp, smp.n_stamp))
     strehl = np.empty(k_dirs)
     profile = (np.zeros(0), np.zeros(0))
     dirs = np.asarray(positions, float) / ARCSEC_PER_RAD
     bar = tqdm(total=k_dirs, desc="PSF grid", unit="psf", disable=not progress, leave=False)
-    for start in range(0, k_dirs, psf.chunk):
-        chunk = dirs[start : start + psf.chunk]
-        res = ao_psd.correction_residual_psd(op, chunk) if op is not None else None
-        for j in range(chunk.shape[0]):
-            psd = base.copy()
-            if res is not None:
-                psd[sel] += res[j]
-            if start + j == 0:
-                profile = radial_average(fx, fy, psd, smp.df)
-            otf_ao = np.exp(-0.5 * structure_function(psd, smp.df))
-            psfs[start + j] = psf_from_otf(otf_tel * otf_ao, smp)
-            strehl[start + j] = strehl_ratio(otf_tel, otf_ao) * np.exp(-hf_var)
-            bar.update(1)
+    for k, psd in enumerate(model.psds(dirs, psf.chunk)):
+        if k == 0:
+            profile = radial_average(model.fx, model.fy, psd, smp.df)
+        otf_ao = np.exp(-0.5 * structure_function(psd, smp.df))
+        psfs[k] = psf_from_otf(otf_tel * otf_ao, smp)
+        strehl[k] = strehl_ratio(otf_tel, otf_ao) * np.exp(-model.hf_variance)
+        bar.update(1)
     bar.close()
-    return psfs, strehl, profile, hf_var
+    return psfs, strehl, profile, model.hf_variance
 
 
 def compute_grid(
@@ -406,8 +489,6 @@ def write_grid(path: Path, result: GridResult, key: str, config: dict | None = N
 
 def read_grid(path: Path) -> GridResult:
     """Read a ``psfgrid`` product written by :func:`write_grid`."""
-    from mavispm.core.errors import InputError
-
     with open_product(path, "psfgrid") as f:
         try:
             cube = np.asarray(f["cube"], float)
