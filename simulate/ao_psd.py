@@ -48,9 +48,8 @@ class AOSettings:
     lgs_radius : float
         Radius of the LGS constellation (arcsec).
     lgs_height : float
-        Sodium-layer altitude (m); only used to reject impossible DM heights.
-    wfs_wavelength : float
-        LGS WFS wavelength (nm).
+        Sodium-layer altitude (m); only used to reject impossible DM heights
+        (the LGS cone effect is not modelled: the LGS are treated as at infinity).
     lgs_slope_noise : float
         RMS noise on one sub-aperture's wavefront difference (nm of OPD per frame).
     loop_frequency : float
@@ -74,7 +73,6 @@ class AOSettings:
     n_lgs: int = 8
     lgs_radius: float = unit_field(17.5, "arcsec", "LGS constellation radius")
     lgs_height: float = unit_field(90000.0, "m", "sodium layer altitude")
-    wfs_wavelength: float = unit_field(589.0, "nm", "LGS WFS wavelength")
     lgs_slope_noise: float = unit_field(27.0, "nm", "sub-aperture wavefront-difference noise")
     loop_frequency: float = unit_field(1000.0, "Hz", "HO loop rate")
     loop_gain: float = 0.5
