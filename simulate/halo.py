@@ -89,6 +89,12 @@ def _annular_otf(r, diameter, eps):
     return area / (np.pi * (big**2 - small**2))
 
 
+def _radius_grid(n: int, pixel_scale: float) -> np.ndarray:
+    """Distance (in units of ``pixel_scale``) of each pixel of an n x n grid from its centre."""
+    x = (np.arange(n) - (n - 1) / 2) * pixel_scale
+    return np.hypot(x[None, :], x[:, None])
+
+
 @dataclass(frozen=True, eq=False)
 class Halo:
     """Radial profile of the large central PSF and its ramp.
@@ -125,22 +131,15 @@ class Halo:
         if not pixel_scale_mas > 0:
             raise ValueError(f"pixel_scale_mas must be > 0, got {pixel_scale_mas}")
         n = int(round(self.size / pixel_scale_mas)) // 2 * 2 + 1
-        c = (n - 1) / 2
-        y, x = np.indices((n, n), dtype=float)
-        r = np.hypot(x - c, y - c) * pixel_scale_mas
-        k = np.interp(r, self.radius, self.profile, right=0.0) * ramp(
-            r, self.ramp_start, self.ramp_end
-        )
-        k[r > self.size / 2] = 0.0
+        r = _radius_grid(n, pixel_scale_mas)
+        k = np.interp(r, self.radius, self.profile * (self.radius <= self.size / 2), right=0.0)
+        k *= ramp(r, self.ramp_start, self.ramp_end)
         s = k.sum()
         return k * (self.fraction / s) if s > 0 else k
 
     def core_taper(self, n: int, pixel_scale_mas: float) -> np.ndarray:
         """``1 - ramp`` on an ``n`` x ``n`` stamp grid (applied to the core PSFs)."""
-        c = (n - 1) / 2
-        y, x = np.indices((n, n), dtype=float)
-        r = np.hypot(x - c, y - c) * pixel_scale_mas
-        return 1.0 - ramp(r, self.ramp_start, self.ramp_end)
+        return 1.0 - ramp(_radius_grid(n, pixel_scale_mas), self.ramp_start, self.ramp_end)
 
 
 def build_halo(
