@@ -45,8 +45,13 @@ from scipy import optimize, stats
 from mavispm.core.errors import InputError
 
 #: Smallest ratio of singular values of the weighted design matrix accepted
-#: before the reference-star geometry is declared degenerate.
+#: (numerical rank).
 DEGENERATE_RCOND = 1e-9
+#: Smallest ratio of singular values of the *unweighted* design matrix (normalised
+#: coordinates) before the reference stars' geometry is declared degenerate, for
+#: example stars on a line with a little measurement scatter. Random fields give
+#: ratios above ~1e-3 even for a cubic with 12 stars.
+GEOMETRY_RCOND = 1e-4
 
 
 @dataclass(frozen=True)
@@ -277,6 +282,16 @@ def _solve_jitter(res2: np.ndarray, var: np.ndarray, dof: int) -> float:
     return float(optimize.brentq(excess, 0.0, hi, xtol=1e-30, rtol=1e-10))
 
 
+def _check_geometry(a, what, model):
+    sv = np.linalg.svd(a, compute_uv=False)
+    if sv.size == 0 or sv[-1] <= GEOMETRY_RCOND * sv[0]:
+        raise InputError(
+            f"{what}: the reference stars' geometry is degenerate for a {model.name} "
+            "transformation (for example all on a line); use a lower order, "
+            "conformal = true, or more widely spread stars"
+        )
+
+
 def _weighted_solve(a, b, w, what):
     sw = np.sqrt(w)
     aw = a * sw[:, None]
@@ -363,6 +378,7 @@ def fit_transform(
                 f"transformation needs at least {need} (raise clip_sigma or check the match)"
             )
         a = model.design(x[idx], y[idx])
+        _check_geometry(a, what, model)
         b = np.concatenate([x_ref[idx], y_ref[idx]])
         var = np.concatenate([var_x[idx], var_y[idx]])
         dof = 2 * idx.size - p

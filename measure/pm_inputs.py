@@ -125,8 +125,15 @@ def read_measured(path: str | os.PathLike) -> EpochCatalogue:
     )
 
 
-def check_epochs(epochs: list[EpochCatalogue]) -> list[EpochCatalogue]:
+def check_epochs(epochs: list[EpochCatalogue], margin: float = 0.0) -> list[EpochCatalogue]:
     """Sort epochs in time and refuse duplicates, empty or non-overlapping catalogues.
+
+    Parameters
+    ----------
+    epochs : list of EpochCatalogue
+    margin : float
+        Padding of each field's bounding box [arcsec] (the positional search radius)
+        before the overlap test.
 
     Raises
     ------
@@ -154,7 +161,7 @@ def check_epochs(epochs: list[EpochCatalogue]) -> list[EpochCatalogue]:
             )
     first = ordered[0]
     for ep in ordered[1:]:
-        if not _boxes_overlap(first, ep):
+        if not _boxes_overlap(first, ep, margin):
             raise InputError(
                 f"{ep.label}: field x [{ep.x.min():.2f}, {ep.x.max():.2f}], "
                 f"y [{ep.y.min():.2f}, {ep.y.max():.2f}] arcsec does not overlap the field of "
@@ -164,7 +171,8 @@ def check_epochs(epochs: list[EpochCatalogue]) -> list[EpochCatalogue]:
     return ordered
 
 
-def _boxes_overlap(a: EpochCatalogue, b: EpochCatalogue) -> bool:
-    return min(a.x.max(), b.x.max()) >= max(a.x.min(), b.x.min()) and min(
-        a.y.max(), b.y.max()
-    ) >= max(a.y.min(), b.y.min())
+def _boxes_overlap(a: EpochCatalogue, b: EpochCatalogue, margin: float) -> bool:
+    pad = 2.0 * margin
+    x_ok = min(a.x.max(), b.x.max()) + pad >= max(a.x.min(), b.x.min())
+    y_ok = min(a.y.max(), b.y.max()) + pad >= max(a.y.min(), b.y.min())
+    return bool(x_ok and y_ok)

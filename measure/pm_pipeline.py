@@ -105,6 +105,15 @@ def _gather(epochs: list[EpochCatalogue], match: EpochMatch, name: str):
     return out
 
 
+def _row_median(values: np.ndarray) -> np.ndarray:
+    """Median of the finite values in each row (NaN for rows without any)."""
+    out = np.full(values.shape[0], np.nan)
+    has = np.any(np.isfinite(values), axis=1)
+    if np.any(has):
+        out[has] = np.nanmedian(values[has], axis=1)
+    return out
+
+
 def _reference_candidates(k, ref, valid, err, flag, mag, ambiguous, settings):
     cand = valid[:, k] & valid[:, ref] & (flag[:, k] == 0) & (flag[:, ref] == 0) & ~ambiguous
     if settings.ref_max_error is not None:
@@ -143,14 +152,14 @@ def derive_proper_motions(
         No common stars, too few or degenerate reference stars, duplicate epochs,
         non-overlapping fields.
     """
-    epochs = check_epochs(list(epochs))
+    span = np.ptp([e.epoch for e in epochs]) if len(epochs) else 0.0
+    radius = settings.max_pm / MAS * span + settings.match_tolerance
+    epochs = check_epochs(list(epochs), margin=radius)
     n_ep = len(epochs)
     t = np.array([e.epoch for e in epochs])
     ref = settings.reference if settings.reference >= 0 else n_ep + settings.reference
     if not 0 <= ref < n_ep:
         raise InputError(f"reference epoch index {settings.reference} out of range for {n_ep}")
-    baseline = float(np.max(np.abs(t - t[ref])))
-    radius = settings.max_pm / MAS * baseline + settings.match_tolerance
     match = match_epochs(
         [e.ids for e in epochs],
         [(e.x, e.y) for e in epochs],
@@ -163,8 +172,7 @@ def derive_proper_motions(
     sx, sy = _gather(epochs, match, "x_err"), _gather(epochs, match, "y_err")
     flag_in = np.where(match.index >= 0, _gather(epochs, match, "flag"), 0).astype(np.int64)
     mag_all = _gather(epochs, match, "mag")
-    with np.errstate(all="ignore"):
-        mag = np.nanmedian(np.where(np.isfinite(mag_all), mag_all, np.nan), axis=1)
+    mag = _row_median(mag_all)
     valid = (match.index >= 0) & np.isfinite(x) & np.isfinite(y)
     valid &= np.isfinite(sx) & np.isfinite(sy) & (sx > 0) & (sy > 0)
     err = np.fmax(sx, sy)
