@@ -40,13 +40,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import linalg, optimize, stats
 
 from mavispm.core.errors import InputError
 
-#: Smallest ratio of singular values of the weighted design matrix accepted
-#: (numerical rank).
-DEGENERATE_RCOND = 1e-9
+#: Smallest ratio of singular values of the (column-scaled) weighted design matrix
+#: accepted (numerical rank; the normal equations square it).
+DEGENERATE_RCOND = 1e-7
 #: Smallest ratio of singular values of the *unweighted* design matrix (normalised
 #: coordinates) before the reference stars' geometry is declared degenerate, for
 #: example stars on a line with a little measurement scatter. Random fields give
@@ -129,7 +129,12 @@ class TransformModel:
 
     def basis(self, u_, v_) -> np.ndarray:
         """Monomials ``u**i v**j`` in normalised coordinates, shape (n, n_terms)."""
-        return np.stack([u_**i * v_**j for i, j in self.terms], axis=1)
+        up = [np.ones_like(u_), u_]
+        vp = [np.ones_like(v_), v_]
+        for _ in range(2, self.order + 1):
+            up.append(up[-1] * u_)
+            vp.append(vp[-1] * v_)
+        return np.stack([up[i] * vp[j] for i, j in self.terms], axis=1)
 
     def identity_params(self) -> np.ndarray:
         """Parameters of the identity transformation."""
@@ -142,11 +147,54 @@ class TransformModel:
         p[m + self.terms.index((0, 1))] = self.length
         return p
 
-    def apply(self, params, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Map epoch-frame positions to the reference frame [arcsec]."""
-        out = self.design(x, y) @ np.asarray(params, float)
-        n = np.size(x)
-        return out[:n], out[n:]
+    def features(self, x, y) -> np.ndarray:
+        """Precomputed position features: the basis (n, n_terms), or (n, 2) ``u, v`` if conformal.
+
+        Computing them once and passing them to :meth:`apply` and
+        :meth:`normal_equations` avoids rebuilding the basis in iterative fits.
+        """
+        u_ = np.asarray(x, float) / self.length
+        v_ = np.asarray(y, float) / self.length
+        if self.conformal:
+            return np.column_stack([u_, v_])
+        return self.basis(u_, v_)
+
+    def apply(self, params, x=None, y=None, features=None) -> tuple[np.ndarray, np.ndarray]:
+        """Map epoch-frame positions [arcsec] (or their :meth:`features`) to the reference frame."""
+        params = np.asarray(params, float)
+        f = self.features(x, y) if features is None else features
+        if self.conformal:
+            a, b, sc, rot = params
+            return a + sc * f[:, 0] - rot * f[:, 1], b + rot * f[:, 0] + sc * f[:, 1]
+        m = f.shape[1]
+        return f @ params[:m], f @ params[m:]
+
+    def normal_equations(self, features, wx, wy, bx, by) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted normal equations ``A^T W A`` and ``A^T W b`` of the stacked problem.
+
+        Parameters
+        ----------
+        features : ndarray
+            From :meth:`features` of the epoch-frame positions.
+        wx, wy : ndarray
+            Weights of the X and Y equations.
+        bx, by : ndarray
+            Targets (reference-frame positions) [arcsec].
+        """
+        wx = np.asarray(wx, float)
+        wy = np.asarray(wy, float)
+        if self.conformal:
+            a = self.design(features[:, 0] * self.length, features[:, 1] * self.length)
+            w = np.concatenate([wx, wy])
+            aw = a * w[:, None]
+            return aw.T @ a, aw.T @ np.concatenate([bx, by])
+        m = features.shape[1]
+        gram = np.zeros((2 * m, 2 * m))
+        bwx = features * wx[:, None]
+        bwy = features * wy[:, None]
+        gram[:m, :m] = bwx.T @ features
+        gram[m:, m:] = bwy.T @ features
+        return gram, np.concatenate([bwx.T @ bx, bwy.T @ by])
 
     def jacobian(self, params, x, y) -> np.ndarray:
         """Jacobian ``d(X, Y) / d(x, y)`` at each position, shape (n, 2, 2)."""
@@ -172,13 +220,23 @@ class TransformModel:
         var_x, var_y, cov_xy : ndarray
             [arcsec^2] at each position.
         """
-        a = self.design(x, y)
-        n = np.size(x)
-        ax, ay = a[:n], a[n:]
         cov = np.asarray(cov, float)
-        var_x = np.einsum("ij,jk,ik->i", ax, cov, ax)
-        var_y = np.einsum("ij,jk,ik->i", ay, cov, ay)
-        cov_xy = np.einsum("ij,jk,ik->i", ax, cov, ay)
+        if self.conformal:
+            a = self.design(x, y)
+            n = np.size(x)
+            ax, ay = a[:n], a[n:]
+            cx = ax @ cov
+            var_x = np.sum(cx * ax, axis=1)
+            var_y = np.sum((ay @ cov) * ay, axis=1)
+            cov_xy = np.sum(cx * ay, axis=1)
+        else:
+            basis = self.basis(
+                np.asarray(x, float) / self.length, np.asarray(y, float) / self.length
+            )
+            m = basis.shape[1]
+            var_x = np.sum((basis @ cov[:m, :m]) * basis, axis=1)
+            var_y = np.sum((basis @ cov[m:, m:]) * basis, axis=1)
+            cov_xy = np.sum((basis @ cov[:m, m:]) * basis, axis=1)
         return np.maximum(var_x, 0.0), np.maximum(var_y, 0.0), cov_xy
 
 
@@ -282,9 +340,19 @@ def _solve_jitter(res2: np.ndarray, var: np.ndarray, dof: int) -> float:
     return float(optimize.brentq(excess, 0.0, hi, xtol=1e-30, rtol=1e-10))
 
 
-def _check_geometry(a, what, model):
-    sv = np.linalg.svd(a, compute_uv=False)
-    if sv.size == 0 or sv[-1] <= GEOMETRY_RCOND * sv[0]:
+def _singular_ratio(gram: np.ndarray) -> float:
+    """Smallest/largest singular value of ``A`` from its column-scaled Gram matrix ``A^T A``."""
+    d = np.sqrt(np.diag(gram))
+    if gram.size == 0 or not np.all(np.isfinite(gram)) or np.any(d <= 0):
+        return 0.0
+    eig = np.linalg.eigvalsh(gram / np.outer(d, d))
+    return float(np.sqrt(max(eig[0], 0.0) / eig[-1]))
+
+
+def _check_geometry(model, features, what):
+    ones = np.ones(features.shape[0])
+    gram, _ = model.normal_equations(features, ones, ones, ones, ones)
+    if _singular_ratio(gram) <= GEOMETRY_RCOND:
         raise InputError(
             f"{what}: the reference stars' geometry is degenerate for a {model.name} "
             "transformation (for example all on a line); use a lower order, "
@@ -292,22 +360,24 @@ def _check_geometry(a, what, model):
         )
 
 
-def _weighted_solve(a, b, w, what):
-    sw = np.sqrt(w)
-    aw = a * sw[:, None]
-    bw = b * sw
-    try:
-        uu, sv, vt = np.linalg.svd(aw, full_matrices=False)
-    except np.linalg.LinAlgError:
-        raise InputError(f"{what}: the alignment fit did not converge") from None
-    if sv.size == 0 or sv[-1] <= DEGENERATE_RCOND * sv[0]:
+def _weighted_solve(gram, rhs, what):
+    """Solve normal equations by Cholesky of the column-scaled matrix.
+
+    Returns the parameters and their covariance ``(A^T W A)^-1``.
+    """
+    if _singular_ratio(gram) <= DEGENERATE_RCOND:
         raise InputError(
             f"{what}: the reference stars' geometry is degenerate for this transformation "
             "(for example all on a line); use a lower order or more widely spread stars"
         )
-    params = vt.T @ ((uu.T @ bw) / sv)
-    cov = (vt.T / sv**2) @ vt
-    return params, cov
+    d = np.sqrt(np.diag(gram))
+    try:
+        factor = linalg.cho_factor(gram / np.outer(d, d))
+    except linalg.LinAlgError:
+        raise InputError(f"{what}: the alignment normal equations are singular") from None
+    params = linalg.cho_solve(factor, rhs / d) / d
+    cov = linalg.cho_solve(factor, np.eye(d.size)) / np.outer(d, d)
+    return params, 0.5 * (cov + cov.T)
 
 
 def fit_transform(
@@ -367,6 +437,7 @@ def fit_transform(
             f"transformation needs at least {need} (and many more for a good fit)"
         )
     thresh = clip_threshold(clip_sigma)
+    feats = model.features(np.where(cand, x, 0.0), np.where(cand, y, 0.0))
     used = cand.copy()
     s2 = 0.0
     n_iter = 0
@@ -377,37 +448,42 @@ def fit_transform(
                 f"{what}: sigma clipping left {idx.size} reference star(s); a {model.name} "
                 f"transformation needs at least {need} (raise clip_sigma or check the match)"
             )
-        a = model.design(x[idx], y[idx])
-        _check_geometry(a, what, model)
-        b = np.concatenate([x_ref[idx], y_ref[idx]])
-        var = np.concatenate([var_x[idx], var_y[idx]])
+        fi, bx, by = feats[idx], x_ref[idx], y_ref[idx]
+        vxi, vyi = var_x[idx], var_y[idx]
+        _check_geometry(model, fi, what)
+        var = np.concatenate([vxi, vyi])
         dof = 2 * idx.size - p
         for _ in range(20):  # converge the jitter for this reference set
-            params, cov = _weighted_solve(a, b, 1.0 / (var + s2), what)
-            res2 = (b - a @ params) ** 2
+            gram, rhs = model.normal_equations(fi, 1 / (vxi + s2), 1 / (vyi + s2), bx, by)
+            params, cov = _weighted_solve(gram, rhs, what)
+            mx, my = model.apply(params, features=fi)
+            res2 = np.concatenate([(bx - mx) ** 2, (by - my) ** 2])
             s2_new = _solve_jitter(res2, var, dof)
             done = abs(s2_new - s2) <= 1e-6 * (s2 + np.median(var))
             s2 = s2_new
             if done:
                 break
-        mx, my = model.apply(params, x, y)
+        mx, my = model.apply(params, features=feats)
         z2 = (x_ref - mx) ** 2 / (var_x + s2) + (y_ref - my) ** 2 / (var_y + s2)
         new_used = cand & (z2 <= thresh)
         if np.array_equal(new_used, used):
             break
         used = new_used
     idx = np.flatnonzero(used)
-    a = model.design(x[idx], y[idx])
-    b = np.concatenate([x_ref[idx], y_ref[idx]])
-    var = np.concatenate([var_x[idx], var_y[idx]])
-    w = 1.0 / (var + s2)
-    params, cov = _weighted_solve(a, b, w, what)
-    res = b - a @ params
-    aw = a * w[:, None]
-    meas_cov = cov @ (aw.T @ (aw * var[:, None])) @ cov
+    fi, bx, by = feats[idx], x_ref[idx], y_ref[idx]
+    vxi, vyi = var_x[idx], var_y[idx]
+    wx, wy = 1 / (vxi + s2), 1 / (vyi + s2)
+    gram, rhs = model.normal_equations(fi, wx, wy, bx, by)
+    params, cov = _weighted_solve(gram, rhs, what)
+    mx, my = model.apply(params, features=fi)
+    res = np.concatenate([bx - mx, by - my])
+    w = np.concatenate([wx, wy])
+    # measurement-only covariance: G (A^T W V W A) G with V the measurement variances
+    gram_v, _ = model.normal_equations(fi, wx**2 * vxi, wy**2 * vyi, bx, by)
+    meas_cov = cov @ gram_v @ cov
     weights = np.zeros((n, 2))
-    weights[idx, 0] = w[: idx.size]
-    weights[idx, 1] = w[idx.size :]
+    weights[idx, 0] = wx
+    weights[idx, 1] = wy
     return AlignmentFit(
         model=model,
         params=params,
@@ -446,8 +522,12 @@ def project_displacements(fit: AlignmentFit, x, y, dx, dy, x_eval, y_eval):
         Absorbed displacement [same unit as ``dx``] at the evaluation positions.
     """
     idx = np.flatnonzero(fit.used)
-    a = fit.model.design(x[idx], y[idx])
-    b = np.concatenate([np.asarray(dx, float)[idx], np.asarray(dy, float)[idx]])
-    w = np.concatenate([fit.weights[idx, 0], fit.weights[idx, 1]])
-    params, _ = _weighted_solve(a, b, w, "truth projection")
+    gram, rhs = fit.model.normal_equations(
+        fit.model.features(x[idx], y[idx]),
+        fit.weights[idx, 0],
+        fit.weights[idx, 1],
+        np.asarray(dx, float)[idx],
+        np.asarray(dy, float)[idx],
+    )
+    params, _ = _weighted_solve(gram, rhs, "truth projection")
     return fit.model.apply(params, x_eval, y_eval)
