@@ -52,7 +52,7 @@ def timing(n):
         for match in ("id", "position"):
             for order in (1, 2, 3):
                 cfg = validate_settings({"order": order, "match": match})
-                dt, res = _best_time(lambda cfg=cfg: derive_proper_motions(obs, cfg))
+                dt, res = _best_time(lambda cfg=cfg, obs=obs: derive_proper_motions(obs, cfg))
                 print(f"{n_ep:>6} {match:>9} {order:>5} {dt:>9.3f} {len(res.stars):>9}")
 
 

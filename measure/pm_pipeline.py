@@ -43,7 +43,9 @@ class PMFlag:
     INPUT_FLAGGED = 8  #: the measure stage flagged it in a used epoch
     AMBIGUOUS = 16  #: positional match had a competing candidate
     AT_CENTRE = 32  #: at the centre: radial/tangential directions undefined (x axis used)
-    EXTRAPOLATED = 64  #: outside the reference stars' area in some epoch
+    #: outside the reference stars' area in some epoch, or where the transformation's
+    #: uncertainty exceeds the star's own measurement error (poorly constrained)
+    EXTRAPOLATED = 64
     POOR_FIT = 128  #: multi-epoch positions inconsistent with a straight line
 
 
@@ -210,18 +212,10 @@ def derive_proper_motions(
         )
         fits[k] = fit
         flag[cand & ~fit.used] |= PMFlag.CLIPPED
-        ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k] = _aligned(
+        ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k], poorly = _aligned(
             fit, x[:, k], y[:, k], sx[:, k], sy[:, k], valid[:, k]
         )
-        used = fit.used
-        xs, ys = x[used, k], y[used, k]
-        outside = (
-            (x[:, k] < xs.min())
-            | (x[:, k] > xs.max())
-            | (y[:, k] < ys.min())
-            | (y[:, k] > ys.max())
-        )
-        flag[valid[:, k] & outside] |= PMFlag.EXTRAPOLATED
+        flag[valid[:, k] & (poorly | _outside(fit, x[:, k], y[:, k]))] |= PMFlag.EXTRAPOLATED
 
     keep = np.count_nonzero(valid, axis=1) >= 2
     n_dropped = int(np.count_nonzero(~keep))
@@ -265,8 +259,15 @@ def derive_proper_motions(
     )
 
 
+def _outside(fit: AlignmentFit, x, y) -> np.ndarray:
+    """Positions outside the bounding box of the fit's reference stars."""
+    xs, ys = x[fit.used], y[fit.used]
+    return (x < xs.min()) | (x > xs.max()) | (y < ys.min()) | (y > ys.max())
+
+
 def _aligned(fit: AlignmentFit, x, y, sx, sy, valid):
-    """Aligned positions and their covariance (measurement + transformation)."""
+    """Aligned positions, their covariance (measurement + transformation), and where
+    the transformation's variance exceeds the measurement variance."""
     xx = np.where(valid, x, 0.0)
     yy = np.where(valid, y, 0.0)
     mx, my = fit.apply(xx, yy)
@@ -277,7 +278,8 @@ def _aligned(fit: AlignmentFit, x, y, sx, sy, valid):
     var_y = jac[:, 1, 0] ** 2 * s2x + jac[:, 1, 1] ** 2 * s2y
     cov = jac[:, 0, 0] * jac[:, 1, 0] * s2x + jac[:, 0, 1] * jac[:, 1, 1] * s2y
     tx, ty, txy = fit.model.position_covariance(fit.measurement_covariance, xx, yy)
-    return mx, my, var_x + tx, var_y + ty, cov + txy
+    poorly = (tx > var_x) | (ty > var_y)
+    return mx, my, var_x + tx, var_y + ty, cov + txy, poorly
 
 
 def _stars_table(ids, motion, mag, flag, settings, distance, notes) -> QTable:
