@@ -500,6 +500,33 @@ def fit_transform(
     )
 
 
+def higher_order_p_value(fit: AlignmentFit, x, y, x_ref, y_ref) -> float | None:
+    """Probability that the next polynomial order improves the fit only by chance.
+
+    Refits the final reference stars with the same weights (the jitter
+    included) and order + 1; the chi-square drop is chi-square distributed with
+    the number of added parameters if the order is adequate. A tiny value means
+    a distortion the chosen order cannot represent (it then inflates the
+    jitter instead of being removed). None for cubic fits.
+    """
+    if fit.model.order >= 3:
+        return None
+    higher = TransformModel(order=fit.model.order + 1, length=fit.model.length)
+    idx = np.flatnonzero(fit.used)
+    if 2 * idx.size <= higher.n_params:
+        return None
+    f = higher.features(x[idx], y[idx])
+    wx, wy = fit.weights[idx, 0], fit.weights[idx, 1]
+    try:
+        gram, rhs = higher.normal_equations(f, wx, wy, x_ref[idx], y_ref[idx])
+        params, _ = _weighted_solve(gram, rhs, "order test")
+    except InputError:
+        return None
+    mx, my = higher.apply(params, features=f)
+    chi2 = float(np.sum(wx * (x_ref[idx] - mx) ** 2 + wy * (y_ref[idx] - my) ** 2))
+    return float(stats.chi2.sf(fit.chi2 - chi2, higher.n_params - fit.model.n_params))
+
+
 def normalisation_length(x, y) -> float:
     """Conditioning length ``L`` [arcsec]: the largest distance of a star from the origin."""
     r = np.hypot(np.asarray(x, float), np.asarray(y, float))

@@ -18,6 +18,7 @@ from mavispm.measure.alignment import (
     AlignmentFit,
     TransformModel,
     fit_transform,
+    higher_order_p_value,
     normalisation_length,
     project_displacements,
 )
@@ -211,6 +212,7 @@ def derive_proper_motions(
             what=f"aligning epoch {t[k]:g} yr on {t[ref]:g} yr",
         )
         fits[k] = fit
+        _note_order(fit, x[:, k], y[:, k], x[:, ref], y[:, ref], t[k], notes)
         flag[cand & ~fit.used] |= PMFlag.CLIPPED
         ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k], poorly = _aligned(
             fit, x[:, k], y[:, k], sx[:, k], sy[:, k], valid[:, k]
@@ -257,6 +259,20 @@ def derive_proper_motions(
         n_dropped=n_dropped,
         notes=notes,
     )
+
+
+#: Below this p-value of the next order's improvement a note recommends a higher order.
+ORDER_NOTE_P = 1e-4
+
+
+def _note_order(fit, x, y, x_ref, y_ref, epoch, notes) -> None:
+    p = higher_order_p_value(fit, x, y, x_ref, y_ref)
+    if p is not None and p < ORDER_NOTE_P:
+        notes.append(
+            f"epoch {epoch:g} yr: order {fit.model.order + 1} fits significantly better "
+            f"(p = {p:.1e}); the {fit.model.name} transformation leaves an unmodelled "
+            "distortion, so PM errors are underestimated - consider a higher order"
+        )
 
 
 def _outside(fit: AlignmentFit, x, y) -> np.ndarray:

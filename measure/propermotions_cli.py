@@ -13,6 +13,7 @@ Python (``docs/stages.md``): :func:`validate_settings`, :func:`run_stage`,
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import numpy as np
 
 from mavispm.core.catalogue import read_catalogue
 from mavispm.core.config import to_mapping
-from mavispm.core.products import write_product
+from mavispm.core.products import read_product, write_product
 from mavispm.measure.pm_inputs import read_measured
 from mavispm.measure.pm_pipeline import derive_proper_motions
 from mavispm.measure.pm_report import write_report
@@ -89,6 +90,24 @@ def run_stage(measured, settings, output, truth=None) -> Path:
     )
 
 
+def summary_line(path) -> str:
+    """One-line summary of a propermotions product (stars, matching, clipping, notes)."""
+    prod = read_product(path, "propermotions", load_arrays=False)
+    a = prod.attrs
+    transform = json.loads(a["transform"]) if isinstance(a.get("transform"), str) else {}
+    clipped = [
+        f"{t} yr: {v['n_ref']} ref, {v['n_clipped']} clipped"
+        for t, v in transform.get("epochs", {}).items()
+        if isinstance(v, dict)
+    ]
+    text = (
+        f"{a.get('n_stars')} stars matched by {a.get('match_method')}; "
+        f"unmatched per epoch {a.get('n_unmatched')}, ambiguous {a.get('n_ambiguous')}; "
+        + "; ".join(clipped)
+    )
+    return text + (f" ({a['notes']})" if a.get("notes") else "")
+
+
 def _handler(args) -> int:
     settings = {}
     for key in ("order", "reference", "match", "distance", "clip_sigma", "max_pm"):
@@ -99,6 +118,7 @@ def _handler(args) -> int:
         settings["conformal"] = True
     out = run_stage(args.measured, settings, args.output, truth=args.truth)
     print(f"wrote {out}")
+    print(summary_line(out))
     if args.report is not None:
         for path in write_report([out], args.report):
             print(f"wrote {path}")

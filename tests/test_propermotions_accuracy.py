@@ -154,3 +154,14 @@ def test_clipping_rejects_injected_outliers_and_jitter_matches_dispersion():
     assert not np.any(fit.used[:20])
     assert np.mean(fit.used[20:]) > 0.99
     assert fit.jitter == pytest.approx(s, rel=0.05)
+
+
+def test_too_low_order_is_reported():
+    truth = make_cluster(n=2000, seed=31)
+    obs = observe(truth, [0.0, 10.0], [None, distortion_transform(seed=4)], seed=32)
+    low = derive_proper_motions(obs, validate_settings({"order": 1}))
+    assert any("order 2 fits significantly better" in n for n in low.notes)
+    # the unmodelled distortion shows up as miscalibrated errors ...
+    assert np.std(_normalised(low.stars)) > 1.5
+    good = derive_proper_motions(obs, validate_settings({"order": 2}))
+    assert not any("fits significantly better" in n for n in good.notes)
