@@ -165,3 +165,37 @@ def test_too_low_order_is_reported():
     assert np.std(_normalised(low.stars)) > 1.5
     good = derive_proper_motions(obs, validate_settings({"order": 2}))
     assert not any("fits significantly better" in n for n in good.notes)
+
+
+def test_position_matching_identifies_the_right_stars():
+    truth = make_cluster(n=1500, seed=41)
+    obs = observe(truth, [0.0, 5.0, 10.0], [None, *(distortion_transform(k) for k in (1, 2))])
+    by_pos = derive_proper_motions(obs, validate_settings({"order": 2, "match": "position"}))
+    match = by_pos.match
+    assert match.method == "position"
+    for k in (1, 2):
+        rows = match.index[:, k]
+        found = rows >= 0
+        assert np.mean(found) > 0.9
+        right = obs[k].ids[rows[found]] == match.ids[found]
+        assert np.all(right[~match.ambiguous[found]])  # unambiguous matches are all correct
+        assert match.n_unmatched[k] == obs[k].ids.size - np.count_nonzero(found)
+    # both matchings give calibrated motions (each against the truth in its own frame)
+    by_id = derive_proper_motions(obs, validate_settings({"order": 2, "match": "id"}))
+    for res in (by_id, by_pos):
+        z = _normalised(res.stars)
+        assert abs(np.mean(z)) < 0.05 and abs(np.std(z) - 1) < 0.1
+
+
+def test_choice_of_reference_epoch_does_not_change_motions():
+    truth = make_cluster(n=2000, seed=42)
+    trans = [None, distortion_transform(7), distortion_transform(8)]
+    obs = observe(truth, [0.0, 4.0, 10.0], trans, seed=43)
+    first = derive_proper_motions(obs, validate_settings({"order": 2}))
+    last = derive_proper_motions(obs, validate_settings({"order": 2, "reference": -1}))
+    assert last.reference_epoch == 10.0 and last.fits[2] is None
+    d = (first.stars["pm_x"] - last.stars["pm_x"]) / first.stars["pm_x_err"]
+    # both frames are the cluster's mean motion; they differ by the frame noise only
+    assert np.std(d.value) < 0.3
+    assert abs(np.mean(_normalised(last.stars))) < 0.05
+    assert abs(np.std(_normalised(last.stars)) - 1) < 0.1

@@ -224,3 +224,26 @@ def test_settings_are_validated():
         validate_settings({"distance": "4.6 km/s"})
     assert validate_settings({"distance": "4600 pc"}).distance == pytest.approx(4.6)
     assert validate_settings({"max_pm": "1 arcsec/yr"}).max_pm == pytest.approx(1000.0)
+
+
+@HYP
+@given(seed=st.integers(0, 10_000), n_ep=st.integers(2, 5), drop=st.floats(0.0, 0.6))
+def test_stars_missing_in_random_epochs_give_finite_flagged_motions(seed, n_ep, drop):
+    truth = make_cluster(n=150, seed=seed)
+    obs = observe(truth, np.linspace(0.0, 10.0, n_ep), None, seed=seed + 1)
+    rng = np.random.default_rng(seed)
+    for ep in obs[1:]:
+        keep = rng.uniform(size=ep.ids.size) >= drop
+        for name in ("ids", "x", "y", "x_err", "y_err", "flag", "mag", "x_true", "y_true"):
+            setattr(ep, name, getattr(ep, name)[keep])
+    try:
+        res = derive_proper_motions(obs, validate_settings({"match": "id"}))
+    except InputError as exc:
+        assert "reference star" in str(exc) or "no star" in str(exc)
+        return
+    s = res.stars
+    assert _all_finite(s)
+    assert np.all(s["n_epochs"] >= 2)
+    partial = s["n_epochs"] < n_ep
+    assert np.all((s["flag"][partial] & PMFlag.MISSING_EPOCHS) > 0)
+    assert np.all((s["flag"][~partial] & PMFlag.MISSING_EPOCHS) == 0)
