@@ -199,3 +199,24 @@ def test_choice_of_reference_epoch_does_not_change_motions():
     assert np.std(d.value) < 0.3
     assert abs(np.mean(_normalised(last.stars))) < 0.05
     assert abs(np.std(_normalised(last.stars)) - 1) < 0.1
+
+
+@pytest.mark.parametrize(("order", "conformal"), [(1, True), (1, False), (2, False), (3, False)])
+def test_alignment_solver_matches_numpy_lstsq(order, conformal):
+    rng = np.random.default_rng(order)
+    n = 400
+    x, y = rng.uniform(-12, 12, (2, n))
+    tr = distortion_transform(seed=order, amplitude=0.0 if conformal else 1e-3, order=max(order, 2))
+    xr, yr = tr.apply(x, y)
+    vx, vy = rng.uniform(1e-9, 4e-8, (2, n))
+    xr = xr + rng.normal(0, np.sqrt(vx))
+    yr = yr + rng.normal(0, np.sqrt(vy))
+    model = TransformModel(order=order, conformal=conformal, length=12.0)
+    fit = fit_transform(x, y, xr, yr, vx, vy, model)
+    idx = np.flatnonzero(fit.used)
+    w = np.sqrt(np.concatenate([fit.weights[idx, 0], fit.weights[idx, 1]]))
+    a = model.design(x[idx], y[idx]) * w[:, None]
+    b = np.concatenate([xr[idx], yr[idx]]) * w
+    ref, *_ = np.linalg.lstsq(a, b, rcond=None)
+    np.testing.assert_allclose(fit.params, ref, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(fit.covariance, np.linalg.inv(a.T @ a), rtol=1e-6, atol=1e-20)
