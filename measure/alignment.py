@@ -192,26 +192,36 @@ class TransformModel:
             return aw.T @ a, aw.T @ np.concatenate([bx, by])
         m = features.shape[1]
         gram = np.zeros((2 * m, 2 * m))
-        bwx = features * wx[:, None]
-        bwy = features * wy[:, None]
-        gram[:m, :m] = bwx.T @ features
-        gram[m:, m:] = bwy.T @ features
-        return gram, np.concatenate([bwx.T @ bx, bwy.T @ by])
+        gram[:m, :m] = (features * wx[:, None]).T @ features
+        if np.array_equal(wx, wy):
+            gram[m:, m:] = gram[:m, :m]
+        else:
+            gram[m:, m:] = (features * wy[:, None]).T @ features
+        rhs = np.concatenate([features.T @ (wx * bx), features.T @ (wy * by)])
+        return gram, rhs
 
     def jacobian(self, params, x, y) -> np.ndarray:
-        """Jacobian ``d(X, Y) / d(x, y)`` at each position, shape (n, 2, 2)."""
-        x = np.asarray(x, float)
-        y = np.asarray(y, float)
-        h = 1e-3 * self.length
-        xp, yp = self.apply(params, x + h, y)
-        xm, ym = self.apply(params, x - h, y)
-        xq, yq = self.apply(params, x, y + h)
-        xr, yr = self.apply(params, x, y - h)
-        jac = np.empty((x.size, 2, 2))
-        jac[:, 0, 0] = (xp - xm) / (2 * h)
-        jac[:, 1, 0] = (yp - ym) / (2 * h)
-        jac[:, 0, 1] = (xq - xr) / (2 * h)
-        jac[:, 1, 1] = (yq - yr) / (2 * h)
+        """Jacobian ``d(X, Y) / d(x, y)`` at each position (analytic), shape (n, 2, 2)."""
+        params = np.asarray(params, float)
+        u_ = np.asarray(x, float) / self.length
+        v_ = np.asarray(y, float) / self.length
+        jac = np.empty((u_.size, 2, 2))
+        if self.conformal:
+            sc, rot = params[2] / self.length, params[3] / self.length
+            jac[:] = [[sc, -rot], [rot, sc]]
+            return jac
+        up = [np.zeros_like(u_), np.ones_like(u_)]  # up[k + 1] = u**k
+        vp = [np.zeros_like(v_), np.ones_like(v_)]
+        for _ in range(self.order):
+            up.append(up[-1] * u_)
+            vp.append(vp[-1] * v_)
+        d_du = np.stack([i * up[i] * vp[j + 1] for i, j in self.terms], axis=1) / self.length
+        d_dv = np.stack([j * up[i + 1] * vp[j] for i, j in self.terms], axis=1) / self.length
+        m = d_du.shape[1]
+        jac[:, 0, 0] = d_du @ params[:m]
+        jac[:, 0, 1] = d_dv @ params[:m]
+        jac[:, 1, 0] = d_du @ params[m:]
+        jac[:, 1, 1] = d_dv @ params[m:]
         return jac
 
     def position_covariance(self, cov, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

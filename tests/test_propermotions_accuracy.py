@@ -220,3 +220,17 @@ def test_alignment_solver_matches_numpy_lstsq(order, conformal):
     ref, *_ = np.linalg.lstsq(a, b, rcond=None)
     np.testing.assert_allclose(fit.params, ref, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(fit.covariance, np.linalg.inv(a.T @ a), rtol=1e-6, atol=1e-20)
+
+
+@pytest.mark.parametrize(("order", "conformal"), [(1, True), (2, False), (3, False)])
+def test_analytic_jacobian_matches_finite_differences(order, conformal):
+    model = TransformModel(order=order, conformal=conformal, length=10.0)
+    params = np.random.default_rng(order).normal(0, 1, model.n_params)
+    x, y = np.random.default_rng(9).uniform(-10, 10, (2, 50))
+    jac = model.jacobian(params, x, y)
+    h = 1e-5
+    for col, (ex, ey) in enumerate([(h, 0.0), (0.0, h)]):
+        xp, yp = model.apply(params, x + ex, y + ey)
+        xm, ym = model.apply(params, x - ex, y - ey)
+        np.testing.assert_allclose(jac[:, 0, col], (xp - xm) / (2 * h), rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(jac[:, 1, col], (yp - ym) / (2 * h), rtol=1e-6, atol=1e-9)
