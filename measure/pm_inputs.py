@@ -62,7 +62,8 @@ class EpochCatalogue:
     @property
     def label(self) -> str:
         """Name used in messages."""
-        return f"'{self.path}'" if self.path is not None else f"epoch {self.epoch:g} yr"
+        where = f"epoch {self.epoch:g} yr"
+        return f"'{self.path}' ({where})" if self.path is not None else where
 
 
 def _attr_quantity(attrs, key, unit, path, required):

@@ -179,6 +179,8 @@ def derive_proper_motions(
     valid = (match.index >= 0) & np.isfinite(x) & np.isfinite(y)
     valid &= np.isfinite(sx) & np.isfinite(sy) & (sx > 0) & (sy > 0)
     err = np.fmax(sx, sy)
+    if settings.ref_mag_max is not None and not np.any(np.isfinite(mag)):
+        raise InputError("ref_mag_max is set but no epoch has a 'mag' column")
 
     model = TransformModel(
         order=settings.order,
@@ -209,7 +211,7 @@ def derive_proper_motions(
             candidates=cand,
             clip_sigma=settings.clip_sigma,
             max_iter=settings.clip_iterations,
-            what=f"aligning epoch {t[k]:g} yr on {t[ref]:g} yr",
+            what=f"aligning {epochs[k].label} on {epochs[ref].label}",
         )
         fits[k] = fit
         _note_order(fit, x[:, k], y[:, k], x[:, ref], y[:, ref], t[k], notes)
