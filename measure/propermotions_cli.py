@@ -112,6 +112,11 @@ def _handler(args) -> int:
     settings = {}
     for key in ("order", "reference", "match", "distance", "clip_sigma", "max_pm"):
         value = getattr(args, key, None)
+        if isinstance(value, str):
+            try:  # a bare number is in the setting's documented unit
+                value = float(value)
+            except ValueError:
+                pass
         if value is not None:
             settings[key] = value
     if args.conformal:

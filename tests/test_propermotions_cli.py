@@ -147,6 +147,11 @@ def test_cli_errors_are_one_line(tmp_path, capsys, inputs):
          "--distance", "4.6 km/s"]
     )  # fmt: skip
     assert rc == 2 and "distance" in capsys.readouterr().err
+    out = tmp_path / "bare.h5"
+    assert (
+        main(["measure", "propermotions", *map(str, paths), "-o", str(out), "--distance", "5"]) == 0
+    )
+    assert read_product(out, "propermotions").attrs["distance"].to_value(u.kpc) == 5.0
     with pytest.raises(InputError, match="no truth columns"):
         _no_truth_report(tmp_path, paths)
 
