@@ -168,6 +168,46 @@ def crowding_flags(
     return crowded
 
 
+def render_model(
+    shape: tuple[int, int],
+    psf: VariableEPSF,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    radius: int,
+    chunk: int = 512,
+) -> np.ndarray:
+    """Image [electron] of stars on stamps of half-width ``radius`` (no sky).
+
+    Parameters
+    ----------
+    shape : (ny, nx)
+    psf : VariableEPSF
+    x, y : ndarray
+        Positions [pixel] (non-finite entries are skipped).
+    flux : ndarray
+        Fluxes [electron].
+    radius : int
+        Stamp half-width [pixel].
+    chunk : int
+        Stars evaluated at once.
+    """
+    ny, nx = shape
+    out = np.zeros(ny * nx)
+    x, y, flux = (np.atleast_1d(np.asarray(a, float)) for a in (x, y, flux))
+    keep = np.flatnonzero(np.isfinite(x) & np.isfinite(y) & np.isfinite(flux))
+    for idx in _chunks(keep, chunk):
+        geom = StampGeometry(
+            np.rint(x[idx]).astype(np.intp), np.rint(y[idx]).astype(np.intp), radius
+        )
+        rows, cols = geom.rows(), geom.columns()
+        inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
+        flat = np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
+        val = flux[idx, None, None] * psf.evaluate(x[idx], y[idx], geom, derivatives=False)
+        out += np.bincount(flat[inside], weights=val[inside], minlength=ny * nx)
+    return out.reshape(shape)
+
+
 def _chunks(index: np.ndarray, size: int):
     for start in range(0, len(index), size):
         yield index[start : start + size]
@@ -224,7 +264,9 @@ def fit_stars(
     n = len(x0)
     for name, m in (("bad", bad), ("saturated", saturated)):
         if m is not None and np.shape(m) != image.shape:
-            raise InputError(f"{name} mask shape {np.shape(m)} differs from image shape {image.shape}")
+            raise InputError(
+                f"{name} mask shape {np.shape(m)} differs from image shape {image.shape}"
+            )
     sat = np.zeros(image.shape, bool) if saturated is None else np.asarray(saturated, bool)
     badpix = ~np.isfinite(image) | sat
     if bad is not None:
@@ -242,7 +284,9 @@ def fit_stars(
     s = geom.size
     rows, cols = geom.rows(), geom.columns()
     inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
-    flat = (np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]).reshape(n, -1)
+    flat = (
+        np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
+    ).reshape(n, -1)
     inside = inside.reshape(n, -1) & usable[:, None]
     data = np.where(inside, np.nan_to_num(image.reshape(-1)[flat].astype(float)), 0.0)
     valid = inside & ~badpix.reshape(-1)[flat]

@@ -53,11 +53,17 @@ def _bspline_weights(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t = np.asarray(t, dtype=float)
     s = 1.0 - t
     w = np.stack(
-        [s**3 / 6.0, (3 * t**3 - 6 * t**2 + 4) / 6.0, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6.0, t**3 / 6.0],
+        [
+            s**3 / 6.0,
+            (3 * t**3 - 6 * t**2 + 4) / 6.0,
+            (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6.0,
+            t**3 / 6.0,
+        ],
         axis=-1,
     )
     dw = np.stack(
-        [-(s**2) / 2.0, (3 * t**2 - 4 * t) / 2.0, (-3 * t**2 + 2 * t + 1) / 2.0, t**2 / 2.0], axis=-1
+        [-(s**2) / 2.0, (3 * t**2 - 4 * t) / 2.0, (-3 * t**2 + 2 * t + 1) / 2.0, t**2 / 2.0],
+        axis=-1,
     )
     return w, dw
 
@@ -67,7 +73,9 @@ def _check_basis(basis: np.ndarray, oversampling: int) -> np.ndarray:
     if basis.ndim == 2:
         basis = basis[None]
     if basis.ndim != 3 or basis.shape[1] < 4 or basis.shape[2] < 4:
-        raise InputError(f"ePSF basis must have shape (K, ny, nx) with ny, nx >= 4, got {basis.shape}")
+        raise InputError(
+            f"ePSF basis must have shape (K, ny, nx) with ny, nx >= 4, got {basis.shape}"
+        )
     if not np.all(np.isfinite(basis)):
         raise InputError("ePSF contains NaN or infinite values")
     if int(oversampling) < 1:
@@ -141,7 +149,9 @@ class VariableEPSF:
         self._mixing = mixing
         padded = np.pad(basis, ((0, 0), (_PAD, _PAD), (_PAD, _PAD)))
         # cubic B-spline coefficients; the padded border keeps zeros outside
-        self._coef = np.stack([ndimage.spline_filter(b, order=3, mode="grid-constant") for b in padded])
+        self._coef = np.stack(
+            [ndimage.spline_filter(b, order=3, mode="grid-constant") for b in padded]
+        )
         self._coef[:, :2, :] = 0.0
         self._coef[:, -2:, :] = 0.0
         self._coef[:, :, :2] = 0.0
@@ -209,8 +219,8 @@ class VariableEPSF:
         v = (geometry.rows() - y0[:, None]) * os_ + self._centre[1]
         fu = np.floor(u[:, :1])
         fv = np.floor(v[:, :1])
-        wx, dwx = _bspline_weights((u[:, 0] - fu[:, 0]))
-        wy, dwy = _bspline_weights((v[:, 0] - fv[:, 0]))
+        wx, dwx = _bspline_weights(u[:, 0] - fu[:, 0])
+        wy, dwy = _bspline_weights(v[:, 0] - fv[:, 0])
         taps = np.arange(-1, 3)
         n, s = u.shape
         step = os_ * np.arange(s)
@@ -224,7 +234,10 @@ class VariableEPSF:
         gathered = np.zeros((n, s, 4, s, 4))
         plane = self._ny * self._nx
         for m in range(idx.shape[1]):
-            gathered += wmix[:, m, None, None, None, None] * flat[idx[:, m, None, None, None, None] * plane + pix]
+            gathered += (
+                wmix[:, m, None, None, None, None]
+                * flat[idx[:, m, None, None, None, None] * plane + pix]
+            )
         ax = np.einsum("njaib,nb->njai", gathered, wx)
         value = np.einsum("njai,na->nji", ax, wy)
         if not derivatives:

@@ -113,7 +113,20 @@ def noisy_frame(noiseless, det: Detector, rng):
     return image.astype(np.float32), saturated
 
 
-def write_frames(path, shape, x, y, mag, psf: SynthPSF, det: Detector = Detector(), seed=0, ids=None, epoch=0.0, with_mask=True, truth=True):
+def write_frames(
+    path,
+    shape,
+    x,
+    y,
+    mag,
+    psf: SynthPSF,
+    det: Detector = Detector(),
+    seed=0,
+    ids=None,
+    epoch=0.0,
+    with_mask=True,
+    truth=True,
+):
     """Render and write a frames product; returns the truth table."""
     rng = np.random.default_rng(seed)
     x, y, mag = (np.asarray(a, float) for a in (x, y, mag))
