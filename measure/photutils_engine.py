@@ -125,7 +125,7 @@ def fit_stars_photutils(
         fitter=fitter,
         fitter_maxiters=opt.maxiters,
         aperture_radius=max(1.5, opt.radius / 2),
-        local_bkg_estimator=LocalBackground(*opt.sky_annulus, MMMBackground()),
+        local_bkg_estimator=LocalBackground(*opt.sky_annulus, bkg_estimator=MMMBackground()),
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -180,3 +180,25 @@ def grid_positions(shape, spacing, margin, rng, jitter=0.5):
     x = xx.ravel() + rng.uniform(-jitter, jitter, xx.size)
     y = yy.ravel() + rng.uniform(-jitter, jitter, xx.size)
     return x, y
+
+
+def true_epsf(psf: SynthPSF, shape, grid=1, size=25, oversampling=4):
+    """The exact ePSF of ``psf``: constant (grid=1, at the centre) or gridded."""
+    from mavispm.measure.epsf import node_positions
+    from mavispm.measure.variable_psf import constant_epsf, gridded_epsf, sample_epsf
+
+    if grid == 1:
+        ny, nx = shape
+        return constant_epsf(
+            sample_epsf(psf.prf_at((nx - 1) / 2, (ny - 1) / 2, shape), size, oversampling),
+            oversampling,
+        )
+    gx, gy = node_positions(shape, grid)
+    stack = [sample_epsf(psf.prf_at(a, b, shape), size, oversampling) for b in gy for a in gx]
+    return gridded_epsf(np.array(stack), gx, gy, oversampling)
+
+
+def robust_sigma(values):
+    """Normalised median absolute deviation (Gaussian-equivalent sigma)."""
+    values = np.asarray(values, float)
+    return 1.4826 * np.median(np.abs(values - np.median(values)))
