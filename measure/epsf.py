@@ -208,10 +208,14 @@ def _remove_phase_error(start: np.ndarray, fitted: np.ndarray, good: np.ndarray)
     star positions are degenerate; refitting positions with an imperfect ePSF
     would lock the error in. The corrections ``fitted - start`` are regressed on
     the first two harmonics of the pixel phase of ``fitted`` and that periodic
-    part is removed, keeping the random per-star corrections.
+    part is removed, keeping the random per-star corrections. The mean
+    correction is removed too, which anchors the ePSF centre to the input
+    positions (the forced catalogue), node by node.
     """
     phase = 2 * np.pi * (fitted - np.rint(fitted))
-    design = np.column_stack([np.sin(phase), np.cos(phase), np.sin(2 * phase), np.cos(2 * phase)])
+    design = np.column_stack(
+        [np.ones_like(phase), np.sin(phase), np.cos(phase), np.sin(2 * phase), np.cos(2 * phase)]
+    )
     delta = fitted - start
     coef, *_ = np.linalg.lstsq(design[good], delta[good], rcond=None)
     return fitted - design @ coef
@@ -306,7 +310,8 @@ def build_epsf_fast(
         s_cnt = ndimage.convolve(counts, kernel, mode="constant")
         delta = np.where(s_cnt > 1e-3, s_sum / np.maximum(s_cnt, 1e-3), 0.0)
         epsf = epsf + delta
-        epsf = _recentre(epsf, os_)
+        if len(x) < _MIN_STARS_REFIT:
+            epsf = _recentre(epsf, os_)
         total = epsf.sum() / os_**2
         if not np.isfinite(total) or total <= 0:
             raise InputError("the ePSF built from the PSF stars has no positive flux")
