@@ -48,7 +48,9 @@ class FitOptions:
     iterations : int
         Maximum number of Gauss-Seidel sweeps.
     tolerance : float
-        Convergence: every position step below this [pixel].
+        Convergence: every position step below this [pixel] ...
+    relative_tolerance : float
+        ... or below this fraction of the star's position uncertainty.
     max_shift : float
         Largest allowed distance from the starting position [pixel].
     max_step : float
@@ -66,6 +68,7 @@ class FitOptions:
     radius: int = 5
     iterations: int = 10
     tolerance: float = 1e-4
+    relative_tolerance: float = 0.05
     max_shift: float = 2.0
     max_step: float = 0.5
     damping: float = 1e-3
@@ -305,8 +308,8 @@ def fit_stars(
     groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
 
     def deposit(idx, new):
-        delta = (new - own[idx]) * inside[idx]
-        model[:] += np.bincount(flat[idx].ravel(), weights=delta.ravel(), minlength=ny * nx)
+        ins = inside[idx]
+        np.add.at(model, flat[idx][ins], (new - own[idx])[ins])
         own[idx] = new
 
     def evaluate(idx):
@@ -330,6 +333,7 @@ def fit_stars(
     # initial fluxes: linear fit at fixed positions (positions frozen)
     sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
     steps = np.zeros(n)
+    thresh = np.full(n, opt.tolerance)
     done = 0
     bar = tqdm(sweeps, desc="fit sweeps", disable=not opt.progress, leave=False)
     for fixed in bar:
@@ -346,6 +350,10 @@ def fit_stars(
                 if not fixed:
                     cov, ok = safe_inverse(a)
                     snr = flux[idx] / np.sqrt(np.abs(cov[:, 2, 2]))
+                    sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
+                    thresh[idx] = np.maximum(
+                        opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos)
+                    )
                     lowsnr = ~ok | ~(snr > opt.min_snr)
                     step[lowsnr, :2] = 0.0
                     if np.any(lowsnr):
@@ -376,7 +384,7 @@ def fit_stars(
                 new = flux[idx, None] * (v + dvx * dx[:, None] + dvy * dy[:, None])
                 deposit(idx, new)
         done += 0 if fixed else 1
-        if not fixed and np.all(steps[usable] < opt.tolerance):
+        if not fixed and np.all(steps[usable] < thresh[usable]):
             break
     bar.close()
 
@@ -398,7 +406,7 @@ def fit_stars(
         dof = np.maximum(valid[idx].sum(axis=1) - 4, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
         flag[idx[~ok]] |= FLAG_FAILED
-    flag[usable & (steps >= opt.tolerance)] |= FLAG_NOT_CONVERGED
+    flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0) | ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
     flag[failed] |= FLAG_FAILED
     x_out = np.where(usable, x, x0)

@@ -157,6 +157,8 @@ class VariableEPSF:
         self._coef[:, :, :2] = 0.0
         self._coef[:, :, -2:] = 0.0
         self._ny, self._nx = padded.shape[1:]
+        self._margin = 0
+        self._coef_pad = self._coef.astype(np.float32)
         self._centre = ((self._nx - 1) / 2.0, (self._ny - 1) / 2.0)
 
     # ------------------------------------------------------------------ info
@@ -221,30 +223,44 @@ class VariableEPSF:
         fv = np.floor(v[:, :1])
         wx, dwx = _bspline_weights(u[:, 0] - fu[:, 0])
         wy, dwy = _bspline_weights(v[:, 0] - fv[:, 0])
-        taps = np.arange(-1, 3)
         n, s = u.shape
-        step = os_ * np.arange(s)
-        col = fu.astype(np.intp) + step
-        row = fv.astype(np.intp) + step
-        col = np.clip(col[:, :, None] + taps, 0, self._nx - 1)
-        row = np.clip(row[:, :, None] + taps, 0, self._ny - 1)
-        flat = self._coef.reshape(-1)
-        # (N, S, 4, S, 4) gathered spline coefficients, mixed over the basis
-        pix = row[:, :, :, None, None] * self._nx + col[:, None, None, :, :]
-        gathered = np.zeros((n, s, 4, s, 4))
-        plane = self._ny * self._nx
+        # taps of column j are (floor(u_j) - 1) + 0..3 with floor(u_j) = floor(u_0) + os j:
+        # the S x 4 taps lie in one window of L = os (S - 1) + 4 samples per axis
+        length = os_ * (s - 1) + 4
+        c0 = fu[:, 0].astype(np.intp) - 1
+        r0 = fv[:, 0].astype(np.intp) - 1
+        coef, margin = self._padded(min(c0.min(), r0.min()), max(c0.max(), r0.max()) + length)
+        ny, nx = coef.shape[1:]
+        sel = (os_ * np.arange(s)[:, None] + np.arange(4)[None, :]).ravel()  # (S*4,)
+        offs = (sel[:, None] * nx + sel[None, :]).ravel()  # window offsets, (S*4*S*4,)
+        start = (r0 + margin) * nx + (c0 + margin)
+        flat = coef.reshape(-1)
+        plane = ny * nx
+        gathered = np.zeros((n, s * 4 * s * 4), dtype=np.float32)
         for m in range(idx.shape[1]):
-            gathered += (
-                wmix[:, m, None, None, None, None]
-                * flat[idx[:, m, None, None, None, None] * plane + pix]
-            )
-        ax = np.einsum("njaib,nb->njai", gathered, wx)
+            base = idx[:, m] * plane + start
+            gathered += wmix[:, m, None].astype(np.float32) * flat[base[:, None] + offs[None, :]]
+        gathered = gathered.reshape(n, s, 4, s, 4)
+        wx, dwx, wy, dwy = (w.astype(np.float32) for w in (wx, dwx, wy, dwy))
+        # contract the x taps with the weights (and their derivative) in one pass
+        wxs = np.stack([wx, dwx], axis=2) if derivatives else wx[:, :, None]
+        ax_all = np.matmul(gathered.reshape(n, s * 4 * s, 4), wxs).reshape(n, s, 4, s, -1)
+        ax = ax_all[..., 0]
         value = np.einsum("njai,na->nji", ax, wy)
         if not derivatives:
-            return value
-        dvx = -os_ * np.einsum("njaib,nb,na->nji", gathered, dwx, wy)
+            return value.astype(float)
+        dvx = -os_ * np.einsum("njai,na->nji", ax_all[..., 1], wy)
         dvy = -os_ * np.einsum("njai,na->nji", ax, dwy)
-        return value, dvx, dvy
+        return value.astype(float), dvx.astype(float), dvy.astype(float)
+
+    def _padded(self, lo: int, hi: int) -> tuple[np.ndarray, int]:
+        """Spline coefficients (float32) zero-padded to cover indices ``lo .. hi - 1``."""
+        need = max(0, -lo, hi - min(self._ny, self._nx))
+        if need > self._margin:
+            self._margin = int(need) + 8
+            m = self._margin
+            self._coef_pad = np.pad(self._coef, ((0, 0), (m, m), (m, m))).astype(np.float32)
+        return self._coef_pad, self._margin
 
 
 # ---------------------------------------------------------------- builders

@@ -41,7 +41,7 @@ def test_evaluation_matches_analytic_prf_and_derivatives():
         1.1,
     )
     assert np.max(np.abs(val - exact)) < 1e-4 * exact.max()
-    h = 1e-5
+    h = 1e-3
     num_x = (
         epsf.evaluate(x + h, y, geom, derivatives=False)
         - epsf.evaluate(x - h, y, geom, derivatives=False)
@@ -50,8 +50,8 @@ def test_evaluation_matches_analytic_prf_and_derivatives():
         epsf.evaluate(x, y + h, geom, derivatives=False)
         - epsf.evaluate(x, y - h, geom, derivatives=False)
     ) / (2 * h)
-    np.testing.assert_allclose(dvx, num_x, atol=1e-7)
-    np.testing.assert_allclose(dvy, num_y, atol=1e-7)
+    np.testing.assert_allclose(dvx, num_x, atol=2e-5)
+    np.testing.assert_allclose(dvy, num_y, atol=2e-5)
 
 
 def test_gridded_and_polynomial_mixing():
