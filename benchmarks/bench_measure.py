@@ -56,14 +56,27 @@ def make_frame(n, size, seed=0):
     flux = mag_to_flux(mag)
     image, sat = noisy_frame(render_image((size, size), x, y, flux, PSF), DET, rng)
     start_x, start_y = x + rng.normal(0, 0.05, n), y + rng.normal(0, 0.05, n)
-    return dict(image=image.astype(float) * DET.gain, sat=sat, x=x, y=y, mag=mag, flux=flux, x0=start_x, y0=start_y)
+    return dict(
+        image=image.astype(float) * DET.gain,
+        sat=sat,
+        x=x,
+        y=y,
+        mag=mag,
+        flux=flux,
+        x0=start_x,
+        y0=start_y,
+    )
 
 
 def accuracy(frame, res, epsf_true, radius=5):
     """Robust sigma of (measured - true) / CRLB for m < 22 stars, and the bias."""
     sel = (frame["mag"] < 22) & ((res.flag & 32) == 0)
-    bound = crlb(epsf_true, frame["x"][sel], frame["y"][sel], frame["flux"][sel], DET.sky, RN2, radius)
-    z = np.r_[(res.x[sel] - frame["x"][sel]) / bound[:, 0], (res.y[sel] - frame["y"][sel]) / bound[:, 1]]
+    bound = crlb(
+        epsf_true, frame["x"][sel], frame["y"][sel], frame["flux"][sel], DET.sky, RN2, radius
+    )
+    z = np.r_[
+        (res.x[sel] - frame["x"][sel]) / bound[:, 0], (res.y[sel] - frame["y"][sel]) / bound[:, 1]
+    ]
     return robust_sigma(z), np.median(z)
 
 
@@ -115,7 +128,14 @@ def main(argv=None):
     for variation, grid in (("constant", 1), ("grid", 3), ("grid", 5), ("polynomial", 3)):
         opts = EPSFOptions(variation=variation, grid=grid, size=21, stars_per_node=40, min_snr=100)
         (epsf, used), t_build = timed(
-            build_field_epsf, frame["image"] - DET.sky, frame["x0"], frame["y0"], box, frame["sat"], noise, opts
+            build_field_epsf,
+            frame["image"] - DET.sky,
+            frame["x0"],
+            frame["y0"],
+            box,
+            frame["sat"],
+            noise,
+            opts,
         )
         res, t = timed(fit_fast, frame, epsf)
         s, b = accuracy(frame, res, grid_true)
@@ -154,7 +174,9 @@ def main(argv=None):
         )  # fmt: skip
         s_p, _ = accuracy(sub, res_p, epsf)
         rows[fitter] = t_p
-        print(f"{'photutils ' + fitter:<28}{t_p:8.2f} s   sigma/CRLB {s_p:6.2f}   ({t_p / t_fast:5.1f}x ours)")
+        print(
+            f"{'photutils ' + fitter:<28}{t_p:8.2f} s   sigma/CRLB {s_p:6.2f}   ({t_p / t_fast:5.1f}x ours)"
+        )
     print(f"photutils default / LevMar time ratio: {rows['default'] / rows['levmar']:.2f}")
     return 0
 

@@ -306,6 +306,12 @@ def fit_stars(
     model = np.zeros(ny * nx)
     colour = colour_stars(x, y, 2 * r + 1.0)
     groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
+    pairs = (
+        cKDTree(np.column_stack([x, y])).query_pairs(2 * r + 1.0, output_type="ndarray")
+        if n > 1
+        else np.zeros((0, 2), dtype=np.intp)
+    )
+    active = usable.copy()  # stars (re)fitted in the next sweep
 
     def deposit(idx, new):
         ins = inside[idx]
@@ -339,6 +345,7 @@ def fit_stars(
     for fixed in bar:
         steps[:] = 0.0
         for group in groups:
+            group = group[active[group]]
             for idx in _chunks(group, opt.chunk):
                 freeze = np.ones(len(idx), bool) if fixed else None
                 v, dvx, dvy, a, b, w, _ = normal_equations(idx, freeze)
@@ -384,7 +391,16 @@ def fit_stars(
                 new = flux[idx, None] * (v + dvx * dx[:, None] + dvy * dy[:, None])
                 deposit(idx, new)
         done += 0 if fixed else 1
-        if not fixed and np.all(steps[usable] < thresh[usable]):
+        # converged stars rest until they or an overlapping neighbour move again
+        moved = usable & (steps >= thresh)
+        active = moved.copy()
+        if len(pairs):
+            active[pairs[:, 0]] |= moved[pairs[:, 1]]
+            active[pairs[:, 1]] |= moved[pairs[:, 0]]
+        active &= usable
+        if fixed:
+            active = usable.copy()
+        if not fixed and not np.any(moved):
             break
     bar.close()
 
