@@ -136,14 +136,25 @@ def render_frame(
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max)
     image = np.zeros((det.ny, det.nx), dtype=np.float64)
     rendered = renderer.render(
-        image, x_pix, y_pix, x, y, cov, flux_sub * core_fraction, sizes, progress=progress
+        image,
+        x_pix,
+        y_pix,
+        x,
+        y,
+        cov,
+        flux_sub * core_fraction,
+        sizes,
+        noise_sigma=noise,
+        progress=progress,
     )
     if halo is not None and len(x):
         b = par.halo_downsample or max(1, int(round(HALO_COARSE_PIXEL_MAS / s)))
         image += halo_field(x_pix, y_pix, flux_sub, image.shape, halo, s, b)
     sky = sky_electrons_per_pixel(phot, s * u.mas, sub_exposure).value
     image += sky
-    img_adu, saturated = expose_stack(image, scene.nexp, det, rng, noise=scene.noise)
+    img_adu, saturated = expose_stack(
+        image, scene.nexp, det, rng, noise=scene.noise, skew_limit=par.gaussian_skew_limit
+    )
     keep = rendered
     truth = QTable()
     truth["id"] = np.asarray(stars["id"], dtype=np.int64)[keep]

@@ -36,11 +36,12 @@ def test_sky_per_pixel_scales_with_area_and_has_no_extinction():
     assert sky_electrons_per_pixel(p, 15 * u.mas, 30 * u.s).value == pytest.approx(4 * sky)
 
 
+@pytest.mark.parametrize("skew", [0.0, 0.01])
 @pytest.mark.parametrize("nexp,gain", [(1, 1.0), (8, 1.0), (4, 2.5)])
-def test_sky_only_variance_equals_mean_plus_read_noise(nexp, gain):
+def test_sky_only_variance_equals_mean_plus_read_noise(nexp, gain, skew):
     det = DetectorSettings(nx=300, ny=300, read_noise=3.0, gain=gain)
     mu = np.full((300, 300), 40.0)
-    img, sat = expose_stack(mu, nexp, det, np.random.default_rng(5))
+    img, sat = expose_stack(mu, nexp, det, np.random.default_rng(5), skew_limit=skew)
     e = img.astype(float) * gain
     assert e.mean() == pytest.approx(40.0 * nexp, rel=2e-3)
     assert e.var() == pytest.approx(nexp * (40.0 + 9.0), rel=0.02)

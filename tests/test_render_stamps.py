@@ -107,7 +107,8 @@ def test_bright_star_wing_below_threshold_at_stamp_edge(renderer):
     noise, flux = 10.0, 1e7
     m = int(renderer.stamp_sizes([flux], noise, [5.5])[0])
     big = renderer.max_stamp(5.5) * 2
-    stamp, _, _ = renderer.render_stamps(big, [50.0], [50.0], [0.0], [0.0], cov, [flux])
+    stamp = np.zeros((1, big, big))
+    renderer.render(stamp[0], [big / 2], [big / 2], [0.0], [0.0], cov, [flux], [big], noise)
     c = big // 2
     inner = stamp[0][c - m // 2 : c + m // 2, c - m // 2 : c + m // 2]
     outside = stamp[0].copy()
@@ -128,6 +129,6 @@ def test_render_clips_stamps_at_edges_and_skips_outside(renderer):
     assert rendered.tolist() == [True, True, False, True, True]
     big = np.zeros((160, 160))
     renderer.render(big, xp + 64, yp + 64, xp * 0, yp * 0, cov, flux, sizes)
-    assert np.allclose(small, big[64:96, 64:96], rtol=0, atol=1e-12)
+    assert np.allclose(small, big[64:96, 64:96], rtol=0, atol=1e-6)
     assert np.isfinite(small).all()
-    assert abs(big.sum() - 11.0) < 1e-9
+    assert abs(big.sum() - 11.0) < 1e-5
