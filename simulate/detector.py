@@ -15,11 +15,16 @@ sub-exposure and clipped individually, so saturation acts per sub-exposure exact
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from mavispm.core.config import unit_field
+
+#: Pixels per chunk of the vectorised noise draw (fits in cache; fixes the random streams).
+NOISE_CHUNK = 1 << 18
 
 #: Pixels whose sub-exposure mean lies more than this many sigma below the
 #: saturation level are treated as never saturating (probability < 1e-20).
@@ -81,6 +86,7 @@ def expose_stack(
     rng: np.random.Generator,
     noise: bool = True,
     skew_limit: float = 0.0,
+    threads: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read out a stack of ``nexp`` sub-exposures of a static scene.
 
@@ -98,6 +104,8 @@ def expose_stack(
         Where the skewness of Poisson(nexp mu) + read noise, ``nexp mu / var**1.5``,
         is below this value the sum is drawn as a Gaussian with its exact mean and
         variance ``var = nexp (mu + RN^2)`` (much faster); elsewhere exactly. 0: always exact.
+    threads : int
+        Threads for the per-pixel work (0: all cores); the result does not depend on it.
 
     Returns
     -------
@@ -108,35 +116,54 @@ def expose_stack(
     """
     if nexp < 1:
         raise ValueError(f"nexp must be >= 1, got {nexp}")
-    mu = np.clip(np.asarray(mean_electrons, dtype=np.float32), 0.0, None)
+    mu = np.array(mean_electrons, dtype=np.float32, copy=True)
+    np.maximum(mu, 0.0, out=mu)
     full = settings.saturation_electrons
     rn = settings.read_noise
     if not noise:
-        clipped = np.minimum(mu, np.float32(full))
-        return clipped * np.float32(nexp / settings.gain), mu >= full
+        np.minimum(mu, np.float32(full), out=mu)
+        saturated = mu >= full
+        mu *= np.float32(nexp / settings.gain)
+        return mu, saturated
     flat_mu = mu.reshape(-1)
     var_rn = nexp * rn**2
-    # fast path everywhere (float32): a Gaussian with the exact mean and variance of the sum
-    lam = flat_mu * np.float32(nexp)
-    total = np.sqrt(lam + np.float32(var_rn))
-    total *= rng.standard_normal(lam.shape, dtype=np.float32)
-    total += lam
+    # fast path everywhere (float32, in chunks on `threads` threads, one generator per
+    # chunk so the result does not depend on the thread count): a Gaussian with the
+    # exact mean and variance of the sum
+    total = np.empty_like(flat_mu)
+    starts = range(0, flat_mu.size, NOISE_CHUNK)
+    chunk_rngs = rng.spawn(len(starts))
+    lo = skew_limit * var_rn**1.5 if skew_limit > 0 else 0.0
+    hi = skew_limit**-2 if skew_limit > 0 else np.inf
+    risky_floor = full - SATURATION_SAFETY_SIGMA * np.sqrt(full + rn**2)
+
+    def chunk(args):
+        start, crng = args
+        sl = slice(start, start + NOISE_CHUNK)
+        lam = flat_mu[sl] * np.float32(nexp)
+        out = total[sl]
+        np.add(lam, np.float32(var_rn), out=out)
+        np.sqrt(out, out=out)
+        out *= crng.standard_normal(lam.size, dtype=np.float32)
+        out += lam
+        cand = np.flatnonzero((lam >= lo) & (lam <= hi)) + start
+        risky = np.flatnonzero(flat_mu[sl] >= risky_floor) + start
+        return cand, risky
+
+    results = _map_threads(chunk, zip(starts, chunk_rngs), threads)
+    cand = np.concatenate([c for c, _ in results]) if results else np.zeros(0, int)
+    risky_c = np.concatenate([r for _, r in results]) if results else np.zeros(0, int)
     # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches the
     # limit; since var >= max(lam, var_rn), only lam in [limit var_rn**1.5, limit**-2]
+    lam_c = flat_mu[cand].astype(np.float64) * nexp
     if skew_limit > 0:
-        lo, hi = skew_limit * var_rn**1.5, skew_limit**-2
-        cand = np.flatnonzero((lam >= lo) & (lam <= hi))
-        lam_c = lam[cand].astype(np.float64)
-        exact = cand[lam_c >= skew_limit * (lam_c + var_rn) ** 1.5]
-    else:
-        exact = np.arange(lam.size)
-    lam_e = lam[exact].astype(np.float64)
-    total[exact] = rng.poisson(lam_e) + rng.normal(0.0, np.sqrt(var_rn), lam_e.size)
+        keep = lam_c >= skew_limit * (lam_c + var_rn) ** 1.5
+        cand, lam_c = cand[keep], lam_c[keep]
+    total[cand] = rng.poisson(lam_c) + rng.normal(0.0, np.sqrt(var_rn), lam_c.size)
     # pixels that can saturate in a sub-exposure: drawn and clipped one by one
-    saturated = np.zeros(lam.shape, dtype=bool)
-    cand = np.flatnonzero(flat_mu >= full - SATURATION_SAFETY_SIGMA * np.sqrt(full + rn**2))
-    mu_c = flat_mu[cand].astype(np.float64)
-    risky = cand[mu_c + SATURATION_SAFETY_SIGMA * np.sqrt(mu_c + rn**2) >= full]
+    saturated = np.zeros(flat_mu.shape, dtype=bool)
+    mu_c = flat_mu[risky_c].astype(np.float64)
+    risky = risky_c[mu_c + SATURATION_SAFETY_SIGMA * np.sqrt(mu_c + rn**2) >= full]
     if risky.size:
         mu_r = flat_mu[risky].astype(np.float64)
         subs = rng.poisson(np.broadcast_to(mu_r, (nexp, mu_r.size))).astype(np.float64)
@@ -145,3 +172,13 @@ def expose_stack(
         total[risky] = np.minimum(subs, full).sum(axis=0)
     total *= np.float32(1.0 / settings.gain)
     return total.reshape(mu.shape), saturated.reshape(mu.shape)
+
+
+def _map_threads(fn, items, threads: int) -> list:
+    """``list(map(fn, items))`` on up to ``threads`` threads (0: all cores), in order."""
+    items = list(items)
+    n = threads or os.cpu_count() or 1
+    if n <= 1 or len(items) <= 1:
+        return [fn(it) for it in items]
+    with ThreadPoolExecutor(max_workers=n) as pool:
+        return list(pool.map(fn, items))

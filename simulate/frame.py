@@ -149,12 +149,19 @@ def render_frame(
     )
     if halo is not None and len(x):
         b = par.halo_downsample or max(1, int(round(HALO_COARSE_PIXEL_MAS / s)))
-        image += halo_field(x_pix, y_pix, flux_sub, image.shape, halo, s, b)
+        image += halo_field(x_pix, y_pix, flux_sub, image.shape, halo, s, b, par.threads)
     sky = sky_electrons_per_pixel(phot, s * u.mas, sub_exposure).value
     image += sky
     img_adu, saturated = expose_stack(
-        image, scene.nexp, det, rng, noise=scene.noise, skew_limit=par.gaussian_skew_limit
+        image,
+        scene.nexp,
+        det,
+        rng,
+        noise=scene.noise,
+        skew_limit=par.gaussian_skew_limit,
+        threads=par.threads,
     )
+    image *= scene.nexp  # in place: the noise-free stack (electron)
     keep = rendered
     truth = QTable()
     truth["id"] = np.asarray(stars["id"], dtype=np.int64)[keep]
@@ -180,7 +187,7 @@ def render_frame(
     return Frame(
         image=img_adu,
         saturated=saturated,
-        noiseless=image * scene.nexp,
+        noiseless=image,
         truth=truth,
         attrs=attrs,
     )

@@ -28,6 +28,8 @@ edge is below ``stamp_threshold`` times the per-pixel noise.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
@@ -76,6 +78,9 @@ class RenderParams:
         Spectrum samples where every PSF node's transfer function, times the
         narrowest tip-tilt/blur kernel of the batch, is below this fraction of the
         total are dropped (the OTF vanishes beyond D/lambda; default 1e-5).
+    threads : int
+        Threads for stamp batches, the noise draw and the halo FFT (0: all cores).
+        Results do not depend on it.
     gaussian_skew_limit : float
         Photon + read noise of the stack is drawn as a Gaussian with the exact mean
         and variance where its skewness is below this value, and exactly
@@ -93,6 +98,7 @@ class RenderParams:
     batch_size: int = 512
     spectrum_floor: float = 1e-5
     gaussian_skew_limit: float = 0.01
+    threads: int = 0
 
     def __post_init__(self):
         if self.oversampling < 1:
@@ -109,6 +115,8 @@ class RenderParams:
             raise ValueError("render.spectrum_floor must be in [0, 1)")
         if self.gaussian_skew_limit < 0:
             raise ValueError("render.gaussian_skew_limit must be >= 0")
+        if self.threads < 0:
+            raise ValueError("render.threads must be >= 0 (0: all cores)")
         if self.batch_size < 1:
             raise ValueError("render.batch_size must be >= 1")
 
@@ -447,23 +455,33 @@ class StarRenderer:
 
             bar = tqdm(total=int(todo.sum()), desc="stars", unit="star", leave=False)
         batch = self.params.batch_size
+        jobs = []
         for m in np.unique(sizes[todo]):
             idx = np.flatnonzero(todo & (sizes == m))
             idx = idx[np.argsort(flux[idx], kind="stable")]
-            for start in range(0, len(idx), batch):
-                sel = idx[start : start + batch]
-                floor, dtype = self._batch_accuracy(float(flux[sel].max()), noise_sigma)
-                stamps, x0, y0 = self.render_stamps(
-                    int(m),
-                    x_pix[sel],
-                    y_pix[sel],
-                    x_field[sel],
-                    y_field[sel],
-                    cov[sel],
-                    flux[sel],
-                    floor=floor,
-                    dtype=dtype,
-                )
+            jobs += [(int(m), idx[a : a + batch]) for a in range(0, len(idx), batch)]
+
+        def work(job):
+            m, sel = job
+            floor, dtype = self._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            return self.render_stamps(
+                m,
+                x_pix[sel],
+                y_pix[sel],
+                x_field[sel],
+                y_field[sel],
+                cov[sel],
+                flux[sel],
+                floor=floor,
+                dtype=dtype,
+            )
+
+        for m in {m for m, _ in jobs}:
+            self.plan(m)  # build plans once, before the threads share them
+        threads = self.params.threads or os.cpu_count() or 1
+        with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
+            # stamps are added in job order: the image does not depend on the threads
+            for (_, sel), (stamps, x0, y0) in zip(jobs, pool.map(work, jobs)):
                 _add_stamps(image, stamps, x0, y0)
                 if bar is not None:
                     bar.update(len(sel))

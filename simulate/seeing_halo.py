@@ -10,7 +10,10 @@ times larger and be interpolated back to the detector grid.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+import scipy.fft
 import scipy.signal
 import scipy.sparse
 
@@ -34,7 +37,7 @@ def deposit_cic(field: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndar
 
 
 def halo_field(
-    x_pix, y_pix, flux, shape, halo, pixel_scale: float, downsample: int = 1
+    x_pix, y_pix, flux, shape, halo, pixel_scale: float, downsample: int = 1, threads: int = 1
 ) -> np.ndarray:
     """The seeing field of a set of stars on the detector grid.
 
@@ -52,6 +55,8 @@ def halo_field(
         Detector pixel size, mas.
     downsample : int
         Convolve on pixels ``downsample`` times larger, then interpolate back.
+    threads : int
+        FFT worker threads (0: all cores).
 
     Returns
     -------
@@ -69,15 +74,17 @@ def halo_field(
     deposit_cic(padded, xc, yc, np.asarray(flux, dtype=float))
     if not padded.any():
         return np.zeros(shape)
-    seeing = scipy.signal.fftconvolve(padded, kernel, mode="same")
+    with scipy.fft.set_workers(threads or os.cpu_count() or 1):
+        seeing = scipy.signal.fftconvolve(padded, kernel, mode="same")
     coarse = seeing[hky : hky + ncy, hkx : hkx + ncx]
     if b == 1:
         return coarse
     # detector pixel centres in coarse-pixel coordinates; flux density per detector pixel
     rows = _linear_interpolation_matrix(ny, ncy, b)
     cols = _linear_interpolation_matrix(nx, ncx, b)
-    fine = rows @ (cols @ coarse.T).T
-    return np.asarray(fine) / b**2
+    fine = np.asarray(rows @ (cols @ coarse.T).T)
+    fine *= 1.0 / b**2
+    return fine
 
 
 def _linear_interpolation_matrix(n_fine: int, n_coarse: int, b: int) -> scipy.sparse.csr_matrix:
