@@ -91,7 +91,7 @@ def timed(fn, *args, **kw):
 
 # --------------------------------------------------------------- 1. accuracy knobs
 def knob_table(optics, quick: bool):
-    npix, spacing = (512, 40) if quick else (1024, 40)
+    npix, spacing = (768, 96) if quick else (1536, 96)
     k = npix // spacing
     scale = 7.5
     g = (np.arange(k) - (k - 1) / 2) * spacing * scale / 1000.0
@@ -168,7 +168,9 @@ def scaling(optics, quick: bool):
     scene = scene_from_mapping({})
     print("\n2. Full frame 4000x4000, all terms on (PSF grid, TT, distortion, halo, sky, noise,")
     print("   120 x 30 s): renderer warm = PSF transforms cached (reused across epochs)")
-    print(f"   {'stars':>6s} {'cold [s]':>9s} {'warm [s]':>9s} {'peak MiB':>9s}")
+    print(
+        f"   {'stars':>6s} {'cold [s]':>9s} {'warm [s]':>9s} {'warm cpu [s]':>13s} {'peak MiB':>9s}"
+    )
     renderer = None
     for n in counts:
         t = catalogue(n, np.random.default_rng(n))
@@ -179,9 +181,11 @@ def scaling(optics, quick: bool):
         peak = tracemalloc.get_traced_memory()[1] / 2**20
         tracemalloc.stop()
         renderer = cold_renderer
+        c0 = time.process_time()
         _, warm = timed(render_frame, t, 1 * u.yr, scene, optics, np.random.default_rng(1),
                         renderer=renderer)  # fmt: skip
-        print(f"   {n:6d} {cold:9.2f} {warm:9.2f} {peak:9.0f}")
+        cpu = time.process_time() - c0
+        print(f"   {n:6d} {cold:9.2f} {warm:9.2f} {cpu:13.2f} {peak:9.0f}")
     return renderer
 
 
