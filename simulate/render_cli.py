@@ -53,10 +53,20 @@ def validate_settings(scene_mapping: Mapping | None, source=None) -> SceneSettin
     return scene
 
 
-def build_scene_optics(scene: SceneSettings, cache_dir=None):
-    """The optics model of a scene (``mavispm.simulate.optics.build_optics``)."""
+def build_scene_optics(scene: SceneSettings, cache_dir=None, progress: bool = False):
+    """The optics model of a scene (``mavispm.simulate.optics.build_optics``).
+
+    Parameters
+    ----------
+    scene : SceneSettings
+    cache_dir : path, optional
+        PSF-grid cache folder (default: the optics module's default).
+    progress : bool
+        Progress bar while a PSF grid is computed.
+    """
     optics = _optics_module()
-    return optics.build_optics(optics.validate_settings(scene.optics), cache_dir=cache_dir)
+    settings = optics.validate_settings(scene.optics)
+    return optics.build_optics(settings, cache_dir=cache_dir, progress=progress)
 
 
 def epoch_rng(seed: int | None, epoch: str) -> np.random.Generator:
@@ -117,6 +127,7 @@ def run_stage(
     optics=None,
     renderer=None,
     progress: bool = False,
+    cache_dir=None,
 ) -> Path:
     """Render one epoch of a catalogue into a ``frames`` product.
 
@@ -140,6 +151,8 @@ def run_stage(
         Reuse cached PSF transforms across epochs.
     progress : bool
         Progress bars.
+    cache_dir : path, optional
+        PSF-grid cache folder for the optics model.
 
     Returns
     -------
@@ -150,7 +163,7 @@ def run_stage(
     settings = scene_from_mapping(scene)
     table, t = _select_epoch(cat, epoch)
     if optics is None:
-        optics = build_scene_optics(settings)
+        optics = build_scene_optics(settings, cache_dir, progress)
     frame = render_frame(
         table, t, settings, optics, epoch_rng(seed, epoch), renderer=renderer, progress=progress
     )
@@ -188,7 +201,7 @@ def _handle(args: argparse.Namespace) -> int:
             f"the catalogue has epochs {names}; choose one with --epoch or use --epoch all",
             path=args.catalogue,
         )
-    optics = build_scene_optics(scene)
+    optics = build_scene_optics(scene, args.cache_dir, args.progress)
     renderer = make_renderer(optics, scene)
     for name in todo:
         out = Path(args.output) / f"frames_{name}.h5" if many else Path(args.output)
@@ -229,5 +242,6 @@ def register(subparsers) -> None:
     p.add_argument("--fits", help="also write the image as this FITS file")
     p.add_argument("--fits-dir", help="write FITS copies into this folder (frames_<epoch>.fits)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--cache-dir", help="PSF-grid cache folder (default: the optics default)")
     p.add_argument("--progress", action="store_true", help="show progress bars")
     p.set_defaults(func=_handle)

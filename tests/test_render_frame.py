@@ -181,7 +181,7 @@ def fake_optics_module(monkeypatch, optics):
             return dict(mapping)
 
         @staticmethod
-        def build_optics(settings, cache_dir=None):
+        def build_optics(settings, cache_dir=None, progress=False):
             return optics
 
     monkeypatch.setattr(render_cli, "_optics_module", lambda: Module)

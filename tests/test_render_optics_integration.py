@@ -1,0 +1,71 @@
+"""Frames rendered with the real optics model (mavispm.simulate.optics), small and fast."""
+
+import astropy.units as u
+import numpy as np
+import pytest
+from astropy.table import QTable
+from optics_helpers import small_table
+
+from mavispm.core.catalogue import write_catalogue
+from mavispm.core.errors import ConfigError
+from mavispm.core.products import read_product
+from mavispm.simulate import render_cli
+from mavispm.simulate.frame import render_frame
+
+
+def _table(x, y, mag):
+    t = QTable(
+        {
+            "id": np.arange(len(x)),
+            "x": np.asarray(x, float) * u.arcsec,
+            "y": np.asarray(y, float) * u.arcsec,
+            "pm_x": np.zeros(len(x)) * u.mas / u.yr,
+            "pm_y": np.zeros(len(x)) * u.mas / u.yr,
+            "mag": np.asarray(mag, float) * u.mag,
+        }
+    )
+    t.meta["epoch"] = 0.0 * u.yr
+    return t
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("psfcache")
+
+
+def _scene(**extra):
+    optics = small_table()
+    optics["halo"] = {"size": "0.9 arcsec"}
+    return {
+        "noise": False,
+        "nexp": 2,
+        "detector": {"nx": 160, "ny": 160},
+        "optics": optics,
+        **extra,
+    }
+
+
+def test_real_optics_frame_conserves_flux_with_halo(cache):
+    scene = render_cli.validate_settings(_scene())
+    optics = render_cli.build_scene_optics(scene, cache)
+    assert optics.halo is not None and 0 < optics.halo.fraction < 1
+    t = _table([0.004], [-0.006], [18.0])
+    frame = render_frame(t, 0 * u.yr, scene, optics, None)
+    stars = frame.noiseless - frame.attrs["sky"].value
+    assert stars.sum() == pytest.approx(frame.truth["flux"].value[0], rel=3e-3)
+    assert frame.attrs["halo_fraction"] == pytest.approx(optics.halo.fraction)
+    # the brightest pixel is the star's pixel
+    iy, ix = np.unravel_index(np.argmax(stars), stars.shape)
+    assert (ix, iy) == (round(frame.truth["x_pix"][0]), round(frame.truth["y_pix"][0]))
+
+
+def test_real_optics_run_stage_and_bad_optics_key(tmp_path, cache):
+    with pytest.raises(ConfigError, match="scene.optics.psf.n_nodez"):
+        render_cli.validate_settings({"optics": {"psf": {"n_nodez": 3}}})
+    cat = tmp_path / "cat.h5"
+    write_catalogue(cat, {"e0": _table([0.0, 0.3], [0.1, -0.2], [19.0, 21.0])})
+    scene = _scene(noise=True)
+    out = render_cli.run_stage(cat, "e0", scene, tmp_path / "f.h5", 4, cache_dir=cache)
+    prod = read_product(out, "frames")
+    assert prod.arrays["image"].shape == (160, 160)
+    assert len(prod.tables["truth"]) == 2
