@@ -39,6 +39,10 @@ import scipy.sparse
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
 
+#: A stamp plan keeps spectrum samples this many decades below ``spectrum_floor``,
+#: for the lower floors of bright-star batches.
+PLAN_FLOOR_DECADES = 4
+
 #: Even stamp sizes with small prime factors (fast FFTs).
 STAMP_SIZES = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512)
 
@@ -131,7 +135,7 @@ class StampPlan:
         Stamp side (pixels).
     u, v : ndarray (nsup,)
         Spatial frequencies (cycles/mas) of the retained spectrum samples: those
-        where some PSF node's transfer function exceeds ``spectrum_floor``.
+        where some PSF node's transfer function exceeds the plan floor.
     col, row : ndarray (nsup,) int
         Their column/row in the separable frequency axes ``fx``/``fy``.
     fx, fy : ndarray
@@ -266,8 +270,8 @@ class StarRenderer:
 
         The node transforms are a direct (matrix) DFT of each PSF node at the
         stamp's folding frequencies, exact for any PSF sampling; only samples where
-        some node exceeds ``spectrum_floor`` of its total are kept (the optical
-        transfer function vanishes beyond D/lambda).
+        some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
+        kept (the optical transfer function vanishes beyond D/lambda).
         """
         if m not in self._plans:
             self._plans[m] = self._make_plan(m)
@@ -291,7 +295,8 @@ class StarRenderer:
         full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
         peak = np.abs(full).max(axis=0)
         peak /= peak.max()
-        keep = peak > self.params.spectrum_floor
+        # keep PLAN_FLOOR_DECADES below the floor: bright-star batches use lower floors
+        keep = peak > self.params.spectrum_floor * 10.0**-PLAN_FLOOR_DECADES
         row, col = np.nonzero(keep)
         mh = m // 2 + 1
         target = (row % m) * mh + (col % mh)
