@@ -102,7 +102,7 @@ def knob_table(optics, quick: bool):
     n = x.size
     x_pix = x * 1000 / scale + (npix - 1) / 2
     y_pix = y * 1000 / scale + (npix - 1) / 2
-    cov = optics.kernel_covariance(x, y).to_value(u.mas**2)
+    cov = u.Quantity(optics.kernel_covariance(x, y), u.mas**2).value
     flux = 10 ** rng.uniform(3, 7, n)  # electrons per sub-exposure
     noise = 0.28  # per-pixel noise of the default stack, per sub-exposure
     sig = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])
@@ -244,11 +244,11 @@ def mavisim_comparison(optics, quick: bool):
     scene = scene_from_mapping({"noise": False, "render": {"halo": False}})
     x = t["x"].to_value(u.arcsec)
     y = t["y"].to_value(u.arcsec)
-    dx, dy = optics.distortion.displacement(x, y, 0 * u.yr)
-    x, y = x + dx.to_value(u.arcsec), y + dy.to_value(u.arcsec)
+    dx, dy = optics.distortion.displacement(x, y, 0.0)
+    x, y = x + u.Quantity(dx, u.arcsec).value, y + u.Quantity(dy, u.arcsec).value
     x_pix = x * 1000 / scale + (npix - 1) / 2
     y_pix = y * 1000 / scale + (npix - 1) / 2
-    cov = optics.kernel_covariance(x, y).to_value(u.mas**2)
+    cov = u.Quantity(optics.kernel_covariance(x, y), u.mas**2).value
     from mavispm.simulate.photometry import star_electrons
 
     flux = star_electrons(t["mag"], scene.photometry, 30 * u.s).value

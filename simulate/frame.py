@@ -121,7 +121,7 @@ def render_frame(
         raise InputError("non-finite magnitudes; every luminous star needs a flux", column="mag")
     x, y = x_cat.copy(), y_cat.copy()
     if getattr(optics.distortion, "enabled", False) and len(x):
-        dx, dy = optics.distortion.displacement(x_cat, y_cat, epoch)
+        dx, dy = optics.distortion.displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value)
         x = x + _arcsec(dx, "dx")
         y = y + _arcsec(dy, "dy")
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2

@@ -69,3 +69,16 @@ def test_real_optics_run_stage_and_bad_optics_key(tmp_path, cache):
     prod = read_product(out, "frames")
     assert prod.arrays["image"].shape == (160, 160)
     assert len(prod.tables["truth"]) == 2
+
+
+def test_real_dynamic_distortion_sets_truth_positions(cache):
+    optics_table = _scene()["optics"]
+    optics_table["distortion"] = {"dynamic": True, "dynamic_amplitude": "2 mas"}
+    scene = render_cli.validate_settings({**_scene(), "optics": optics_table})
+    optics = render_cli.build_scene_optics(scene, cache)
+    t = _table([0.2, -0.3], [0.1, 0.25], [20.0, 20.0])
+    frame = render_frame(t, 10.0 * u.yr, scene, optics, None)
+    dx, dy = optics.distortion.displacement([0.2, -0.3], [0.1, 0.25], 10.0)
+    assert np.any(np.abs(dx) > 0)
+    np.testing.assert_allclose(frame.truth["x"].value - frame.truth["x_cat"].value, dx)
+    np.testing.assert_allclose(frame.truth["y"].value - frame.truth["y_cat"].value, dy)
