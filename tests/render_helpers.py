@@ -242,3 +242,22 @@ def brute_force_stamp(grid, x, y, cov, x_pix, y_pix, pixel_scale, m, sub=15):
     img = scipy.signal.fftconvolve(psf, kern, mode="valid")  # (m*sub, m*sub)
     pix = img.reshape(m, sub, m, sub).mean(axis=(1, 3))
     return pix * pixel_scale**2
+
+
+def epoch_table(x, y, mag, epoch=0.0):
+    """A catalogue epoch table (QTable) with positions (arcsec) and V magnitudes."""
+    from astropy.table import QTable
+
+    n = len(x)
+    t = QTable(
+        {
+            "id": np.arange(n),
+            "x": np.asarray(x, dtype=float) * u.arcsec,
+            "y": np.asarray(y, dtype=float) * u.arcsec,
+            "pm_x": np.zeros(n) * u.mas / u.yr,
+            "pm_y": np.zeros(n) * u.mas / u.yr,
+            "mag": np.asarray(mag, dtype=float) * u.mag,
+        }
+    )
+    t.meta["epoch"] = epoch * u.yr
+    return t

@@ -4,11 +4,10 @@ import astropy.units as u
 import numpy as np
 import pytest
 from astropy.io import fits
-from astropy.table import QTable
 from astropy.wcs import WCS
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from render_helpers import PolynomialDistortion, RingHalo, make_optics
+from render_helpers import PolynomialDistortion, RingHalo, epoch_table, make_optics
 
 from mavispm.core.catalogue import write_catalogue
 from mavispm.core.errors import ConfigError, InputError
@@ -19,22 +18,6 @@ from mavispm.simulate.photometry import star_electrons
 from mavispm.simulate.scene import scene_from_mapping
 
 NOISELESS = {"noise": False, "nexp": 2, "detector": {"nx": 64, "ny": 64}}
-
-
-def _table(x, y, mag, ids=None):
-    n = len(x)
-    t = QTable(
-        {
-            "id": np.arange(n) if ids is None else ids,
-            "x": np.asarray(x, dtype=float) * u.arcsec,
-            "y": np.asarray(y, dtype=float) * u.arcsec,
-            "pm_x": np.zeros(n) * u.mas / u.yr,
-            "pm_y": np.zeros(n) * u.mas / u.yr,
-            "mag": np.asarray(mag, dtype=float) * u.mag,
-        }
-    )
-    t.meta["epoch"] = 0.0 * u.yr
-    return t
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +32,7 @@ def _stars_only(frame, scene):
 
 def test_isolated_star_flux_and_truth(optics):
     scene = scene_from_mapping(NOISELESS)
-    frame = render_frame(_table([0.0123], [-0.031], [18.0]), 0 * u.yr, scene, optics, None)
+    frame = render_frame(epoch_table([0.0123], [-0.031], [18.0]), 0 * u.yr, scene, optics, None)
     flux = star_electrons([18.0], scene.photometry, 60 * u.s).value[0]
     assert frame.truth["flux"].to_value(u.electron)[0] == pytest.approx(flux)
     assert _stars_only(frame, scene).sum() == pytest.approx(flux, rel=1e-4)
@@ -63,21 +46,21 @@ def test_halo_conserves_flux_when_inside_the_frame():
         scene = scene_from_mapping(
             {**NOISELESS, "detector": {"nx": 160, "ny": 160}, "render": {"halo_downsample": down}}
         )
-        frame = render_frame(_table([0.01], [0.02], [17.0]), 0 * u.yr, scene, optics, None)
+        frame = render_frame(epoch_table([0.01], [0.02], [17.0]), 0 * u.yr, scene, optics, None)
         flux = frame.truth["flux"].to_value(u.electron)[0]
         tol = 1e-4 if down == 1 else 2e-3
         assert _stars_only(frame, scene).sum() == pytest.approx(flux, rel=tol)
         assert frame.attrs["halo_fraction"] == pytest.approx(0.25)
     # switching the halo off keeps all flux in the core
     off = scene_from_mapping({**NOISELESS, "render": {"halo": False}})
-    frame = render_frame(_table([0.0], [0.0], [17.0]), 0 * u.yr, off, optics, None)
+    frame = render_frame(epoch_table([0.0], [0.0], [17.0]), 0 * u.yr, off, optics, None)
     assert frame.attrs["halo_fraction"] == 0.0
 
 
 def test_distortion_moves_rendered_positions(optics):
     dist = make_optics("airy", distortion=PolynomialDistortion(a=0.01, b=0.005, c=0.002))
     scene = scene_from_mapping({**NOISELESS, "detector": {"nx": 96, "ny": 96}})
-    t = _table([0.1], [0.05], [16.0])
+    t = epoch_table([0.1], [0.05], [16.0])
     frame = render_frame(t, 2.0 * u.yr, scene, dist, None)
     row = frame.truth[0]
     dx = 0.01 * 0.1 * 0.05
@@ -107,7 +90,7 @@ def shared_renderer(optics):
 def test_small_frame_is_crop_of_large_frame(optics, shared_renderer, pos):
     """Stars on edges, corners and outside: a small frame is exactly a crop of a big one."""
     x, y, mag = (np.array(v, dtype=float) for v in zip(*pos)) if pos else ([], [], [])
-    t = _table(x, y, mag)
+    t = epoch_table(x, y, mag)
     small = scene_from_mapping(NOISELESS)
     big = scene_from_mapping({**NOISELESS, "detector": {"nx": 160, "ny": 160}})
     fs = render_frame(t, 0 * u.yr, small, optics, None, renderer=shared_renderer)
@@ -124,17 +107,17 @@ def test_extreme_fluxes_coincident_stars_and_empty(optics):
     mag_1e10 = 18.0 - 2.5 * np.log10(
         1e10 / star_electrons([18.0], scene.photometry, 30 * u.s).value[0]
     )
-    frame = render_frame(_table([0.0], [0.0], [mag_1e10]), 0 * u.yr, scene, optics, rng())
+    frame = render_frame(epoch_table([0.0], [0.0], [mag_1e10]), 0 * u.yr, scene, optics, rng())
     assert frame.saturated[31:33, 31:33].all()
     assert np.isfinite(frame.image).all()
     assert frame.image.max() == pytest.approx(2 * 65535.0)
     # a star too faint to matter and an empty catalogue give sky-only frames
-    for t in (_table([0.0], [0.0], [60.0]), _table([], [], [])):
+    for t in (epoch_table([0.0], [0.0], [60.0]), epoch_table([], [], [])):
         f = render_frame(t, 0 * u.yr, scene, optics, rng())
         assert f.image.mean() == pytest.approx(f.attrs["sky"].value, rel=0.05)
     # coincident stars add
-    one = render_frame(_table([0.0], [0.0], [19.0]), 0 * u.yr, scene_nl(), optics, None)
-    two = render_frame(_table([0, 0], [0, 0], [19, 19]), 0 * u.yr, scene_nl(), optics, None)
+    one = render_frame(epoch_table([0.0], [0.0], [19.0]), 0 * u.yr, scene_nl(), optics, None)
+    two = render_frame(epoch_table([0, 0], [0, 0], [19, 19]), 0 * u.yr, scene_nl(), optics, None)
     sky = one.attrs["sky"].value
     np.testing.assert_allclose(two.noiseless - sky, 2 * (one.noiseless - sky), rtol=1e-9, atol=1e-6)
 
@@ -143,7 +126,7 @@ def test_singular_tiptilt_covariance(optics):
     from render_helpers import ConstantTipTilt
 
     sharp = make_optics("airy", tiptilt=ConstantTipTilt(0.0, 0.0, 0.0), blur_sigma=0.0)
-    frame = render_frame(_table([0.003], [0.0], [18.0]), 0 * u.yr, scene_nl(), sharp, None)
+    frame = render_frame(epoch_table([0.003], [0.0], [18.0]), 0 * u.yr, scene_nl(), sharp, None)
     img = frame.noiseless - frame.attrs["sky"].value
     assert np.isfinite(img).all()
     assert img.sum() == pytest.approx(frame.truth["flux"].value[0], rel=1e-4)
@@ -163,7 +146,7 @@ def rng():
 @pytest.fixture
 def catalogue(tmp_path):
     r = np.random.default_rng(3)
-    t = _table(r.uniform(-0.3, 0.3, 20), r.uniform(-0.3, 0.3, 20), r.uniform(15, 24, 20))
+    t = epoch_table(r.uniform(-0.3, 0.3, 20), r.uniform(-0.3, 0.3, 20), r.uniform(15, 24, 20))
     t2 = t.copy()
     t2.meta["epoch"] = 10.0 * u.yr
     path = tmp_path / "cat.h5"

@@ -3,29 +3,14 @@
 import astropy.units as u
 import numpy as np
 import pytest
-from astropy.table import QTable
 from optics_helpers import small_table
+from render_helpers import epoch_table
 
 from mavispm.core.catalogue import write_catalogue
 from mavispm.core.errors import ConfigError
 from mavispm.core.products import read_product
 from mavispm.simulate import render_cli
 from mavispm.simulate.frame import render_frame
-
-
-def _table(x, y, mag):
-    t = QTable(
-        {
-            "id": np.arange(len(x)),
-            "x": np.asarray(x, float) * u.arcsec,
-            "y": np.asarray(y, float) * u.arcsec,
-            "pm_x": np.zeros(len(x)) * u.mas / u.yr,
-            "pm_y": np.zeros(len(x)) * u.mas / u.yr,
-            "mag": np.asarray(mag, float) * u.mag,
-        }
-    )
-    t.meta["epoch"] = 0.0 * u.yr
-    return t
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +34,7 @@ def test_real_optics_frame_conserves_flux_with_halo(cache):
     scene = render_cli.validate_settings(_scene())
     optics = render_cli.build_scene_optics(scene, cache)
     assert optics.halo is not None and 0 < optics.halo.fraction < 1
-    t = _table([0.004], [-0.006], [18.0])
+    t = epoch_table([0.004], [-0.006], [18.0])
     frame = render_frame(t, 0 * u.yr, scene, optics, None)
     stars = frame.noiseless - frame.attrs["sky"].value
     assert stars.sum() == pytest.approx(frame.truth["flux"].value[0], rel=3e-3)
@@ -63,7 +48,7 @@ def test_real_optics_run_stage_and_bad_optics_key(tmp_path, cache):
     with pytest.raises(ConfigError, match="scene.optics.psf.n_nodez"):
         render_cli.validate_settings({"optics": {"psf": {"n_nodez": 3}}})
     cat = tmp_path / "cat.h5"
-    write_catalogue(cat, {"e0": _table([0.0, 0.3], [0.1, -0.2], [19.0, 21.0])})
+    write_catalogue(cat, {"e0": epoch_table([0.0, 0.3], [0.1, -0.2], [19.0, 21.0])})
     scene = _scene(noise=True)
     out = render_cli.run_stage(cat, "e0", scene, tmp_path / "f.h5", 4, cache_dir=cache)
     prod = read_product(out, "frames")
@@ -76,7 +61,7 @@ def test_real_dynamic_distortion_sets_truth_positions(cache):
     optics_table["distortion"] = {"dynamic": True, "dynamic_amplitude": "2 mas"}
     scene = render_cli.validate_settings({**_scene(), "optics": optics_table})
     optics = render_cli.build_scene_optics(scene, cache)
-    t = _table([0.2, -0.3], [0.1, 0.25], [20.0, 20.0])
+    t = epoch_table([0.2, -0.3], [0.1, 0.25], [20.0, 20.0])
     frame = render_frame(t, 10.0 * u.yr, scene, optics, None)
     dx, dy = optics.distortion.displacement([0.2, -0.3], [0.1, 0.25], 10.0)
     assert np.any(np.abs(dx) > 0)
