@@ -162,6 +162,28 @@ def knob_table(optics, quick: bool):
         print(f"   {name:28s} {dt:9.3f} {1e6 * dt / n:8.1f} {c:14.2e} {f:9.1e} {p:13.1e}")
 
 
+def halo_table(optics, quick: bool):
+    """Seeing-field error against the halo down-sampling (reference: detector pixels)."""
+    from mavispm.simulate.seeing_halo import halo_field
+
+    if optics.halo is None:
+        return
+    npix = 512 if quick else 1024
+    rng = np.random.default_rng(4)
+    n = 50
+    xp, yp = rng.uniform(0, npix - 1, n), rng.uniform(0, npix - 1, n)
+    flux = 10 ** rng.uniform(3, 6, n)
+    ref, t_ref = timed(halo_field, xp, yp, flux, (npix, npix), optics.halo, 7.5, 1, 0)
+    print(f"\n1b. Halo down-sampling: {n} stars, {npix}x{npix}, error vs downsample=1 "
+          f"({t_ref:.2f} s)")  # fmt: skip
+    print(f"   {'downsample':>10s} {'time [s]':>9s} {'max err / halo peak':>20s} {'flux err':>9s}")
+    for b in (2, 4, 8, 16):
+        img, dt = timed(halo_field, xp, yp, flux, (npix, npix), optics.halo, 7.5, b, 0)
+        err = np.abs(img - ref).max() / ref.max()
+        ferr = abs(img.sum() - ref.sum()) / ref.sum()
+        print(f"   {b:10d} {dt:9.3f} {err:20.1e} {ferr:9.1e}")
+
+
 # ----------------------------------------------------------- 2. cost vs star count
 def scaling(optics, quick: bool):
     counts = (1000, 3500) if quick else (1000, 3500, 20000)
@@ -297,6 +319,7 @@ def main(argv=None):
     print(f"PSF grid {g.cube.shape} at {g.pixel_scale} mas; detector 7.5 mas")
     if args.only in (None, "knobs"):
         knob_table(optics, args.quick)
+        halo_table(optics, args.quick)
     if args.only in (None, "scaling"):
         scaling(optics, args.quick)
     if args.only in (None, "mavisim"):

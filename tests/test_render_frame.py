@@ -243,3 +243,15 @@ def test_cli_renders_one_and_all_epochs(tmp_path, catalogue, fake_optics_module,
     rc = main(["simulate", "frames", str(catalogue), "--scene", str(scene), "-o", "z.h5"])
     assert rc == 2
     assert "nexp" in capsys.readouterr().err
+
+
+def test_result_does_not_depend_on_thread_count(optics):
+    t = epoch_table([0.0, 0.1, -0.2], [0.05, -0.1, 0.2], [16.0, 18.0, 20.0])
+    images = []
+    for threads in (1, 2):
+        scene = scene_from_mapping(
+            {"nexp": 3, "detector": {"nx": 600, "ny": 600}, "render": {"threads": threads}}
+        )
+        frame = render_frame(t, 0 * u.yr, scene, optics, np.random.default_rng(9))
+        images.append(frame.image)
+    np.testing.assert_array_equal(images[0], images[1])

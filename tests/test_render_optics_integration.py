@@ -67,3 +67,16 @@ def test_real_dynamic_distortion_sets_truth_positions(cache):
     assert np.any(np.abs(dx) > 0)
     np.testing.assert_allclose(frame.truth["x"].value - frame.truth["x_cat"].value, dx)
     np.testing.assert_allclose(frame.truth["y"].value - frame.truth["y_cat"].value, dy)
+
+
+def test_documented_scene_example_is_valid():
+    """The TOML example in docs/render.md parses and validates (defaults documented)."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "render.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", text, re.S).group(1)
+    scene = render_cli.validate_settings(tomllib.loads(block))
+    default = render_cli.validate_settings({})
+    assert scene == default
