@@ -112,9 +112,12 @@ def knob_table(optics, quick: bool):
         sizes = r.stamp_sizes(flux, noise, sig)
         img = np.zeros((npix, npix))
         r.render(img, x_pix, y_pix, x, y, cov, flux, sizes, noise_sigma=noise)  # cold
-        img = np.zeros((npix, npix))
-        _, dt = timed(r.render, img, x_pix, y_pix, x, y, cov, flux, sizes, noise_sigma=noise)
-        return img, dt
+        best = np.inf
+        for _ in range(2):  # warm (plans cached); the best of two on a shared machine
+            img = np.zeros((npix, npix))
+            _, dt = timed(r.render, img, x_pix, y_pix, x, y, cov, flux, sizes, noise_sigma=noise)
+            best = min(best, dt)
+        return img, best
 
     ref_params = RenderParams(
         oversampling=4, dtype="float64", spectrum_floor=0.0, stamp_threshold=1e-4

@@ -54,16 +54,9 @@ def make_renderer(optics, scene: SceneSettings) -> StarRenderer:
     return StarRenderer(optics.psf_grid, scene.detector.pixel_scale, scene.render)
 
 
-def _arcsec(q, name: str) -> np.ndarray:
-    if isinstance(q, u.Quantity):
-        return np.asarray(q.to_value(u.arcsec), dtype=float)
-    return np.asarray(q, dtype=float)
-
-
-def _mas2(cov) -> np.ndarray:
-    if isinstance(cov, u.Quantity):
-        return np.asarray(cov.to_value(u.mas**2), dtype=float)
-    return np.asarray(cov, dtype=float)
+def _values(q, unit) -> np.ndarray:
+    """Float array of ``q`` in ``unit``; plain numbers are taken to be in ``unit`` already."""
+    return np.asarray(u.Quantity(q, unit).value, dtype=float)
 
 
 def noise_sigma_per_subexposure(scene: SceneSettings) -> float:
@@ -114,23 +107,23 @@ def render_frame(
         stars = stars[np.asarray(stars["luminous"], dtype=bool)]
     renderer = renderer or make_renderer(optics, scene)
     s = det.pixel_scale
-    x_cat = _arcsec(stars["x"], "x")
-    y_cat = _arcsec(stars["y"], "y")
+    x_cat = _values(stars["x"], u.arcsec)
+    y_cat = _values(stars["y"], u.arcsec)
     mag = np.asarray(u.Quantity(stars["mag"], u.mag).value, dtype=float)
     if np.any(~np.isfinite(mag)):
         raise InputError("non-finite magnitudes; every luminous star needs a flux", column="mag")
     x, y = x_cat.copy(), y_cat.copy()
     if getattr(optics.distortion, "enabled", False) and len(x):
         dx, dy = optics.distortion.displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value)
-        x = x + _arcsec(dx, "dx")
-        y = y + _arcsec(dy, "dy")
+        x = x + _values(dx, u.arcsec)
+        y = y + _values(dy, u.arcsec)
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2
     y_pix = y * 1000.0 / s + (det.ny - 1) / 2
     sub_exposure = scene.exptime * u.s
     flux_sub = star_electrons(mag, phot, sub_exposure).value
     halo = optics.halo if par.halo else None
     core_fraction = 1.0 - (halo.fraction if halo is not None else 0.0)
-    cov = _mas2(optics.kernel_covariance(x, y)) if len(x) else np.zeros((0, 2, 2))
+    cov = _values(optics.kernel_covariance(x, y), u.mas**2) if len(x) else np.zeros((0, 2, 2))
     sigma_max = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0, None)) if len(x) else x
     noise = noise_sigma_per_subexposure(scene)
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max)
