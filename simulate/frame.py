@@ -126,7 +126,7 @@ def render_frame(
     cov = _values(optics.kernel_covariance(x, y), u.mas**2) if len(x) else np.zeros((0, 2, 2))
     sigma_max = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0, None)) if len(x) else x
     noise = noise_sigma_per_subexposure(scene)
-    sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max)
+    sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max, x, y)
     image = np.zeros((det.ny, det.nx), dtype=np.float64)
     rendered = renderer.render(
         image,

@@ -236,7 +236,9 @@ class StarRenderer:
         need = self.psf_extent_pixels + 2 * (5 * max_sigma_mas / self.pixel_scale + 1)
         return _stamp_size_at_least(need, self.params.min_stamp)
 
-    def stamp_sizes(self, flux, noise_sigma: float, sigma_mas) -> np.ndarray:
+    def stamp_sizes(
+        self, flux, noise_sigma: float, sigma_mas, x_field=None, y_field=None
+    ) -> np.ndarray:
         """Stamp side per star: where the wing falls below ``stamp_threshold * noise_sigma``.
 
         Parameters
@@ -247,16 +249,28 @@ class StarRenderer:
             Per-pixel noise sigma of the frame (same units); <= 0 gives maximal stamps.
         sigma_mas : ndarray (N,)
             Largest standard deviation of each star's kernel (mas).
+        x_field, y_field : ndarray (N,), optional
+            Field positions (arcsec): the wing envelope is then the largest of the
+            star's interpolation nodes, otherwise of all nodes.
         """
         flux = np.asarray(flux, dtype=float)
         sigma_mas = np.broadcast_to(np.asarray(sigma_mas, dtype=float), flux.shape)
         biggest = self.max_stamp(float(np.max(sigma_mas, initial=0.0)))
         if noise_sigma <= 0:
             return np.full(flux.shape, biggest, dtype=int)
-        radii, env = self._envelope
+        radii, env_nodes = self._envelope
         level = self.params.stamp_threshold * noise_sigma / np.maximum(flux, 1e-300)
-        # first envelope radius below the level (env is non-increasing)
-        pos = np.searchsorted(-env, -level, side="left")
+        # index of the first envelope radius at or below the level (env non-increasing)
+        if x_field is None or len(flux) == 0:
+            pos = np.searchsorted(-env_nodes.max(axis=0), -level, side="left")
+        else:
+            node, w = self._node_weights(x_field, y_field)
+            pos = np.zeros(len(flux), dtype=np.int64)
+            for k in range(node.shape[1]):
+                for n in np.unique(node[:, k]):
+                    sel = np.flatnonzero((node[:, k] == n) & (w[:, k] > 0))
+                    here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
+                    pos[sel] = np.maximum(pos[sel], here)
         radius_pix = radii[np.minimum(pos, len(radii) - 1)]
         half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
         sizes = np.array(
@@ -520,30 +534,29 @@ def _add_stamps(image, stamps, x0, y0) -> None:
 
 
 def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
-    """Radial envelope of the PSF nodes in detector-pixel units.
+    """Radial envelope of each PSF node in detector-pixel units.
 
     Returns
     -------
-    radii : ndarray
+    radii : ndarray (nr,)
         Radii in detector pixels (0, 0.5, 1, ...).
-    env : ndarray
+    env : ndarray (n_nodes, nr)
         Upper bound of the fraction of a star's flux in one detector pixel at or
-        beyond each radius (max over nodes), non-increasing.
+        beyond each radius, per node, non-increasing in radius.
     """
     n = cube.shape[-1]
     c = (n - 1) / 2
     yy, xx = np.mgrid[0:n, 0:n]
-    r_pix = np.hypot(xx - c, yy - c) * psf_scale / pixel_scale
-    peak_map = cube.max(axis=0).ravel()
-    # a detector pixel holds about (s/p)^2 PSF samples; clip so it never exceeds 1
-    per_pixel = np.minimum(peak_map * (pixel_scale / psf_scale) ** 2, 1.0)
-    order = np.argsort(r_pix.ravel())[::-1]
-    r_sorted = r_pix.ravel()[order]
-    cummax = np.maximum.accumulate(per_pixel[order])
+    r_pix = np.hypot(xx - c, yy - c).ravel() * psf_scale / pixel_scale
+    order = np.argsort(r_pix)[::-1]
+    r_sorted = r_pix[order]
     radii = np.arange(0.0, r_sorted[0] + 1.0, 0.5)
     # envelope(r) = max of per_pixel over samples with radius >= r
     pos = np.searchsorted(-r_sorted, -radii, side="right") - 1
-    env = np.where(pos >= 0, cummax[np.maximum(pos, 0)], 0.0)
+    # a detector pixel holds about (s/p)^2 PSF samples; clip so it never exceeds 1
+    per_pixel = np.minimum(cube.reshape(len(cube), -1) * (pixel_scale / psf_scale) ** 2, 1.0)
+    cummax = np.maximum.accumulate(per_pixel[:, order], axis=1)
+    env = np.where(pos >= 0, cummax[:, np.maximum(pos, 0)], 0.0)
     return radii, env
 
 
