@@ -255,3 +255,16 @@ def test_result_does_not_depend_on_thread_count(optics):
         frame = render_frame(t, 0 * u.yr, scene, optics, np.random.default_rng(9))
         images.append(frame.image)
     np.testing.assert_array_equal(images[0], images[1])
+
+
+def test_sky_only_frame_variance_is_mean_plus_read_noise(optics):
+    for gain, nexp in ((1.0, 1), (2.0, 5)):
+        scene = scene_from_mapping(
+            {"nexp": nexp, "detector": {"nx": 300, "ny": 300, "gain": gain, "read_noise": 3.0}}
+        )
+        frame = render_frame(epoch_table([], [], []), 0 * u.yr, scene, optics, rng())
+        e = frame.image.astype(float) * gain
+        sky = frame.attrs["sky"].to_value(u.electron)
+        var = sky + nexp * 9.0
+        assert e.mean() == pytest.approx(sky, abs=5 * np.sqrt(var / e.size))
+        assert e.var() == pytest.approx(var, rel=0.02)
