@@ -76,7 +76,7 @@ class MeasureSettings:
     detection_threshold : float
         Detection threshold [background sigma] in blind mode.
     detection_fwhm : float [pix]
-        Finder FWHM; 0 measures it from the ePSF.
+        Finder FWHM (blind mode); 0 uses 2.5 pixels.
     progress : bool
         Show progress bars.
     """
