@@ -77,7 +77,7 @@ class EPSFOptions:
     size: int = 25
     oversampling: int = 4
     maxiters: int = 10
-    stars_per_node: int = 40
+    stars_per_node: int = 150
     isolation: float = 12.0
     isolation_ratio: float = 0.01
     neighbour_ratio: float = 1.0
