@@ -69,6 +69,9 @@ class EPSFOptions:
     neighbour_mask : float
         Pixels within this distance [pixel] of another star, and closer to it
         than to the PSF star, are not used (fast builder).
+    fit_radius : int
+        Stamp half-width [pixel] of the star refits while building; use the final
+        fit's radius so that the ePSF centre is anchored in the same way.
     """
 
     variation: str = "grid"
@@ -84,6 +87,7 @@ class EPSFOptions:
     min_snr: float = 100.0
     builder: str = "fast"
     neighbour_mask: float = 4.0
+    fit_radius: int = 5
 
 
 def select_psf_stars(
@@ -287,7 +291,9 @@ def build_epsf_fast(
     keep = flux > 0
     x0, y0 = x.copy(), y.copy()
     epsf = np.zeros((n_os, n_os))
-    fit_opt = FitOptions(radius=min(half, 6), iterations=4, max_shift=1.0, min_snr=0.0)
+    fit_opt = FitOptions(
+        radius=min(half, options.fit_radius), iterations=4, max_shift=1.0, min_snr=0.0
+    )
     for it in range(int(options.maxiters)):
         u = (cols[:, None, :] - x[:, None, None]) * os_ + c
         v = (rows[:, :, None] - y[:, None, None]) * os_ + c
