@@ -45,16 +45,24 @@ def test_measure_rendered_frame(rendered, tmp_path):
     stars = read_product(out, "measured", specs={"stars": MEASURED_SPEC}).tables["stars"]
     truth = read_product(rendered, "frames").tables["truth"]
     assert len(stars) == len(truth)
-    good = (np.asarray(stars["flag"]) & (16 | 32)) == 0
+    good = (np.asarray(stars["flag"]) & (2 | 16 | 32)) == 0  # unsaturated, matched, fitted
     assert good.mean() > 0.9
     dx = (stars["x"] - stars["x_true"]).to_value(u.mas)[good]
     dy = (stars["y"] - stars["y_true"]).to_value(u.mas)[good]
-    # a tenth of a (7.5 mas) pixel or better for the typical star
-    assert np.median(np.hypot(dx, dy)) < 0.75
-    # the scatter stays below a seventh of a pixel (known limit: the empirical ePSF of
-    # the undersampled MAVIS PSF from ~40 stars, see docs/measure.md)
-    assert np.std(dx) < 1.0 and np.std(dy) < 1.0
+    # no systematic offset: the rendered PSF is centro-symmetric about the truth
+    # (before the ePSF builder subtracted each PSF star's local background the median
+    # offset was 0.1-0.5 mas depending on stamp radius and ePSF size)
+    assert abs(np.median(dx)) < 0.1 and abs(np.median(dy)) < 0.1  # mas (0.013 pix)
+    assert np.std(dx) < 0.3 and np.std(dy) < 0.3
+    mag = stars["mag"].value[good]
+    err_x = stars["x_err"].to_value(u.mas)[good]
+    err_y = stars["y_err"].to_value(u.mas)[good]
     # faint stars are noise limited: their reported errors describe their scatter
-    faint = stars["mag"].value[good] > 20.5
-    z = dx[faint] / stars["x_err"].to_value(u.mas)[good][faint]
-    assert np.std(z) < 4.0
+    faint = mag > 20.5
+    z = np.concatenate([dx[faint] / err_x[faint], dy[faint] / err_y[faint]])
+    assert 0.7 < np.std(z) < 1.6
+    # bright stars are limited by the ePSF built from ~20 stars (known limit, see
+    # docs/measure.md): a few times their Cramer-Rao bound, not tens
+    bright = mag < 19
+    rms = np.sqrt(np.mean(np.concatenate([dx[bright], dy[bright]]) ** 2))
+    assert rms < 10 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
