@@ -40,6 +40,9 @@ def test_measure_rendered_frame(rendered, tmp_path):
         "psf_star_min_snr": 30.0,
         "psf_star_isolation": "8 pix",
         "epsf_size": 21,
+        # 49 PSF stars fill 2 x 2 pixel phases well but not 4 x 4: x4 leaves the
+        # bright stars at ~7 x CRLB here, x2 at ~2 x (docs/measure.md)
+        "oversampling": 2,
     }
     out = run_stage(rendered, settings, tmp_path / "measured.h5", seed=0)
     stars = read_product(out, "measured", specs={"stars": MEASURED_SPEC}).tables["stars"]
@@ -52,17 +55,17 @@ def test_measure_rendered_frame(rendered, tmp_path):
     # no systematic offset: the rendered PSF is centro-symmetric about the truth
     # (before the ePSF builder subtracted each PSF star's local background the median
     # offset was 0.1-0.5 mas depending on stamp radius and ePSF size)
-    assert abs(np.median(dx)) < 0.1 and abs(np.median(dy)) < 0.1  # mas (0.013 pix)
-    assert np.std(dx) < 0.3 and np.std(dy) < 0.3
+    assert abs(np.median(dx)) < 0.05 and abs(np.median(dy)) < 0.05  # mas (0.007 pix)
+    assert np.std(dx) < 0.2 and np.std(dy) < 0.2
     mag = stars["mag"].value[good]
     err_x = stars["x_err"].to_value(u.mas)[good]
     err_y = stars["y_err"].to_value(u.mas)[good]
-    # faint stars are noise limited: their reported errors describe their scatter
-    faint = mag > 20.5
-    z = np.concatenate([dx[faint] / err_x[faint], dy[faint] / err_y[faint]])
-    assert 0.7 < np.std(z) < 1.6
-    # bright stars are limited by the ePSF built from ~20 stars (known limit, see
-    # docs/measure.md): a few times their Cramer-Rao bound, not tens
+    # the reported errors describe the scatter (calibrated normalised residuals);
+    # (the ~1.4 at the faint end is also there when fitting with the true PSF)
+    for sel in (mag < 19, mag > 20.5):
+        z = np.concatenate([dx[sel] / err_x[sel], dy[sel] / err_y[sel]])
+        assert 0.7 < np.std(z) < 1.7
+    # bright stars (PSF stars themselves) come close to their Cramer-Rao bound
     bright = mag < 19
     rms = np.sqrt(np.mean(np.concatenate([dx[bright], dy[bright]]) ** 2))
-    assert rms < 10 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
+    assert rms < 3 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
