@@ -69,7 +69,7 @@ class AOSettings:
 
     n_actuators: int = 40
     dm_heights: tuple[float, ...] = field(default=(0.0, 6000.0, 13500.0))
-    dm_pitches: tuple[float, ...] = field(default=(0.2, 0.3, 0.3))
+    dm_pitches: tuple[float, ...] = field(default=(0.2, 0.25, 0.35))
     n_lgs: int = 8
     lgs_radius: float = unit_field(17.5, "arcsec", "LGS constellation radius")
     lgs_height: float = unit_field(90000.0, "m", "sodium layer altitude")

@@ -184,8 +184,11 @@ class Distortion:
     Parameters
     ----------
     settings : DistortionSettings
-    source : str, optional
-        Configuration file name for error messages.
+
+    Raises
+    ------
+    InputError
+        For a static map file that is missing or malformed (naming the file).
     """
 
     def __init__(self, settings: DistortionSettings):

@@ -146,7 +146,7 @@ def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 6
     gx, gy = np.meshgrid(g, g)
     dx, dy = optics.distortion.static_displacement(gx, gy)  # mas
     amp = np.hypot(dx, dy)
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8), layout="constrained")
     im = axes[0].imshow(amp, origin="lower", extent=[g[0], g[-1], g[0], g[-1]], cmap="viridis")
     fig.colorbar(im, ax=axes[0], label="|displacement| [mas]")
     q = slice(None, None, 6)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mavispm.core.errors import InputError
 from mavispm.simulate.distortion import Distortion, DistortionSettings, read_distortion_map
@@ -106,3 +108,28 @@ def test_bad_map_files_named(tmp_path, content, message):
 def test_missing_map_file(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         Distortion(DistortionSettings(static="file", file=str(tmp_path / "nope.txt")))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    x=st.lists(st.floats(-40, 40), min_size=1, max_size=20),
+    epoch=st.floats(-50, 50),
+    amplitude=st.floats(0, 5),
+)
+def test_hypothesis_dynamic_finite_and_zero_amplitude_identity(x, epoch, amplitude):
+    xs = np.asarray(x)
+    ys = xs[::-1].copy()
+    dyn = Distortion(
+        DistortionSettings(
+            dynamic=True, dynamic_amplitude=amplitude, dynamic_terms=("scale", "rotation", "cubic")
+        )
+    )
+    dx, dy = dyn.displacement(xs, ys, epoch)
+    assert np.all(np.isfinite(dx)) and np.all(np.isfinite(dy))
+    c = dyn.dynamic_coefficients(epoch)
+    assert all(abs(v) <= 10 * amplitude for v in c.values())
+    zero = Distortion(DistortionSettings(dynamic=True, dynamic_amplitude=0.0))
+    sx, sy = Distortion(DistortionSettings()).displacement(xs, ys)
+    zx, zy = zero.displacement(xs, ys, epoch)
+    np.testing.assert_array_equal(sx, zx)
+    np.testing.assert_array_equal(sy, zy)

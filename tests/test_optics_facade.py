@@ -32,6 +32,20 @@ def test_unknown_and_bad_keys_named():
     assert s.psf.wavelength == pytest.approx(700.0)
 
 
+def test_settings_round_trip():
+    from mavispm.core.config import to_mapping
+    from mavispm.simulate.optics import OpticsSettings
+
+    table = {
+        "tiptilt": {"asterism": "custom", "ngs": [[10, 0, 15], [20, 90, 17]]},
+        "distortion": {"static": "polynomial", "coefficients_x": [[1, 0, 0.1]]},
+    }
+    s = validate_settings(table)
+    assert s.tiptilt.ngs == ((10.0, 0.0, 15.0), (20.0, 90.0, 17.0))
+    assert validate_settings(to_mapping(s)) == s
+    assert validate_settings(to_mapping(OpticsSettings())) == OpticsSettings()
+
+
 def test_contract(optics):
     g = optics.psf_grid
     assert g.cube.ndim == 4 and g.cube.shape[:2] == (3, 3) and g.n % 2 == 1
