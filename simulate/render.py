@@ -36,6 +36,8 @@ from typing import Literal
 import numpy as np
 import scipy.sparse
 
+from mavispm.simulate.stamp_kernels import kernel_and_shift
+
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
 
@@ -402,14 +404,14 @@ class StarRenderer:
             (w.ravel().astype(real), node.ravel(), indptr), shape=(nst, n_nodes)
         )
         spec = np.asarray(mix @ plan.transforms[:, sel].astype(cplx))  # (S, nsel): interpolated PSF
-        cov3 = cov.reshape(nst, 4)[:, [0, 1, 3]]
-        basis = np.stack([u * u, 2.0 * u * v, v * v])
-        quad = (cov3 * (-2.0 * np.pi**2)).astype(real) @ basis.astype(real)
-        spec *= np.exp(quad, out=quad)
+        # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
+        coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
         phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
         phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
-        spec *= phx[:, plan.col[sel]]
-        spec *= phy[:, plan.row[sel]]
+        kernel_and_shift(
+            spec, coef.astype(real), u.astype(real), v.astype(real), phx, phy,
+            plan.col[sel], plan.row[sel],
+        )  # fmt: skip
         fold = plan.fold[sel].astype(real)
         folded = np.asarray((fold.T @ spec.T).T).reshape(nst, m, m // 2 + 1)
         stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
