@@ -29,6 +29,7 @@ edge is below ``stamp_threshold`` times the per-pixel noise.
 from __future__ import annotations
 
 import os
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
@@ -501,14 +502,27 @@ class StarRenderer:
             self.plan(m)  # build plans once, before the threads share them
         threads = self.params.threads or os.cpu_count() or 1
         with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
-            # stamps are added in job order: the image does not depend on the threads
-            for (_, sel), (stamps, x0, y0) in zip(jobs, pool.map(work, jobs)):
-                _add_stamps(image, stamps, x0, y0)
-                if bar is not None:
-                    bar.update(len(sel))
+            # at most 2 batches per thread in flight (bounded memory); stamps are added
+            # in job order, so the image does not depend on the number of threads
+            pending = deque()
+            for job in jobs:
+                pending.append((job, pool.submit(work, job)))
+                if len(pending) >= 2 * max(threads, 1):
+                    self._add_done(image, pending.popleft(), bar)
+            while pending:
+                self._add_done(image, pending.popleft(), bar)
         if bar is not None:
             bar.close()
         return overlaps
+
+    @staticmethod
+    def _add_done(image, item, bar) -> None:
+        """Wait for one batch of stamps and add it to the image."""
+        (_, sel), future = item
+        stamps, x0, y0 = future.result()
+        _add_stamps(image, stamps, x0, y0)
+        if bar is not None:
+            bar.update(len(sel))
 
     def _batch_accuracy(self, flux_max: float, noise_sigma) -> tuple[float, str]:
         """Spectrum floor and precision keeping a batch's errors below the threshold."""
