@@ -35,9 +35,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.sparse
 
-from mavispm.simulate.stamp_kernels import kernel_and_shift
+from mavispm.simulate.stamp_kernels import add_stamps, mix_kernel_fold
 
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
@@ -147,8 +146,9 @@ class StampPlan:
         Node transforms times the pixel transfer function at the retained samples.
     peak : ndarray (nsup,)
         Largest node transfer-function modulus at each retained sample (relative to 1).
-    fold : scipy.sparse.csr_matrix (nsup, m * (m//2+1))
-        Sums aliases onto the stamp's rfft2 frequencies.
+    target : ndarray (nsup,) int
+        Index of each sample's alias among the stamp's flattened rfft2
+        frequencies ``(m, m//2+1)``: folding sums the samples onto it.
     """
 
     m: int
@@ -160,7 +160,7 @@ class StampPlan:
     fy: np.ndarray
     transforms: np.ndarray
     peak: np.ndarray
-    fold: scipy.sparse.csr_matrix
+    target: np.ndarray
 
 
 def _stamp_size_at_least(n: int, floor: int) -> int:
@@ -317,10 +317,6 @@ class StarRenderer:
         row, col = np.nonzero(keep)
         mh = m // 2 + 1
         target = (row % m) * mh + (col % mh)
-        fold = scipy.sparse.csr_matrix(
-            (np.ones(len(row)), (np.arange(len(row)), target)),
-            shape=(len(row), m * mh),
-        )
         return StampPlan(
             m=m,
             u=fx[col] * df,
@@ -331,7 +327,7 @@ class StarRenderer:
             fy=fy,
             transforms=np.ascontiguousarray(full[:, row, col]),
             peak=peak[row, col],
-            fold=fold,
+            target=target.astype(np.int64),
         )
 
     def _node_weights(self, x, y):
@@ -399,22 +395,18 @@ class StarRenderer:
         sel = np.flatnonzero(damp > floor)
         u, v = plan.u[sel], plan.v[sel]
         node, w = self._node_weights(x_field, y_field)
-        n_nodes = plan.transforms.shape[0]
-        indptr = np.arange(0, node.size + 1, node.shape[1])
-        mix = scipy.sparse.csr_matrix(
-            (w.ravel().astype(real), node.ravel(), indptr), shape=(nst, n_nodes)
-        )
-        spec = np.asarray(mix @ plan.transforms[:, sel].astype(cplx))  # (S, nsel): interpolated PSF
         # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
         coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
         phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
         phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
-        kernel_and_shift(
-            spec, coef.astype(real), u.astype(real), v.astype(real), phx, phy,
-            plan.col[sel], plan.row[sel],
+        folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
+        mix_kernel_fold(
+            np.ascontiguousarray(plan.transforms[:, sel], dtype=cplx), node,
+            np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
+            u.astype(real), v.astype(real), phx, phy, plan.col[sel], plan.row[sel],
+            plan.target[sel], folded,
         )  # fmt: skip
-        fold = plan.fold[sel].astype(real)
-        folded = np.asarray((fold.T @ spec.T).T).reshape(nst, m, m // 2 + 1)
+        folded = folded.reshape(nst, m, m // 2 + 1)
         stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
         stamps *= np.asarray(flux, dtype=np.float64)[:, None, None].astype(stamps.dtype)
         return stamps.astype(real, copy=False), ixc - m // 2, iyc - m // 2
@@ -520,7 +512,7 @@ class StarRenderer:
         """Wait for one batch of stamps and add it to the image."""
         (_, sel), future = item
         stamps, x0, y0 = future.result()
-        _add_stamps(image, stamps, x0, y0)
+        add_stamps(image, stamps, x0, y0)
         if bar is not None:
             bar.update(len(sel))
 
@@ -533,20 +525,6 @@ class StarRenderer:
         if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
             dtype = "float64"
         return min(floor, allowed), dtype
-
-
-def _add_stamps(image, stamps, x0, y0) -> None:
-    """Add stamps into ``image`` at corners (x0, y0), clipping at the edges."""
-    ny, nx = image.shape
-    m = stamps.shape[-1]
-    for stamp, cx, cy in zip(stamps, x0.tolist(), y0.tolist()):
-        if cx >= 0 and cy >= 0 and cx + m <= nx and cy + m <= ny:
-            image[cy : cy + m, cx : cx + m] += stamp
-            continue
-        ya, yb = max(cy, 0), min(cy + m, ny)
-        xa, xb = max(cx, 0), min(cx + m, nx)
-        if ya < yb and xa < xb:
-            image[ya:yb, xa:xb] += stamp[ya - cy : yb - cy, xa - cx : xb - cx]
 
 
 def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
