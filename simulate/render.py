@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+import scipy.fft
 
 from mavispm.simulate.stamp_kernels import add_stamps, mix_kernel_fold
 
@@ -285,8 +286,10 @@ class StarRenderer:
     def plan(self, m: int) -> StampPlan:
         """The cached :class:`StampPlan` of stamp side ``m`` (node transforms etc.).
 
-        The node transforms are a direct (matrix) DFT of each PSF node at the
-        stamp's folding frequencies, exact for any PSF sampling; only samples where
+        The node transforms are the exact transforms of each PSF node at the
+        stamp's folding frequencies: FFTs of the node wrapped onto the stamp period
+        when that period is a whole number of PSF pixels (7.5 mas / 1.875 mas), a
+        direct (matrix) DFT for any other sampling; only samples where
         some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
         kept (the optical transfer function vanishes beyond D/lambda).
         """
@@ -298,17 +301,12 @@ class StarRenderer:
         k = self.params.oversampling
         s = self.pixel_scale
         fy, fx = _folding_frequencies(m, k)
-        n = self._cube.shape[-1]
-        nodes = self._cube.shape[0]
-        offsets = (np.arange(n) - (n - 1) / 2) * self.psf_pixel_scale  # mas
         df = 1.0 / (m * s)  # cycles/mas per integer frequency
-        arg_x = -2.0 * np.pi * np.outer(offsets, fx * df)  # (n, nfx)
-        # stage 1 over PSF columns: two real GEMMs for all nodes at once
-        flat = self._cube.reshape(nodes * n, n)
-        half = (flat @ np.cos(arg_x)) + 1j * (flat @ np.sin(arg_x))  # (nodes*n, nfx)
-        half = half.reshape(nodes, n, len(fx))
-        ey = np.exp(-2j * np.pi * np.outer(fy * df, offsets))  # (nfy, n)
-        full = np.matmul(ey[None], half)  # (nodes, nfy, nfx)
+        period = m * s / self.psf_pixel_scale  # stamp period in PSF pixels
+        if abs(period - round(period)) < 1e-9 * period:
+            full = _node_transforms_fft(self._cube, int(round(period)), fy, fx)
+        else:
+            full = _node_transforms_dft(self._cube, self.psf_pixel_scale * df, fy, fx)
         full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
         peak = np.abs(full).max(axis=0)
         peak /= peak.max()
@@ -525,6 +523,55 @@ class StarRenderer:
         if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
             dtype = "float64"
         return min(floor, allowed), dtype
+
+
+def _node_transforms_dft(cube, step: float, fy, fx) -> np.ndarray:
+    """Direct DFT of every PSF node at integer frequencies ``fy`` x ``fx``.
+
+    ``step`` is the frequency unit times the PSF pixel (cycles per PSF pixel);
+    the optical axis is the central PSF pixel. Returns (nodes, nfy, nfx) complex.
+    """
+    nodes, n, _ = cube.shape
+    offsets = np.arange(n) - (n - 1) / 2  # PSF pixels
+    arg_x = -2.0 * np.pi * step * np.outer(offsets, fx)  # (n, nfx)
+    # stage 1 over PSF columns: two real GEMMs for all nodes at once
+    flat = cube.reshape(nodes * n, n)
+    half = (flat @ np.cos(arg_x)) + 1j * (flat @ np.sin(arg_x))  # (nodes*n, nfx)
+    half = half.reshape(nodes, n, len(fx))
+    ey = np.exp(-2j * np.pi * step * np.outer(fy, offsets))  # (nfy, n)
+    return np.matmul(ey[None], half)
+
+
+def _node_transforms_fft(cube, period: int, fy, fx, chunk: int = 8) -> np.ndarray:
+    """Same as :func:`_node_transforms_dft` when the stamp period is ``period`` PSF pixels.
+
+    The DFT at frequencies ``q / period`` of a finely sampled PSF equals the FFT of
+    that PSF wrapped (summed) onto ``period`` samples with the optical axis at 0,
+    so this is exact, not an approximation; nodes are done a few at a time.
+    """
+    nodes, n, _ = cube.shape
+    iy = np.asarray(fy, dtype=np.int64) % period
+    ix = np.asarray(fx, dtype=np.int64) % period
+    out = np.empty((nodes, len(fy), len(fx)), dtype=np.complex128)
+    # the nodes are real: rfft along x, negative frequencies by conjugate symmetry
+    ax = np.minimum(ix, period - ix)
+    neg = ix > period - ix
+    for a in range(0, nodes, chunk):
+        rows = scipy.fft.rfft(_wrap_last_axis(cube[a : a + chunk], period), axis=-1)[..., ax]
+        rows[..., neg] = rows[..., neg].conj()
+        cols = _wrap_last_axis(np.swapaxes(rows, -1, -2), period)  # (c, nfx, period)
+        out[a : a + chunk] = np.swapaxes(scipy.fft.fft(cols, axis=-1)[..., iy], -1, -2)
+    return out
+
+
+def _wrap_last_axis(a: np.ndarray, period: int) -> np.ndarray:
+    """Sum the samples of the last axis onto ``period`` bins, central sample at bin 0."""
+    n = a.shape[-1]
+    length = -(-n // period) * period
+    padded = np.zeros(a.shape[:-1] + (length,), dtype=a.dtype)
+    padded[..., :n] = a
+    padded = np.roll(padded, -((n - 1) // 2), axis=-1)
+    return padded.reshape(a.shape[:-1] + (length // period, period)).sum(axis=-2)
 
 
 def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):

@@ -173,3 +173,20 @@ def test_compiled_stamp_adder_clips_like_slicing():
             expected[ya:yb, xa:xb] += stamp[ya - cy : yb - cy, xa - cx : xb - cx]
     add_stamps(image, stamps, x0, y0)
     assert np.allclose(image, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("n,m,ratio", [(427, 128, 4), (427, 16, 4), (21, 10, 4), (35, 24, 1)])
+def test_fft_node_transforms_equal_direct_dft(n, m, ratio):
+    """Wrapping + FFT gives the exact DFT, also when the PSF is wider than the stamp."""
+    from mavispm.simulate.render import (
+        _folding_frequencies,
+        _node_transforms_dft,
+        _node_transforms_fft,
+    )
+
+    cube = np.random.default_rng(n + m).random((3, n, n))
+    fy, fx = _folding_frequencies(m, 2)
+    period = m * ratio
+    fast = _node_transforms_fft(cube, period, fy, fx)
+    direct = _node_transforms_dft(cube, 1.0 / period, fy, fx)
+    assert np.abs(fast - direct).max() <= 1e-12 * np.abs(direct).max()
