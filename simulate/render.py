@@ -471,7 +471,10 @@ class StarRenderer:
         for m in np.unique(sizes[todo]):
             idx = np.flatnonzero(todo & (sizes == m))
             idx = idx[np.argsort(flux[idx], kind="stable")]
-            jobs += [(int(m), idx[a : a + batch]) for a in range(0, len(idx), batch)]
+            for a in range(0, len(idx), batch):
+                sel = idx[a : a + batch]  # similar fluxes (one floor/precision per batch),
+                # added in row order: neighbouring stamps share cached image rows
+                jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))]))
 
         def work(job):
             m, sel = job
