@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.optimize
 
 from mavispm.core.config import unit_field
 
@@ -127,14 +128,13 @@ def expose_stack(
         return mu, saturated
     flat_mu = mu.reshape(-1)
     var_rn = nexp * rn**2
-    # fast path everywhere (float32, in chunks on `threads` threads, one generator per
-    # chunk so the result does not depend on the thread count): a Gaussian with the
-    # exact mean and variance of the sum
+    # in chunks on `threads` threads, one generator per chunk so the result does not
+    # depend on the thread count: a Gaussian with the exact mean and variance of the
+    # sum (float32), or the exact sum where its skewness matters
     total = np.empty_like(flat_mu)
     starts = range(0, flat_mu.size, NOISE_CHUNK)
     chunk_rngs = rng.spawn(len(starts))
-    lo = skew_limit * var_rn**1.5 if skew_limit > 0 else 0.0
-    hi = skew_limit**-2 if skew_limit > 0 else np.inf
+    lo, hi = _skewed_window(var_rn, skew_limit)
     risky_floor = full - SATURATION_SAFETY_SIGMA * np.sqrt(full + rn**2)
 
     def chunk(args):
@@ -142,24 +142,21 @@ def expose_stack(
         sl = slice(start, start + NOISE_CHUNK)
         lam = flat_mu[sl] * np.float32(nexp)
         out = total[sl]
+        z = crng.standard_normal(lam.size, dtype=np.float32)
         np.add(lam, np.float32(var_rn), out=out)
         np.sqrt(out, out=out)
-        out *= crng.standard_normal(lam.size, dtype=np.float32)
+        out *= z
         out += lam
-        cand = np.flatnonzero((lam >= lo) & (lam <= hi)) + start
-        risky = np.flatnonzero(flat_mu[sl] >= risky_floor) + start
-        return cand, risky
+        # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches
+        # the limit: the window [lo, hi] of lam where it does (see _skewed_window)
+        exact = np.flatnonzero((lam >= lo) & (lam <= hi))
+        if exact.size:
+            counts = crng.poisson(lam[exact].astype(np.float64))
+            out[exact] = counts + np.sqrt(var_rn) * z[exact].astype(np.float64)
+        return np.flatnonzero(flat_mu[sl] >= risky_floor) + start
 
     results = _map_threads(chunk, zip(starts, chunk_rngs), threads)
-    cand = np.concatenate([c for c, _ in results]) if results else np.zeros(0, int)
-    risky_c = np.concatenate([r for _, r in results]) if results else np.zeros(0, int)
-    # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches the
-    # limit; since var >= max(lam, var_rn), only lam in [limit var_rn**1.5, limit**-2]
-    lam_c = flat_mu[cand].astype(np.float64) * nexp
-    if skew_limit > 0:
-        keep = lam_c >= skew_limit * (lam_c + var_rn) ** 1.5
-        cand, lam_c = cand[keep], lam_c[keep]
-    total[cand] = rng.poisson(lam_c) + rng.normal(0.0, np.sqrt(var_rn), lam_c.size)
+    risky_c = np.concatenate(results) if results else np.zeros(0, int)
     # pixels that can saturate in a sub-exposure: drawn and clipped one by one
     saturated = np.zeros(flat_mu.shape, dtype=bool)
     mu_c = flat_mu[risky_c].astype(np.float64)
@@ -172,6 +169,29 @@ def expose_stack(
         total[risky] = np.minimum(subs, full).sum(axis=0)
     total *= np.float32(1.0 / settings.gain)
     return total.reshape(mu.shape), saturated.reshape(mu.shape)
+
+
+def _skewed_window(var_rn: float, skew_limit: float) -> tuple[float, float]:
+    """Range of the stack mean ``lam`` where the skewness of Poisson(lam) + N(0, var_rn) is large.
+
+    The skewness ``lam / (lam + var_rn)**1.5`` rises from 0, peaks at
+    ``lam = 2 var_rn`` and falls as ``lam**-0.5``; the window holds the ``lam`` where
+    it is at least ``skew_limit`` (empty: ``lo > hi``). ``skew_limit = 0``: every ``lam``.
+    """
+    if skew_limit <= 0:
+        return 0.0, np.inf
+
+    def excess(lam):
+        return lam / (lam + var_rn) ** 1.5 - skew_limit
+
+    top = 2.0 * var_rn
+    if var_rn <= 0:
+        return 0.0, skew_limit**-2  # pure Poisson: skewness lam**-0.5
+    if excess(top) < 0:
+        return 1.0, 0.0
+    lo = scipy.optimize.brentq(excess, 0.0, top, xtol=1e-12, rtol=1e-12)
+    hi = scipy.optimize.brentq(excess, top, 2.0 * skew_limit**-2 + top, xtol=1e-9, rtol=1e-12)
+    return lo, hi
 
 
 def _map_threads(fn, items, threads: int) -> list:
