@@ -97,7 +97,11 @@ def test_small_frame_is_crop_of_large_frame(optics, shared_renderer, pos):
     fb = render_frame(t, 0 * u.yr, big, optics, None, renderer=shared_renderer)
     crop = fb.noiseless[48:112, 48:112]
     assert np.all(np.isfinite(fs.noiseless))
-    np.testing.assert_allclose(fs.noiseless, crop, rtol=1e-9, atol=1e-6)
+    # A position on a half-pixel boundary can round to stamp origins one pixel apart
+    # in the two frames (float rounding of x_pix); the wing light folded into the
+    # stamp then lands differently, at the 1e-10 level of the star's peak.
+    atol = max(1e-6, 1e-9 * float(np.max(fb.noiseless, initial=0.0)))
+    np.testing.assert_allclose(fs.noiseless, crop, rtol=1e-9, atol=atol)
     assert set(fs.truth["id"]) <= set(fb.truth["id"])
 
 
