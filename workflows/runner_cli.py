@@ -1,0 +1,78 @@
+"""``mavispm run WORKFLOW.toml`` and ``mavispm report RUNDIR``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from mavispm.workflows.runner import DEFAULT_WORKDIR
+
+
+def register(subparsers) -> None:
+    """Add the ``run`` and ``report`` commands to the top-level sub-parsers."""
+    run = subparsers.add_parser(
+        "run",
+        help="run a workflow file (cached, resumable)",
+        description="Run a whole study described by a workflow file. Products are cached by "
+        "content: a second run does no work, a changed setting re-runs only what depends on it, "
+        "and an interrupted run resumes. Shipped workflows (quickstart, astrometric_budget, "
+        "ngc3201_imbh, pm_accuracy) can be named without a path.",
+    )
+    run.add_argument("workflow", help="workflow TOML file, or the name of a shipped workflow")
+    run.add_argument(
+        "--workdir",
+        type=Path,
+        default=Path(DEFAULT_WORKDIR),
+        help=f"work directory holding the product store and run directories (default ./{DEFAULT_WORKDIR})",
+    )
+    run.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="where tasks run: threads (default), processes, serial, or the address of a running "
+        "dask.distributed scheduler such as tcp://host:8786",
+    )
+    run.add_argument(
+        "--workers", type=int, default=None, help="local pool size (default: all CPUs)"
+    )
+    run.add_argument("--force", action="store_true", help="recompute every node even when cached")
+    run.add_argument("--quiet", action="store_true", help="no progress bars")
+    run.set_defaults(func=_run)
+
+    report = subparsers.add_parser(
+        "report",
+        help="(re)write the report of a run directory",
+        description="Write report.md with tables and plots from a run directory's summary.json "
+        "and products, without running any stage.",
+    )
+    report.add_argument("rundir", type=Path, help="run directory (<workdir>/<workflow name>)")
+    report.set_defaults(func=_report)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from mavispm.workflows.runner import run_workflow
+
+    result = run_workflow(
+        args.workflow,
+        workdir=args.workdir,
+        scheduler=args.scheduler,
+        force=args.force,
+        workers=args.workers,
+        progress=not args.quiet,
+    )
+    stages = result.summary["stages"]
+    print(f"run directory: {result.rundir}")
+    for name, st in stages.items():
+        print(f"  {name:>13}: {st['ran']} ran, {st['cached']} cached, {st['wall_s']:.1f} s")
+    print(
+        f"  total wall time {result.summary['wall_s']:.1f} s; report: {result.rundir / 'report.md'}"
+    )
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from mavispm.workflows.report import write_report
+
+    path = write_report(args.rundir)
+    print(f"report: {path}")
+    return 0
