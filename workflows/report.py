@@ -439,31 +439,37 @@ RECIPE_TITLES = {
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+    import csv
+    import io
+
     def fmt(v):
         if isinstance(v, float):
             return "nan" if not math.isfinite(v) else f"{v:.6g}"
-        return str(v).replace(",", ";")
+        return v
 
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows([fmt(v) for v in r] for r in rows)
     with atomic_path(path) as tmp:
-        tmp.write_text(
-            "\n".join([",".join(header)] + [",".join(fmt(v) for v in r) for r in rows]) + "\n"
-        )
+        tmp.write_text(buf.getvalue())
     return path
 
 
 # --------------------------------------------------------------------------- the report
 
 
-def write_report(rundir: str | os.PathLike, registry=None) -> Path:
+def write_report(rundir: str | os.PathLike) -> Path:
     """Write ``report.md`` (and ``report/`` with tables and plots) for a run directory.
 
     Parameters
     ----------
     rundir : path
         A run directory written by :func:`mavispm.workflows.runner.run_workflow`.
-    registry : StageRegistry, optional
-        Stages whose ``write_report`` is called on their products (default: the
-        real stages). Stage modules that are not available are skipped.
+
+    Each stage's own report function (``write_report`` of the stage module, as
+    recorded in summary.json's ``stage_reports``) is called on that stage's
+    products; stage modules that cannot be imported are skipped.
 
     Returns
     -------
@@ -516,7 +522,7 @@ def write_report(rundir: str | os.PathLike, registry=None) -> Path:
     for recipe in summary.get("outputs", {}).get("tables", []):
         parts.append(f"\n## {RECIPE_TITLES[recipe]}\n")
         parts.append(_safe(RECIPES[recipe], summary, rundir, outdir))
-    parts += _stage_reports(summary, rundir, outdir, registry)
+    parts += _stage_reports(summary, rundir, outdir)
     path = rundir / "report.md"
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(parts))
@@ -531,19 +537,13 @@ def _safe(func, *args) -> str:
         return f"*This section could not be produced: {type(exc).__name__}: {exc}*\n"
 
 
-def _stage_reports(summary: Mapping, rundir: Path, outdir: Path, registry) -> list[str]:
+def _stage_reports(summary: Mapping, rundir: Path, outdir: Path) -> list[str]:
     from mavispm.workflows.registry import resolve
 
-    if registry is None:
-        from mavispm.workflows.stages import default_registry
-
-        registry = default_registry()
     parts = []
-    for stage in summary["stages"]:
-        if stage not in registry or registry[stage].report is None:
-            continue
+    for stage, ref in (summary.get("stage_reports") or {}).items():
         try:
-            func = resolve(registry[stage].report)
+            func = resolve(ref)
         except (ImportError, AttributeError):
             continue
         groups: dict[tuple, list[Path]] = {}

@@ -240,6 +240,9 @@ def run_workflow(
     summary = _summary(
         workflow, nodes, keys, records, ran_keys, failures, executor.name, wall, workdir
     )
+    summary["stage_reports"] = {
+        s: registry[s].report for s in summary["stages"] if registry[s].report is not None
+    }
     _materialize(rundir, summary, nodes, keys, store, workflow)
     if failures:
         lines = "; ".join(failures.values())
@@ -250,7 +253,7 @@ def run_workflow(
     if workflow.outputs.report:
         from mavispm.workflows.report import write_report
 
-        write_report(rundir, registry)
+        write_report(rundir)
     ran = [n["id"] for n in summary["nodes"] if n["status"] == "ran"]
     cached = [n["id"] for n in summary["nodes"] if n["status"] == "cached"]
     return RunResult(rundir=rundir, summary=summary, ran=ran, cached=cached)

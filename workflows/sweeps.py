@@ -223,13 +223,25 @@ def _fmt(value) -> str:
     return str(value)
 
 
+#: At most this many sweep plots (one per metric of the most downstream stage).
+MAX_PLOTS = 8
+
+
 def _plot_sweep(rows, axes, columns, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     from mavispm.core.atomic import atomic_path
 
+    from mavispm.workflows.registry import STAGE_NAMES
+
     first = axes[0]["name"]
-    metrics = [c for c in columns if "." in c]
+    metrics = [c for c in columns if "." in c and not c.split(".")[-1].startswith("n_")]
+    # plot the results of the most downstream stage only (the sweep's science output)
+    rank = {s: i for i, s in enumerate(STAGE_NAMES)}
+    last = max((rank.get(c.split("[")[0].split(".")[0], -1) for c in metrics), default=-1)
+    metrics = [c for c in metrics if rank.get(c.split("[")[0].split(".")[0], -1) == last][
+        :MAX_PLOTS
+    ]
     written = []
     for metric in metrics:
         fig, ax = plt.subplots(figsize=(5, 3.5))
