@@ -231,7 +231,6 @@ def _plot_sweep(rows, axes, columns, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     from mavispm.core.atomic import atomic_path
-
     from mavispm.workflows.registry import STAGE_NAMES
 
     first = axes[0]["name"]
