@@ -62,7 +62,12 @@ BAD_FILES = [
         "key 'studies.a.workflow'",
         "unknown key",
     ),
-    (TINY_WORKFLOW + "\n[scenes.I.render]\nx = 1\n", "key 'scenes.I.render'", "unknown key"),
+    (TINY_WORKFLOW + "\n[scenes.I.render]\nx = 1\n", "key 'render'", "table [scenes.I]"),
+    (
+        _replace("n_stars = 150", "n_stars = 150\nepochs = [0, 1]"),
+        "key 'cluster.epochs'",
+        "[epochs] table",
+    ),
     ("[workflow\nname = 1\n", "file", "invalid TOML"),
 ]
 

@@ -17,7 +17,7 @@ from mavispm.workflows.runner import run_workflow
 
 #: Two studies and two scenes: independent branches that can run concurrently.
 PARALLEL = TINY_WORKFLOW + (
-    '\n[scenes.A]\n[scenes.B.scene]\njitter = "0.2 mas"\n'
+    '\n[scenes.A]\n[scenes.B]\njitter = "0.2 mas"\n'
     "\n[studies.imbh.cluster]\nimbh_mass = 1500\n[studies.none.cluster]\nimbh_mass = 0\n"
 )
 

@@ -23,7 +23,7 @@ import signal
 import subprocess
 import sys
 import textwrap
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import astropy.units as u
@@ -60,6 +60,7 @@ class SceneSettings:
     jitter: float = unit_field(0.05, "mas")
     pixel_scale: float = unit_field(7.5, "mas")
     exptime: float = unit_field(30.0, "s")
+    optics: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -402,11 +403,11 @@ n_stars = 150
 [epochs]
 times = [0, 5]
 
-[optics]
-fwhm = "18 mas"
-
 [scene]
 jitter = "0.05 mas"
+
+[scene.optics]
+fwhm = "18 mas"
 
 [measure]
 noise = "0.1 mas"

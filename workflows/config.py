@@ -11,10 +11,12 @@ A workflow file describes a whole study. Its top-level tables are:
     ``path`` of an existing catalogue product (relative to the workflow file).
 ``[epochs]``
     ``times`` (years; numbers or strings such as ``"10 yr"``), optional ``names``.
-``[optics]``, ``[scene]``, ``[measure]``
-    Base settings of the optics PSF grid, the rendered scene and the star
-    measurement; ``[scenes.NAME]`` tables overlay any of them per scene
-    (``[scenes.III.optics]``, ``[scenes.III.scene]``, ``[scenes.III.measure]``).
+``[scene]`` (with ``[scene.optics]``), ``[measure]``
+    Base settings of the rendered scene (``mavispm simulate frames``; its
+    ``optics`` sub-table is the optics model, whose PSF grid is built once per
+    distinct optics as its own node) and of the star measurement.
+    ``[scenes.NAME]`` tables overlay ``[scene]`` per scene
+    (``[scenes.III.optics.tiptilt]``); ``[scenes.NAME.measure]`` overlays ``[measure]``.
 ``[propermotions]``, ``[dynamics]``
     Stage settings; present means "run this stage".
 ``[outputs]``
@@ -58,15 +60,12 @@ STUDY_SECTIONS = (
     "cluster",
     "catalogue",
     "epochs",
-    "optics",
     "scene",
     "scenes",
     "measure",
     "propermotions",
     "dynamics",
 )
-#: Sections a per-scene table ``[scenes.NAME]`` may overlay.
-SCENE_SECTIONS = ("scene", "optics", "measure")
 TOP_SECTIONS = ("workflow", "outputs", "studies", "sweep", *STUDY_SECTIONS)
 
 #: Workflow section -> registry stage name that validates it.
@@ -120,7 +119,7 @@ class SweepAxis:
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Effective settings of one scene: render scene, optics, measurement."""
+    """Effective settings of one scene: render scene (optics included), optics, measurement."""
 
     name: str
     scene: dict
@@ -433,7 +432,7 @@ def _variant(
         catalogue, file_epochs = _external_catalogue(eff["catalogue"], source, ctx)
         epochs = _epochs(eff.get("epochs"), ctx, available=file_epochs)
     else:
-        cluster = dict(eff["cluster"])
+        cluster = _cluster_settings(eff["cluster"], source, ctx)
         ctx.validate("cluster", cluster, "cluster")
         epochs = _epochs(eff.get("epochs"), ctx, available=None)
 
@@ -518,6 +517,30 @@ class _Context:
             ) from None
 
 
+def _cluster_settings(table: Mapping, source: Path, ctx: _Context) -> dict:
+    """The [cluster] table with workflow-owned keys checked and file paths made absolute."""
+    if "epochs" in table:
+        raise ConfigError(
+            "set the epochs in the [epochs] table (times = [...]), not in [cluster]",
+            key="cluster.epochs",
+            source=ctx.src,
+        )
+    cluster = dict(table)
+    external = cluster.get("external")
+    if isinstance(external, Mapping) and isinstance(external.get("path"), str):
+        path = Path(external["path"]).expanduser()
+        if not path.is_absolute():
+            path = (source.parent / path).resolve()
+        if not path.is_file():
+            raise ConfigError(
+                f"external star list '{path}' does not exist{ctx.suffix}",
+                key="cluster.external.path",
+                source=ctx.src,
+            )
+        cluster["external"] = {**external, "path": str(path)}
+    return cluster
+
+
 def _external_catalogue(table: Mapping, source: Path, ctx: _Context):
     _check_keys(table, ("path",), "catalogue", ctx.src)
     raw = table.get("path")
@@ -596,7 +619,8 @@ def _epochs(table: Mapping | None, ctx: _Context, available: dict | None) -> lis
                         source=src,
                     )
                 names.append(match[0])
-        else:
+        else:  # generated catalogues name their epochs e0, e1, ... in time order
+            times = sorted(times)
             names = [f"e{i}" for i in range(len(times))]
     if (
         not isinstance(names, list)
@@ -624,13 +648,12 @@ def _epochs(table: Mapping | None, ctx: _Context, available: dict | None) -> lis
 def _scenes(eff: Mapping, ctx: _Context) -> list[SceneConfig]:
     src = ctx.src
     base_scene = eff.get("scene")
-    base_optics = eff.get("optics")
     base_measure = eff.get("measure")
     overlays = eff.get("scenes") or {}
     if not overlays and base_scene is None:
-        if base_measure is not None or base_optics is not None:
+        if base_measure is not None:
             raise ConfigError(
-                f"[measure]/[optics] need rendered frames: add a [scene] table{ctx.suffix}",
+                f"[measure] needs rendered frames: add a [scene] table{ctx.suffix}",
                 key="scene",
                 source=src,
             )
@@ -640,26 +663,25 @@ def _scenes(eff: Mapping, ctx: _Context) -> list[SceneConfig]:
         prefix = f"scenes.{name}"
         if not isinstance(overlay, Mapping):
             raise ConfigError(f"expected a table, got {overlay!r}", key=prefix, source=src)
-        _check_keys(overlay, SCENE_SECTIONS, prefix, src)
-        for key in SCENE_SECTIONS:
-            if key in overlay and not isinstance(overlay[key], Mapping):
-                raise ConfigError(
-                    f"expected a table, got {overlay[key]!r}", key=f"{prefix}.{key}", source=src
-                )
-
-        def merged(base, key, overlay=overlay):
-            if base is None and key not in overlay:
-                return None
-            return deep_merge(base or {}, overlay.get(key, {}))
-
-        scene = merged(base_scene, "scene") or {}
-        optics = merged(base_optics, "optics")
-        measure = merged(base_measure, "measure")
+        overlay = dict(overlay)
+        measure_overlay = overlay.pop("measure", None)
+        if measure_overlay is not None and not isinstance(measure_overlay, Mapping):
+            raise ConfigError(
+                f"expected a table, got {measure_overlay!r}", key=f"{prefix}.measure", source=src
+            )
+        if "optics" in overlay and not isinstance(overlay["optics"], Mapping):
+            raise ConfigError(
+                f"expected a table, got {overlay['optics']!r}", key=f"{prefix}.optics", source=src
+            )
         label = prefix if overlays else "scene"
-        ctx.validate("scene", scene, f"{label}.scene" if overlays else "scene")
-        if optics is not None:
-            ctx.validate("optics", optics, f"{label}.optics" if overlays else "optics")
+        scene = deep_merge(base_scene or {}, overlay)
+        optics = dict(scene.get("optics") or {})
+        measure = None
+        if base_measure is not None or measure_overlay is not None:
+            measure = deep_merge(base_measure or {}, measure_overlay or {})
+        ctx.validate("scene", scene, label)
+        ctx.validate("optics", optics, f"{label}.optics")
         if measure is not None:
-            ctx.validate("measure", measure, f"{label}.measure" if overlays else "measure")
+            ctx.validate("measure", measure, f"{prefix}.measure" if overlays else "measure")
         out.append(SceneConfig(name=name, scene=scene, optics=optics, measure=measure))
     return out

@@ -5,7 +5,7 @@ becomes the chain::
 
     cluster ---------------------------+--> frames[scene, epoch] --> stars[scene, epoch]
     (or an external catalogue file)    |                                   |
-    optics[scene] (when configured) ---+         propermotions[scene] <----+ (all epochs)
+    optics[scene] (PSF grid) ----------+         propermotions[scene] <----+ (all epochs)
                                                           |
                                                  dynamics[scene]
 
@@ -113,8 +113,14 @@ def _variant_nodes(v: Variant, workflow: Workflow) -> list[Node]:
     epochs = [[e.name, e.time] for e in v.epochs]
     cat_inputs, cat_external = {}, {}
     if v.cluster is not None:
+        star_list = (v.cluster.get("external") or {}).get("path")
         cluster = make(
-            "cluster", ["cluster"], v.cluster, {"epochs": epochs}, derive_seed(v.seed, "cluster")
+            "cluster",
+            ["cluster"],
+            v.cluster,
+            {"epochs": epochs},
+            derive_seed(v.seed, "cluster"),
+            external={"star_list": star_list} if star_list else None,
         )
         out.append(cluster)
         cat_inputs["catalogue"] = cluster.id
@@ -123,7 +129,7 @@ def _variant_nodes(v: Variant, workflow: Workflow) -> list[Node]:
     outputs = workflow.outputs
     for scene in v.scenes:
         psf_inputs = {}
-        if scene.optics is not None:
+        if scene.optics is not None:  # the scene's optics: a PSF grid node of its own
             optics = make(
                 "optics",
                 ["optics", scene.name],

@@ -54,24 +54,34 @@ def _stage(name: str):
 
 
 def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:
-    """Cluster catalogue at the workflow's epochs (injected as ``epochs`` in years)."""
-    settings = dict(settings)
-    settings.setdefault("epochs", [float(t) for _, t in params["epochs"]])
+    """Cluster catalogue at the workflow's epochs (set as ``epochs`` in years).
+
+    The ``[epochs]`` table owns the epochs (config refuses ``[cluster] epochs``);
+    an external star list's path is already absolute and hashed as an input.
+    """
+    settings = {**settings, "epochs": [float(t) for _, t in params["epochs"]]}
     out = _stage("cluster")(settings, outdir / "catalogue.h5", seed)
     return {"main": out}
 
 
 def run_optics(inputs, settings, params, seed, outdir: Path) -> dict:
-    """PSF grid of a scene's optics."""
-    out = _stage("optics")(dict(settings), outdir / "psfgrid.h5")
+    """PSF grid of a scene's optics (``[scene.optics]``).
+
+    The optics module keeps its own disk cache of PSF grids keyed by their
+    parameters; this node fills it once, before the scene's frames (one per
+    epoch) are rendered, and keeps the grid as a product of the run.
+    """
+    out = _stage("optics")(dict(settings), outdir / "psfgrid.h5", progress=False)
     return {"main": out}
 
 
 def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
-    """Frames of one epoch of one scene (HDF5, plus FITS when ``[outputs] fits``)."""
+    """Frames of one epoch of one scene (HDF5, plus FITS when ``[outputs] fits``).
+
+    The scene's optics are built by the render stage from ``scene.optics``; the
+    PSF grid comes from the optics disk cache filled by the ``optics`` node.
+    """
     scene = dict(settings)
-    if "psf" in inputs:
-        scene.setdefault("psf_grid", str(inputs["psf"]))
     fits = outdir / "frames.fits" if params.get("fits", True) else None
     out = _stage("frames")(
         inputs["catalogue"], params["epoch"], scene, outdir / "frames.h5", seed, fits_path=fits
