@@ -121,6 +121,13 @@ def test_scene_overlays_studies_and_sweeps_expand(tmp_path):
     nodes = expand(wf)
     assert "imbh/per_bin=20/frames/III/e1" in nodes
     assert nodes["imbh/per_bin=30/dynamics/I"].settings["per_bin"] == 30
+    # each fit sees the IMBH and no-IMBH truth catalogues of its own sweep point
+    dyn = nodes["none/per_bin=30/dynamics/III"]
+    assert dyn.inputs["truth"] == "imbh/per_bin=30/cluster"
+    assert dyn.inputs["truth_no_imbh"] == "none/per_bin=30/cluster"
+    assert nodes["imbh/per_bin=20/propermotions/I"].inputs["truth"] == "imbh/per_bin=20/cluster"
+    order = list(nodes)
+    assert all(order.index(u) < order.index(n) for n in nodes for u in nodes[n].upstream())
     # 2 studies x 2 points x (cluster + 2 scenes x (optics + 2 x (frames + stars) + pm + dyn))
     assert len(nodes) == 4 * (1 + 2 * (1 + 4 + 2))
 

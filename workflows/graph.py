@@ -83,12 +83,72 @@ def expand(workflow: Workflow) -> dict[str, Node]:
     """
     nodes: dict[str, Node] = {}
     for variant in workflow.variants:
-        for node in _variant_nodes(variant, workflow):
+        truths = _truth_catalogues(variant, workflow.variants)
+        for node in _variant_nodes(variant, workflow, truths):
             nodes[node.id] = node
-    return nodes
+    return topological(nodes)
 
 
-def _variant_nodes(v: Variant, workflow: Workflow) -> list[Node]:
+def topological(nodes: dict[str, Node]) -> dict[str, Node]:
+    """The nodes reordered so every node follows its inputs (stable otherwise).
+
+    Raises
+    ------
+    ValueError
+        On a dependency cycle or an input that is not a node.
+    """
+    out: dict[str, Node] = {}
+    visiting: set[str] = set()
+
+    def visit(nid: str) -> None:
+        if nid in out:
+            return
+        if nid in visiting or nid not in nodes:
+            raise ValueError(f"bad stage graph at node '{nid}' (cycle or missing input)")
+        visiting.add(nid)
+        for up in nodes[nid].upstream():
+            visit(up)
+        visiting.discard(nid)
+        out[nid] = nodes[nid]
+
+    for nid in nodes:
+        visit(nid)
+    return out
+
+
+def catalogue_ref(v: Variant) -> tuple[str, str]:
+    """("node", id) of a variant's cluster node, or ("file", path) of its catalogue."""
+    if v.cluster is not None:
+        return "node", "/".join(p for p in (v.label, "cluster") if p)
+    return "file", str(v.catalogue)
+
+
+def has_imbh(v: Variant) -> bool | None:
+    """Whether a variant's generated cluster has an IMBH (None for external catalogues)."""
+    if v.cluster is None:
+        return None
+    import astropy.units as u
+
+    return float(u.Quantity(v.cluster.get("imbh_mass", 0.0), u.solMass).value) > 0
+
+
+def _truth_catalogues(v: Variant, variants) -> dict[str, tuple[str, str]]:
+    """Truth catalogues of the dynamics comparison: IMBH and no-IMBH studies of the same point.
+
+    The variant's own catalogue fills the slot it belongs to; a sibling study
+    (same sweep point) fills the other, so each fit's plots show both truths.
+    """
+    siblings = [w for w in variants if w.point.label == v.point.label]
+    out = {}
+    for slot, want in (("truth", True), ("truth_no_imbh", False)):
+        for w in sorted(siblings, key=lambda w: w is not v):  # the variant itself first
+            if has_imbh(w) is want:
+                out[slot] = catalogue_ref(w)
+                break
+    return out
+
+
+def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
     prefix = v.label
     base_labels = {"study": v.study, "point": v.point.label}
     sweep = dict(v.point.values)
@@ -175,13 +235,16 @@ def _variant_nodes(v: Variant, workflow: Workflow) -> list[Node]:
             measured.append(stars.id)
         if v.propermotions is None:
             continue
+        truth_in = {"truth": cat_inputs["catalogue"]} if cat_inputs else {}
+        truth_ext = {"truth": cat_external["catalogue"]} if cat_external else {}
         pm = make(
             "propermotions",
             ["propermotions", scene.name],
             v.propermotions,
             {"epochs": epochs},
             None,
-            inputs={"measured": measured},
+            inputs={"measured": measured, **truth_in},
+            external=truth_ext,
             scene=scene.name,
         )
         out.append(pm)
@@ -194,7 +257,11 @@ def _variant_nodes(v: Variant, workflow: Workflow) -> list[Node]:
                 v.dynamics,
                 {"plots": outputs.plots},
                 derive_seed(v.seed, "dynamics", scene.name),
-                inputs={"propermotions": pm.id},
+                inputs={
+                    "propermotions": pm.id,
+                    **{k: ref for k, (kind, ref) in truths.items() if kind == "node"},
+                },
+                external={k: ref for k, (kind, ref) in truths.items() if kind == "file"},
                 scene=scene.name,
             )
         )

@@ -99,18 +99,26 @@ def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
 
 def run_propermotions(inputs, settings, params, seed, outdir: Path) -> dict:
     """Proper motions from the measured catalogues of all epochs."""
-    return {
-        "main": _stage("propermotions")(
-            list(inputs["measured"]), dict(settings), outdir / "propermotions.h5"
-        )
-    }
+    out = _stage("propermotions")(
+        list(inputs["measured"]),
+        dict(settings),
+        outdir / "propermotions.h5",
+        truth=inputs.get("truth"),
+    )
+    return {"main": out}
 
 
 def run_dynamics(inputs, settings, params, seed, outdir: Path) -> dict:
     """Dynamical fit and IMBH model comparison (plots in ``plots/``)."""
     plots = outdir / "plots" if params.get("plots", True) else None
     out = _stage("dynamics")(
-        inputs["propermotions"], dict(settings), outdir / "dynamics.h5", seed, plots_dir=plots
+        inputs["propermotions"],
+        dict(settings),
+        outdir / "dynamics.h5",
+        seed,
+        plots_dir=plots,
+        truth=inputs.get("truth"),
+        truth_no_imbh=inputs.get("truth_no_imbh"),
     )
     products = {"main": out}
     if plots is not None and plots.is_dir():
