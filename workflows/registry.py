@@ -74,6 +74,9 @@ class StageSpec:
         content is part of every task key (editing them invalidates the cache).
     version : str
         Extra version string folded into every task key.
+    exclusive : bool
+        Run at most one task of this stage at a time per process (for stages that
+        are not thread-safe, such as those drawing with matplotlib's pyplot).
     """
 
     name: str
@@ -83,6 +86,7 @@ class StageSpec:
     report: str | None = None
     code: tuple[str, ...] = ()
     version: str = ""
+    exclusive: bool = False
 
     def code_version(self) -> str:
         """Digest of the package version, ``version`` and the ``code`` files."""

@@ -19,9 +19,11 @@ next run redoes only nodes without a completion marker.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import os
 import shutil
+import threading
 import time
 import traceback
 from collections.abc import Mapping
@@ -72,6 +74,11 @@ class Task:
     store_root: str
 
 
+#: Serialises tasks of stages marked ``exclusive`` (not thread-safe) among the threads
+#: of one process; process pools and dask worker processes each have their own.
+_EXCLUSIVE_LOCK = threading.Lock()
+
+
 def execute_task(task: Task) -> dict:
     """Run one node in a fresh (or resumed) partial folder and commit it.
 
@@ -96,9 +103,11 @@ def execute_task(task: Task) -> dict:
         for name, ref in task.inputs.items()
     }
     start = time.perf_counter()
+    lock = _EXCLUSIVE_LOCK if task.stage.exclusive else contextlib.nullcontext()
     try:
         run = resolve(task.stage.run)
-        products = run(inputs, dict(task.settings), dict(task.params), task.seed, outdir)
+        with lock:
+            products = run(inputs, dict(task.settings), dict(task.params), task.seed, outdir)
         rel = _relative_products(products, outdir, task)
         summarize = resolve(task.stage.summarize)
         metrics = summarize({k: outdir / v for k, v in rel.items()}) if summarize else {}

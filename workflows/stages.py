@@ -44,6 +44,7 @@ def default_registry() -> StageRegistry:
                 summarize=f"{_THIS}:product_metrics",
                 report=f"{module}:write_report",
                 code=COMMON_CODE + code,
+                exclusive=name == "dynamics",  # draws plots with pyplot
             )
         )
     return StageRegistry.of(specs)

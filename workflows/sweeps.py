@@ -152,14 +152,22 @@ def sweep_rows(summary: Mapping) -> list[dict]:
     """Rows of the sweep table from a run summary (one per sweep point and study).
 
     Each row has ``study``, ``point``, the swept values, and every scalar metric
-    of the variant's nodes as ``<stage>.<metric>`` (scene and epoch appended
-    when a stage has several nodes per variant).
+    of the variant's most downstream stage (the study's result, for example the
+    dynamics fit) as ``<stage>[<scene>].<metric>``.
     """
+    from mavispm.workflows.registry import STAGE_NAMES
+
+    nodes = [n for n in summary.get("nodes", []) if n.get("metrics")]
+    last = max(
+        (STAGE_NAMES.index(n["stage"]) for n in nodes if n["stage"] in STAGE_NAMES), default=-1
+    )
     rows: dict[tuple[str, str], dict] = {}
     for node in summary.get("nodes", []):
         labels = node.get("labels", {})
         key = (labels.get("study", ""), labels.get("point", ""))
         row = rows.setdefault(key, {"study": key[0], "point": key[1], **node.get("sweep", {})})
+        if last >= 0 and node["stage"] != STAGE_NAMES[last]:
+            continue
         suffix = "".join(f"[{labels[k]}]" for k in ("scene", "epoch") if labels.get(k))
         for name, value in (node.get("metrics") or {}).items():
             if isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -223,7 +231,7 @@ def _fmt(value) -> str:
     return str(value)
 
 
-#: At most this many sweep plots (one per metric of the most downstream stage).
+#: At most this many sweep plots (one per result of the most downstream stage).
 MAX_PLOTS = 8
 
 
