@@ -99,14 +99,30 @@ def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
 
 
 def run_propermotions(inputs, settings, params, seed, outdir: Path) -> dict:
-    """Proper motions from the measured catalogues of all epochs."""
+    """Proper motions from the measured catalogues of all epochs.
+
+    The true motions come from the catalogue (``truth``). When ``[propermotions]``
+    sets no ``distance``, the catalogue's distance is used, so the product carries
+    the distance the dynamics stage needs (measured products do not copy it).
+    """
+    settings = dict(settings)
+    if "truth" in inputs and settings.get("distance") is None:
+        settings["distance"] = _catalogue_distance(inputs["truth"])
     out = _stage("propermotions")(
         list(inputs["measured"]),
-        dict(settings),
+        settings,
         outdir / "propermotions.h5",
         truth=inputs.get("truth"),
     )
     return {"main": out}
+
+
+def _catalogue_distance(path) -> str | None:
+    """The catalogue product's distance as a quantity string ("4.6 kpc"), or None."""
+    from mavispm.core.products import read_product
+
+    distance = read_product(path, "catalogue", load_arrays=False).attrs.get("distance")
+    return None if distance is None else f"{float(distance.to_value('kpc'))!r} kpc"
 
 
 def run_dynamics(inputs, settings, params, seed, outdir: Path) -> dict:
