@@ -11,6 +11,7 @@ from workflows_helpers import (
     read_log,
     run_in_subprocess,
     stand_in_registry,
+    start_subprocess,
     write_workflow,
 )
 
@@ -103,8 +104,10 @@ def test_exception_in_a_stage_then_resume(tmp_path, log, monkeypatch):
 
 def test_killed_process_resumes_to_identical_products(tmp_path, log):
     wf = write_workflow(tmp_path)
-    proc = run_in_subprocess(wf, tmp_path / "w", {"WF_TEST_KILL": "stars", "WF_TEST_LOG": str(log)})
-    assert proc.returncode == -9, proc.stderr
+    code, err = run_in_subprocess(
+        wf, tmp_path / "w", {"WF_TEST_KILL": "stars", "WF_TEST_LOG": str(log)}
+    )
+    assert code == -9, err
     killed_calls = [line.split()[0] for line in read_log(log)]
     assert killed_calls.count("stars") == 1 and "propermotions" not in killed_calls
     store = tmp_path / "w" / "store" / "stars"
@@ -117,6 +120,19 @@ def test_killed_process_resumes_to_identical_products(tmp_path, log):
     clean = _run(wf, tmp_path / "clean")
     assert fingerprints(resumed.rundir) == fingerprints(clean.rundir)
     assert not any(p.name.endswith(".partial") for p in store.iterdir())
+
+
+def test_two_concurrent_runs_share_the_work(tmp_path, log):
+    wf = write_workflow(tmp_path)
+    env = {"WF_TEST_LOG": str(log)}
+    procs = [start_subprocess(wf, tmp_path / "w", env) for _ in range(2)]
+    for proc in procs:
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err
+    calls = [line.split()[0] for line in read_log(log)]
+    assert len(calls) == len(ALL_NODES)  # every node computed once in total
+    clean = _run(wf, tmp_path / "clean")
+    assert fingerprints(_run(wf, tmp_path / "w").rundir) == fingerprints(clean.rundir)
 
 
 def test_force_recomputes_everything_identically(tmp_path, log):

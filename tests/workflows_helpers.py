@@ -458,10 +458,10 @@ def fingerprints(rundir: Path) -> dict[str, str]:
     }
 
 
-def run_in_subprocess(
+def start_subprocess(
     workflow: Path, workdir: Path, env: dict, scheduler: str = "serial"
-) -> subprocess.CompletedProcess:
-    """Run a workflow with the test registry in a child Python process."""
+) -> subprocess.Popen:
+    """Start a workflow run with the stand-in registry in a child Python process."""
     here = Path(__file__).resolve().parent
     code = textwrap.dedent(
         f"""
@@ -473,10 +473,17 @@ def run_in_subprocess(
                      registry=stand_in_registry(), progress=False)
         """
     )
-    return subprocess.run(
+    return subprocess.Popen(
         [sys.executable, "-c", code],
         env={**os.environ, **env},
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=120,
     )
+
+
+def run_in_subprocess(workflow: Path, workdir: Path, env: dict, scheduler: str = "serial"):
+    """Run a workflow in a child process; return (returncode, stderr)."""
+    proc = start_subprocess(workflow, workdir, env, scheduler)
+    _, err = proc.communicate(timeout=120)
+    return proc.returncode, err

@@ -17,6 +17,11 @@ so stages with their own resumable state (an emcee backend) pick it up.
 from __future__ import annotations
 
 import contextlib
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: no cross-process lock
+    fcntl = None
 import hashlib
 import json
 import os
@@ -30,6 +35,7 @@ from mavispm.workflows.graph import Node
 from mavispm.workflows.registry import StageRegistry
 
 MARKER = "complete.json"
+LOCK_NAME = ".lock"
 PARTIAL_SUFFIX = ".partial"
 KEY_LENGTH = 24
 
@@ -133,6 +139,29 @@ class Store:
         part = self.partial_dir(stage, key)
         part.mkdir(parents=True, exist_ok=True)
         return part
+
+    @contextlib.contextmanager
+    def claim(self, stage: str, key: str):
+        """Hold the node's partial folder exclusively (an OS file lock).
+
+        Yields ``(partial_dir, record)``: ``record`` is the completion record when
+        another process finished the node while this one waited (then nothing is
+        left to do), else None. Two runs sharing a work directory therefore never
+        write the same node at once; a killed holder releases the lock with its
+        death.
+        """
+        part = self.begin(stage, key)
+        with open(part / LOCK_NAME, "a+b") as fh:
+            if fcntl is not None:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+            try:
+                record = self.lookup(stage, key)
+                if record is not None and part.exists():
+                    shutil.rmtree(part, ignore_errors=True)  # a leftover made while waiting
+                yield part, record
+            finally:
+                if fcntl is not None:
+                    fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
     def commit(self, stage: str, key: str, record: Mapping) -> Path:
         """Mark the partial folder complete and move it to its final name atomically.

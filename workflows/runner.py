@@ -97,7 +97,16 @@ def execute_task(task: Task) -> dict:
     done = store.lookup(task.stage.name, task.key)
     if done is not None:  # finished meanwhile by another run or worker
         return done
-    outdir = store.begin(task.stage.name, task.key)
+    with store.claim(task.stage.name, task.key) as (outdir, done):
+        if done is not None:
+            return done
+        record = _run_in(outdir, task)
+        store.commit(task.stage.name, task.key, record)
+    return record
+
+
+def _run_in(outdir: Path, task: Task) -> dict:
+    """Call the stage adapter in ``outdir``; return the completion record."""
     inputs = {
         name: [Path(p) for p in ref] if isinstance(ref, list) else Path(ref)
         for name, ref in task.inputs.items()
@@ -118,7 +127,7 @@ def execute_task(task: Task) -> dict:
         raise TaskError(
             f"{task.node_id}: {type(exc).__name__}: {exc} (traceback in {outdir / 'error.txt'})"
         ) from None
-    record = {
+    return {
         "node": task.node_id,
         "stage": task.stage.name,
         "key": task.key,
@@ -130,8 +139,6 @@ def execute_task(task: Task) -> dict:
         "params": task.params,
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     }
-    store.commit(task.stage.name, task.key, record)
-    return record
 
 
 def _relative_products(products, outdir: Path, task: Task) -> dict[str, str]:
