@@ -129,20 +129,26 @@ def test_report_tables_match_the_products_and_can_be_rebuilt(tmp_path, monkeypat
     assert {n["status"] for n in summary["nodes"]} == {"ran"}
 
 
-def test_cli_run_then_cached(tmp_path, capsys, monkeypatch):
+def test_cli_run_dry_run_and_overrides(tmp_path, capsys, monkeypatch):
     from mavispm.workflows import stages
     from mavispm.workflows.cli import main
 
+    log = tmp_path / "calls.log"
+    monkeypatch.setenv("WF_TEST_LOG", str(log))
     monkeypatch.setattr(stages, "default_registry", stand_in_registry)
     wf = write_workflow(tmp_path)
-    assert (
-        main(["run", str(wf), "--workdir", str(tmp_path / "w"), "--scheduler", "serial", "--quiet"])
-        == 0
-    )
+    common = [str(wf), "--workdir", str(tmp_path / "w"), "--quiet"]
+    assert main(["run", *common, "--scheduler", "serial"]) == 0
+    assert "cluster: 1 ran, 0 cached" in capsys.readouterr().out
+    n_calls = len(read_log(log))
+    assert main(["run", *common, "--dry-run", "--set", "dynamics.per_bin=25"]) == 0
     out = capsys.readouterr().out
-    assert "cluster: 1 ran, 0 cached" in out
-    assert main(["run", str(wf), "--workdir", str(tmp_path / "w"), "--quiet"]) == 0
-    assert "dynamics: 0 ran, 1 cached" in capsys.readouterr().out
+    assert "8 nodes, 1 to run, 7 cached" in out and "to run  dynamics/main" in out
+    assert len(read_log(log)) == n_calls  # a dry run runs nothing
+    assert main(["run", *common, "--set", "dynamics.per_bin=25"]) == 0
+    assert "dynamics: 1 ran, 0 cached" in capsys.readouterr().out
+    assert main(["run", *common, "--set", "dynamics.per_bin=2.5"]) == 2  # validated like the file
+    assert "expected an integer" in capsys.readouterr().err
 
 
 @settings(max_examples=30, deadline=None)

@@ -275,6 +275,39 @@ def run_workflow(
     return RunResult(rundir=rundir, summary=summary, ran=ran, cached=cached)
 
 
+def plan_workflow(
+    workflow: Workflow | str | os.PathLike,
+    workdir: str | os.PathLike | None = None,
+    registry: StageRegistry | None = None,
+) -> list[dict]:
+    """What a run would do, without doing it.
+
+    Returns
+    -------
+    list of dict
+        Per node (execution order): ``id``, ``stage``, ``key`` and ``status``
+        (``"cached"`` when its product is in the store, else ``"to run"``).
+    """
+    if registry is None:
+        from mavispm.workflows.stages import default_registry
+
+        registry = default_registry()
+    if not isinstance(workflow, Workflow):
+        workflow = load_workflow(workflow, registry)
+    store = Store(Path(workdir or DEFAULT_WORKDIR).resolve() / "store")
+    nodes = expand(workflow)
+    keys = node_keys(nodes, registry)
+    return [
+        {
+            "id": nid,
+            "stage": node.stage,
+            "key": keys[nid],
+            "status": "cached" if store.lookup(node.stage, keys[nid]) else "to run",
+        }
+        for nid, node in nodes.items()
+    ]
+
+
 def _execute(nodes, keys, store: Store, registry, executor, force: bool, progress: bool):
     """Run every incomplete task when its inputs are done; return records by key."""
     from tqdm.auto import tqdm

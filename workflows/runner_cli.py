@@ -36,6 +36,19 @@ def register(subparsers) -> None:
         "--workers", type=int, default=None, help="local pool size (default: all CPUs)"
     )
     run.add_argument("--force", action="store_true", help="recompute every node even when cached")
+    run.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a workflow key (dotted, TOML value), e.g. --set dynamics.max_steps=500 "
+        "or --set 'scene.optics.tiptilt.asterism=\"bad\"' (repeatable)",
+    )
+    run.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="validate and list the nodes (cached / to run); run nothing",
+    )
     run.add_argument("--quiet", action="store_true", help="no progress bars")
     run.set_defaults(func=_run)
 
@@ -49,11 +62,48 @@ def register(subparsers) -> None:
     report.set_defaults(func=_report)
 
 
-def _run(args: argparse.Namespace) -> int:
-    from mavispm.workflows.runner import run_workflow
+def parse_overrides(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings to a dict; values are TOML literals, else plain strings.
 
+    Raises
+    ------
+    ConfigError
+        For an item without ``=``.
+    """
+    import tomllib
+
+    from mavispm.core.errors import ConfigError
+
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"expected KEY=VALUE, got {item!r}", key="--set")
+        try:
+            value = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text
+        out[key.strip()] = value
+    return out
+
+
+def _run(args: argparse.Namespace) -> int:
+    from mavispm.workflows.config import load_workflow
+    from mavispm.workflows.runner import plan_workflow, run_workflow
+    from mavispm.workflows.stages import default_registry
+
+    registry = default_registry()
+    workflow = load_workflow(args.workflow, registry, overrides=parse_overrides(args.set))
+    if args.dry_run:
+        plan = plan_workflow(workflow, args.workdir, registry)
+        for entry in plan:
+            print(f"  {entry['status']:>7}  {entry['id']}")
+        todo = sum(e["status"] != "cached" for e in plan)
+        print(f"{len(plan)} nodes, {todo} to run, {len(plan) - todo} cached (nothing was run)")
+        return 0
     result = run_workflow(
-        args.workflow,
+        workflow,
+        registry=registry,
         workdir=args.workdir,
         scheduler=args.scheduler,
         force=args.force,
