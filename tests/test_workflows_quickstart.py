@@ -7,6 +7,7 @@ import importlib
 import astropy.units as u
 import numpy as np
 import pytest
+from workflows_helpers import ALL_NODES
 
 from mavispm.core.catalogue import read_catalogue
 from mavispm.core.products import read_product
@@ -17,17 +18,6 @@ from mavispm.workflows.stages import STAGE_MODULES
 #: Lighter sampler settings than the shipped file (the test checks the chain, not the
 #: posterior); everything else is the quickstart as users run it.
 FAST = {"dynamics.max_steps": 200, "dynamics.nlive": 25, "dynamics.walkers": 12}
-
-QUICKSTART_NODES = {
-    "cluster",
-    "optics/main",
-    "frames/main/e0",
-    "frames/main/e1",
-    "stars/main/e0",
-    "stars/main/e1",
-    "propermotions/main",
-    "dynamics/main",
-}
 
 
 def _stages_available() -> bool:
@@ -71,7 +61,7 @@ def test_quickstart_end_to_end(tmp_path):
         pytest.skip("not every stage module is in this build")
     wf = load_workflow("quickstart", overrides=FAST)  # found by name among the shipped files
     result = run_workflow(wf, workdir=tmp_path, progress=False)
-    assert set(result.ran) == QUICKSTART_NODES
+    assert set(result.ran) == ALL_NODES
 
     cat = read_catalogue(result.product("cluster"))
     assert list(cat.epochs) == ["e0", "e1"]

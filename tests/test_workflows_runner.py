@@ -6,6 +6,7 @@ import shutil
 
 import pytest
 from workflows_helpers import (
+    ALL_NODES,
     TINY_WORKFLOW,
     fingerprints,
     read_log,
@@ -17,17 +18,6 @@ from workflows_helpers import (
 
 from mavispm.workflows.config import load_workflow
 from mavispm.workflows.runner import WorkflowError, run_workflow
-
-ALL_NODES = {
-    "cluster",
-    "optics/main",
-    "frames/main/e0",
-    "frames/main/e1",
-    "stars/main/e0",
-    "stars/main/e1",
-    "propermotions/main",
-    "dynamics/main",
-}
 
 
 @pytest.fixture

@@ -37,6 +37,20 @@ from mavispm.workflows.registry import StageRegistry, StageSpec
 
 _MOD = "workflows_helpers"
 
+#: Node ids of a one-scene, two-epoch workflow with every stage.
+ALL_NODES = frozenset(
+    {
+        "cluster",
+        "optics/main",
+        "frames/main/e0",
+        "frames/main/e1",
+        "stars/main/e0",
+        "stars/main/e1",
+        "propermotions/main",
+        "dynamics/main",
+    }
+)
+
 
 # ------------------------------------------------------------------ settings
 

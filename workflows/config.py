@@ -528,17 +528,21 @@ def _cluster_settings(table: Mapping, source: Path, ctx: _Context) -> dict:
     cluster = dict(table)
     external = cluster.get("external")
     if isinstance(external, Mapping) and isinstance(external.get("path"), str):
-        path = Path(external["path"]).expanduser()
-        if not path.is_absolute():
-            path = (source.parent / path).resolve()
-        if not path.is_file():
-            raise ConfigError(
-                f"external star list '{path}' does not exist{ctx.suffix}",
-                key="cluster.external.path",
-                source=ctx.src,
-            )
+        path = _existing_file(
+            external["path"], source, "cluster.external.path", "external star list", ctx
+        )
         cluster["external"] = {**external, "path": str(path)}
     return cluster
+
+
+def _existing_file(raw: str, source: Path, key: str, what: str, ctx: _Context) -> Path:
+    """``raw`` as an absolute path (relative to the workflow file), which must exist."""
+    path = Path(raw).expanduser()
+    if not path.is_absolute():
+        path = (source.parent / path).resolve()
+    if not path.is_file():
+        raise ConfigError(f"{what} '{path}' does not exist{ctx.suffix}", key=key, source=ctx.src)
+    return path
 
 
 def _external_catalogue(table: Mapping, source: Path, ctx: _Context):
@@ -550,15 +554,7 @@ def _external_catalogue(table: Mapping, source: Path, ctx: _Context):
             key="catalogue.path",
             source=ctx.src,
         )
-    path = Path(raw).expanduser()
-    if not path.is_absolute():
-        path = (source.parent / path).resolve()
-    if not path.is_file():
-        raise ConfigError(
-            f"catalogue file '{path}' does not exist{ctx.suffix}",
-            key="catalogue.path",
-            source=ctx.src,
-        )
+    path = _existing_file(raw, source, "catalogue.path", "catalogue file", ctx)
     from mavispm.core.catalogue import read_catalogue
 
     try:
