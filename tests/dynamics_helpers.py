@@ -144,3 +144,65 @@ def write_mock_propermotions(path, seed, distance=4.6, **kwargs):
         },
         seed=seed,
     )
+
+
+#: Mock cluster used by the recovery tests: 5e4 Msun Plummer sphere, a = 25 arcsec
+#: (0.56 pc at 4.6 kpc, central 1-D dispersion 8 km/s), 2,000 stars inside 17 arcsec.
+RECOVERY_MOCK = {"mass": 5.0e4, "a_arcsec": 25.0, "distance": 4.6, "n_field": 2000}
+
+
+def recovery_spaces(bh_mass_max=1.0e4):
+    """Parameter spaces (IMBH, no-IMBH) with the default priors of the stage."""
+    from mavispm.dynamics.fit import parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    s = DynamicsSettings(bh_mass_max=bh_mass_max)
+    return (
+        s,
+        parameter_space(s, RECOVERY_MOCK["distance"], True),
+        parameter_space(s, RECOVERY_MOCK["distance"], False),
+    )
+
+
+def mock_likelihoods(seed, bh_mass):
+    """Star sample and the IMBH / no-IMBH likelihoods for one mock data set."""
+    from mavispm.dynamics.fit import make_likelihood
+    from mavispm.dynamics.likelihood import StarSample
+
+    d = mock_pm_stars(seed, bh_mass=bh_mass, **RECOVERY_MOCK)
+    stars = StarSample(d["R"], d["pm_r"], d["pm_t"], d["pm_r_err"], d["pm_t_err"], 17.0)
+    s, sp1, sp0 = recovery_spaces()
+    dist = RECOVERY_MOCK["distance"]
+    return (
+        stars,
+        (sp1, make_likelihood(stars, sp1, s, dist)),
+        (sp0, make_likelihood(stars, sp0, s, dist)),
+    )
+
+
+def recovery_trial(seed, bh_mass, nlive=100, dlogz=0.5):
+    """Evidence of both models and the IMBH-model M_bh posterior for one mock.
+
+    Returns
+    -------
+    dict
+        ``ln_b``, ``ln_b_err``, M_bh quantiles ``q16``, ``q50``, ``q84``, ``q95``.
+    """
+    from mavispm.dynamics.evidence import bayes_factor, run_dynesty
+
+    _, (sp1, l1), (sp0, l0) = mock_likelihoods(seed, bh_mass)
+    e1 = run_dynesty(l1, sp1, seed, nlive=nlive, dlogz=dlogz)
+    e0 = run_dynesty(l0, sp0, seed, nlive=nlive, dlogz=dlogz)
+    ln_b, err = bayes_factor(e1, e0)
+    bh = e1.samples[:, sp1.index("bh_mass")]
+    q = np.percentile(bh, [16, 50, 84, 95])
+    return {
+        "seed": seed,
+        "bh_true": bh_mass,
+        "ln_b": ln_b,
+        "ln_b_err": err,
+        "q16": q[0],
+        "q50": q[1],
+        "q84": q[2],
+        "q95": q[3],
+    }
