@@ -1,0 +1,466 @@
+"""Measure one frame: read it, build the ePSF, fit every star, match to the truth.
+
+This is the engine-independent pipeline behind ``mavispm measure stars``:
+
+1. read and check the ``frames`` product (:func:`read_frame`);
+2. starting positions: the truth list (forced photometry, optionally perturbed)
+   or detections (blind mode);
+3. ePSF from automatically chosen PSF stars, rebuilt ``neighbour_passes`` times
+   after subtracting the fitted neighbours;
+4. the final fit with the chosen engine;
+5. truth cross-match, flags and the per-star Cramér-Rao bound.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import astropy.units as u
+import numpy as np
+from astropy.table import QTable
+
+from mavispm.core.errors import InputError
+from mavispm.core.products import TableSpec, read_product, validate_table
+from mavispm.measure.accuracy_report import truth_bin_counts
+from mavispm.measure.batched_fit import (
+    FLAG_CROWDED,
+    FLAG_FAILED,
+    FLAG_NO_MATCH,
+    FitOptions,
+    FitResult,
+    crowding_flags,
+    fit_stars,
+)
+from mavispm.measure.crlb import crlb
+from mavispm.measure.detect import completeness, detect_sources
+from mavispm.measure.epsf import EPSFOptions, build_field_epsf
+from mavispm.measure.photutils_engine import PhotutilsOptions, fit_stars_photutils
+from mavispm.measure.settings import MeasureSettings
+from mavispm.measure.truth_match import match_to_truth
+from mavispm.measure.variable_psf import VariableEPSF
+
+#: Truth table of a frames product as this stage needs it.
+TRUTH_SPEC = TableSpec(
+    required={
+        "id": "",
+        "x_pix": "",
+        "y_pix": "",
+        "x": "arcsec",
+        "y": "arcsec",
+        "flux": "electron",
+        "mag": "mag",
+    },
+    optional={"x_cat": "arcsec", "y_cat": "arcsec"},
+)
+
+#: The measured ``stars`` table (docs/formats.md) plus this stage's optional columns.
+MEASURED_SPEC = TableSpec(
+    required={
+        "id": "",
+        "x_pix": "",
+        "y_pix": "",
+        "x": "arcsec",
+        "y": "arcsec",
+        "x_err": "arcsec",
+        "y_err": "arcsec",
+        "flux": "electron",
+        "flux_err": "electron",
+        "sky": "electron",
+        "chi2": "",
+        "flag": "",
+    },
+    optional={
+        "x_true": "arcsec",
+        "y_true": "arcsec",
+        "mag": "mag",
+        "match_dist": "arcsec",
+        "flux_true": "electron",
+        "crlb_x": "arcsec",
+        "crlb_y": "arcsec",
+    },
+    allow_nan=(
+        "x_err",
+        "y_err",
+        "flux",
+        "flux_err",
+        "sky",
+        "chi2",
+        "x_true",
+        "y_true",
+        "mag",
+        "match_dist",
+        "flux_true",
+        "crlb_x",
+        "crlb_y",
+    ),
+)
+
+_REQUIRED_ATTRS = {
+    "gain": "electron/adu",
+    "read_noise": "electron",
+    "sky": "electron",
+    "saturation": "adu",
+    "pixel_scale": "mas",
+    "epoch": "yr",
+}
+
+
+@dataclass
+class Frame:
+    """A frame in electrons with its detector description.
+
+    Attributes
+    ----------
+    path : Path
+    image : ndarray
+        Stacked frame [electron].
+    saturated, bad : ndarray of bool
+        Saturated pixels; all unusable pixels (saturated or non-finite).
+    sky : float
+        Sky [electron/pixel], whole stack.
+    read_noise_var : float
+        Read-noise variance of the stack per pixel [electron^2] (nexp RN^2).
+    pixel_scale : float
+        [arcsec/pixel].
+    truth : QTable or None
+    attrs : dict
+        The product's root attributes.
+    """
+
+    path: Path
+    image: np.ndarray
+    saturated: np.ndarray
+    bad: np.ndarray
+    sky: float
+    read_noise_var: float
+    pixel_scale: float
+    truth: QTable | None
+    attrs: dict
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape
+
+    def to_arcsec(self, xp, yp):
+        """Field-frame position [arcsec] of pixel coordinates."""
+        ny, nx = self.shape
+        return (np.asarray(xp) - (nx - 1) / 2) * self.pixel_scale, (
+            np.asarray(yp) - (ny - 1) / 2
+        ) * self.pixel_scale
+
+    def to_pixel(self, x, y):
+        """Pixel coordinates of field-frame positions [arcsec]."""
+        ny, nx = self.shape
+        return np.asarray(x) / self.pixel_scale + (nx - 1) / 2, np.asarray(y) / self.pixel_scale + (
+            ny - 1
+        ) / 2
+
+
+def _attr(attrs, key, unit, path):
+    if key not in attrs:
+        raise InputError(f"root attribute '{key}' [{unit}] missing", path=path)
+    value = attrs[key]
+    try:
+        return (
+            float(u.Quantity(value, unit).value)
+            if not isinstance(value, u.Quantity)
+            else float(value.to_value(unit))
+        )
+    except (TypeError, ValueError, u.UnitsError):
+        raise InputError(
+            f"root attribute '{key}' must be a number in {unit}, got {value!r}", path=path
+        ) from None
+
+
+def _plain_pixels(table: QTable) -> QTable:
+    for col in ("x_pix", "y_pix"):
+        if col in table.colnames and isinstance(table[col], u.Quantity):
+            table[col] = np.asarray(
+                table[col].to_value(u.pix) if table[col].unit == u.pix else table[col].value
+            )
+    return table
+
+
+def read_frame(path, require_truth: bool = True) -> Frame:
+    """Read and check a ``frames`` product.
+
+    Raises
+    ------
+    InputError
+        Missing image or attributes, a non-2-D image, a mask of another shape,
+        or (when ``require_truth``) a missing or malformed truth table.
+    """
+    path = Path(path)
+    prod = read_product(path, "frames")
+    if "image" not in prod.arrays:
+        raise InputError("array 'image' missing", path=path)
+    image = prod.arrays["image"]
+    image = np.asarray(image.to_value(u.adu) if isinstance(image, u.Quantity) else image, float)
+    if image.ndim != 2 or min(image.shape) < 3:
+        raise InputError(f"array 'image' must be a 2-D frame, got shape {image.shape}", path=path)
+    vals = {k: _attr(prod.attrs, k, unit, path) for k, unit in _REQUIRED_ATTRS.items()}
+    nexp = int(prod.attrs.get("nexp", 1))
+    if nexp < 1 or vals["gain"] <= 0:
+        raise InputError("attributes 'nexp' and 'gain' must be positive", path=path)
+    if "saturated" in prod.arrays:
+        saturated = np.asarray(prod.arrays["saturated"], bool)
+        if saturated.shape != image.shape:
+            raise InputError(
+                f"array 'saturated' has shape {saturated.shape}, image has {image.shape}", path=path
+            )
+    else:
+        saturated = image >= 0.999 * vals["saturation"] * nexp
+    truth = prod.tables.get("truth")
+    if truth is None:
+        if require_truth:
+            raise InputError(
+                "table 'truth' missing: forced photometry needs the input star list "
+                "(use blind mode to detect stars instead)",
+                path=path,
+            )
+    else:
+        truth = validate_table(_plain_pixels(truth), TRUTH_SPEC, path=path, table_name="truth")
+    image_e = image * vals["gain"]
+    return Frame(
+        path=path,
+        image=image_e,
+        saturated=saturated,
+        bad=saturated | ~np.isfinite(image_e),
+        sky=vals["sky"],
+        read_noise_var=vals["read_noise"] ** 2 * nexp,
+        pixel_scale=vals["pixel_scale"] / 1000.0,
+        truth=truth,
+        attrs=prod.attrs,
+    )
+
+
+def box_flux(frame: Frame, x: np.ndarray, y: np.ndarray, half: int = 2) -> np.ndarray:
+    """Rough sky-subtracted flux [electron] in a (2 half + 1)^2 box around each position."""
+    ny, nx = frame.shape
+    data = np.where(frame.bad, frame.sky, frame.image) - frame.sky
+    off = np.arange(-half, half + 1)
+    cx = np.clip(np.rint(np.nan_to_num(x)).astype(int)[:, None] + off, 0, nx - 1)
+    cy = np.clip(np.rint(np.nan_to_num(y)).astype(int)[:, None] + off, 0, ny - 1)
+    return data[cy[:, :, None], cx[:, None, :]].sum(axis=(1, 2))
+
+
+def epsf_options(settings: MeasureSettings) -> EPSFOptions:
+    """ePSF building options from the stage settings."""
+    return EPSFOptions(
+        variation=settings.psf_variation,
+        grid=settings.psf_grid,
+        poly_order=settings.psf_poly_order,
+        size=settings.epsf_size,
+        oversampling=settings.oversampling,
+        maxiters=settings.epsf_iterations,
+        builder=settings.epsf_builder,
+        stars_per_node=settings.psf_stars_per_node,
+        isolation=settings.psf_star_isolation,
+        min_snr=settings.psf_star_min_snr,
+    )
+
+
+def fit_options(settings: MeasureSettings) -> FitOptions:
+    """Batched-fitter options from the stage settings."""
+    return FitOptions(
+        radius=settings.stamp_radius,
+        iterations=settings.iterations,
+        tolerance=settings.tolerance,
+        max_shift=settings.max_shift,
+        min_snr=settings.min_snr,
+        chunk=settings.chunk,
+        progress=settings.progress,
+    )
+
+
+def run_engine(
+    frame: Frame, psf: VariableEPSF, x0, y0, settings: MeasureSettings, engine=None
+) -> FitResult:
+    """Fit all stars with the selected engine."""
+    engine = engine or settings.engine
+    common = dict(
+        read_noise_var=frame.read_noise_var,
+        sky0=frame.sky,
+        bad=frame.bad,
+        saturated=frame.saturated,
+    )
+    if engine == "fast":
+        return fit_stars(frame.image, psf, x0, y0, options=fit_options(settings), **common)
+    if engine == "photutils":
+        opt = PhotutilsOptions(
+            radius=settings.stamp_radius,
+            fitter=settings.photutils_fitter,
+            group_separation=settings.group_separation,
+            grid=max(settings.psf_grid, 3),
+        )
+        return fit_stars_photutils(frame.image, psf, x0, y0, options=opt, **common)
+    raise InputError(f"unknown engine '{engine}'; expected 'fast' or 'photutils'")
+
+
+def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> tuple[VariableEPSF, int]:
+    """ePSF from the frame, rebuilt after neighbour subtraction ``neighbour_passes`` times.
+
+    Returns
+    -------
+    psf : VariableEPSF
+    n_psf_stars : int
+    """
+    opts = epsf_options(settings)
+    data = frame.image - frame.sky
+    noise = frame.sky + frame.read_noise_var
+    flux = box_flux(frame, x0, y0)
+    psf, used = build_field_epsf(data, x0, y0, flux, frame.bad, noise, opts)
+    for _ in range(settings.neighbour_passes):
+        fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
+        fitted_flux = np.where(fit.flag & FLAG_FAILED, 0.0, np.nan_to_num(fit.flux))
+        psf, used = build_field_epsf(
+            data,
+            fit.x,
+            fit.y,
+            fitted_flux,
+            frame.bad,
+            noise,
+            opts,
+            neighbour_model=fit.model_image,
+            previous=psf,
+            model_radius=settings.stamp_radius,
+        )
+    return psf, len(used)
+
+
+def starting_positions(frame: Frame, settings: MeasureSettings, rng: np.random.Generator):
+    """Forced starting positions [pixel] from the truth list, optionally perturbed."""
+    truth = frame.truth
+    if settings.forced_positions == "catalogue":
+        if "x_cat" not in truth.colnames or "y_cat" not in truth.colnames:
+            raise InputError(
+                "forced_positions = 'catalogue' needs truth columns x_cat, y_cat", path=frame.path
+            )
+        x0, y0 = frame.to_pixel(
+            truth["x_cat"].to_value(u.arcsec), truth["y_cat"].to_value(u.arcsec)
+        )
+    else:
+        x0 = np.asarray(truth["x_pix"], float)
+        y0 = np.asarray(truth["y_pix"], float)
+    if settings.perturbation > 0:
+        x0 = x0 + rng.normal(0.0, settings.perturbation, len(x0))
+        y0 = y0 + rng.normal(0.0, settings.perturbation, len(y0))
+    return x0, y0
+
+
+def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = None):
+    """Measure all stars of a frame.
+
+    Parameters
+    ----------
+    frame : Frame
+    settings : MeasureSettings
+    seed : int, optional
+        Seed of the forced-position perturbation.
+
+    Returns
+    -------
+    stars : QTable
+        The ``stars`` table of the measured product.
+    attrs : dict
+        Product attributes (engine, timing, ePSF description, blind-mode scores).
+    psf : VariableEPSF
+    """
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    truth = frame.truth
+    extra: dict = {}
+    if settings.blind:
+        noise = np.sqrt(frame.sky + frame.read_noise_var)
+        fwhm = settings.detection_fwhm or 2.5
+        x0, y0, _ = detect_sources(
+            frame.image, frame.sky, noise, fwhm, settings.detection_threshold, frame.bad
+        )
+        if len(x0) == 0:
+            raise InputError(
+                "blind mode: no sources detected (lower detection_threshold?)", path=frame.path
+            )
+        ids = -(np.arange(len(x0), dtype=np.int64) + 1)
+    else:
+        x0, y0 = starting_positions(frame, settings, rng)
+        ids = np.asarray(truth["id"], np.int64)
+    psf, n_psf = build_psf(frame, x0, y0, settings)
+    t_psf = time.perf_counter()
+    fit = run_engine(frame, psf, x0, y0, settings)
+    t_fit = time.perf_counter()
+    flag = fit.flag.copy()
+    flag[
+        crowding_flags(fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio)
+    ] |= FLAG_CROWDED
+    n = len(x0)
+    x_true = y_true = mag = flux_true = dist = crlb_x = crlb_y = np.full(n, np.nan)
+    if truth is not None:
+        tx, ty = np.asarray(truth["x_pix"], float), np.asarray(truth["y_pix"], float)
+        if settings.blind:
+            index, dist = match_to_truth(fit.x, fit.y, tx, ty, settings.match_radius)
+            ok = index >= 0
+            ids = np.where(ok, np.asarray(truth["id"], np.int64)[np.maximum(index, 0)], ids)
+            extra.update(completeness(fit.x, fit.y, tx, ty, settings.match_radius))
+        else:
+            index = np.arange(n)
+            dist = np.hypot(fit.x - tx, fit.y - ty)
+            ok = dist <= settings.match_radius
+        flag[~ok] |= FLAG_NO_MATCH
+        # forced mode knows each star's identity: keep its truth even when unmatched
+        known = index >= 0
+        sel = np.maximum(index, 0)
+        x_true = np.where(known, truth["x"].to_value(u.arcsec)[sel], np.nan)
+        y_true = np.where(known, truth["y"].to_value(u.arcsec)[sel], np.nan)
+        mag = np.where(known, truth["mag"].to_value(u.mag)[sel], np.nan)
+        flux_true = np.where(known, truth["flux"].to_value(u.electron)[sel], np.nan)
+        dist = np.where(known & np.isfinite(dist), dist, np.nan)
+        extra["truth_bin_counts"] = truth_bin_counts(truth["mag"].to_value(u.mag))
+        sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
+        bound = crlb(
+            psf,
+            tx[sel],
+            ty[sel],
+            np.maximum(flux_true, 0.0),
+            sky,
+            frame.read_noise_var,
+            settings.stamp_radius,
+        )
+        crlb_x = np.where(known, bound[:, 0], np.nan)
+        crlb_y = np.where(known, bound[:, 1], np.nan)
+    scale = frame.pixel_scale
+    x_as, y_as = frame.to_arcsec(fit.x, fit.y)
+    stars = QTable()
+    stars["id"] = ids
+    stars["x_pix"] = fit.x
+    stars["y_pix"] = fit.y
+    stars["x"] = x_as * u.arcsec
+    stars["y"] = y_as * u.arcsec
+    stars["x_err"] = fit.x_err * scale * u.arcsec
+    stars["y_err"] = fit.y_err * scale * u.arcsec
+    stars["flux"] = fit.flux * u.electron
+    stars["flux_err"] = fit.flux_err * u.electron
+    stars["sky"] = fit.sky * u.electron
+    stars["chi2"] = fit.chi2
+    stars["flag"] = flag.astype(np.int64)
+    if truth is not None:
+        stars["x_true"] = x_true * u.arcsec
+        stars["y_true"] = y_true * u.arcsec
+        stars["mag"] = mag * u.mag
+        stars["match_dist"] = dist * scale * u.arcsec
+        stars["flux_true"] = flux_true * u.electron
+        stars["crlb_x"] = crlb_x * scale * u.arcsec
+        stars["crlb_y"] = crlb_y * scale * u.arcsec
+    attrs = {
+        "engine": settings.engine,
+        "psf_variation": psf.kind,
+        "n_psf_stars": int(n_psf),
+        "time_epsf": (t_psf - t0) * u.s,
+        "time_fit": (t_fit - t_psf) * u.s,
+        "fit_iterations": int(fit.iterations),
+        "blind": bool(settings.blind),
+        "truth_bin_counts": extra.pop("truth_bin_counts", None),
+        **{f"detect_{k}": v for k, v in extra.items()},
+    }
+    return stars, attrs, psf

@@ -1,0 +1,179 @@
+"""Read and check the ``measured`` products that go into the proper-motion stage."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import astropy.units as u
+import numpy as np
+
+from mavispm.core.errors import InputError
+from mavispm.core.products import TableSpec, read_product
+
+#: Columns the proper-motion stage reads from a measured product's ``stars`` table.
+MEASURED_PM_SPEC = TableSpec(
+    required={"id": "", "x": "arcsec", "y": "arcsec", "x_err": "arcsec", "y_err": "arcsec"},
+    optional={"flag": "", "mag": "mag", "x_true": "arcsec", "y_true": "arcsec"},
+    id_column="id",
+    allow_nan=("x_err", "y_err", "x_true", "y_true", "mag"),
+)
+
+#: Two epochs closer than this [yr] are the same epoch.
+EPOCH_TOLERANCE = 1e-6
+
+
+@dataclass
+class EpochCatalogue:
+    """One epoch's measured stars, plain arrays in fixed units.
+
+    Attributes
+    ----------
+    epoch : float
+        [yr]
+    ids : ndarray of int
+    x, y, x_err, y_err : ndarray
+        [arcsec]; errors may be NaN for stars the measurement flagged.
+    flag : ndarray of int
+        The measure stage's bitmask (0 = good).
+    mag : ndarray or None
+        Truth magnitude [mag].
+    x_true, y_true : ndarray or None
+        Truth positions [arcsec].
+    distance : float or None
+        [kpc], from the product's root attribute.
+    path : pathlib.Path or None
+    """
+
+    epoch: float
+    ids: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    x_err: np.ndarray
+    y_err: np.ndarray
+    flag: np.ndarray
+    mag: np.ndarray | None = None
+    x_true: np.ndarray | None = None
+    y_true: np.ndarray | None = None
+    distance: float | None = None
+    path: Path | None = None
+
+    @property
+    def label(self) -> str:
+        """Name used in messages."""
+        where = f"epoch {self.epoch:g} yr"
+        return f"'{self.path}' ({where})" if self.path is not None else where
+
+
+def _attr_quantity(attrs, key, unit, path, required):
+    if key not in attrs:
+        if required:
+            raise InputError(f"root attribute '{key}' [{unit}] missing", path=path)
+        return None
+    value = attrs[key]
+    try:
+        q = u.Quantity(value, unit) if not isinstance(value, u.Quantity) else value.to(unit)
+        out = float(q.value)
+    except (u.UnitsError, TypeError, ValueError):
+        raise InputError(
+            f"root attribute '{key}' = {value!r} cannot be converted to {unit}", path=path
+        ) from None
+    if not np.isfinite(out):
+        raise InputError(f"root attribute '{key}' is not finite", path=path)
+    return out
+
+
+def read_measured(path: str | os.PathLike) -> EpochCatalogue:
+    """Read one ``measured`` product into an :class:`EpochCatalogue`.
+
+    Raises
+    ------
+    InputError
+        Missing file, wrong kind, missing/misspelled columns, units that do not
+        convert to arcsec, a missing ``epoch`` attribute; the message names the file.
+    """
+    path = Path(path)
+    prod = read_product(path, "measured", specs={"stars": MEASURED_PM_SPEC}, load_arrays=False)
+    stars = prod.tables["stars"]
+    epoch = _attr_quantity(prod.attrs, "epoch", "yr", path, required=True)
+    distance = _attr_quantity(prod.attrs, "distance", "kpc", path, required=False)
+
+    def col(name):
+        if name not in stars.colnames:
+            return None
+        c = stars[name]
+        return np.asarray(c.value if isinstance(c, u.Quantity) else c, dtype=float)
+
+    flag = (
+        np.asarray(stars["flag"], dtype=np.int64)
+        if "flag" in stars.colnames
+        else np.zeros(len(stars), np.int64)
+    )
+    return EpochCatalogue(
+        epoch=epoch,
+        ids=np.asarray(stars["id"], dtype=np.int64),
+        x=col("x"),
+        y=col("y"),
+        x_err=col("x_err"),
+        y_err=col("y_err"),
+        flag=flag,
+        mag=col("mag"),
+        x_true=col("x_true"),
+        y_true=col("y_true"),
+        distance=distance,
+        path=path,
+    )
+
+
+def check_epochs(epochs: list[EpochCatalogue], margin: float = 0.0) -> list[EpochCatalogue]:
+    """Sort epochs in time and refuse duplicates, empty or non-overlapping catalogues.
+
+    Parameters
+    ----------
+    epochs : list of EpochCatalogue
+    margin : float
+        Padding of each field's bounding box [arcsec] (the positional search radius)
+        before the overlap test.
+
+    Raises
+    ------
+    InputError
+        Fewer than two epochs, the same file or the same epoch twice, an empty
+        catalogue, or fields that do not overlap the first epoch's field.
+    """
+    if len(epochs) < 2:
+        raise InputError(f"proper motions need at least two epochs, got {len(epochs)}")
+    seen_paths = {}
+    for ep in epochs:
+        if ep.path is not None:
+            key = Path(ep.path).resolve()
+            if key in seen_paths:
+                raise InputError("the same file is given twice as two epochs", path=ep.path)
+            seen_paths[key] = ep
+        if ep.ids.size == 0:
+            raise InputError(f"{ep.label}: the catalogue has no stars")
+    ordered = sorted(epochs, key=lambda e: e.epoch)
+    for a, b in zip(ordered[:-1], ordered[1:]):
+        if abs(b.epoch - a.epoch) < EPOCH_TOLERANCE:
+            raise InputError(
+                f"duplicate epoch {a.epoch:g} yr in {a.label} and {b.label}; "
+                "each epoch must be given once (combine repeated frames first)"
+            )
+    first = ordered[0]
+    for ep in ordered[1:]:
+        if not _boxes_overlap(first, ep, margin):
+            raise InputError(
+                f"{ep.label}: field x [{ep.x.min():.2f}, {ep.x.max():.2f}], "
+                f"y [{ep.y.min():.2f}, {ep.y.max():.2f}] arcsec does not overlap the field of "
+                f"{first.label} (x [{first.x.min():.2f}, {first.x.max():.2f}], "
+                f"y [{first.y.min():.2f}, {first.y.max():.2f}]); different pointings?"
+            )
+    return ordered
+
+
+def _boxes_overlap(a: EpochCatalogue, b: EpochCatalogue, margin: float) -> bool:
+    pad = 2.0 * margin
+    x_ok = min(a.x.max(), b.x.max()) + pad >= max(a.x.min(), b.x.min())
+    y_ok = min(a.y.max(), b.y.max()) + pad >= max(a.y.min(), b.y.min())
+    return bool(x_ok and y_ok)

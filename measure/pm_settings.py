@@ -1,0 +1,90 @@
+"""Settings of the proper-motion stage (one frozen dataclass, every knob documented)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from mavispm.core.config import from_mapping, unit_field
+
+
+@dataclass(frozen=True)
+class ProperMotionSettings:
+    """Knobs of matching, alignment and the proper-motion fit.
+
+    Parameters
+    ----------
+    order : int
+        Order of the epoch-to-reference polynomial transformation: 1 (linear), 2, 3.
+    conformal : bool
+        With ``order = 1``: only shift + plate scale + rotation (4 parameters).
+    reference : int
+        Index (in time order) of the reference epoch; negative counts from the end.
+    match : {"auto", "id", "position"}
+        Cross-matching method; ``auto`` uses IDs when the epochs share them.
+    max_pm : float
+        Largest expected proper motion [mas/yr]; times the baseline it is the
+        positional search radius.
+    match_tolerance : float
+        Added to the search radius for the not-yet-fitted transformation [arcsec].
+    clip_sigma : float
+        Sigma-clipping threshold for reference stars (high-velocity stars, mismatches).
+    clip_iterations : int
+        Maximum number of fit-and-clip iterations per epoch.
+    ref_max_error : float or None
+        Reference stars need per-axis position errors below this in both epochs [mas].
+    ref_mag_max : float or None
+        Reference stars need ``mag`` at most this (needs a ``mag`` column) [mag].
+    distance : float or None
+        Cluster distance [kpc] for km/s columns; default: the products' ``distance`` attr.
+    center_x, center_y : float
+        Cluster centre for radial/tangential components [arcsec].
+    poor_fit_p : float
+        Flag stars whose multi-epoch motion fits a straight line with chi-square p below this.
+    """
+
+    order: int = 1
+    conformal: bool = False
+    reference: int = 0
+    match: Literal["auto", "id", "position"] = "auto"
+    max_pm: float = unit_field(5.0, "mas/yr", "largest expected proper motion")
+    match_tolerance: float = unit_field(0.02, "arcsec", "search-radius allowance")
+    clip_sigma: float = 4.0
+    clip_iterations: int = 10
+    ref_max_error: float | None = unit_field(None, "mas", "reference-star error limit")
+    ref_mag_max: float | None = unit_field(None, "mag", "reference-star faint limit")
+    distance: float | None = unit_field(None, "kpc", "cluster distance")
+    center_x: float = unit_field(0.0, "arcsec", "cluster centre x")
+    center_y: float = unit_field(0.0, "arcsec", "cluster centre y")
+    poor_fit_p: float = 1e-3
+
+    def __post_init__(self):
+        if self.order not in (1, 2, 3):
+            raise ValueError(f"order must be 1, 2 or 3, got {self.order}")
+        if self.conformal and self.order != 1:
+            raise ValueError("conformal = true needs order = 1")
+        if not self.clip_sigma > 1.0:
+            raise ValueError(f"clip_sigma must be > 1, got {self.clip_sigma}")
+        if self.clip_iterations < 1:
+            raise ValueError("clip_iterations must be at least 1")
+        if self.max_pm < 0 or self.match_tolerance <= 0:
+            raise ValueError("max_pm must be >= 0 and match_tolerance > 0")
+        if self.distance is not None and not self.distance > 0:
+            raise ValueError(f"distance must be positive, got {self.distance} kpc")
+        if self.ref_max_error is not None and not self.ref_max_error > 0:
+            raise ValueError("ref_max_error must be positive")
+        if not 0 <= self.poor_fit_p < 1:
+            raise ValueError("poor_fit_p must be in [0, 1)")
+
+
+def validate_settings(settings=None, source=None) -> ProperMotionSettings:
+    """Build :class:`ProperMotionSettings` from a mapping (a TOML table).
+
+    Raises
+    ------
+    mavispm.core.errors.ConfigError
+        Unknown keys, wrong types, bad units or impossible values, naming the key.
+    """
+    if isinstance(settings, ProperMotionSettings):
+        return settings
+    return from_mapping(ProperMotionSettings, settings or {}, prefix="propermotions", source=source)

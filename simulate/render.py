@@ -1,0 +1,567 @@
+"""The star renderer: field-variable PSF x tip-tilt Gaussian, pixel-integrated, on stamps.
+
+Each star's image is computed in the Fourier domain on a small periodic stamp of
+``M x M`` detector pixels (``M`` even, chosen per star from its flux and the PSF
+wing; see :func:`stamp_sizes`)::
+
+    G(u) = [sum_n w_n P_n(u)]                     bilinear mix of the PSF-grid nodes
+           * exp(-2 pi^2 u^T C u)                 tip-tilt + blur Gaussian, covariance C
+           * sinc(u s_x) sinc(v s_y)              the detector pixel (box of side s)
+           * exp(-2 pi i u . d)                   the exact sub-pixel position d
+
+``P_n`` is the Fourier transform of PSF-grid node ``n`` evaluated directly at the
+stamp's frequencies (a matrix DFT of the finely sampled PSF, exact for a
+band-limited PSF); it is computed once per node and stamp size and cached, and
+bilinear interpolation in the field commutes with the transform. The pixel values
+are the samples of the pixel-integrated image at the pixel centres; to get them
+without aliasing, ``G`` is evaluated up to ``oversampling / (2 s)`` and folded
+(summed over its aliases) onto the stamp's ``M x M`` frequencies before one
+inverse real FFT. With an even ``oversampling`` >= 2 this is exact for any
+optical PSF whose transfer function vanishes beyond ``1/s`` (MAVIS: D/lambda =
+0.07 cycles/mas < 1/7.5 mas); ``oversampling = 1`` ignores aliasing (faster,
+less accurate). Stars are batched by stamp size and transformed together.
+
+The light of a star that falls beyond its stamp wraps around inside it, so every
+stamp holds exactly the star's flux; the stamp is sized so that the wing at its
+edge is below ``stamp_threshold`` times the per-pixel noise.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import scipy.sparse
+
+#: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
+FLOAT32_ROUNDOFF = 3e-8
+
+#: A stamp plan keeps spectrum samples this many decades below ``spectrum_floor``,
+#: for the lower floors of bright-star batches.
+PLAN_FLOOR_DECADES = 4
+
+#: Even stamp sizes with small prime factors (fast FFTs).
+STAMP_SIZES = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512)
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """Accuracy / speed knobs of the renderer in one place (TOML table ``[render]``).
+
+    In the spirit of GalSim's ``GSParams``: every trade of run time against error
+    is made here.
+
+    Attributes
+    ----------
+    oversampling : int
+        Frequency oversampling of the stamp spectra before folding (1 = no alias
+        correction, fastest; 2 = exact for MAVIS PSFs at 7.5 mas, default).
+    stamp_threshold : float
+        A star's stamp extends until its PSF wing falls below this fraction of the
+        per-pixel noise sigma of the stack (default 0.05).
+    min_stamp, max_stamp : int
+        Bounds on the stamp side in pixels (``max_stamp = 0``: from the PSF-grid
+        extent plus the tip-tilt kernel, beyond which the core PSF has no light).
+    halo : bool
+        Render the seeing halo (the light beyond the AO control radius) when the
+        optics provides one.
+    halo_downsample : int
+        The halo convolution runs on pixels this many times larger and is
+        interpolated back (0 = automatic: about 8 pixels per AO control radius).
+    psf_interpolation : {"bilinear", "nearest"}
+        How the PSF grid is interpolated to a star's position.
+    dtype : {"float32", "float64"}
+        Precision of the spectra and stamps (float32, the default, halves memory and
+        time at ~1e-6 relative error).
+    batch_size : int
+        Stars transformed together (memory ~ batch_size x stamp spectrum).
+    spectrum_floor : float
+        Spectrum samples where every PSF node's transfer function, times the
+        narrowest tip-tilt/blur kernel of the batch, is below this fraction of the
+        total are dropped (the OTF vanishes beyond D/lambda; default 1e-5).
+    threads : int
+        Threads for stamp batches, the noise draw and the halo FFT (0: all cores).
+        Results do not depend on it.
+    gaussian_skew_limit : float
+        Photon + read noise of the stack is drawn as a Gaussian with the exact mean
+        and variance where its skewness is below this value, and exactly
+        (Poisson + Gaussian) elsewhere (0 = always exact, slower).
+    """
+
+    oversampling: int = 2
+    stamp_threshold: float = 0.05
+    min_stamp: int = 16
+    max_stamp: int = 0
+    halo: bool = True
+    halo_downsample: int = 0
+    psf_interpolation: Literal["bilinear", "nearest"] = "bilinear"
+    dtype: Literal["float64", "float32"] = "float32"
+    batch_size: int = 512
+    spectrum_floor: float = 1e-5
+    gaussian_skew_limit: float = 0.01
+    threads: int = 0
+
+    def __post_init__(self):
+        if self.oversampling < 1:
+            raise ValueError(f"render.oversampling must be >= 1, got {self.oversampling}")
+        if not self.stamp_threshold > 0:
+            raise ValueError(f"render.stamp_threshold must be > 0, got {self.stamp_threshold}")
+        if self.min_stamp < 2 or self.min_stamp % 2:
+            raise ValueError(f"render.min_stamp must be even and >= 2, got {self.min_stamp}")
+        if self.max_stamp and (self.max_stamp < self.min_stamp or self.max_stamp % 2):
+            raise ValueError("render.max_stamp must be 0 or an even number >= render.min_stamp")
+        if self.halo_downsample < 0:
+            raise ValueError("render.halo_downsample must be >= 0")
+        if not 0 <= self.spectrum_floor < 1:
+            raise ValueError("render.spectrum_floor must be in [0, 1)")
+        if self.gaussian_skew_limit < 0:
+            raise ValueError("render.gaussian_skew_limit must be >= 0")
+        if self.threads < 0:
+            raise ValueError("render.threads must be >= 0 (0: all cores)")
+        if self.batch_size < 1:
+            raise ValueError("render.batch_size must be >= 1")
+
+
+@dataclass
+class StampPlan:
+    """Everything about one stamp size that does not depend on the star (cached).
+
+    Attributes
+    ----------
+    m : int
+        Stamp side (pixels).
+    u, v : ndarray (nsup,)
+        Spatial frequencies (cycles/mas) of the retained spectrum samples: those
+        where some PSF node's transfer function exceeds the plan floor.
+    col, row : ndarray (nsup,) int
+        Their column/row in the separable frequency axes ``fx``/``fy``.
+    fx, fy : ndarray
+        Integer frequency axes (see :func:`_folding_frequencies`).
+    transforms : ndarray (n_nodes, nsup) complex
+        Node transforms times the pixel transfer function at the retained samples.
+    peak : ndarray (nsup,)
+        Largest node transfer-function modulus at each retained sample (relative to 1).
+    fold : scipy.sparse.csr_matrix (nsup, m * (m//2+1))
+        Sums aliases onto the stamp's rfft2 frequencies.
+    """
+
+    m: int
+    u: np.ndarray
+    v: np.ndarray
+    col: np.ndarray
+    row: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    transforms: np.ndarray
+    peak: np.ndarray
+    fold: scipy.sparse.csr_matrix
+
+
+def _stamp_size_at_least(n: int, floor: int) -> int:
+    """Smallest tabulated stamp size >= max(n, floor) (or the next even number)."""
+    n = max(int(np.ceil(n)), floor)
+    for size in STAMP_SIZES:
+        if size >= n:
+            return size
+    return n + (n % 2)
+
+
+def _folding_frequencies(m: int, k: int):
+    """Integer frequencies (units of 1/(m s)) evaluated for a stamp of side ``m``.
+
+    Returns
+    -------
+    fy : ndarray (k*m,)
+        Row frequencies in FFT order of a length ``k*m`` transform; folding is
+        ``reshape(k, m).sum(0)``.
+    fx : ndarray (k*(m//2+1),)
+        Column frequencies ``c + j m`` (fft order of length ``k*m``) for output rfft
+        columns ``c = 0..m/2``, laid out ``(k, m//2+1)``; folding sums over ``k``.
+    """
+    n = k * m
+    fy = np.fft.fftfreq(n, 1.0 / n)
+    cols = np.arange(m // 2 + 1)
+    idx = (cols[None, :] + m * np.arange(k)[:, None]).ravel()
+    fx = np.where(idx < n / 2, idx, idx - n).astype(float)
+    return fy, fx
+
+
+class StarRenderer:
+    """Renders point sources through a PSF grid onto a detector image.
+
+    Parameters
+    ----------
+    psf_grid : object
+        The optics PSF grid: ``cube`` (n_nodes_y, n_nodes_x, n, n) each summing to 1
+        with the optical axis at the central pixel, ``pixel_scale`` (mas per PSF pixel),
+        ``bilinear_weights(x, y) -> (iy, ix, w)`` for positions in arcsec.
+    pixel_scale : float
+        Detector pixel size, mas.
+    params : RenderParams
+
+    Notes
+    -----
+    Node transforms are cached per stamp size on the instance: reuse one renderer
+    for all epochs of a scene.
+    """
+
+    def __init__(self, psf_grid, pixel_scale: float, params: RenderParams | None = None):
+        self.psf_grid = psf_grid
+        self.pixel_scale = float(pixel_scale)
+        self.params = params or RenderParams()
+        cube = np.asarray(psf_grid.cube, dtype=np.float64)
+        if cube.ndim != 4 or cube.shape[2] != cube.shape[3] or cube.shape[2] % 2 == 0:
+            raise ValueError(
+                f"PSF grid cube must have shape (ny, nx, n, n) with n odd, got {cube.shape}"
+            )
+        self.n_nodes_y, self.n_nodes_x, n, _ = cube.shape
+        self._cube = cube.reshape(-1, n, n)
+        self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
+        self._plans: dict[int, StampPlan] = {}
+        self._envelope = _wing_envelope(self._cube, self.psf_pixel_scale, self.pixel_scale)
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def psf_extent_pixels(self) -> float:
+        """Side of the PSF-grid stamps in detector pixels."""
+        return self._cube.shape[-1] * self.psf_pixel_scale / self.pixel_scale
+
+    def max_stamp(self, max_sigma_mas: float = 0.0) -> int:
+        """Largest stamp side needed: the PSF extent plus the kernel, in pixels."""
+        if self.params.max_stamp:
+            return self.params.max_stamp
+        need = self.psf_extent_pixels + 2 * (5 * max_sigma_mas / self.pixel_scale + 1)
+        return _stamp_size_at_least(need, self.params.min_stamp)
+
+    def stamp_sizes(
+        self, flux, noise_sigma: float, sigma_mas, x_field=None, y_field=None
+    ) -> np.ndarray:
+        """Stamp side per star: where the wing falls below ``stamp_threshold * noise_sigma``.
+
+        Parameters
+        ----------
+        flux : ndarray (N,)
+            Star fluxes, in the units of ``noise_sigma``.
+        noise_sigma : float
+            Per-pixel noise sigma of the frame (same units); <= 0 gives maximal stamps.
+        sigma_mas : ndarray (N,)
+            Largest standard deviation of each star's kernel (mas).
+        x_field, y_field : ndarray (N,), optional
+            Field positions (arcsec): the wing envelope is then the largest of the
+            star's interpolation nodes, otherwise of all nodes.
+        """
+        flux = np.asarray(flux, dtype=float)
+        sigma_mas = np.broadcast_to(np.asarray(sigma_mas, dtype=float), flux.shape)
+        biggest = self.max_stamp(float(np.max(sigma_mas, initial=0.0)))
+        if noise_sigma <= 0:
+            return np.full(flux.shape, biggest, dtype=int)
+        radii, env_nodes = self._envelope
+        level = self.params.stamp_threshold * noise_sigma / np.maximum(flux, 1e-300)
+        # index of the first envelope radius at or below the level (env non-increasing)
+        if x_field is None or len(flux) == 0:
+            pos = np.searchsorted(-env_nodes.max(axis=0), -level, side="left")
+        else:
+            node, w = self._node_weights(x_field, y_field)
+            pos = np.zeros(len(flux), dtype=np.int64)
+            for k in range(node.shape[1]):
+                for n in np.unique(node[:, k]):
+                    sel = np.flatnonzero((node[:, k] == n) & (w[:, k] > 0))
+                    here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
+                    pos[sel] = np.maximum(pos[sel], here)
+        radius_pix = radii[np.minimum(pos, len(radii) - 1)]
+        half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
+        sizes = np.array(
+            [_stamp_size_at_least(2 * h, self.params.min_stamp) for h in half], dtype=int
+        )
+        return np.minimum(sizes, biggest)
+
+    # ------------------------------------------------------------- transforms
+    def plan(self, m: int) -> StampPlan:
+        """The cached :class:`StampPlan` of stamp side ``m`` (node transforms etc.).
+
+        The node transforms are a direct (matrix) DFT of each PSF node at the
+        stamp's folding frequencies, exact for any PSF sampling; only samples where
+        some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
+        kept (the optical transfer function vanishes beyond D/lambda).
+        """
+        if m not in self._plans:
+            self._plans[m] = self._make_plan(m)
+        return self._plans[m]
+
+    def _make_plan(self, m: int) -> StampPlan:
+        k = self.params.oversampling
+        s = self.pixel_scale
+        fy, fx = _folding_frequencies(m, k)
+        n = self._cube.shape[-1]
+        nodes = self._cube.shape[0]
+        offsets = (np.arange(n) - (n - 1) / 2) * self.psf_pixel_scale  # mas
+        df = 1.0 / (m * s)  # cycles/mas per integer frequency
+        arg_x = -2.0 * np.pi * np.outer(offsets, fx * df)  # (n, nfx)
+        # stage 1 over PSF columns: two real GEMMs for all nodes at once
+        flat = self._cube.reshape(nodes * n, n)
+        half = (flat @ np.cos(arg_x)) + 1j * (flat @ np.sin(arg_x))  # (nodes*n, nfx)
+        half = half.reshape(nodes, n, len(fx))
+        ey = np.exp(-2j * np.pi * np.outer(fy * df, offsets))  # (nfy, n)
+        full = np.matmul(ey[None], half)  # (nodes, nfy, nfx)
+        full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
+        peak = np.abs(full).max(axis=0)
+        peak /= peak.max()
+        # keep PLAN_FLOOR_DECADES below the floor: bright-star batches use lower floors
+        keep = peak > self.params.spectrum_floor * 10.0**-PLAN_FLOOR_DECADES
+        row, col = np.nonzero(keep)
+        mh = m // 2 + 1
+        target = (row % m) * mh + (col % mh)
+        fold = scipy.sparse.csr_matrix(
+            (np.ones(len(row)), (np.arange(len(row)), target)),
+            shape=(len(row), m * mh),
+        )
+        return StampPlan(
+            m=m,
+            u=fx[col] * df,
+            v=fy[row] * df,
+            col=col,
+            row=row,
+            fx=fx,
+            fy=fy,
+            transforms=np.ascontiguousarray(full[:, row, col]),
+            peak=peak[row, col],
+            fold=fold,
+        )
+
+    def _node_weights(self, x, y):
+        iy, ix, w = self.psf_grid.bilinear_weights(x, y)
+        iy = np.asarray(iy, dtype=np.int64)
+        ix = np.asarray(ix, dtype=np.int64)
+        w = np.asarray(w, dtype=np.float64)
+        node = iy * self.n_nodes_x + ix
+        if self.params.psf_interpolation == "nearest":
+            best = np.argmax(w, axis=1)
+            rows = np.arange(len(w))
+            node = node[rows, best][:, None]
+            w = np.ones((len(w), 1))
+        return node, w
+
+    # ----------------------------------------------------------------- stamps
+    def render_stamps(
+        self, m: int, x_pix, y_pix, x_field, y_field, cov, flux, floor=None, dtype=None
+    ):
+        """Noise-free stamps of side ``m`` for a batch of stars.
+
+        Parameters
+        ----------
+        m : int
+            Stamp side (even).
+        x_pix, y_pix : ndarray (S,)
+            Exact star positions in detector pixels (0-based, centres at integers).
+        x_field, y_field : ndarray (S,)
+            Field positions (arcsec) used to interpolate the PSF grid.
+        cov : ndarray (S, 2, 2)
+            Kernel covariance (tip-tilt + blur), mas^2, [[xx, xy], [xy, yy]].
+        flux : ndarray (S,)
+            Star fluxes.
+        floor : float, optional
+            Spectrum floor (default ``params.spectrum_floor``).
+        dtype : {"float32", "float64"}, optional
+            Precision (default ``params.dtype``).
+
+        Returns
+        -------
+        stamps : ndarray (S, m, m)
+            Pixel values; ``stamps[i]`` covers rows ``y0[i]..y0[i]+m-1`` and
+            columns ``x0[i]..x0[i]+m-1``; each sums to ``flux[i]``.
+        x0, y0 : ndarray (S,) int
+            Detector pixel of each stamp's corner ``[0, 0]``.
+        """
+        s = self.pixel_scale
+        x_pix = np.asarray(x_pix, dtype=np.float64)
+        y_pix = np.asarray(y_pix, dtype=np.float64)
+        ixc = np.round(x_pix).astype(np.int64)
+        iyc = np.round(y_pix).astype(np.int64)
+        # offset of the star from stamp pixel 0, in mas (star sits at stamp index m/2)
+        dx = (x_pix - ixc) * s + m * s / 2
+        dy = (y_pix - iyc) * s + m * s / 2
+        plan = self.plan(m)
+        df = 1.0 / (m * s)
+        nst = len(x_pix)
+        floor = self.params.spectrum_floor if floor is None else floor
+        real = np.float32 if (dtype or self.params.dtype) == "float32" else np.float64
+        cplx = np.complex64 if real is np.float32 else np.complex128
+        cov = np.asarray(cov, dtype=np.float64)
+        # drop samples the batch's narrowest kernel suppresses below the floor
+        sig2_min = max(float(np.linalg.eigvalsh(cov)[:, 0].min(initial=np.inf)), 0.0)
+        damp = plan.peak * np.exp(-2.0 * np.pi**2 * sig2_min * (plan.u**2 + plan.v**2))
+        sel = np.flatnonzero(damp > floor)
+        u, v = plan.u[sel], plan.v[sel]
+        node, w = self._node_weights(x_field, y_field)
+        n_nodes = plan.transforms.shape[0]
+        indptr = np.arange(0, node.size + 1, node.shape[1])
+        mix = scipy.sparse.csr_matrix(
+            (w.ravel().astype(real), node.ravel(), indptr), shape=(nst, n_nodes)
+        )
+        spec = np.asarray(mix @ plan.transforms[:, sel].astype(cplx))  # (S, nsel): interpolated PSF
+        cov3 = cov.reshape(nst, 4)[:, [0, 1, 3]]
+        basis = np.stack([u * u, 2.0 * u * v, v * v])
+        quad = (cov3 * (-2.0 * np.pi**2)).astype(real) @ basis.astype(real)
+        spec *= np.exp(quad, out=quad)
+        phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
+        phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
+        spec *= phx[:, plan.col[sel]]
+        spec *= phy[:, plan.row[sel]]
+        fold = plan.fold[sel].astype(real)
+        folded = np.asarray((fold.T @ spec.T).T).reshape(nst, m, m // 2 + 1)
+        stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
+        stamps *= np.asarray(flux, dtype=np.float64)[:, None, None].astype(stamps.dtype)
+        return stamps.astype(real, copy=False), ixc - m // 2, iyc - m // 2
+
+    def render(
+        self,
+        image,
+        x_pix,
+        y_pix,
+        x_field,
+        y_field,
+        cov,
+        flux,
+        sizes,
+        noise_sigma=None,
+        progress=False,
+    ):
+        """Add stars to ``image`` in place (noise-free), batched by stamp size.
+
+        Parameters
+        ----------
+        image : ndarray (ny, nx)
+            Accumulator; stamps are clipped at its edges.
+        x_pix, y_pix, x_field, y_field, cov, flux
+            As in :meth:`render_stamps`, for all stars.
+        sizes : ndarray (N,) int
+            Stamp side per star (see :meth:`stamp_sizes`); stars with size 0 or
+            zero flux, or whose stamp misses the image, are skipped.
+        noise_sigma : float, optional
+            Per-pixel noise (flux units). When given, batches of bright stars use a
+            spectrum floor and a precision whose errors stay below
+            ``stamp_threshold * noise_sigma`` (float64 where float32 round-off would not).
+        progress : bool
+            Show a tqdm progress bar.
+
+        Returns
+        -------
+        ndarray (N,) bool
+            Which stars were rendered (their stamp overlaps the image).
+        """
+        ny, nx = image.shape
+        sizes = np.asarray(sizes, dtype=np.int64)
+        x_pix = np.asarray(x_pix, dtype=np.float64)
+        y_pix = np.asarray(y_pix, dtype=np.float64)
+        flux = np.asarray(flux, dtype=np.float64)
+        x_field = np.asarray(x_field, dtype=np.float64)
+        y_field = np.asarray(y_field, dtype=np.float64)
+        cov = np.asarray(cov, dtype=np.float64)
+        half = sizes // 2
+        overlaps = (
+            (np.round(x_pix) + half > 0)
+            & (np.round(x_pix) - half < nx)
+            & (np.round(y_pix) + half > 0)
+            & (np.round(y_pix) - half < ny)
+        )
+        todo = overlaps & (sizes > 0) & (flux > 0)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=int(todo.sum()), desc="stars", unit="star", leave=False)
+        batch = self.params.batch_size
+        jobs = []
+        for m in np.unique(sizes[todo]):
+            idx = np.flatnonzero(todo & (sizes == m))
+            idx = idx[np.argsort(flux[idx], kind="stable")]
+            jobs += [(int(m), idx[a : a + batch]) for a in range(0, len(idx), batch)]
+
+        def work(job):
+            m, sel = job
+            floor, dtype = self._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            return self.render_stamps(
+                m,
+                x_pix[sel],
+                y_pix[sel],
+                x_field[sel],
+                y_field[sel],
+                cov[sel],
+                flux[sel],
+                floor=floor,
+                dtype=dtype,
+            )
+
+        for m in {m for m, _ in jobs}:
+            self.plan(m)  # build plans once, before the threads share them
+        threads = self.params.threads or os.cpu_count() or 1
+        with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
+            # stamps are added in job order: the image does not depend on the threads
+            for (_, sel), (stamps, x0, y0) in zip(jobs, pool.map(work, jobs)):
+                _add_stamps(image, stamps, x0, y0)
+                if bar is not None:
+                    bar.update(len(sel))
+        if bar is not None:
+            bar.close()
+        return overlaps
+
+    def _batch_accuracy(self, flux_max: float, noise_sigma) -> tuple[float, str]:
+        """Spectrum floor and precision keeping a batch's errors below the threshold."""
+        floor, dtype = self.params.spectrum_floor, self.params.dtype
+        if noise_sigma is None or noise_sigma <= 0 or flux_max <= 0:
+            return floor, dtype
+        allowed = self.params.stamp_threshold * noise_sigma / flux_max
+        if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
+            dtype = "float64"
+        return min(floor, allowed), dtype
+
+
+def _add_stamps(image, stamps, x0, y0) -> None:
+    """Add stamps into ``image`` at corners (x0, y0), clipping at the edges."""
+    ny, nx = image.shape
+    m = stamps.shape[-1]
+    for stamp, cx, cy in zip(stamps, x0.tolist(), y0.tolist()):
+        if cx >= 0 and cy >= 0 and cx + m <= nx and cy + m <= ny:
+            image[cy : cy + m, cx : cx + m] += stamp
+            continue
+        ya, yb = max(cy, 0), min(cy + m, ny)
+        xa, xb = max(cx, 0), min(cx + m, nx)
+        if ya < yb and xa < xb:
+            image[ya:yb, xa:xb] += stamp[ya - cy : yb - cy, xa - cx : xb - cx]
+
+
+def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
+    """Radial envelope of each PSF node in detector-pixel units.
+
+    Returns
+    -------
+    radii : ndarray (nr,)
+        Radii in detector pixels (0, 0.5, 1, ...).
+    env : ndarray (n_nodes, nr)
+        Upper bound of the fraction of a star's flux in one detector pixel at or
+        beyond each radius, per node, non-increasing in radius.
+    """
+    n = cube.shape[-1]
+    c = (n - 1) / 2
+    yy, xx = np.mgrid[0:n, 0:n]
+    r_pix = np.hypot(xx - c, yy - c).ravel() * psf_scale / pixel_scale
+    order = np.argsort(r_pix)[::-1]
+    r_sorted = r_pix[order]
+    radii = np.arange(0.0, r_sorted[0] + 1.0, 0.5)
+    # envelope(r) = max of per_pixel over samples with radius >= r
+    pos = np.searchsorted(-r_sorted, -radii, side="right") - 1
+    # a detector pixel holds about (s/p)^2 PSF samples; clip so it never exceeds 1
+    per_pixel = np.minimum(cube.reshape(len(cube), -1) * (pixel_scale / psf_scale) ** 2, 1.0)
+    cummax = np.maximum.accumulate(per_pixel[:, order], axis=1)
+    env = np.where(pos >= 0, cummax[:, np.maximum(pos, 0)], 0.0)
+    return radii, env
+
+
+def _value(q, unit: str) -> float:
+    """Float value of a Quantity in ``unit``, or the number itself."""
+    if hasattr(q, "to_value"):
+        return q.to_value(unit)
+    return q

@@ -1,0 +1,92 @@
+"""NGS tip-tilt kernels and blur terms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mavispm.simulate.atmosphere import AtmosphereSettings
+from mavispm.simulate.blur import BlurSettings, blur_sigma
+from mavispm.simulate.pupil import PupilSettings
+from mavispm.simulate.tiptilt import (
+    TipTiltField,
+    TipTiltSettings,
+    field_average_sigma,
+    ngs_noise_variance,
+)
+
+ATM = AtmosphereSettings()
+PUPIL = PupilSettings()
+PAPER = {"good": 2.92, "typical": 6.45, "bad": 9.23}
+
+
+def _grid(n=7, half=15.0):
+    g = np.linspace(-half, half, n)
+    gx, gy = np.meshgrid(g, g)
+    return gx.ravel(), gy.ravel()
+
+
+def _assert_spd(cov):
+    assert np.all(np.isfinite(cov))
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2), atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+@pytest.mark.parametrize("preset", ["good", "typical", "bad"])
+def test_presets_near_paper_and_positive_definite(preset):
+    field = TipTiltField(TipTiltSettings(asterism=preset), ATM, PUPIL)
+    _assert_spd(field.covariance(*_grid()))
+    assert field_average_sigma(field) == pytest.approx(PAPER[preset], rel=0.30)
+
+
+def test_presets_ordered_good_typical_bad():
+    sig = [
+        field_average_sigma(TipTiltField(TipTiltSettings(asterism=a), ATM, PUPIL))
+        for a in ("good", "typical", "bad")
+    ]
+    assert sig[0] < sig[1] < sig[2]
+
+
+def test_anisoplanatism_elongated_along_ngs_axis():
+    s = TipTiltSettings(asterism="custom", ngs=((20.0, 0.0, 8.0),))
+    cov = TipTiltField(s, ATM, PUPIL).covariance([0.0], [0.0])[0]
+    assert cov[0, 0] > cov[1, 1]  # NGS along +x: error larger along x
+    assert abs(cov[0, 1]) < 1e-6 * cov[0, 0]
+    # on the NGS itself (bright star) the residual is small
+    on = TipTiltField(s, ATM, PUPIL).covariance([20.0], [0.0])[0]
+    assert np.trace(on) < 0.2 * np.trace(cov)
+
+
+def test_scale_factor_and_switch():
+    base = TipTiltField(TipTiltSettings(asterism="bad"), ATM, PUPIL)
+    x3 = TipTiltField(TipTiltSettings(asterism="bad", scale_factor=3.0), ATM, PUPIL)
+    x, y = _grid(3)
+    np.testing.assert_allclose(x3.covariance(x, y), 9 * base.covariance(x, y), rtol=1e-10)
+    off = TipTiltField(TipTiltSettings(enabled=False), ATM, PUPIL)
+    assert np.all(off.covariance(x, y) == 0)
+
+
+def test_noise_follows_photon_statistics():
+    s = TipTiltSettings(read_noise=0.0)
+    v = ngs_noise_variance(s, np.array([15.0, 17.5]))
+    assert v[1] / v[0] == pytest.approx(10.0, rel=1e-9)  # 2.5 mag = 10x fewer photons
+
+
+def test_blur_terms_in_quadrature():
+    assert blur_sigma(BlurSettings()) == pytest.approx(np.hypot(3.0, 3.5))
+    assert blur_sigma(BlurSettings(vibration=False)) == pytest.approx(3.0)
+    assert blur_sigma(BlurSettings(charge_diffusion=False, vibration=False)) == 0.0
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    mags=st.lists(st.floats(8.0, 22.0), min_size=1, max_size=4),
+    radii=st.lists(st.sampled_from([0.0, 60.0]), min_size=4, max_size=4),
+    angles=st.lists(st.floats(0.0, 360.0), min_size=4, max_size=4),
+)
+def test_hypothesis_asterisms_positive_definite(mags, radii, angles):
+    ngs = tuple((r, a, m) for r, a, m in zip(radii, angles, mags))
+    field = TipTiltField(TipTiltSettings(asterism="custom", ngs=ngs), ATM, PUPIL)
+    _assert_spd(field.covariance(*_grid(4)))

@@ -1,0 +1,249 @@
+"""Edge cases and bad input: clear errors or flags, never silent NaN."""
+
+from __future__ import annotations
+
+import astropy.units as u
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from propermotions_helpers import make_cluster, observe, write_measured
+
+from mavispm.core.errors import ConfigError, InputError, MavispmError
+from mavispm.measure.pm_inputs import EpochCatalogue, read_measured
+from mavispm.measure.pm_pipeline import PMFlag, derive_proper_motions
+from mavispm.measure.pm_settings import validate_settings
+from mavispm.measure.propermotions import radial_tangential
+
+HYP = settings(max_examples=25, deadline=None)
+
+
+def _epoch(t, ids, x, y, err=1e-4, flag=None):
+    n = len(ids)
+    return EpochCatalogue(
+        epoch=t,
+        ids=np.asarray(ids, np.int64),
+        x=np.asarray(x, float),
+        y=np.asarray(y, float),
+        x_err=np.full(n, err),
+        y_err=np.full(n, err),
+        flag=np.zeros(n, np.int64) if flag is None else flag,
+    )
+
+
+def _all_finite(stars):
+    cols = ["pm_x", "pm_y", "pm_x_err", "pm_y_err", "pm_r", "pm_t", "pm_r_err", "pm_t_err"]
+    return all(np.all(np.isfinite(stars[c].value)) for c in cols) and np.all(
+        np.isfinite(stars["pm_xy_corr"])
+    )
+
+
+coords = st.lists(st.floats(-14, 14, allow_nan=False), min_size=1, max_size=40)
+
+
+@HYP
+@given(
+    n=st.integers(1, 40), seed=st.integers(0, 10_000), method=st.sampled_from(["auto", "position"])
+)
+def test_no_common_stars_is_a_clear_error(n, seed, method):
+    rng = np.random.default_rng(seed)
+    x, y = rng.uniform(-14, 14, (2, n))
+    e0 = _epoch(0.0, np.arange(n), x, y)
+    e1 = _epoch(10.0, np.arange(n) + 10_000, x + 1.0, y + 1.0)  # no shared ID, > search radius
+    with pytest.raises(InputError, match="no star|usable reference|overlap"):
+        derive_proper_motions([e0, e1], validate_settings({"match": method}))
+
+
+@HYP
+@given(x=st.floats(-14, 14), y=st.floats(-14, 14), order=st.integers(1, 3))
+def test_a_single_star_is_a_clear_error(x, y, order):
+    e0 = _epoch(0.0, [1], [x], [y])
+    e1 = _epoch(10.0, [1], [x + 1e-3], [y])
+    with pytest.raises(InputError, match="reference star"):
+        derive_proper_motions([e0, e1], validate_settings({"order": order}))
+
+
+@HYP
+@given(
+    n=st.integers(12, 200),
+    seed=st.integers(0, 10_000),
+    bulk=st.floats(-20, 20),
+    disp=st.floats(0.01, 5.0),
+    n_ep=st.integers(2, 4),
+)
+def test_all_stars_moving_gives_finite_relative_motions(n, seed, bulk, disp, n_ep):
+    truth = make_cluster(n=n, seed=seed, sigma_pm=disp, pm_sys=(bulk, -bulk))
+    obs = observe(truth, np.linspace(0.0, 8.0, n_ep), None, seed=seed + 1)
+    try:
+        res = derive_proper_motions(obs, validate_settings({"order": 1, "match": "id"}))
+    except MavispmError as exc:  # a clear refusal is acceptable, a NaN is not
+        assert "reference star" in str(exc)
+        return
+    assert _all_finite(res.stars)
+    # the bulk motion is removed: relative PMs scatter about zero, not about the bulk
+    assert abs(np.median(res.stars["pm_x"].value)) < max(5 * disp, 0.5)
+
+
+@HYP
+@given(
+    n=st.integers(3, 60),
+    slope=st.floats(-3, 3),
+    seed=st.integers(0, 10_000),
+    order=st.integers(1, 3),
+)
+def test_stars_on_a_line_are_degenerate_for_general_polynomials(n, slope, seed, order):
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.uniform(-4, 4, n)) + np.arange(n) * 1e-3
+    y = slope * x + 0.5
+    e0 = _epoch(0.0, np.arange(n), x, y)
+    step = rng.normal(0, 1e-3, n)  # motions along the line: the stars stay on it
+    e1 = _epoch(10.0, np.arange(n), x + step, slope * (x + step) + 0.5)
+    with pytest.raises(InputError, match="degenerate|reference star"):
+        derive_proper_motions([e0, e1], validate_settings({"order": order}))
+    # shift + scale + rotation is determined by collinear stars
+    res = derive_proper_motions([e0, e1], validate_settings({"order": 1, "conformal": True}))
+    assert _all_finite(res.stars)
+    # nearly on a line (measurement scatter off it): a clear error or finite results
+    e1.y = e1.y + rng.normal(0, 1e-4, n)
+    try:
+        res = derive_proper_motions([e0, e1], validate_settings({"order": order}))
+    except InputError as exc:
+        assert "degenerate" in str(exc) or "reference star" in str(exc)
+    else:
+        assert _all_finite(res.stars)
+
+
+def test_unusable_errors_drop_or_flag_never_nan():
+    truth = make_cluster(n=300, seed=2)
+    obs = observe(truth, [0.0, 5.0, 10.0], None, seed=3)
+    obs[1].x_err[:10] = np.nan  # flagged in one epoch: fewer epochs
+    obs[1].flag[:10] = 1
+    obs[0].x_err[10:15] = np.nan  # no reference-epoch position, still two epochs
+    obs[1].x_err[10:15] = np.nan  # ...and only one usable epoch left: dropped
+    res = derive_proper_motions(obs, validate_settings())
+    assert _all_finite(res.stars)
+    assert res.n_dropped == 5
+    assert not np.any(np.isin(res.stars["id"], truth.ids[10:15]))
+    partial = np.isin(res.stars["id"], truth.ids[:10])
+    assert np.all(res.stars["n_epochs"][partial] == 2)
+    assert np.all(res.stars["flag"][partial] & PMFlag.MISSING_EPOCHS)
+
+
+def test_radial_tangential_components_and_centre_guard():
+    # star on +y axis moving along +y: pure radial; along -x: tangential (x->y positive)
+    pm_r, pm_t, er, et, r, at_c = radial_tangential(
+        np.array([0.0, 0.0, 3.0]),
+        np.array([2.0, 2.0, 4.0]),
+        np.array([0.0, -1.0, 3.0]),
+        np.array([1.0, 0.0, 4.0]),
+        np.array([1.0, 4.0, 1.0]),
+        np.array([4.0, 1.0, 1.0]),
+        np.zeros(3),
+    )
+    np.testing.assert_allclose(pm_r, [1.0, 0.0, 5.0], atol=1e-12)
+    np.testing.assert_allclose(pm_t, [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(er, [2.0, 1.0, 1.0])
+    np.testing.assert_allclose(r, [2.0, 2.0, 5.0])
+    assert not np.any(at_c)
+    pm_r, pm_t, er, et, r, at_c = radial_tangential(
+        np.zeros(1), np.zeros(1), np.ones(1), np.ones(1), np.ones(1), np.ones(1), np.zeros(1)
+    )
+    assert at_c[0] and np.isfinite(pm_r[0]) and np.isfinite(pm_t[0])
+
+
+# ---------------------------------------------------------------- bad input files
+
+
+@pytest.fixture
+def two_epochs(tmp_path):
+    truth = make_cluster(n=400, seed=7)
+    return observe(truth, [0.0, 10.0], None, seed=8), tmp_path
+
+
+def test_units_are_converted_and_wrong_units_refused(two_epochs):
+    from mavispm.measure.propermotions_cli import run_stage
+
+    obs, tmp = two_epochs
+    a = write_measured(tmp / "a.h5", obs[0])
+    b = write_measured(tmp / "b.h5", obs[1])
+    b_mas = write_measured(tmp / "b_mas.h5", obs[1], xy_unit="mas")
+    ref = read_measured(b)
+    mas = read_measured(b_mas)
+    np.testing.assert_allclose(mas.x, ref.x, rtol=1e-12)
+    out1 = run_stage([a, b], {}, tmp / "pm1.h5")
+    out2 = run_stage([a, b_mas], {}, tmp / "pm2.h5")
+    from mavispm.core.products import read_product
+
+    s1 = read_product(out1, "propermotions").tables["stars"]
+    s2 = read_product(out2, "propermotions").tables["stars"]
+    np.testing.assert_allclose(s1["pm_x"].value, s2["pm_x"].value, atol=1e-9)
+    bad = write_measured(tmp / "bad.h5", obs[1], xy_unit="mag")
+    with pytest.raises(InputError, match="column 'x'.*cannot be converted"):
+        run_stage([a, bad], {}, tmp / "pm3.h5")
+    bad_epoch = write_measured(tmp / "bad_e.h5", obs[1], extra_attrs={"epoch": 3.0 * u.mas})
+    with pytest.raises(InputError, match="epoch"):
+        run_stage([a, bad_epoch], {}, tmp / "pm4.h5")
+    assert not (tmp / "pm3.h5").exists() and not (tmp / "pm4.h5").exists()
+
+
+def test_non_overlapping_fields_refused(two_epochs):
+    from mavispm.measure.propermotions_cli import run_stage
+
+    obs, tmp = two_epochs
+    far = obs[1]
+    far.x = far.x + 100.0
+    a = write_measured(tmp / "a.h5", obs[0])
+    b = write_measured(tmp / "far.h5", far)
+    with pytest.raises(InputError, match="does not overlap"):
+        run_stage([a, b], {}, tmp / "pm.h5")
+
+
+def test_duplicate_epochs_refused(two_epochs):
+    from mavispm.measure.propermotions_cli import run_stage
+
+    obs, tmp = two_epochs
+    a = write_measured(tmp / "a.h5", obs[0])
+    b = write_measured(tmp / "b.h5", obs[1])
+    a2 = write_measured(tmp / "a_again.h5", observe(make_cluster(400, seed=7), [0.0], None)[0])
+    with pytest.raises(InputError, match="duplicate epoch"):
+        run_stage([a, b, a2], {}, tmp / "pm.h5")
+    with pytest.raises(InputError, match="same file"):
+        run_stage([a, a], {}, tmp / "pm.h5")
+    with pytest.raises(InputError, match="at least two epochs"):
+        run_stage([a], {}, tmp / "pm.h5")
+
+
+def test_settings_are_validated():
+    with pytest.raises(ConfigError, match="clip_sigm"):
+        validate_settings({"clip_sigm": 3})
+    with pytest.raises(ConfigError, match="order"):
+        validate_settings({"order": 4})
+    with pytest.raises(ConfigError, match="conformal"):
+        validate_settings({"order": 2, "conformal": True})
+    with pytest.raises(ConfigError, match="distance"):
+        validate_settings({"distance": "4.6 km/s"})
+    assert validate_settings({"distance": "4600 pc"}).distance == pytest.approx(4.6)
+    assert validate_settings({"max_pm": "1 arcsec/yr"}).max_pm == pytest.approx(1000.0)
+
+
+@HYP
+@given(seed=st.integers(0, 10_000), n_ep=st.integers(2, 5), drop=st.floats(0.0, 0.6))
+def test_stars_missing_in_random_epochs_give_finite_flagged_motions(seed, n_ep, drop):
+    truth = make_cluster(n=150, seed=seed)
+    obs = observe(truth, np.linspace(0.0, 10.0, n_ep), None, seed=seed + 1)
+    rng = np.random.default_rng(seed)
+    for ep in obs[1:]:
+        keep = rng.uniform(size=ep.ids.size) >= drop
+        for name in ("ids", "x", "y", "x_err", "y_err", "flag", "mag", "x_true", "y_true"):
+            setattr(ep, name, getattr(ep, name)[keep])
+    try:
+        res = derive_proper_motions(obs, validate_settings({"match": "id"}))
+    except InputError as exc:
+        assert "reference star" in str(exc) or "no star" in str(exc)
+        return
+    s = res.stars
+    assert _all_finite(s)
+    assert np.all(s["n_epochs"] >= 2)
+    partial = s["n_epochs"] < n_ep
+    assert np.all((s["flag"][partial] & PMFlag.MISSING_EPOCHS) > 0)
+    assert np.all((s["flag"][~partial] & PMFlag.MISSING_EPOCHS) == 0)

@@ -1,0 +1,88 @@
+"""Photometry and detector: zero points, sky, noise statistics, saturation, stacks."""
+
+import astropy.units as u
+import numpy as np
+import pytest
+
+from mavispm.simulate.detector import DetectorSettings, expose_stack
+from mavispm.simulate.photometry import (
+    PhotometrySettings,
+    collecting_area,
+    sky_electrons_per_pixel,
+    star_electrons,
+)
+
+
+def test_star_electrons_follow_the_photometric_chain():
+    p = PhotometrySettings()
+    area = np.pi / 4 * (820.0**2 - 111.6**2)  # cm^2
+    expected = 1000.0 * 880.0 * area * 0.45 * 0.89 * 30.0 * 10 ** (-0.4 * (20.0 + 0.129))
+    got = star_electrons([20.0], p, 30 * u.s)
+    assert got.unit == u.electron
+    assert got.value[0] == pytest.approx(expected, rel=1e-12)
+    assert collecting_area(p).to_value(u.m**2) == pytest.approx(51.83, rel=1e-3)
+    # 5 magnitudes = factor 100; airmass 2 adds one more extinction
+    assert star_electrons([15.0], p, 30 * u.s).value[0] / expected == pytest.approx(100.0)
+    p2 = PhotometrySettings(airmass=2.0)
+    ratio = star_electrons([20.0], p2, 30 * u.s).value[0] / expected
+    assert ratio == pytest.approx(10 ** (-0.4 * 0.129))
+
+
+def test_sky_per_pixel_scales_with_area_and_has_no_extinction():
+    p = PhotometrySettings()
+    sky = sky_electrons_per_pixel(p, 7.5 * u.mas, 30 * u.s).value
+    star_like = star_electrons([21.61 - 2.5 * np.log10(0.0075**2)], p, 30 * u.s).value[0]
+    assert sky == pytest.approx(star_like * 10 ** (0.4 * 0.129), rel=1e-10)
+    assert sky_electrons_per_pixel(p, 15 * u.mas, 30 * u.s).value == pytest.approx(4 * sky)
+
+
+@pytest.mark.parametrize("skew", [0.0, 0.01])
+@pytest.mark.parametrize("nexp,gain", [(1, 1.0), (8, 1.0), (4, 2.5)])
+def test_sky_only_variance_equals_mean_plus_read_noise(nexp, gain, skew):
+    det = DetectorSettings(nx=300, ny=300, read_noise=3.0, gain=gain)
+    mu = np.full((300, 300), 40.0)
+    img, sat = expose_stack(mu, nexp, det, np.random.default_rng(5), skew_limit=skew)
+    e = img.astype(float) * gain
+    assert e.mean() == pytest.approx(40.0 * nexp, rel=2e-3)
+    assert e.var() == pytest.approx(nexp * (40.0 + 9.0), rel=0.02)
+    assert not sat.any()
+
+
+def test_saturation_level_per_subexposure():
+    det = DetectorSettings(nx=4, ny=1, bits=16, gain=2.0)
+    full = 65535 * 2.0
+    mu = np.array([[0.5 * full, 5 * full, 1e10, 0.0]])
+    img, sat = expose_stack(mu, 3, det, np.random.default_rng(1))
+    assert sat.tolist() == [[False, True, True, False]]
+    assert img[0, 1] == img[0, 2] == pytest.approx(3 * 65535.0)
+    img0, sat0 = expose_stack(mu, 3, det, np.random.default_rng(1), noise=False)
+    assert img0[0].tolist() == pytest.approx([1.5 * 65535, 3 * 65535, 3 * 65535, 0.0])
+
+
+def test_stack_matches_sum_of_individual_subexposures_in_distribution():
+    """Per pixel level (incl. levels where sub-exposures sometimes saturate)."""
+    det = DetectorSettings(nx=3000, ny=5, bits=10, read_noise=3.0)  # saturates at 1023 e-
+    levels = np.array([5.0, 200.0, 1000.0, 1023.0, 1100.0])
+    mu = np.repeat(levels[:, None], 3000, axis=1)
+    nexp = 6
+    rng = np.random.default_rng(11)
+    stack, _ = expose_stack(mu, nexp, det, rng)
+    singles = sum(expose_stack(mu, 1, det, rng)[0].astype(float) for _ in range(nexp))
+    for row in range(len(levels)):
+        a, b = stack[row].astype(float), singles[row]
+        se = np.sqrt((a.var() + b.var()) / a.size)
+        assert abs(a.mean() - b.mean()) < 5 * se + 1e-9
+        assert abs(a.var() - b.var()) < 5 * np.hypot(_var_se(a), _var_se(b))
+
+
+def _var_se(x):
+    """Standard error of the sample variance (from the fourth central moment)."""
+    d = x - x.mean()
+    return np.sqrt(max((d**4).mean() - d.var() ** 2, 0.0) / x.size)
+
+
+def test_bad_detector_settings_rejected():
+    with pytest.raises(ValueError, match="gain"):
+        DetectorSettings(gain=0)
+    with pytest.raises(ValueError, match="nexp"):
+        expose_stack(np.zeros((2, 2)), 0, DetectorSettings(), np.random.default_rng(0))

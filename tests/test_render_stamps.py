@@ -1,0 +1,134 @@
+"""Star renderer: flux, centroid, brute-force reference, knobs and numerical edges."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from render_helpers import brute_force_stamp, make_optics
+
+from mavispm.simulate.render import RenderParams, StarRenderer
+
+SCALE = 7.5  # mas
+
+
+@pytest.fixture(scope="module")
+def airy_optics():
+    return make_optics("airy")  # symmetric nodes
+
+
+@pytest.fixture(scope="module")
+def variable_optics():
+    return make_optics("airy", stretch=0.06)  # PSF elongates with field x
+
+
+@pytest.fixture(scope="module")
+def renderer(airy_optics):
+    return StarRenderer(airy_optics.psf_grid, SCALE, RenderParams())
+
+
+def _centroid(stamp, x0, y0):
+    yy, xx = np.mgrid[0 : stamp.shape[0], 0 : stamp.shape[1]]
+    total = stamp.sum()
+    return (stamp * xx).sum() / total + x0, (stamp * yy).sum() / total + y0
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    fx=st.floats(-0.5, 0.5),
+    fy=st.floats(-0.5, 0.5),
+    x=st.floats(-2.5, 2.5),
+    y=st.floats(-2.5, 2.5),
+)
+def test_centroid_of_symmetric_psf_matches_truth(renderer, airy_optics, fx, fy, x, y):
+    cov = np.array([[[30.0, 0.0], [0.0, 30.0]]])
+    xp, yp = 40.0 + fx, 17.0 + fy
+    stamps, x0, y0 = renderer.render_stamps(32, [xp], [yp], [x], [y], cov, [1.0])
+    cx, cy = _centroid(stamps[0], x0[0], y0[0])
+    assert abs(cx - xp) < 5e-4 and abs(cy - yp) < 5e-4
+    assert abs(stamps[0].sum() - 1.0) < 1e-4
+
+
+@pytest.mark.parametrize(
+    "x,y,xp,yp,cov",
+    [
+        (0.7, -1.3, 20.37, 19.81, [[29.2, 1.5], [1.5, 27.2]]),
+        (-1.9, 1.1, 11.5, 12.02, [[45.0, -8.0], [-8.0, 25.0]]),
+        (0.0, 0.0, 7.0, 9.0, [[0.0, 0.0], [0.0, 0.0]]),  # singular kernel: the bare PSF
+    ],
+)
+def test_matches_brute_force_reference(variable_optics, x, y, xp, yp, cov):
+    r = StarRenderer(variable_optics.psf_grid, SCALE, RenderParams(oversampling=2))
+    cov = np.array(cov)
+    stamps, _, _ = r.render_stamps(32, [xp], [yp], [x], [y], cov[None], [1.0])
+    ref = brute_force_stamp(variable_optics.psf_grid, x, y, cov, xp, yp, SCALE, 32)
+    assert np.abs(stamps[0] - ref).max() <= 1e-3 * ref.max()
+
+
+def test_no_oversampling_is_measurably_worse(variable_optics):
+    """oversampling=1 ignores aliasing: the knob must matter (and 2 must be better)."""
+    cov = np.array([[[0.0, 0.0], [0.0, 0.0]]])
+    errs = []
+    for k in (1, 2):
+        r = StarRenderer(variable_optics.psf_grid, SCALE, RenderParams(oversampling=k))
+        stamps, x0, y0 = r.render_stamps(32, [10.31], [9.77], [0.5], [0.5], cov, [1.0])
+        cx, cy = _centroid(stamps[0], x0[0], y0[0])
+        errs.append(np.hypot(cx - 10.31, cy - 9.77))
+    assert errs[1] < 1e-4
+    assert errs[0] > 3 * errs[1]
+
+
+def test_float32_and_nearest_knobs(airy_optics):
+    cov = np.array([[[25.0, 0.0], [0.0, 25.0]]])
+    args = ([10.2], [10.9], [0.4], [0.4], cov, [1e6])
+    ref, _, _ = StarRenderer(airy_optics.psf_grid, SCALE).render_stamps(24, *args)
+    f32, _, _ = StarRenderer(
+        airy_optics.psf_grid, SCALE, RenderParams(dtype="float32")
+    ).render_stamps(24, *args)
+    assert f32.dtype == np.float32
+    assert np.abs(f32 - ref).max() < 1e-5 * ref.max()
+    near = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(psf_interpolation="nearest"))
+    out, _, _ = near.render_stamps(24, *args)
+    assert abs(out.sum() - 1e6) < 1e-4 * 1e6
+
+
+def test_stamp_sizes_grow_with_flux_and_are_bounded(renderer):
+    flux = np.array([0.0, 1e2, 1e4, 1e6, 1e8, 1e10])
+    sizes = renderer.stamp_sizes(flux, 10.0, np.full(6, 5.0))
+    assert np.all(np.diff(sizes) >= 0)
+    assert sizes[0] >= renderer.params.min_stamp
+    assert sizes[-1] == renderer.max_stamp(5.0) > sizes[1]
+    # the cube (129 mas) plus kernel fits in the largest stamp
+    assert renderer.max_stamp(5.0) * SCALE >= 129 + 10 * 5.0
+
+
+def test_bright_star_wing_below_threshold_at_stamp_edge(renderer):
+    """The light beyond a star's stamp (wrapped inside) is below the threshold."""
+    cov = np.array([[[30.0, 0.0], [0.0, 30.0]]])
+    noise, flux = 10.0, 1e7
+    m = int(renderer.stamp_sizes([flux], noise, [5.5])[0])
+    big = renderer.max_stamp(5.5) * 2
+    stamp = np.zeros((1, big, big))
+    renderer.render(stamp[0], [big / 2], [big / 2], [0.0], [0.0], cov, [flux], [big], noise)
+    c = big // 2
+    inner = stamp[0][c - m // 2 : c + m // 2, c - m // 2 : c + m // 2]
+    outside = stamp[0].copy()
+    outside[c - m // 2 : c + m // 2, c - m // 2 : c + m // 2] = 0
+    assert outside.max() < renderer.params.stamp_threshold * noise
+    assert inner.sum() > flux * 0.99
+
+
+def test_render_clips_stamps_at_edges_and_skips_outside(renderer):
+    """A small frame equals the matching crop of a larger frame (edges, corners)."""
+    cov = np.tile(np.diag([30.0, 30.0]), (5, 1, 1))
+    xp = np.array([0.0, 5.3, -40.0, 20.0, 31.4])
+    yp = np.array([0.0, 30.0, 5.0, 20.0, -3.2])
+    flux = np.array([1.0, 2.0, 3.0, 0.0, 5.0])
+    sizes = np.full(5, 24)
+    small = np.zeros((32, 32))
+    rendered = renderer.render(small, xp, yp, xp * 0, yp * 0, cov, flux, sizes)
+    assert rendered.tolist() == [True, True, False, True, True]
+    big = np.zeros((160, 160))
+    renderer.render(big, xp + 64, yp + 64, xp * 0, yp * 0, cov, flux, sizes)
+    assert np.allclose(small, big[64:96, 64:96], rtol=0, atol=1e-6)
+    assert np.isfinite(small).all()
+    assert abs(big.sum() - 11.0) < 1e-5
