@@ -433,27 +433,54 @@ def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: i
     )
 
 
+#: Dynamics results shown first in the model-comparison table (when present).
+KEY_DYNAMICS_METRICS = (
+    "ln_bayes_factor",
+    "ln_bayes_factor_err",
+    "delta_ln_likelihood",
+    "delta_aic",
+    "delta_bic",
+    "bh_mass_median",
+    "bh_mass_lo68",
+    "bh_mass_hi68",
+    "bh_mass_upper95",
+    "n_stars",
+    "tau_max_imbh",
+    "steps_imbh",
+)
+
+
 def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
-    """Recipe: the dynamics stage's model-comparison numbers per study and sweep point."""
+    """Recipe: the dynamics stage's model-comparison numbers per study and sweep point.
+
+    One column per fit, one row per result (the key results of
+    :data:`KEY_DYNAMICS_METRICS`); every scalar result goes to ``model_comparison.csv``.
+    """
     nodes = _nodes(summary, "dynamics")
     if not nodes:
         return "No dynamics fits in this run.\n"
     names: list[str] = []
     for node in nodes:
-        for k in node.get("metrics", {}):
-            if k not in names and not k.startswith("n_"):
-                names.append(k)
-    rows = []
-    for node in nodes:
-        m = node.get("metrics", {})
-        rows.append(
-            [_variant_label(node), node["labels"].get("scene", "")]
-            + [f"{m[k]:.4g}" if isinstance(m.get(k), (int, float)) else "-" for k in names]
-        )
-    pngs = []
-    for node in nodes:
-        pngs += [v for k, v in node["products"].items() if k.startswith("plot_")]
-    text = _md_table(["variant", "scene", *names], rows)
+        names += [k for k in node.get("metrics", {}) if k not in names]
+    key = [k for k in KEY_DYNAMICS_METRICS if k in names]
+    columns = [
+        " ".join(filter(None, (n["labels"].get(k) for k in ("study", "point", "scene")))) or "fit"
+        for n in nodes
+    ]
+
+    def cell(node, name):
+        value = node.get("metrics", {}).get(name)
+        return f"{value:.4g}" if isinstance(value, (int, float)) else "-"
+
+    rows = [[name] + [cell(n, name) for n in nodes] for name in key]
+    csv_path = _write_csv(
+        outdir / "model_comparison.csv",
+        ["result", *columns],
+        [[name] + [n.get("metrics", {}).get(name, "") for n in nodes] for name in names],
+    )
+    pngs = [v for n in nodes for k, v in n["products"].items() if k.startswith("plot_")]
+    text = _md_table(["result", *columns], rows)
+    text += f"\nAll results: [{csv_path.name}]({_rel(csv_path, rundir)})\n"
     text += "".join(f"\n![{Path(p).stem}]({p})\n" for p in pngs)
     return text
 
