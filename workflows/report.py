@@ -99,7 +99,7 @@ def clipped_dispersion(
         if v.size < 2:
             break
         mean, std = v.mean(), v.std()
-        kept = v[np.abs(v - mean) <= sigma * std]
+        kept = v[(v >= mean - sigma * std) & (v <= mean + sigma * std)]
         if kept.size == v.size:
             break
         v = kept
