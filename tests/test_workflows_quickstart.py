@@ -98,3 +98,28 @@ def test_quickstart_end_to_end(tmp_path):
 
     again = run_workflow(wf, workdir=tmp_path, progress=False)
     assert again.ran == []
+
+
+#: Attributes that record input file paths (different work directories).
+PATH_ATTRS = ("frames", "inputs", "config")
+
+
+@pytest.mark.slow
+def test_quickstart_products_identical_on_dask_and_threads(tmp_path):
+    """Real stages: a LocalCluster on loopback gives the in-process products bit for bit."""
+    distributed = pytest.importorskip("distributed")
+    if not _stages_available():
+        pytest.skip("not every stage module is in this build")
+    from workflows_helpers import fingerprints
+
+    wf = load_workflow("quickstart", overrides=FAST)
+    local = run_workflow(wf, workdir=tmp_path / "threads", scheduler="threads", progress=False)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        remote = run_workflow(
+            wf, workdir=tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False
+        )
+    a = fingerprints(local.rundir, PATH_ATTRS)
+    assert len(a) >= 8
+    assert a == fingerprints(remote.rundir, PATH_ATTRS)

@@ -462,12 +462,12 @@ def read_log(path: Path) -> list[str]:
     return Path(path).read_text().splitlines() if Path(path).exists() else []
 
 
-def fingerprints(rundir: Path) -> dict[str, str]:
+def fingerprints(rundir: Path, ignore: tuple[str, ...] = ()) -> dict[str, str]:
     """Content fingerprint of every HDF5 product in a run directory."""
     from mavispm.workflows.cache import product_fingerprint
 
     return {
-        str(p.relative_to(rundir)): product_fingerprint(p)
+        str(p.relative_to(rundir)): product_fingerprint(p, ignore)
         for p in sorted((Path(rundir) / "products").rglob("*.h5"))
     }
 

@@ -193,11 +193,12 @@ class Store:
         shutil.rmtree(final, ignore_errors=True)
 
 
-def product_fingerprint(path: str | os.PathLike) -> str:
+def product_fingerprint(path: str | os.PathLike, ignore: tuple[str, ...] = ()) -> str:
     """Hash of a product's *content*, ignoring its creation time stamp.
 
     For HDF5 products every dataset (name, dtype, shape, bytes) and every
-    attribute except ``created`` is hashed; for other files the bytes.
+    attribute except ``created`` (and the names in ``ignore``, for example
+    attributes recording input file paths) is hashed; for other files the bytes.
     Two products with the same fingerprint hold bitwise identical data.
     """
     path = Path(path)
@@ -209,7 +210,7 @@ def product_fingerprint(path: str | os.PathLike) -> str:
 
     def add_attrs(obj):
         for k in sorted(obj.attrs):
-            if k == "created":
+            if k == "created" or k in ignore:
                 continue
             h.update(k.encode())
             h.update(repr(np.asarray(obj.attrs[k]).tolist()).encode())
