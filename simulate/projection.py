@@ -1,0 +1,91 @@
+"""Projection of cluster-frame stars to the field frame, proper motions and epochs.
+
+Cluster frame: ``x, y`` in the sky plane and ``z`` along the line of sight
+(away from the observer) [pc], velocities [km/s]. Field frame
+(``docs/formats.md``): arcsec from the field centre, proper motions in mas/yr
+along the same axes. The field frame is the sky frame shifted by the field
+offset and rotated by ``rotation`` (counter-clockwise, degrees):
+``(x_f, y_f) = R(-rotation) (x_sky - offset)``; proper motions rotate alike.
+
+Positions at an epoch ``t`` are propagated linearly:
+``x(t) = x(t_ref) + pm_x (t - t_ref)``. Over a 10-year baseline a star moves
+~10 mas, negligible against its orbital radius for all but the innermost
+~1e-4 pc, so orbital curvature is ignored.
+"""
+
+from __future__ import annotations
+
+import astropy.units as u
+import numpy as np
+
+#: km/s per (mas/yr * kpc): v = K_PM * mu * d
+K_PM = float(
+    (1 * u.mas / u.yr * u.kpc).to_value(u.km / u.s, equivalencies=u.dimensionless_angles())
+)
+#: arcsec per (pc / kpc)
+ARCSEC_PER_PC_KPC = float(
+    (1 * u.pc / u.kpc).to_value(u.arcsec, equivalencies=u.dimensionless_angles())
+)
+
+
+def pc_to_arcsec(length_pc, distance_kpc: float):
+    """Angle [arcsec] subtended by ``length_pc`` [pc] at ``distance_kpc`` (small angles)."""
+    return np.asarray(length_pc) * ARCSEC_PER_PC_KPC / distance_kpc
+
+
+def arcsec_to_pc(angle_arcsec, distance_kpc: float):
+    """Length [pc] at ``distance_kpc`` subtending ``angle_arcsec``."""
+    return np.asarray(angle_arcsec) * distance_kpc / ARCSEC_PER_PC_KPC
+
+
+def velocity_to_pm(v_kms, distance_kpc: float):
+    """Proper motion [mas/yr] of a transverse velocity [km/s] at ``distance_kpc``."""
+    return np.asarray(v_kms) / (K_PM * distance_kpc)
+
+
+def pm_to_velocity(pm_masyr, distance_kpc: float):
+    """Transverse velocity [km/s] of a proper motion [mas/yr] at ``distance_kpc``."""
+    return np.asarray(pm_masyr) * K_PM * distance_kpc
+
+
+def rotate(x, y, angle_deg: float):
+    """Rotate vectors by ``angle_deg`` counter-clockwise."""
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    return c * x - s * y, s * x + c * y
+
+
+def sky_to_field(x, y, pm_x, pm_y, offset=(0.0, 0.0), rotation: float = 0.0, pm_sys=(0.0, 0.0)):
+    """Sky-plane positions [arcsec] and PMs [mas/yr] to the field frame.
+
+    Parameters
+    ----------
+    x, y : ndarray
+        Sky-plane offsets from the cluster centre [arcsec].
+    pm_x, pm_y : ndarray
+        Internal proper motions [mas/yr].
+    offset : (float, float)
+        Field centre relative to the cluster centre, sky frame [arcsec].
+    rotation : float
+        Field rotation [deg], counter-clockwise from the sky axes.
+    pm_sys : (float, float)
+        Systemic proper motion added, field frame [mas/yr].
+
+    Returns
+    -------
+    tuple of ndarray
+        ``x_f, y_f`` [arcsec], ``pm_x_f, pm_y_f`` [mas/yr].
+    """
+    xf, yf = rotate(np.asarray(x) - offset[0], np.asarray(y) - offset[1], -rotation)
+    pxf, pyf = rotate(np.asarray(pm_x), np.asarray(pm_y), -rotation)
+    return xf, yf, pxf + pm_sys[0], pyf + pm_sys[1]
+
+
+def propagate(x, y, pm_x, pm_y, epoch: float, reference_epoch: float = 0.0):
+    """Positions [arcsec] at ``epoch`` [yr] from positions at ``reference_epoch``."""
+    dt = (epoch - reference_epoch) / 1000.0  # mas -> arcsec
+    return np.asarray(x) + np.asarray(pm_x) * dt, np.asarray(y) + np.asarray(pm_y) * dt
+
+
+def in_square(x, y, half_size: float):
+    """Mask of points inside the square ``|x|, |y| <= half_size``."""
+    return (np.abs(x) <= half_size) & (np.abs(y) <= half_size)
