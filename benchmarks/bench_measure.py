@@ -126,7 +126,7 @@ def main(argv=None):
     noise = DET.sky + RN2
     box = frame["flux"]  # selection only; the builder measures fluxes itself
     for variation, grid in (("constant", 1), ("grid", 3), ("grid", 5), ("polynomial", 3)):
-        opts = EPSFOptions(variation=variation, grid=grid, size=21, stars_per_node=40, min_snr=100)
+        opts = EPSFOptions(variation=variation, grid=grid, size=21, stars_per_node=150, min_snr=100)
         (epsf, used), t_build = timed(
             build_field_epsf,
             frame["image"] - DET.sky,

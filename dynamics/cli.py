@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -260,7 +261,7 @@ def _handler(args) -> int:
     if args.fast:
         settings = settings.fast()
     if args.no_evidence:
-        settings = settings.__class__(**{**to_mapping(settings), "evidence": False})
+        settings = dataclasses.replace(settings, evidence=False)
     out = run_stage(
         args.propermotions,
         settings,

@@ -86,9 +86,16 @@ def profile_plot(profile, fits, truths, path, seed: int = 0):
     return path
 
 
-def corner_plot(fit, path, bins: int = 30):
-    """A small corner plot (histograms and 2-D density contours) of one model's chain."""
+def corner_plot(fit, path, bins: int | None = None):
+    """A small corner plot (histograms and smoothed 2-D 68/95% contours) of one model's chain.
+
+    ``bins`` defaults to ``sqrt(n) / 2`` clipped to [10, 40] for ``n`` samples.
+    """
+    from scipy.ndimage import gaussian_filter
+
     x = fit.chain.samples
+    if bins is None:
+        bins = int(np.clip(np.sqrt(len(x)) / 2, 10, 40))
     names = fit.chain.names
     labels = [p.label or p.name for p in fit.space.params]
     n = len(names)
@@ -108,6 +115,7 @@ def corner_plot(fit, path, bins: int = 30):
                 ax.set_title(f"{q[1]:.3g} (+{q[2] - q[1]:.2g} -{q[1] - q[0]:.2g})", fontsize=8)
             else:
                 h, xe, ye = np.histogram2d(x[:, j], x[:, i], bins=bins)
+                h = gaussian_filter(h, 1.0)
                 hs = np.sort(h.ravel())[::-1]
                 cum = np.cumsum(hs) / max(hs.sum(), 1)
                 levels = sorted(

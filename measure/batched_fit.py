@@ -303,7 +303,7 @@ def fit_stars(
     sky = np.full(n, float(sky0))
     flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
-    model = np.zeros(ny * nx)
+    model = np.zeros(ny * nx, dtype=np.float32)  # sum of all star models (float32: memory)
     colour = colour_stars(x, y, 2 * r + 1.0)
     groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
     pairs = (

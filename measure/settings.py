@@ -76,7 +76,7 @@ class MeasureSettings:
     detection_threshold : float
         Detection threshold [background sigma] in blind mode.
     detection_fwhm : float [pix]
-        Finder FWHM; 0 measures it from the ePSF.
+        Finder FWHM (blind mode); 0 uses 2.5 pixels.
     progress : bool
         Show progress bars.
     """
@@ -89,7 +89,7 @@ class MeasureSettings:
     epsf_size: int = 25
     epsf_iterations: int = 10
     epsf_builder: Literal["fast", "photutils"] = "fast"
-    psf_stars_per_node: int = 40
+    psf_stars_per_node: int = 150
     psf_star_isolation: float = unit_field(12.0, "pix")
     psf_star_min_snr: float = 100.0
     neighbour_passes: int = 1

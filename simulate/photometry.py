@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass
 
 import astropy.units as u
+import numpy as np
 
 from mavispm.core.config import unit_field
 
@@ -111,8 +112,6 @@ def star_electrons(mag, settings: PhotometrySettings, exposure: u.Quantity) -> u
     Quantity
         Electrons (float64), atmospheric extinction ``k X`` applied.
     """
-    import numpy as np
-
     m = np.asarray(u.Quantity(mag, u.mag).value if hasattr(mag, "unit") else mag, dtype=float)
     extinct = settings.extinction * settings.airmass
     rate = electron_rate_zero_mag(settings).to_value(u.electron / u.s)

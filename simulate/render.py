@@ -29,12 +29,15 @@ edge is below ``stamp_threshold`` times the per-pixel noise.
 from __future__ import annotations
 
 import os
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 import scipy.sparse
+
+from mavispm.simulate.stamp_kernels import kernel_and_shift
 
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
@@ -402,14 +405,14 @@ class StarRenderer:
             (w.ravel().astype(real), node.ravel(), indptr), shape=(nst, n_nodes)
         )
         spec = np.asarray(mix @ plan.transforms[:, sel].astype(cplx))  # (S, nsel): interpolated PSF
-        cov3 = cov.reshape(nst, 4)[:, [0, 1, 3]]
-        basis = np.stack([u * u, 2.0 * u * v, v * v])
-        quad = (cov3 * (-2.0 * np.pi**2)).astype(real) @ basis.astype(real)
-        spec *= np.exp(quad, out=quad)
+        # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
+        coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
         phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
         phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
-        spec *= phx[:, plan.col[sel]]
-        spec *= phy[:, plan.row[sel]]
+        kernel_and_shift(
+            spec, coef.astype(real), u.astype(real), v.astype(real), phx, phy,
+            plan.col[sel], plan.row[sel],
+        )  # fmt: skip
         fold = plan.fold[sel].astype(real)
         folded = np.asarray((fold.T @ spec.T).T).reshape(nst, m, m // 2 + 1)
         stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
@@ -499,14 +502,27 @@ class StarRenderer:
             self.plan(m)  # build plans once, before the threads share them
         threads = self.params.threads or os.cpu_count() or 1
         with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
-            # stamps are added in job order: the image does not depend on the threads
-            for (_, sel), (stamps, x0, y0) in zip(jobs, pool.map(work, jobs)):
-                _add_stamps(image, stamps, x0, y0)
-                if bar is not None:
-                    bar.update(len(sel))
+            # at most 2 batches per thread in flight (bounded memory); stamps are added
+            # in job order, so the image does not depend on the number of threads
+            pending = deque()
+            for job in jobs:
+                pending.append((job, pool.submit(work, job)))
+                if len(pending) >= 2 * max(threads, 1):
+                    self._add_done(image, pending.popleft(), bar)
+            while pending:
+                self._add_done(image, pending.popleft(), bar)
         if bar is not None:
             bar.close()
         return overlaps
+
+    @staticmethod
+    def _add_done(image, item, bar) -> None:
+        """Wait for one batch of stamps and add it to the image."""
+        (_, sel), future = item
+        stamps, x0, y0 = future.result()
+        _add_stamps(image, stamps, x0, y0)
+        if bar is not None:
+            bar.update(len(sel))
 
     def _batch_accuracy(self, flux_max: float, noise_sigma) -> tuple[float, str]:
         """Spectrum floor and precision keeping a batch's errors below the threshold."""
