@@ -29,7 +29,8 @@ def register(subparsers) -> None:
         "--scheduler",
         default=None,
         metavar="ADDRESS",
-        help="where tasks run: threads (default), processes, serial, or the address of a running "
+        help="where tasks run (default: the workflow's [workflow] executor, threads unless set): "
+        "threads, processes, serial, or the address of a running "
         "dask.distributed scheduler such as tcp://host:8786",
     )
     run.add_argument(
