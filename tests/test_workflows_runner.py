@@ -32,7 +32,7 @@ def _run(wf, workdir, **kw):
     return run_workflow(wf, workdir=workdir, registry=stand_in_registry(), progress=False, **kw)
 
 
-def test_second_run_does_no_stage_work(tmp_path, log):
+def test_second_run_does_no_stage_work_and_force_redoes_all(tmp_path, log):
     wf = write_workflow(tmp_path)
     first = _run(wf, tmp_path / "w", scheduler="threads")
     assert set(first.ran) == ALL_NODES
@@ -44,6 +44,10 @@ def test_second_run_does_no_stage_work(tmp_path, log):
     assert len(read_log(log)) == len(ALL_NODES)  # no stage was called
     assert fingerprints(second.rundir) == before
     assert (second.rundir / "summary.json").is_file()
+    forced = _run(wf, tmp_path / "w", force=True)  # --force: everything again, identically
+    assert set(forced.ran) == ALL_NODES
+    assert len(read_log(log)) == 2 * len(ALL_NODES)
+    assert fingerprints(forced.rundir) == before
 
 
 #: Successive one-setting edits and the nodes each must re-run (and only those).
@@ -123,15 +127,6 @@ def test_two_concurrent_runs_share_the_work(tmp_path, log):
     assert len(calls) == len(ALL_NODES)  # every node computed once in total
     clean = _run(wf, tmp_path / "clean")
     assert fingerprints(_run(wf, tmp_path / "w").rundir) == fingerprints(clean.rundir)
-
-
-def test_force_recomputes_everything_identically(tmp_path, log):
-    wf = write_workflow(tmp_path)
-    first = _run(wf, tmp_path / "w")
-    prints = fingerprints(first.rundir)
-    forced = _run(wf, tmp_path / "w", force=True)
-    assert set(forced.ran) == ALL_NODES
-    assert fingerprints(forced.rundir) == prints
 
 
 def test_studies_share_identical_nodes_and_random_streams(tmp_path, log):
