@@ -214,7 +214,11 @@ def run_stage(
         "bh_mass_lo95": bh["lo95"] * u.Msun,
         "bh_mass_hi95": bh["hi95"] * u.Msun,
         "bh_mass_upper95": bh["upper95"] * u.Msun,
-        "bh_detected": bool(bh["detected"]),
+        # with evidence: detected when ln B > 1 (positive evidence); else the posterior test
+        "bh_detected": bool(
+            comp.ln_bayes_factor > 1.0 if np.isfinite(comp.ln_bayes_factor) else bh["detected"]
+        ),
+        "bh_detected_posterior": bool(bh["detected"]),
         "evidence_computed": bool(settings.evidence),
         "propermotions": str(propermotions),
     }

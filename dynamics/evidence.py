@@ -115,8 +115,9 @@ def savage_dickey(bh_samples, prior_max: float, min_samples: int = 50):
     n0 = int(np.sum(x <= h)) if h > 0 else 0
     if n0 < min_samples:
         return np.nan, (
-            f"not valid: only {n0} posterior samples near M_bh = 0 (< {min_samples}); the "
-            "posterior has no support at zero (strong detection), use the nested-sampling ln B"
+            f"not valid: only {n0} posterior samples near M_bh = 0 (< {min_samples}); too little "
+            "posterior support at zero for a density estimate (as for a strong detection); "
+            "use the nested-sampling ln B"
         )
     post0 = n0 / x.size / h
     prior0 = 1.0 / prior_max

@@ -69,6 +69,9 @@ class EPSFOptions:
     neighbour_mask : float
         Pixels within this distance [pixel] of another star, and closer to it
         than to the PSF star, are not used (fast builder).
+    fit_radius : int
+        Stamp half-width [pixel] of the star refits while building; use the final
+        fit's radius so that the ePSF centre is anchored in the same way.
     """
 
     variation: str = "grid"
@@ -84,6 +87,7 @@ class EPSFOptions:
     min_snr: float = 100.0
     builder: str = "fast"
     neighbour_mask: float = 4.0
+    fit_radius: int = 5
 
 
 def select_psf_stars(
@@ -232,10 +236,14 @@ def build_epsf_fast(
 ) -> np.ndarray:
     """One ePSF by iterative residual stacking (Anderson & King 2000 style), vectorised.
 
-    Each iteration bins the normalised residuals ``data / F - ePSF(dx, dy)`` of
-    all PSF-star pixels onto the oversampled grid, smooths the binned sums and
-    counts with photutils' quartic kernel (normalised convolution, so sparse
-    bins are filled), adds the mean residual to the ePSF, renormalises and
+    Each iteration bins the normalised residuals ``(data - b) / F - ePSF(dx, dy)``
+    of all PSF-star pixels onto the oversampled grid (``b`` the star's local
+    background: the median of the stamp border, then the fitted local sky; the
+    neighbours' wings and halos otherwise leak into the ePSF as an off-centre
+    pedestal that shifts every fitted position), weighted by their inverse
+    variance ``F^2 / (F ePSF + b + noise)`` (an unweighted mean lets the noisy
+    wings of faint PSF stars dominate), smooths the binned sums and weights with
+    a binomial kernel (normalised convolution, so sparse bins are filled), adds the mean residual to the ePSF, renormalises and
     recentres it (core centroid at the array centre), then refits the stars'
     positions and fluxes with the batched fitter. Pixels deviating by more than
     4 sigma from the model (cosmic rays, residual neighbours) are rejected.
@@ -283,34 +291,48 @@ def build_epsf_fast(
         valid &= ~_near_neighbour(
             x, y, rows, cols, np.asarray(others, float), options.neighbour_mask
         )
-    flux = np.sum(np.where(valid, stamps, 0.0), axis=(1, 2))
+    # local background (neighbours' wings and halos): the median of the stamp's border
+    ring = np.maximum(np.abs(off)[:, None], np.abs(off)[None, :]) >= half - 1
+    border = np.where(valid & ring, stamps, np.nan)
+    with np.errstate(all="ignore"):
+        sky = np.nan_to_num(np.nanmedian(border.reshape(len(x), -1), axis=1))
+    flux = np.sum(np.where(valid, stamps - sky[:, None, None], 0.0), axis=(1, 2))
     keep = flux > 0
     x0, y0 = x.copy(), y.copy()
     epsf = np.zeros((n_os, n_os))
-    fit_opt = FitOptions(radius=min(half, 6), iterations=4, max_shift=1.0, min_snr=0.0)
+    fit_opt = FitOptions(
+        radius=min(half, options.fit_radius), iterations=4, max_shift=1.0, min_snr=0.0
+    )
     for it in range(int(options.maxiters)):
         u = (cols[:, None, :] - x[:, None, None]) * os_ + c
         v = (rows[:, :, None] - y[:, None, None]) * os_ + c
         iu, iv = np.rint(u).astype(int), np.rint(v).astype(int)
         on = valid & keep[:, None, None] & (iu >= 0) & (iu < n_os) & (iv >= 0) & (iv < n_os)
-        norm = stamps / np.where(keep, flux, 1.0)[:, None, None]
+        f = np.where(keep, flux, 1.0)[:, None, None]
+        norm = (stamps - sky[:, None, None]) / f
         if it == 0:
             model = np.zeros_like(norm)
+            var = np.abs(stamps) + noise_floor
         else:
             geom = StampGeometry(cx, cy, half)
             model = constant_epsf(epsf, os_).evaluate(x, y, geom, derivatives=False)
-            sigma = np.sqrt(np.abs(stamps) + noise_floor) / np.where(keep, flux, 1.0)[:, None, None]
-            on &= np.abs(norm - model) < 4 * sigma
+            var = np.abs(model * f + sky[:, None, None]) + noise_floor
+            on &= np.abs(norm - model) < 4 * np.sqrt(var) / f
         resid = norm - model
+        # inverse-variance weights of the normalised residuals (bright stars count most)
+        weight = (f**2 / var)[on]
         node = (iv * n_os + iu)[on]
-        sums = np.bincount(node, weights=resid[on], minlength=n_os * n_os).reshape(n_os, n_os)
-        counts = np.bincount(node, minlength=n_os * n_os).reshape(n_os, n_os).astype(float)
+        sums = np.bincount(node, weights=resid[on] * weight, minlength=n_os * n_os)
+        counts = np.bincount(node, weights=weight, minlength=n_os * n_os)
+        scale = counts.max() if counts.size and counts.max() > 0 else 1.0
+        sums = sums.reshape(n_os, n_os) / scale
+        counts = counts.reshape(n_os, n_os) / scale
         # the 3 x 3 kernel converges faster on isolated stars but follows the noise
         # of perturbed positions in crowded fields; 5 x 5 measured better there
         kernel = _smoothing_kernel(wide=True)
         s_sum = ndimage.convolve(sums, kernel, mode="constant")
         s_cnt = ndimage.convolve(counts, kernel, mode="constant")
-        delta = np.where(s_cnt > 1e-3, s_sum / np.maximum(s_cnt, 1e-3), 0.0)
+        delta = np.where(s_cnt > 1e-9, s_sum / np.maximum(s_cnt, 1e-9), 0.0)
         epsf = epsf + delta
         if len(x) < _MIN_STARS_REFIT:
             epsf = _recentre(epsf, os_)
@@ -335,6 +357,7 @@ def build_epsf_fast(
                 x = np.where(good, _remove_phase_error(x0, fit.x, good), x)
                 y = np.where(good, _remove_phase_error(y0, fit.y, good), y)
             flux = np.where(good, fit.flux, flux)
+            sky = np.where(good & np.isfinite(fit.sky), fit.sky, sky)
             keep &= good & (flux > 0)
     return epsf
 

@@ -259,6 +259,7 @@ def epsf_options(settings: MeasureSettings) -> EPSFOptions:
         stars_per_node=settings.psf_stars_per_node,
         isolation=settings.psf_star_isolation,
         min_snr=settings.psf_star_min_snr,
+        fit_radius=settings.stamp_radius,
     )
 
 

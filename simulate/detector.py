@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.optimize
 
 from mavispm.core.config import unit_field
 
@@ -133,8 +134,7 @@ def expose_stack(
     total = np.empty_like(flat_mu)
     starts = range(0, flat_mu.size, NOISE_CHUNK)
     chunk_rngs = rng.spawn(len(starts))
-    lo = skew_limit * var_rn**1.5 if skew_limit > 0 else 0.0
-    hi = skew_limit**-2 if skew_limit > 0 else np.inf
+    lo, hi = _skewed_window(var_rn, skew_limit)
     risky_floor = full - SATURATION_SAFETY_SIGMA * np.sqrt(full + rn**2)
 
     def chunk(args):
@@ -154,11 +154,8 @@ def expose_stack(
     cand = np.concatenate([c for c, _ in results]) if results else np.zeros(0, int)
     risky_c = np.concatenate([r for _, r in results]) if results else np.zeros(0, int)
     # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches the
-    # limit; since var >= max(lam, var_rn), only lam in [limit var_rn**1.5, limit**-2]
+    # limit: the window [lo, hi] of lam where it does (see _skewed_window)
     lam_c = flat_mu[cand].astype(np.float64) * nexp
-    if skew_limit > 0:
-        keep = lam_c >= skew_limit * (lam_c + var_rn) ** 1.5
-        cand, lam_c = cand[keep], lam_c[keep]
     total[cand] = rng.poisson(lam_c) + rng.normal(0.0, np.sqrt(var_rn), lam_c.size)
     # pixels that can saturate in a sub-exposure: drawn and clipped one by one
     saturated = np.zeros(flat_mu.shape, dtype=bool)
@@ -172,6 +169,29 @@ def expose_stack(
         total[risky] = np.minimum(subs, full).sum(axis=0)
     total *= np.float32(1.0 / settings.gain)
     return total.reshape(mu.shape), saturated.reshape(mu.shape)
+
+
+def _skewed_window(var_rn: float, skew_limit: float) -> tuple[float, float]:
+    """Range of the stack mean ``lam`` where the skewness of Poisson(lam) + N(0, var_rn) is large.
+
+    The skewness ``lam / (lam + var_rn)**1.5`` rises from 0, peaks at
+    ``lam = 2 var_rn`` and falls as ``lam**-0.5``; the window holds the ``lam`` where
+    it is at least ``skew_limit`` (empty: ``lo > hi``). ``skew_limit = 0``: every ``lam``.
+    """
+    if skew_limit <= 0:
+        return 0.0, np.inf
+
+    def excess(lam):
+        return lam / (lam + var_rn) ** 1.5 - skew_limit
+
+    top = 2.0 * var_rn
+    if var_rn <= 0:
+        return 0.0, skew_limit**-2  # pure Poisson: skewness lam**-0.5
+    if excess(top) < 0:
+        return 1.0, 0.0
+    lo = scipy.optimize.brentq(excess, 0.0, top, xtol=1e-12, rtol=1e-12)
+    hi = scipy.optimize.brentq(excess, top, 2.0 * skew_limit**-2 + top, xtol=1e-9, rtol=1e-12)
+    return lo, hi
 
 
 def _map_threads(fn, items, threads: int) -> list:

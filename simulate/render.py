@@ -35,9 +35,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.sparse
+import scipy.fft
 
-from mavispm.simulate.stamp_kernels import kernel_and_shift
+from mavispm.simulate.stamp_kernels import add_stamps, mix_kernel_fold
 
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
@@ -147,8 +147,9 @@ class StampPlan:
         Node transforms times the pixel transfer function at the retained samples.
     peak : ndarray (nsup,)
         Largest node transfer-function modulus at each retained sample (relative to 1).
-    fold : scipy.sparse.csr_matrix (nsup, m * (m//2+1))
-        Sums aliases onto the stamp's rfft2 frequencies.
+    target : ndarray (nsup,) int
+        Index of each sample's alias among the stamp's flattened rfft2
+        frequencies ``(m, m//2+1)``: folding sums the samples onto it.
     """
 
     m: int
@@ -160,7 +161,7 @@ class StampPlan:
     fy: np.ndarray
     transforms: np.ndarray
     peak: np.ndarray
-    fold: scipy.sparse.csr_matrix
+    target: np.ndarray
 
 
 def _stamp_size_at_least(n: int, floor: int) -> int:
@@ -285,8 +286,10 @@ class StarRenderer:
     def plan(self, m: int) -> StampPlan:
         """The cached :class:`StampPlan` of stamp side ``m`` (node transforms etc.).
 
-        The node transforms are a direct (matrix) DFT of each PSF node at the
-        stamp's folding frequencies, exact for any PSF sampling; only samples where
+        The node transforms are the exact transforms of each PSF node at the
+        stamp's folding frequencies: FFTs of the node wrapped onto the stamp period
+        when that period is a whole number of PSF pixels (7.5 mas / 1.875 mas), a
+        direct (matrix) DFT for any other sampling; only samples where
         some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
         kept (the optical transfer function vanishes beyond D/lambda).
         """
@@ -298,17 +301,12 @@ class StarRenderer:
         k = self.params.oversampling
         s = self.pixel_scale
         fy, fx = _folding_frequencies(m, k)
-        n = self._cube.shape[-1]
-        nodes = self._cube.shape[0]
-        offsets = (np.arange(n) - (n - 1) / 2) * self.psf_pixel_scale  # mas
         df = 1.0 / (m * s)  # cycles/mas per integer frequency
-        arg_x = -2.0 * np.pi * np.outer(offsets, fx * df)  # (n, nfx)
-        # stage 1 over PSF columns: two real GEMMs for all nodes at once
-        flat = self._cube.reshape(nodes * n, n)
-        half = (flat @ np.cos(arg_x)) + 1j * (flat @ np.sin(arg_x))  # (nodes*n, nfx)
-        half = half.reshape(nodes, n, len(fx))
-        ey = np.exp(-2j * np.pi * np.outer(fy * df, offsets))  # (nfy, n)
-        full = np.matmul(ey[None], half)  # (nodes, nfy, nfx)
+        period = m * s / self.psf_pixel_scale  # stamp period in PSF pixels
+        if abs(period - round(period)) < 1e-9 * period:
+            full = _node_transforms_fft(self._cube, int(round(period)), fy, fx)
+        else:
+            full = _node_transforms_dft(self._cube, self.psf_pixel_scale * df, fy, fx)
         full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
         peak = np.abs(full).max(axis=0)
         peak /= peak.max()
@@ -317,10 +315,6 @@ class StarRenderer:
         row, col = np.nonzero(keep)
         mh = m // 2 + 1
         target = (row % m) * mh + (col % mh)
-        fold = scipy.sparse.csr_matrix(
-            (np.ones(len(row)), (np.arange(len(row)), target)),
-            shape=(len(row), m * mh),
-        )
         return StampPlan(
             m=m,
             u=fx[col] * df,
@@ -331,7 +325,7 @@ class StarRenderer:
             fy=fy,
             transforms=np.ascontiguousarray(full[:, row, col]),
             peak=peak[row, col],
-            fold=fold,
+            target=target.astype(np.int64),
         )
 
     def _node_weights(self, x, y):
@@ -399,22 +393,18 @@ class StarRenderer:
         sel = np.flatnonzero(damp > floor)
         u, v = plan.u[sel], plan.v[sel]
         node, w = self._node_weights(x_field, y_field)
-        n_nodes = plan.transforms.shape[0]
-        indptr = np.arange(0, node.size + 1, node.shape[1])
-        mix = scipy.sparse.csr_matrix(
-            (w.ravel().astype(real), node.ravel(), indptr), shape=(nst, n_nodes)
-        )
-        spec = np.asarray(mix @ plan.transforms[:, sel].astype(cplx))  # (S, nsel): interpolated PSF
         # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
         coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
         phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
         phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
-        kernel_and_shift(
-            spec, coef.astype(real), u.astype(real), v.astype(real), phx, phy,
-            plan.col[sel], plan.row[sel],
+        folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
+        mix_kernel_fold(
+            np.ascontiguousarray(plan.transforms[:, sel], dtype=cplx), node,
+            np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
+            u.astype(real), v.astype(real), phx, phy, plan.col[sel], plan.row[sel],
+            plan.target[sel], folded,
         )  # fmt: skip
-        fold = plan.fold[sel].astype(real)
-        folded = np.asarray((fold.T @ spec.T).T).reshape(nst, m, m // 2 + 1)
+        folded = folded.reshape(nst, m, m // 2 + 1)
         stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
         stamps *= np.asarray(flux, dtype=np.float64)[:, None, None].astype(stamps.dtype)
         return stamps.astype(real, copy=False), ixc - m // 2, iyc - m // 2
@@ -481,7 +471,10 @@ class StarRenderer:
         for m in np.unique(sizes[todo]):
             idx = np.flatnonzero(todo & (sizes == m))
             idx = idx[np.argsort(flux[idx], kind="stable")]
-            jobs += [(int(m), idx[a : a + batch]) for a in range(0, len(idx), batch)]
+            for a in range(0, len(idx), batch):
+                sel = idx[a : a + batch]  # similar fluxes (one floor/precision per batch),
+                # added in row order: neighbouring stamps share cached image rows
+                jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))]))
 
         def work(job):
             m, sel = job
@@ -520,7 +513,7 @@ class StarRenderer:
         """Wait for one batch of stamps and add it to the image."""
         (_, sel), future = item
         stamps, x0, y0 = future.result()
-        _add_stamps(image, stamps, x0, y0)
+        add_stamps(image, stamps, x0, y0)
         if bar is not None:
             bar.update(len(sel))
 
@@ -535,18 +528,53 @@ class StarRenderer:
         return min(floor, allowed), dtype
 
 
-def _add_stamps(image, stamps, x0, y0) -> None:
-    """Add stamps into ``image`` at corners (x0, y0), clipping at the edges."""
-    ny, nx = image.shape
-    m = stamps.shape[-1]
-    for stamp, cx, cy in zip(stamps, x0.tolist(), y0.tolist()):
-        if cx >= 0 and cy >= 0 and cx + m <= nx and cy + m <= ny:
-            image[cy : cy + m, cx : cx + m] += stamp
-            continue
-        ya, yb = max(cy, 0), min(cy + m, ny)
-        xa, xb = max(cx, 0), min(cx + m, nx)
-        if ya < yb and xa < xb:
-            image[ya:yb, xa:xb] += stamp[ya - cy : yb - cy, xa - cx : xb - cx]
+def _node_transforms_dft(cube, step: float, fy, fx) -> np.ndarray:
+    """Direct DFT of every PSF node at integer frequencies ``fy`` x ``fx``.
+
+    ``step`` is the frequency unit times the PSF pixel (cycles per PSF pixel);
+    the optical axis is the central PSF pixel. Returns (nodes, nfy, nfx) complex.
+    """
+    nodes, n, _ = cube.shape
+    offsets = np.arange(n) - (n - 1) / 2  # PSF pixels
+    arg_x = -2.0 * np.pi * step * np.outer(offsets, fx)  # (n, nfx)
+    # stage 1 over PSF columns: two real GEMMs for all nodes at once
+    flat = cube.reshape(nodes * n, n)
+    half = (flat @ np.cos(arg_x)) + 1j * (flat @ np.sin(arg_x))  # (nodes*n, nfx)
+    half = half.reshape(nodes, n, len(fx))
+    ey = np.exp(-2j * np.pi * step * np.outer(fy, offsets))  # (nfy, n)
+    return np.matmul(ey[None], half)
+
+
+def _node_transforms_fft(cube, period: int, fy, fx, chunk: int = 8) -> np.ndarray:
+    """Same as :func:`_node_transforms_dft` when the stamp period is ``period`` PSF pixels.
+
+    The DFT at frequencies ``q / period`` of a finely sampled PSF equals the FFT of
+    that PSF wrapped (summed) onto ``period`` samples with the optical axis at 0,
+    so this is exact, not an approximation; nodes are done a few at a time.
+    """
+    nodes, n, _ = cube.shape
+    iy = np.asarray(fy, dtype=np.int64) % period
+    ix = np.asarray(fx, dtype=np.int64) % period
+    out = np.empty((nodes, len(fy), len(fx)), dtype=np.complex128)
+    # the nodes are real: rfft along x, negative frequencies by conjugate symmetry
+    ax = np.minimum(ix, period - ix)
+    neg = ix > period - ix
+    for a in range(0, nodes, chunk):
+        rows = scipy.fft.rfft(_wrap_last_axis(cube[a : a + chunk], period), axis=-1)[..., ax]
+        rows[..., neg] = rows[..., neg].conj()
+        cols = _wrap_last_axis(np.swapaxes(rows, -1, -2), period)  # (c, nfx, period)
+        out[a : a + chunk] = np.swapaxes(scipy.fft.fft(cols, axis=-1)[..., iy], -1, -2)
+    return out
+
+
+def _wrap_last_axis(a: np.ndarray, period: int) -> np.ndarray:
+    """Sum the samples of the last axis onto ``period`` bins, central sample at bin 0."""
+    n = a.shape[-1]
+    length = -(-n // period) * period
+    padded = np.zeros(a.shape[:-1] + (length,), dtype=a.dtype)
+    padded[..., :n] = a
+    padded = np.roll(padded, -((n - 1) // 2), axis=-1)
+    return padded.reshape(a.shape[:-1] + (length // period, period)).sum(axis=-2)
 
 
 def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):

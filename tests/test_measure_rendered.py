@@ -40,21 +40,32 @@ def test_measure_rendered_frame(rendered, tmp_path):
         "psf_star_min_snr": 30.0,
         "psf_star_isolation": "8 pix",
         "epsf_size": 21,
+        # 49 PSF stars fill 2 x 2 pixel phases well but not 4 x 4: x4 leaves the
+        # bright stars at ~7 x CRLB here, x2 at ~2 x (docs/measure.md)
+        "oversampling": 2,
     }
     out = run_stage(rendered, settings, tmp_path / "measured.h5", seed=0)
     stars = read_product(out, "measured", specs={"stars": MEASURED_SPEC}).tables["stars"]
     truth = read_product(rendered, "frames").tables["truth"]
     assert len(stars) == len(truth)
-    good = (np.asarray(stars["flag"]) & (16 | 32)) == 0
+    good = (np.asarray(stars["flag"]) & (2 | 16 | 32)) == 0  # unsaturated, matched, fitted
     assert good.mean() > 0.9
     dx = (stars["x"] - stars["x_true"]).to_value(u.mas)[good]
     dy = (stars["y"] - stars["y_true"]).to_value(u.mas)[good]
-    # a tenth of a (7.5 mas) pixel or better for the typical star
-    assert np.median(np.hypot(dx, dy)) < 0.75
-    # the scatter stays below a seventh of a pixel (known limit: the empirical ePSF of
-    # the undersampled MAVIS PSF from ~40 stars, see docs/measure.md)
-    assert np.std(dx) < 1.0 and np.std(dy) < 1.0
-    # faint stars are noise limited: their reported errors describe their scatter
-    faint = stars["mag"].value[good] > 20.5
-    z = dx[faint] / stars["x_err"].to_value(u.mas)[good][faint]
-    assert np.std(z) < 4.0
+    # no systematic offset: the rendered PSF is centro-symmetric about the truth
+    # (before the ePSF builder subtracted each PSF star's local background the median
+    # offset was 0.1-0.5 mas depending on stamp radius and ePSF size)
+    assert abs(np.median(dx)) < 0.05 and abs(np.median(dy)) < 0.05  # mas (0.007 pix)
+    assert np.std(dx) < 0.2 and np.std(dy) < 0.2
+    mag = stars["mag"].value[good]
+    err_x = stars["x_err"].to_value(u.mas)[good]
+    err_y = stars["y_err"].to_value(u.mas)[good]
+    # the reported errors describe the scatter (calibrated normalised residuals);
+    # (the ~1.4 at the faint end is also there when fitting with the true PSF)
+    for sel in (mag < 19, mag > 20.5):
+        z = np.concatenate([dx[sel] / err_x[sel], dy[sel] / err_y[sel]])
+        assert 0.7 < np.std(z) < 1.7
+    # bright stars (PSF stars themselves) come close to their Cramer-Rao bound
+    bright = mag < 19
+    rms = np.sqrt(np.mean(np.concatenate([dx[bright], dy[bright]]) ** 2))
+    assert rms < 3 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])

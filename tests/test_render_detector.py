@@ -86,3 +86,14 @@ def test_bad_detector_settings_rejected():
         DetectorSettings(gain=0)
     with pytest.raises(ValueError, match="nexp"):
         expose_stack(np.zeros((2, 2)), 0, DetectorSettings(), np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("var_rn,limit", [(1080.0, 0.01), (9.0, 0.05), (1080.0, 0.02)])
+def test_exact_draw_window_is_where_skewness_reaches_the_limit(var_rn, limit):
+    from mavispm.simulate.detector import _skewed_window
+
+    lo, hi = _skewed_window(var_rn, limit)
+    lam = np.geomspace(1e-3, 1e7, 20001)
+    skew = lam / (lam + var_rn) ** 1.5
+    inside = (lam >= lo) & (lam <= hi)
+    assert np.array_equal(inside, skew >= limit)

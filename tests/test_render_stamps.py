@@ -136,19 +136,57 @@ def test_render_clips_stamps_at_edges_and_skips_outside(renderer):
 
 @pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
 def test_compiled_kernel_matches_numpy_reference(real, cplx):
-    from mavispm.simulate.stamp_kernels import kernel_and_shift, kernel_and_shift_numpy
+    from mavispm.simulate.stamp_kernels import mix_kernel_fold, mix_kernel_fold_numpy
 
     rng = np.random.default_rng(1)
-    s, n = 7, 300
-    spec = (rng.normal(size=(s, n)) + 1j * rng.normal(size=(s, n))).astype(cplx)
+    s, n, nodes, n_out = 7, 300, 9, 50
+    transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
+    node = rng.integers(0, nodes, (s, 4))
+    w = rng.random((s, 4)).astype(real)
     coef = (-rng.random((s, 3)) * 500).astype(real)
     u = rng.normal(0, 0.05, n).astype(real)
     v = rng.normal(0, 0.05, n).astype(real)
     phx = np.exp(1j * rng.random((s, 20))).astype(cplx)
     phy = np.exp(1j * rng.random((s, 40))).astype(cplx)
     col, row = rng.integers(0, 20, n), rng.integers(0, 40, n)
-    a, b = spec.copy(), spec.copy()
-    kernel_and_shift(a, coef, u, v, phx, phy, col, row)
-    kernel_and_shift_numpy(b, coef, u, v, phx, phy, col, row)
+    target = rng.integers(0, n_out, n)  # several samples fold onto one frequency
+    a = np.zeros((s, n_out), dtype=cplx)
+    b = np.zeros((s, n_out), dtype=np.complex128)
+    mix_kernel_fold(transforms, node, w, coef, u, v, phx, phy, col, row, target, a)
+    mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, target, b)
     tol = 1e-5 if real is np.float32 else 1e-12
     assert np.abs(a - b).max() <= tol * np.abs(b).max()
+
+
+def test_compiled_stamp_adder_clips_like_slicing():
+    from mavispm.simulate.stamp_kernels import add_stamps
+
+    rng = np.random.default_rng(3)
+    image = rng.random((20, 30))
+    expected = image.copy()
+    stamps = rng.random((4, 8, 8)).astype(np.float32)
+    x0 = np.array([-3, 25, 5, -10], dtype=np.int64)
+    y0 = np.array([-2, 15, 6, 0], dtype=np.int64)  # last one misses the image
+    for stamp, cx, cy in zip(stamps, x0, y0):
+        ya, yb, xa, xb = max(cy, 0), min(cy + 8, 20), max(cx, 0), min(cx + 8, 30)
+        if ya < yb and xa < xb:
+            expected[ya:yb, xa:xb] += stamp[ya - cy : yb - cy, xa - cx : xb - cx]
+    add_stamps(image, stamps, x0, y0)
+    assert np.allclose(image, expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("n,m,ratio", [(427, 128, 4), (427, 16, 4), (21, 10, 4), (35, 24, 1)])
+def test_fft_node_transforms_equal_direct_dft(n, m, ratio):
+    """Wrapping + FFT gives the exact DFT, also when the PSF is wider than the stamp."""
+    from mavispm.simulate.render import (
+        _folding_frequencies,
+        _node_transforms_dft,
+        _node_transforms_fft,
+    )
+
+    cube = np.random.default_rng(n + m).random((3, n, n))
+    fy, fx = _folding_frequencies(m, 2)
+    period = m * ratio
+    fast = _node_transforms_fft(cube, period, fy, fx)
+    direct = _node_transforms_dft(cube, 1.0 / period, fy, fx)
+    assert np.abs(fast - direct).max() <= 1e-12 * np.abs(direct).max()
