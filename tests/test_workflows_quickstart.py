@@ -75,7 +75,7 @@ def test_quickstart_end_to_end(tmp_path):
     bright = ok & (stars["mag"].to_value(u.mag) < 21)
     dx = (stars["x"] - stars["x_true"]).to_value(u.mas)[bright]
     assert bright.sum() > 20
-    assert np.median(np.abs(dx)) < 0.5  # mas (a pixel is 7.5 mas)
+    assert np.median(np.abs(dx)) < 1.0  # mas: well under a pixel (7.5 mas); see docs/measure.md
 
     # proper motions against the catalogue's true motions (matched by id)
     pms = read_product(result.product("propermotions/main"), "propermotions").tables["stars"]
