@@ -191,7 +191,7 @@ def astrometry_by_magnitude(summary: Mapping, rundir: Path, outdir: Path) -> str
             ax,
             mag[good],
             dx[good],
-            f"{_variant_label(node)} {lab.get('scene', '')} {lab.get('epoch', '')}",
+            " ".join(filter(None, (lab.get(k) for k in ("study", "point", "scene", "epoch")))),
         )
     axes[-1, 0].set_xlabel("V [mag] (truth)")
     fig.tight_layout()
