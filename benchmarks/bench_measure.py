@@ -125,8 +125,13 @@ def main(argv=None):
     print("\n## 2. ePSF building from the frame (fast builder) and fit with it")
     noise = DET.sky + RN2
     box = frame["flux"]  # selection only; the builder measures fluxes itself
-    for variation, grid in (("constant", 1), ("grid", 3), ("grid", 5), ("polynomial", 3)):
-        opts = EPSFOptions(variation=variation, grid=grid, size=21, stars_per_node=150, min_snr=100)
+    cases = [(v, g, 4) for v, g in (("constant", 1), ("grid", 3), ("grid", 5), ("polynomial", 3))]
+    cases += [("constant", 1, 2), ("grid", 3, 2)]  # oversampling 2: fewer phase bins to fill
+    for variation, grid, over in cases:
+        opts = EPSFOptions(
+            variation=variation, grid=grid, size=21, stars_per_node=150, min_snr=100,
+            oversampling=over,
+        )  # fmt: skip
         (epsf, used), t_build = timed(
             build_field_epsf,
             frame["image"] - DET.sky,
@@ -140,7 +145,7 @@ def main(argv=None):
         res, t = timed(fit_fast, frame, epsf)
         s, b = accuracy(frame, res, grid_true)
         print(
-            f"{variation:<11} grid {grid}: build {t_build:6.2f} s ({len(used)} PSF stars), "
+            f"{variation:<11} grid {grid} x{over}: build {t_build:6.2f} s ({len(used)} PSF stars), "
             f"fit {t:5.2f} s, sigma/CRLB {s:6.2f}, bias/CRLB {b:6.2f}"
         )
 

@@ -128,9 +128,9 @@ def expose_stack(
         return mu, saturated
     flat_mu = mu.reshape(-1)
     var_rn = nexp * rn**2
-    # fast path everywhere (float32, in chunks on `threads` threads, one generator per
-    # chunk so the result does not depend on the thread count): a Gaussian with the
-    # exact mean and variance of the sum
+    # in chunks on `threads` threads, one generator per chunk so the result does not
+    # depend on the thread count: a Gaussian with the exact mean and variance of the
+    # sum (float32), or the exact sum where its skewness matters
     total = np.empty_like(flat_mu)
     starts = range(0, flat_mu.size, NOISE_CHUNK)
     chunk_rngs = rng.spawn(len(starts))
@@ -142,21 +142,21 @@ def expose_stack(
         sl = slice(start, start + NOISE_CHUNK)
         lam = flat_mu[sl] * np.float32(nexp)
         out = total[sl]
+        z = crng.standard_normal(lam.size, dtype=np.float32)
         np.add(lam, np.float32(var_rn), out=out)
         np.sqrt(out, out=out)
-        out *= crng.standard_normal(lam.size, dtype=np.float32)
+        out *= z
         out += lam
-        cand = np.flatnonzero((lam >= lo) & (lam <= hi)) + start
-        risky = np.flatnonzero(flat_mu[sl] >= risky_floor) + start
-        return cand, risky
+        # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches
+        # the limit: the window [lo, hi] of lam where it does (see _skewed_window)
+        exact = np.flatnonzero((lam >= lo) & (lam <= hi))
+        if exact.size:
+            counts = crng.poisson(lam[exact].astype(np.float64))
+            out[exact] = counts + np.sqrt(var_rn) * z[exact].astype(np.float64)
+        return np.flatnonzero(flat_mu[sl] >= risky_floor) + start
 
     results = _map_threads(chunk, zip(starts, chunk_rngs), threads)
-    cand = np.concatenate([c for c, _ in results]) if results else np.zeros(0, int)
-    risky_c = np.concatenate([r for _, r in results]) if results else np.zeros(0, int)
-    # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches the
-    # limit: the window [lo, hi] of lam where it does (see _skewed_window)
-    lam_c = flat_mu[cand].astype(np.float64) * nexp
-    total[cand] = rng.poisson(lam_c) + rng.normal(0.0, np.sqrt(var_rn), lam_c.size)
+    risky_c = np.concatenate(results) if results else np.zeros(0, int)
     # pixels that can saturate in a sub-exposure: drawn and clipped one by one
     saturated = np.zeros(flat_mu.shape, dtype=bool)
     mu_c = flat_mu[risky_c].astype(np.float64)

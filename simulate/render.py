@@ -9,8 +9,9 @@ wing; see :func:`stamp_sizes`)::
            * sinc(u s_x) sinc(v s_y)              the detector pixel (box of side s)
            * exp(-2 pi i u . d)                   the exact sub-pixel position d
 
-``P_n`` is the Fourier transform of PSF-grid node ``n`` evaluated directly at the
-stamp's frequencies (a matrix DFT of the finely sampled PSF, exact for a
+``P_n`` is the Fourier transform of PSF-grid node ``n`` at the stamp's frequencies
+(an FFT of the finely sampled PSF wrapped onto the stamp period when that period
+is a whole number of PSF pixels, a matrix DFT otherwise; both exact for a
 band-limited PSF); it is computed once per node and stamp size and cached, and
 bilinear interpolation in the field commutes with the transform. The pixel values
 are the samples of the pixel-integrated image at the pixel centres; to get them

@@ -41,11 +41,15 @@ def test_measure_rendered_frame(rendered, tmp_path):
         "psf_star_isolation": "8 pix",
         "epsf_size": 21,
         # 49 PSF stars fill 2 x 2 pixel phases well but not 4 x 4: x4 leaves the
-        # bright stars at ~7 x CRLB here, x2 at ~2 x (docs/measure.md)
+        # bright stars at ~5 x CRLB here, x2 at ~1.3 x (docs/measure.md)
         "oversampling": 2,
     }
     out = run_stage(rendered, settings, tmp_path / "measured.h5", seed=0)
-    stars = read_product(out, "measured", specs={"stars": MEASURED_SPEC}).tables["stars"]
+    product = read_product(out, "measured", specs={"stars": MEASURED_SPEC})
+    stars = product.tables["stars"]
+    # the seeing halo (~40 % of the light here) lies outside the ePSF footprint: the
+    # Cramer-Rao bound uses the flux the ePSF describes, not the total
+    assert 0.3 < product.attrs["epsf_flux_fraction"] < 0.65
     truth = read_product(rendered, "frames").tables["truth"]
     assert len(stars) == len(truth)
     good = (np.asarray(stars["flag"]) & (2 | 16 | 32)) == 0  # unsaturated, matched, fitted
@@ -68,4 +72,4 @@ def test_measure_rendered_frame(rendered, tmp_path):
     # bright stars (PSF stars themselves) come close to their Cramer-Rao bound
     bright = mag < 19
     rms = np.sqrt(np.mean(np.concatenate([dx[bright], dy[bright]]) ** 2))
-    assert rms < 3 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
+    assert rms < 2 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
