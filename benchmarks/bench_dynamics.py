@@ -1,0 +1,128 @@
+"""Benchmark of the dynamics stage: likelihood cost and accuracy, sampler cost.
+
+Run ``python benchmarks/bench_dynamics.py [--quick]`` from the repository root
+(with ``PYTHONPATH=.dev``). Prints
+
+1. Jeans projection accuracy and time against the radial grid / quadrature knobs
+   (error: max relative error of the projected dispersion against the analytic
+   Plummer result and against a very fine reference for the point-mass term);
+2. one likelihood evaluation against the number of stars;
+3. emcee to convergence (walkers, steps, tau, wall time) and posterior width;
+4. dynesty evidence per model (calls, wall time, ln Z error).
+
+Times are CPU (process) seconds, robust against other jobs on a shared
+machine; wall times are printed alongside. Compare ratios measured in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from dynamics_helpers import RECOVERY_MOCK, mock_likelihoods  # noqa: E402
+
+from mavispm.dynamics.evidence import run_dynesty  # noqa: E402
+from mavispm.dynamics.jeans import JeansProjector  # noqa: E402
+from mavispm.dynamics.likelihood import DiscreteLikelihood, StarSample  # noqa: E402
+from mavispm.dynamics.sampling import run_emcee  # noqa: E402
+from mavispm.dynamics.tracers import Plummer  # noqa: E402
+
+
+def _time(fn, repeat):
+    """CPU seconds per call (process time: robust on a shared machine)."""
+    fn()
+    t0 = time.process_time()
+    for _ in range(repeat):
+        fn()
+    return (time.process_time() - t0) / repeat
+
+
+def bench_projection(quick):
+    print("\n# Jeans projection: quadrature knobs vs accuracy (Plummer, R = 1e-4..1e3 a)")
+    X = np.logspace(-4, 3, 40)
+    ref = JeansProjector(X, n_panels=64, n_gl=8).moments(Plummer(), 0.3)
+    analytic = 3 * np.pi / (64 * np.sqrt(1 + X**2))
+    print(f"{'panels':>6} {'nodes':>5} {'time/ms':>8} {'err_cl(b=0)':>12} {'err_bh(b=.3)':>12}")
+    for n_panels, n_gl in [(8, 4), (12, 6), (16, 6), (24, 6), (32, 8)]:
+        proj = JeansProjector(X, n_panels=n_panels, n_gl=n_gl)
+        t = _time(lambda p=proj: p.moments(Plummer(), 0.3), 5 if quick else 30)
+        e0 = np.max(np.abs(proj.moments(Plummer(), 0.0).radial_cluster / analytic - 1))
+        e1 = np.max(np.abs(proj.moments(Plummer(), 0.3).radial_bh / ref.radial_bh - 1))
+        print(f"{n_panels:6d} {n_gl:5d} {1e3 * t:8.3f} {e0:12.2e} {e1:12.2e}")
+
+
+def bench_likelihood(quick):
+    print("\n# likelihood: cost vs stars and radial grid size (4 parameters, Plummer)")
+    stars, (sp1, _), _ = mock_likelihoods(1, 1500.0)
+    theta = np.array([4.7, np.log10(25.0), 1500.0, 0.0])
+    rng = np.random.default_rng(0)
+    ref_like = None
+    print(f"{'stars':>6} {'grid':>5} {'time/ms':>8} {'dlnL vs grid 256':>17}")
+    for n in [500, 2000, 3500] + ([] if quick else [7000]):
+        pick = rng.integers(0, stars.R.size, n)
+        s = StarSample(
+            stars.R[pick], stars.v_r[pick], stars.v_t[pick], stars.e_r[pick], stars.e_t[pick], 17.0
+        )
+        ref_like = DiscreteLikelihood(s, sp1.names, distance=4.6, grid_size=256)(theta)
+        for grid in (32, 64, 128):
+            like = DiscreteLikelihood(s, sp1.names, distance=4.6, grid_size=grid)
+            t = _time(lambda lk=like: lk(theta), 20 if quick else 200)
+            print(f"{n:6d} {grid:5d} {1e3 * t:8.3f} {like(theta) - ref_like:17.2e}")
+
+
+def bench_samplers(quick):
+    print("\n# samplers on the recovery mock (2000 stars, M_bh = 1500 Msun)")
+    _, (sp1, l1), (sp0, l0) = mock_likelihoods(1, 1500.0)
+    configs = [(24, 20.0, 2500)] if quick else [(24, 20.0, 4000), (32, 50.0, 20000)]
+    for walkers, tau_factor, max_steps in configs:
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = run_emcee(
+            l1,
+            sp1,
+            1,
+            walkers=walkers,
+            max_steps=max_steps,
+            tau_factor=tau_factor,
+            check_every=250,
+            progress=False,
+        )
+        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+        bh = r.samples[:, sp1.index("bh_mass")]
+        q = np.percentile(bh, [16, 50, 84])
+        print(
+            f"emcee walkers={walkers} tau_factor={tau_factor:g}: {cpu:7.1f} s CPU "
+            f"({dt:.0f} s wall), steps={r.steps}, "
+            f"tau_max={np.max(r.tau):.0f}, converged={r.converged}, acc={r.acceptance:.2f}, "
+            f"M_bh={q[1]:.0f} +{q[2] - q[1]:.0f} -{q[1] - q[0]:.0f}"
+        )
+    for nlive in [100] if quick else [100, 250]:
+        for name, sp, like in (("imbh", sp1, l1), ("no_imbh", sp0, l0)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            e = run_dynesty(like, sp, 1, nlive=nlive, dlogz=0.5 if nlive < 200 else 0.1)
+            dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+            print(
+                f"dynesty {name:8s} nlive={nlive}: {cpu:7.1f} s CPU ({dt:.0f} s wall), calls={e.n_calls}, "
+                f"lnZ={e.log_z:.2f} +- {e.log_z_err:.2f}, {1e3 * cpu / e.n_calls:.2f} ms CPU/call"
+            )
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repeats and cases")
+    parser.add_argument("--no-samplers", action="store_true", help="skip emcee/dynesty")
+    args = parser.parse_args(argv)
+    print(f"mock: {RECOVERY_MOCK}")
+    bench_projection(args.quick)
+    bench_likelihood(args.quick)
+    if not args.no_samplers:
+        bench_samplers(args.quick)
+
+
+if __name__ == "__main__":
+    main()

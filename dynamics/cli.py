@@ -1,0 +1,313 @@
+"""The ``mavispm dynamics`` stage: read proper motions, fit, compare, write, plot.
+
+``mavispm dynamics pm.h5 -o fit.h5 --plots plots/ [--truth imbh.h5 --truth-no-imbh no.h5] [--fast]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import astropy.units as u
+import numpy as np
+from astropy.table import QTable
+
+from mavispm.core.catalogue import read_catalogue
+from mavispm.core.config import from_mapping, to_mapping
+from mavispm.core.errors import InputError
+from mavispm.core.products import TableSpec, read_product, write_product
+from mavispm.dynamics.fit import compare, fit_model
+from mavispm.dynamics.likelihood import StarSample
+from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
+from mavispm.dynamics.settings import DynamicsSettings
+
+#: What the dynamics stage needs from a propermotions product.
+PM_SPEC = TableSpec(
+    required={
+        "id": "",
+        "x": "arcsec",
+        "y": "arcsec",
+        "R": "arcsec",
+        "pm_r": "mas/yr",
+        "pm_t": "mas/yr",
+        "pm_r_err": "mas/yr",
+        "pm_t_err": "mas/yr",
+    },
+    optional={"flag": "", "mag": "mag", "pm_x": "mas/yr", "pm_y": "mas/yr"},
+    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err"),
+)
+
+
+def validate_settings(settings=None, source=None) -> DynamicsSettings:
+    """Build :class:`DynamicsSettings` from a mapping (TOML table), raising ConfigError."""
+    return from_mapping(DynamicsSettings, settings or {}, prefix="dynamics", source=source)
+
+
+def load_stars(path, settings: DynamicsSettings):
+    """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
+
+    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
+    error are dropped; stars outside the field radius are dropped.
+
+    Raises
+    ------
+    InputError
+        Missing columns or distance, negative errors, or no usable stars.
+    """
+    prod = read_product(path, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
+    t = prod.tables["stars"]
+    distance = settings.distance
+    if distance is None:
+        if "distance" not in prod.attrs:
+            raise InputError(
+                "no 'distance' root attribute; set dynamics.distance in the settings", path=path
+            )
+        distance = u.Quantity(prod.attrs["distance"], u.kpc).to_value(u.kpc)
+    if not (np.isfinite(distance) and distance > 0):
+        raise InputError(f"distance must be > 0 kpc, got {distance}", path=path)
+    cols = {k: np.asarray(t[k].value, dtype=float) for k in PM_SPEC.required if k != "id"}
+    for k in ("pm_r_err", "pm_t_err"):
+        bad = cols[k] < 0
+        if np.any(bad):
+            raise InputError(f"{int(bad.sum())} negative errors", path=path, column=k)
+    ok = np.all([np.isfinite(cols[k]) for k in ("pm_r", "pm_t", "pm_r_err", "pm_t_err")], axis=0)
+    if "flag" in t.colnames and not settings.use_flagged:
+        ok &= np.asarray(t["flag"]) == 0
+    field = settings.field_radius
+    if field is None:
+        sel_x, sel_y = np.abs(cols["x"][ok]), np.abs(cols["y"][ok])
+        if sel_x.size == 0:
+            raise InputError("no unflagged stars with finite proper motions", path=path)
+        field = float(min(sel_x.max(), sel_y.max(), cols["R"][ok].max()))
+    ok &= cols["R"] <= field
+    if ok.sum() < 2:
+        raise InputError(f"only {int(ok.sum())} usable stars inside {field:.3g} arcsec", path=path)
+    stars = StarSample(
+        R=np.maximum(cols["R"][ok], settings.min_radius),
+        v_r=cols["pm_r"][ok],
+        v_t=cols["pm_t"][ok],
+        e_r=cols["pm_r_err"][ok],
+        e_t=cols["pm_t_err"][ok],
+        field_radius=field,
+    )
+    return stars, float(distance)
+
+
+def truth_profile(path, field_radius: float, settings: DynamicsSettings, seed: int) -> QTable:
+    """Dispersion profile of a truth catalogue (first epoch, luminous stars, no errors)."""
+    cat = read_catalogue(path)
+    t = next(iter(cat.epochs.values()))
+    keep = np.ones(len(t), bool)
+    if "luminous" in t.colnames:
+        keep &= np.asarray(t["luminous"], bool)
+    x, y = t["x"].to_value(u.arcsec)[keep], t["y"].to_value(u.arcsec)[keep]
+    pmx, pmy = t["pm_x"].to_value(u.mas / u.yr)[keep], t["pm_y"].to_value(u.mas / u.yr)[keep]
+    R, v_r, v_t = radial_tangential(x, y, pmx, pmy)
+    sel = R <= field_radius
+    zero = np.zeros(int(sel.sum()))
+    pm = u.mas / u.yr
+    dist = cat.attrs.get("distance")
+    return dispersion_profile(
+        R[sel] * u.arcsec,
+        v_r[sel] * pm,
+        v_t[sel] * pm,
+        zero * pm,
+        zero * pm,
+        bin_size=settings.bin_size,
+        n_bootstrap=settings.n_bootstrap,
+        distance=None if dist is None else u.Quantity(dist, u.kpc),
+        seed=seed,
+    )
+
+
+def _summary_table(fits) -> QTable:
+    rows = []
+    for fit in fits:
+        for i, name in enumerate(fit.chain.names):
+            s = fit.summary[name]
+            rows.append(
+                {
+                    "model": fit.name,
+                    "parameter": name,
+                    "median": s["median"],
+                    "lo68": s["lo68"],
+                    "hi68": s["hi68"],
+                    "lo95": s["lo95"],
+                    "hi95": s["hi95"],
+                    "upper95": s["upper95"],
+                    "tau": fit.chain.tau[i],
+                    "map": fit.chain.map_params[i],
+                }
+            )
+    return QTable(rows=rows)
+
+
+def _posterior_table(fit) -> QTable:
+    t = QTable()
+    for i, name in enumerate(fit.chain.names):
+        t[name] = fit.chain.samples[:, i]
+    t["log_like"] = fit.chain.log_like
+    return t
+
+
+def run_stage(
+    propermotions, settings, output, seed, plots_dir=None, truth=None, truth_no_imbh=None
+):
+    """Run the dynamics stage.
+
+    Parameters
+    ----------
+    propermotions : path
+        A ``propermotions`` product.
+    settings : mapping or DynamicsSettings
+    output : path
+        The ``dynamics`` product to write (atomically). The emcee chains are
+        kept next to it in ``<output>.emcee.h5`` so an interrupted fit resumes.
+    seed : int
+    plots_dir : path, optional
+        Write the profile and corner plots here.
+    truth, truth_no_imbh : path, optional
+        Truth catalogues (IMBH / no-IMBH) whose profiles are drawn for comparison.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    if not isinstance(settings, DynamicsSettings):
+        settings = validate_settings(settings)
+    output = Path(output)
+    stars, distance = load_stars(propermotions, settings)
+    pm = u.mas / u.yr
+    profile = dispersion_profile(
+        stars.R * u.arcsec,
+        stars.v_r * pm,
+        stars.v_t * pm,
+        stars.e_r * pm,
+        stars.e_t * pm,
+        bin_size=settings.bin_size,
+        n_bootstrap=settings.n_bootstrap,
+        distance=distance * u.kpc,
+        seed=seed,
+    )
+    truths = {}
+    for key, path in (("imbh", truth), ("no_imbh", truth_no_imbh)):
+        if path is not None:
+            truths[key] = truth_profile(path, stars.field_radius, settings, seed)
+    backend = output.with_name(output.name + ".emcee.h5")
+    fits = [
+        fit_model(stars, settings, distance, with_bh, seed, backend_path=backend)
+        for with_bh in (True, False)
+    ]
+    comp = compare(fits[0], fits[1], settings.bh_mass_max)
+    bh = fits[0].summary["bh_mass"]
+    attrs = {
+        **comp.as_attrs(),
+        "distance": distance * u.kpc,
+        "field_radius": stars.field_radius * u.arcsec,
+        "n_stars": int(stars.R.size),
+        "tracer": settings.tracer,
+        "bh_mass_median": bh["median"] * u.Msun,
+        "bh_mass_lo68": bh["lo68"] * u.Msun,
+        "bh_mass_hi68": bh["hi68"] * u.Msun,
+        "bh_mass_lo95": bh["lo95"] * u.Msun,
+        "bh_mass_hi95": bh["hi95"] * u.Msun,
+        "bh_mass_upper95": bh["upper95"] * u.Msun,
+        # with evidence: detected when ln B > 1 (positive evidence); else the posterior test
+        "bh_detected": bool(
+            comp.ln_bayes_factor > 1.0 if np.isfinite(comp.ln_bayes_factor) else bh["detected"]
+        ),
+        "bh_detected_posterior": bool(bh["detected"]),
+        "evidence_computed": bool(settings.evidence),
+        "propermotions": str(propermotions),
+    }
+    for fit in fits:
+        attrs[f"converged_{fit.name}"] = bool(fit.chain.converged)
+        attrs[f"steps_{fit.name}"] = int(fit.chain.steps)
+        attrs[f"tau_max_{fit.name}"] = float(np.max(fit.chain.tau))
+        attrs[f"acceptance_{fit.name}"] = float(fit.chain.acceptance)
+        attrs[f"aic_{fit.name}"] = float(fit.criteria["aic"])
+        attrs[f"bic_{fit.name}"] = float(fit.criteria["bic"])
+        attrs[f"max_log_like_{fit.name}"] = float(fit.criteria["max_log_like"])
+        if fit.evidence is not None:
+            attrs[f"log_z_{fit.name}"] = fit.evidence.log_z
+            attrs[f"log_z_err_{fit.name}"] = fit.evidence.log_z_err
+    tables = {
+        "profile": profile,
+        "posterior_imbh": _posterior_table(fits[0]),
+        "posterior_no_imbh": _posterior_table(fits[1]),
+        "summary": _summary_table(fits),
+    }
+    for key, tab in truths.items():
+        tables[f"profile_truth_{key}"] = tab
+    path = write_product(
+        output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(settings), seed=seed
+    )
+    if plots_dir is not None:
+        from mavispm.dynamics.plots import corner_plot, profile_plot
+
+        plots_dir = Path(plots_dir)
+        profile_plot(profile, fits, truths, plots_dir / "dispersion_profile.png")
+        corner_plot(fits[0], plots_dir / "corner_imbh.png")
+        corner_plot(fits[1], plots_dir / "corner_no_imbh.png")
+    return path
+
+
+def _handler(args) -> int:
+    settings = {}
+    if args.config is not None:
+        import tomllib
+
+        with open(args.config, "rb") as fh:
+            settings = tomllib.load(fh).get("dynamics", {})
+    settings = validate_settings(settings, source=args.config)
+    if args.fast:
+        settings = settings.fast()
+    if args.no_evidence:
+        settings = dataclasses.replace(settings, evidence=False)
+    out = run_stage(
+        args.propermotions,
+        settings,
+        args.output,
+        args.seed,
+        plots_dir=args.plots,
+        truth=args.truth,
+        truth_no_imbh=args.truth_no_imbh,
+    )
+    from mavispm.core.products import read_product as _read
+
+    a = _read(out, "dynamics", load_arrays=False).attrs
+    print(
+        json.dumps(
+            {
+                "output": str(out),
+                "ln_bayes_factor": a.get("ln_bayes_factor"),
+                "bh_mass_median": float(u.Quantity(a["bh_mass_median"]).value),
+                "bh_mass_upper95": float(u.Quantity(a["bh_mass_upper95"]).value),
+                "bh_detected": bool(a["bh_detected"]),
+            }
+        )
+    )
+    return 0
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the top-level ``dynamics`` command."""
+    p = subparsers.add_parser(
+        "dynamics",
+        help="fit Jeans models with and without an IMBH to proper motions",
+        description="Dispersion profile, emcee fits of IMBH / no-IMBH Jeans models, "
+        "dynesty evidence and plots.",
+    )
+    p.add_argument("propermotions", help="propermotions product (HDF5)")
+    p.add_argument("-o", "--output", required=True, help="dynamics product to write")
+    p.add_argument("--plots", default=None, help="folder for PNG plots")
+    p.add_argument("--truth", default=None, help="truth catalogue with the IMBH")
+    p.add_argument("--truth-no-imbh", default=None, help="truth catalogue without IMBH")
+    p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--fast", action="store_true", help="cheap sampler settings")
+    p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
+    p.set_defaults(func=_handler)
+    return p

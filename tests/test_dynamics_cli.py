@@ -1,0 +1,159 @@
+"""The dynamics stage end to end, settings, bad input, evidence and sampler pieces."""
+
+import astropy.units as u
+import h5py
+import numpy as np
+import pytest
+from astropy.table import QTable
+from dynamics_helpers import write_mock_propermotions
+
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.products import read_product, write_product
+from mavispm.dynamics.cli import run_stage, validate_settings
+from mavispm.dynamics.evidence import run_dynesty, savage_dickey
+from mavispm.dynamics.parameters import Parameter, ParameterSpace
+from mavispm.dynamics.sampling import run_emcee
+from mavispm.workflows.cli import main
+
+TINY = {
+    "walkers": 10,
+    "max_steps": 60,
+    "check_every": 30,
+    "evidence": False,
+    "n_bootstrap": 5,
+    "progress": False,
+    "bin_size": 200,
+    "field_radius": "17 arcsec",
+}
+
+
+@pytest.fixture(scope="module")
+def pm_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("dyn") / "pm.h5"
+    return write_mock_propermotions(path, seed=7, n_field=800)
+
+
+def test_run_stage_writes_product_and_plots(pm_file, tmp_path):
+    out = run_stage(pm_file, TINY, tmp_path / "fit.h5", seed=1, plots_dir=tmp_path / "plots")
+    prod = read_product(out, "dynamics")
+    a = prod.attrs
+    assert a["n_stars"] == 800 and a["distance"].to_value(u.kpc) == pytest.approx(4.6)
+    assert np.isfinite(a["delta_ln_likelihood"]) and a["delta_ln_likelihood"] > -1e-6
+    assert np.isfinite(a["delta_aic"]) and np.isnan(a["ln_bayes_factor"])
+    assert a["bh_mass_upper95"].unit == u.Msun
+    assert set(prod.tables) >= {"profile", "posterior_imbh", "posterior_no_imbh", "summary"}
+    assert "bh_mass" in prod.tables["posterior_imbh"].colnames
+    assert "bh_mass" not in prod.tables["posterior_no_imbh"].colnames
+    assert len(prod.tables["profile"]) == 4
+    for name in ("dispersion_profile.png", "corner_imbh.png", "corner_no_imbh.png"):
+        assert (tmp_path / "plots" / name).stat().st_size > 10_000
+    # resume: the emcee backend continues the stored chains
+    more = {**TINY, "max_steps": 90}
+    out2 = run_stage(pm_file, more, tmp_path / "fit.h5", seed=1)
+    assert read_product(out2, "dynamics").attrs["steps_imbh"] == 90
+    with h5py.File(tmp_path / "fit.h5.emcee.h5") as f:
+        assert f["imbh"]["chain"].shape[0] == 90
+
+
+def test_cli_command(pm_file, tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[dynamics]\nwalkers = 10\nmax_steps = 30\ncheck_every = 30\nn_bootstrap = 2\n")
+    rc = main(
+        [
+            "dynamics",
+            str(pm_file),
+            "-o",
+            str(tmp_path / "f.h5"),
+            "--config",
+            str(cfg),
+            "--no-evidence",
+            "--fast",
+        ]
+    )
+    assert rc == 0 and "bh_mass_upper95" in capsys.readouterr().out
+    rc = main(["dynamics", str(tmp_path / "missing.h5"), "-o", str(tmp_path / "g.h5")])
+    assert rc == 2
+
+
+def test_settings_validation():
+    s = validate_settings({"bh_mass_max": "5000 solMass", "distance": "4.6 kpc"})
+    assert s.bh_mass_max == 5000 and s.distance == 4.6
+    with pytest.raises(ConfigError, match="walker"):
+        validate_settings({"walker": 3})
+    with pytest.raises(ConfigError, match="beta_range"):
+        validate_settings({"beta_range": [0.5, 0.1]})
+    with pytest.raises(ConfigError, match="tracer"):
+        validate_settings({"tracer": "hernquist"})
+    with pytest.raises(ConfigError):
+        validate_settings({"fit_gamma": True})
+
+
+def _pm_table(n=20, drop=()):
+    rng = np.random.default_rng(0)
+    t = QTable()
+    t["id"] = np.arange(n)
+    x, y = rng.uniform(-10, 10, (2, n))
+    t["x"], t["y"], t["R"] = x * u.arcsec, y * u.arcsec, np.hypot(x, y) * u.arcsec
+    for c in ("pm_r", "pm_t"):
+        t[c] = rng.normal(0, 0.3, n) * u.mas / u.yr
+    for c in ("pm_r_err", "pm_t_err"):
+        t[c] = np.full(n, 0.05) * u.mas / u.yr
+    for c in drop:
+        del t[c]
+    return t
+
+
+def test_bad_propermotions_inputs(tmp_path):
+    no_err = write_product(
+        tmp_path / "a.h5",
+        "propermotions",
+        tables={"stars": _pm_table(drop=("pm_r_err",))},
+        attrs={"distance": 4.6 * u.kpc},
+    )
+    with pytest.raises(InputError, match="pm_r_err"):
+        run_stage(no_err, TINY, tmp_path / "o.h5", seed=0)
+    no_dist = write_product(tmp_path / "b.h5", "propermotions", tables={"stars": _pm_table()})
+    with pytest.raises(InputError, match="distance"):
+        run_stage(no_dist, TINY, tmp_path / "o.h5", seed=0)
+    t = _pm_table()
+    t["pm_t_err"][3] = -0.1 * u.mas / u.yr
+    neg = write_product(
+        tmp_path / "c.h5", "propermotions", tables={"stars": t}, attrs={"distance": 4.6 * u.kpc}
+    )
+    with pytest.raises(InputError, match="negative"):
+        run_stage(neg, TINY, tmp_path / "o.h5", seed=0)
+    assert not (tmp_path / "o.h5").exists()
+
+
+def test_dynesty_evidence_of_gaussian_likelihood():
+    """ln Z of a 2-D unit Gaussian in a [-5, 5]^2 uniform prior is -ln(100) (+ tiny)."""
+    sp = ParameterSpace([Parameter("a", lo=-5, hi=5), Parameter("b", lo=-5, hi=5)])
+    res = run_dynesty(lambda v: -0.5 * np.sum(v**2) - np.log(2 * np.pi), sp, seed=3, nlive=150)
+    assert res.log_z == pytest.approx(-np.log(100.0), abs=4 * res.log_z_err + 0.05)
+    assert res.samples.shape[1] == 2 and abs(np.std(res.samples[:, 0]) - 1) < 0.2
+
+
+def test_emcee_recovers_gaussian_and_reports_tau():
+    sp = ParameterSpace([Parameter("a", lo=-10, hi=10), Parameter("b", lo=-10, hi=10)])
+    res = run_emcee(
+        lambda v: -0.5 * ((v[0] - 1) ** 2 + (v[1] / 2) ** 2),
+        sp,
+        seed=1,
+        walkers=16,
+        max_steps=3000,
+        tau_factor=50,
+        check_every=500,
+        progress=False,
+    )
+    assert res.converged and res.steps >= 50 * np.max(res.tau)
+    assert np.mean(res.samples[:, 0]) == pytest.approx(1.0, abs=0.15)
+    assert np.std(res.samples[:, 1]) == pytest.approx(2.0, rel=0.15)
+
+
+def test_savage_dickey_valid_only_with_support_at_zero():
+    rng = np.random.default_rng(0)
+    # posterior = prior (uninformative data): ln B = 0
+    lnb, note = savage_dickey(rng.uniform(0, 1e4, 20000), 1e4)
+    assert lnb == pytest.approx(0.0, abs=0.15) and note.startswith("valid")
+    lnb, note = savage_dickey(rng.normal(3000, 300, 20000), 1e4)
+    assert np.isnan(lnb) and "not valid" in note

@@ -1,0 +1,154 @@
+"""Jeans projection against analytic and independent high-precision integrals."""
+
+import functools
+
+import astropy.units as u
+import mpmath as mp
+import numpy as np
+import pytest
+from scipy import integrate
+
+from mavispm.dynamics.jeans import JeansProjector, cubic_weights, interpolate, projected_dispersion
+from mavispm.dynamics.tracers import Dehnen, King, Plummer
+
+RADII = np.logspace(-4, 3, 22)  # R = 1e-4 a ... 1e3 a
+
+
+def test_plummer_projected_dispersion_matches_analytic():
+    """Isotropic Plummer: sigma_p^2 = 3 pi G M / (64 sqrt(R^2 + a^2)) to 1e-4."""
+    mom = JeansProjector(RADII).moments(Plummer(), 0.0)
+    analytic = 3 * np.pi / (64 * np.sqrt(1 + RADII**2))
+    np.testing.assert_allclose(mom.radial_cluster, analytic, rtol=1e-4)
+    np.testing.assert_allclose(mom.tangential_cluster, analytic, rtol=1e-4)
+
+
+def _plummer_point_mass_jeans(r):
+    """nu sigma_r^2 / (G M_bh) for a Plummer tracer, beta = 0, in closed form.
+
+    int_r^inf nu / r'^2 dr' = 3 / (4 pi) (1 - u)^3 (u + 3) / (3 u), u = r / sqrt(1 + r^2),
+    with 1 - u = 1 / (s (s + r)), s = sqrt(1 + r^2): free of cancellation.
+    """
+    s = mp.sqrt(1 + r * r)
+    one_minus_u = 1 / (s * (s + r))
+    u_ = r / s
+    return 3 / (4 * mp.pi) * one_minus_u**3 * (u_ + 3) / (3 * u_)
+
+
+def test_closed_form_point_mass_jeans_integral_matches_quad():
+    nu = Plummer().density
+    for r in (1e-4, 0.5, 30.0):
+        ref = integrate.quad(
+            lambda s: nu(s) / s**2, r, np.inf, epsabs=0, epsrel=1e-12, points=None
+        )[0]
+        assert float(_plummer_point_mass_jeans(mp.mpf(r))) == pytest.approx(ref, rel=1e-9)
+
+
+def _point_mass_reference(X):
+    """Projected point-mass term (Plummer, beta = 0) by 25-digit mpmath quadrature."""
+    mp.mp.dps = 25
+    X = mp.mpf(X)
+    tmax = mp.acosh(mp.mpf(10) ** 4 / X)  # the same 1e4 a truncation as the projector
+    pts = [mp.mpf(0)] + [tmax * k / 16 for k in range(1, 17)]
+    num = 2 * mp.quad(lambda t: _plummer_point_mass_jeans(X * mp.cosh(t)) * X * mp.cosh(t), pts)
+    return float(num / (1 / mp.pi * (1 + X * X) ** -2))
+
+
+@pytest.mark.parametrize("X", [1e-4, 3e-3, 0.1, 1.0, 7.0, 100.0, 1e3])
+def test_point_mass_term_matches_mpmath(X):
+    mom = JeansProjector([X]).moments(Plummer(), 0.0)
+    assert mom.radial_bh[0] == pytest.approx(_point_mass_reference(X), rel=1e-4)
+    assert mom.tangential_bh[0] == pytest.approx(mom.radial_bh[0], rel=1e-12)
+
+
+def _jeans_quad(tr, beta, r, bh):
+    """nu sigma_r^2 at r by adaptive quad (truncated at 1e4 plus the exact tail)."""
+
+    def f(s):
+        return s ** (2 * beta - 2) * tr.density(s) * (1.0 if bh else tr.enclosed(s))
+
+    val = sum(
+        integrate.quad(f, lo, hi, epsabs=0, epsrel=1e-11, limit=200)[0]
+        for lo, hi in ((r, 10 * r), (10 * r, 1e4), (1e4, np.inf))
+    )
+    return r ** (-2 * beta) * val
+
+
+def _project_quad(func, R, kernel):
+    """2 int_R^1e4 func(r) kernel r dr / sqrt(r^2 - R^2) via r = R cosh t."""
+    tmax = np.arccosh(1e4 / R)
+    pts = np.linspace(0, tmax, 12)
+
+    def g(t):
+        return func(R * np.cosh(t)) * R * np.cosh(t) * kernel(t)
+
+    return 2 * sum(integrate.quad(g, a, b, epsrel=1e-10)[0] for a, b in zip(pts[:-1], pts[1:]))
+
+
+@pytest.mark.slow  # brute-force nested quad: ~3 min per beta (passes)
+@pytest.mark.parametrize("beta", [-0.5, 0.4])
+def test_anisotropic_dehnen_matches_scipy_quad(beta):
+    """Cluster + point-mass terms for a cusped Dehnen tracer and beta != 0 vs nested quad."""
+    tr = Dehnen(gamma=1.5)
+    X = np.array([0.01, 0.3, 5.0])
+    mom = JeansProjector(X).moments(tr, beta)
+    one = np.ones_like
+    for j, R in enumerate(X):
+        sig = _project_quad(tr.density, R, one)
+        for bh, rad, tan in (
+            (False, mom.radial_cluster, mom.tangential_cluster),
+            (True, mom.radial_bh, mom.tangential_bh),
+        ):
+            p = functools.partial(_jeans_quad, tr, beta, bh=bh)
+            p_vec = np.vectorize(p)
+            t_ref = (1 - beta) * _project_quad(p_vec, R, one) / sig
+            r_ref = t_ref + beta * _project_quad(p_vec, R, lambda t: 1 / np.cosh(t) ** 2) / sig
+            assert rad[j] == pytest.approx(r_ref, rel=1e-4)
+            assert tan[j] == pytest.approx(t_ref, rel=1e-4)
+
+
+def test_surface_density_and_projected_mass_of_tracers():
+    X = np.logspace(-3, 1.3, 12)
+    for tr in (Plummer(), King(1.5)):
+        mom = JeansProjector(X).moments(tr, 0.0)
+        np.testing.assert_allclose(mom.surface_density, tr.surface_density(X), rtol=1e-4)
+        np.testing.assert_allclose(mom.projected_enclosed, tr.projected_enclosed(X), rtol=1e-4)
+    tr = Dehnen(1.55)
+    mom = JeansProjector(X).moments(tr, 0.0)
+    ref = [_project_quad(tr.density, R, np.ones_like) for R in X]
+    np.testing.assert_allclose(mom.surface_density, ref, rtol=1e-4)
+
+
+def test_dehnen_enclosed_mass_is_integral_of_density():
+    tr = Dehnen(1.2)
+    for x in (0.01, 1.0, 30.0):
+        m = integrate.quad(lambda s: 4 * np.pi * s**2 * tr.density(s), 0, x, epsrel=1e-12)[0]
+        assert tr.enclosed(x) == pytest.approx(m, rel=1e-6)
+
+
+def test_physical_units_and_point_mass_dominates_centre():
+    """Keplerian rise in a gamma = 1.5 cusp: projected sigma^2 ~ G M_bh / R near the centre."""
+    R = [0.001, 0.002] * u.pc
+    s_r, _ = projected_dispersion(
+        R, 1e5 * u.Msun, 2 * u.pc, bh_mass=1e4 * u.Msun, tracer=Dehnen(1.5)
+    )
+    ratio = (s_r[0] / s_r[1]).to_value(u.one) ** 2
+    assert ratio == pytest.approx(2.0, rel=0.05)
+    s_ang, _ = projected_dispersion(
+        [1.0] * u.arcsec, 1e5 * u.Msun, 60 * u.arcsec, distance=5 * u.kpc
+    )
+    assert s_ang.unit == u.mas / u.yr
+
+
+def test_cubic_interpolation_exact_for_cubics():
+    grid = np.linspace(-2, 3, 11)
+    vals = grid**3 - 2 * grid
+    q = np.array([-1.93, 0.17, 2.71])
+    idx, w = cubic_weights(grid[0], grid[1] - grid[0], grid.size, q)
+    np.testing.assert_allclose(interpolate(vals, idx, w), q**3 - 2 * q, rtol=1e-12)
+
+
+def test_bad_anisotropy_and_radii_raise():
+    with pytest.raises(ValueError, match="beta"):
+        JeansProjector([1.0]).moments(Plummer(), 1.0)
+    with pytest.raises(ValueError, match="radii"):
+        JeansProjector([0.0])

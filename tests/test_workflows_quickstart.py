@@ -1,0 +1,126 @@
+"""The shipped quickstart workflow, end to end through the real stages."""
+
+from __future__ import annotations
+
+import importlib
+
+import astropy.units as u
+import numpy as np
+import pytest
+from workflows_helpers import ALL_NODES
+
+from mavispm.core.catalogue import read_catalogue
+from mavispm.core.products import read_product
+from mavispm.workflows.config import load_workflow, shipped_workflows
+from mavispm.workflows.runner import run_workflow
+from mavispm.workflows.stages import STAGE_MODULES
+
+#: Lighter sampler settings than the shipped file (the test checks the chain, not the
+#: posterior); everything else is the quickstart as users run it.
+FAST = {"dynamics.max_steps": 200, "dynamics.nlive": 25, "dynamics.walkers": 12}
+
+
+def _stages_available() -> bool:
+    for module, _ in STAGE_MODULES.values():
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError:
+            return False
+    return True
+
+
+def test_all_shipped_workflows_are_valid():
+    if not _stages_available():
+        pytest.skip("not every stage module is in this build")
+    names = shipped_workflows()
+    assert {
+        "quickstart.toml",
+        "astrometric_budget.toml",
+        "ngc3201_imbh.toml",
+        "pm_accuracy.toml",
+    } <= set(names)
+    budget = load_workflow("astrometric_budget")
+    assert [s.name for s in budget.variants[0].scenes] == [
+        "I",
+        "Ia",
+        "Ib",
+        "II",
+        "III",
+        "IV",
+        "IIIx3",
+        "IVx3",
+    ]
+    imbh = load_workflow("ngc3201_imbh")
+    assert sorted(v.study for v in imbh.variants) == ["imbh", "no_imbh"]
+    assert [e.time for e in imbh.variants[0].epochs] == [0.0, 10.0]
+    assert len(load_workflow("pm_accuracy").variants) == 4
+
+
+def test_quickstart_end_to_end(tmp_path):
+    if not _stages_available():
+        pytest.skip("not every stage module is in this build")
+    wf = load_workflow("quickstart", overrides=FAST)  # found by name among the shipped files
+    result = run_workflow(wf, workdir=tmp_path, progress=False)
+    assert set(result.ran) == ALL_NODES
+
+    cat = read_catalogue(result.product("cluster"))
+    assert list(cat.epochs) == ["e0", "e1"]
+    frames = read_product(result.product("frames/main/e1"), "frames")
+    assert frames.arrays["image"].shape == (600, 600)
+    assert result.product("frames/main/e1", "fits").is_file()
+
+    # measured positions against the rendered truth: bright stars to well under a pixel
+    stars = read_product(result.product("stars/main/e0"), "measured").tables["stars"]
+    ok = (np.asarray(stars["flag"]) & (1 | 16 | 32)) == 0
+    bright = ok & (stars["mag"].to_value(u.mag) < 21)
+    dx = (stars["x"] - stars["x_true"]).to_value(u.mas)[bright]
+    assert bright.sum() > 20
+    assert np.median(np.abs(dx)) < 1.0  # mas: well under a pixel (7.5 mas); see docs/measure.md
+
+    # proper motions against the catalogue's true motions (matched by id)
+    pms = read_product(result.product("propermotions/main"), "propermotions").tables["stars"]
+    truth = cat.epochs["e0"]
+    index = {int(i): k for k, i in enumerate(truth["id"])}
+    rows = [index[int(i)] for i in pms["id"]]
+    true_pm_x = truth["pm_x"].to_value(u.mas / u.yr)[rows]
+    pm_x = pms["pm_x"].to_value(u.mas / u.yr)
+    good = np.isfinite(pm_x) & (pms["mag"].to_value(u.mag) < 22)
+    assert good.sum() > 20
+    resid = pm_x[good] - true_pm_x[good]
+    resid -= np.median(resid)  # PMs are relative to the cluster's mean motion
+    assert np.median(np.abs(resid)) < 0.05  # mas/yr: the paper's 50 microarcsec goal
+    assert np.corrcoef(pm_x[good], true_pm_x[good])[0, 1] > 0.95
+
+    fit = read_product(result.product("dynamics/main"), "dynamics").attrs
+    assert np.isfinite(fit["ln_bayes_factor"])
+    report = (result.rundir / "report.md").read_text()
+    assert "Proper-motion accuracy" in report and "IMBH model comparison" in report
+
+    again = run_workflow(wf, workdir=tmp_path, progress=False)
+    assert again.ran == []
+
+
+#: Attributes that record input file paths (different work directories) or wall-clock
+#: timings; every dataset and every other attribute must be bitwise identical.
+PATH_ATTRS = ("frames", "inputs", "propermotions", "config", "time_epsf", "time_fit")
+
+
+@pytest.mark.slow
+def test_quickstart_products_identical_on_dask_and_threads(tmp_path):
+    """Real stages: a LocalCluster on loopback gives the in-process products bit for bit."""
+    distributed = pytest.importorskip("distributed")
+    if not _stages_available():
+        pytest.skip("not every stage module is in this build")
+    from workflows_helpers import fingerprints
+
+    wf = load_workflow("quickstart", overrides=FAST)
+    local = run_workflow(wf, workdir=tmp_path / "threads", scheduler="threads", progress=False)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        remote = run_workflow(
+            wf, workdir=tmp_path / "dask", scheduler=cluster.scheduler_address, progress=False
+        )
+    a = fingerprints(local.rundir, PATH_ATTRS)
+    assert len(a) >= 8
+    assert a == fingerprints(remote.rundir, PATH_ATTRS)

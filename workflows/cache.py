@@ -1,0 +1,230 @@
+"""Content-addressed product cache with completion markers.
+
+Every node's *key* is a hash of its stage, the stage's code version (package
+version plus the content of the stage's source files), its settings, its
+parameters, its seed and the keys of its inputs (or the content of external
+input files). Keys chain from the inputs, so changing one setting changes the
+key of that node and of everything downstream, and nothing else.
+
+A node's products live in ``<store>/<stage>/<key>/``. A task writes into
+``<key>.partial/`` and, when the stage returns, writes the marker
+``complete.json`` there and renames the folder to ``<key>`` in one atomic
+step. A folder without its marker is never trusted, so a run killed at any
+moment resumes by redoing only unfinished nodes; the partial folder is reused
+so stages with their own resumable state (an emcee backend) pick it up.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: no cross-process lock
+    fcntl = None
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from mavispm.workflows.graph import Node
+from mavispm.workflows.registry import StageRegistry
+
+MARKER = "complete.json"
+LOCK_NAME = ".lock"
+PARTIAL_SUFFIX = ".partial"
+KEY_LENGTH = 24
+
+
+def canonical_json(obj) -> str:
+    """Deterministic JSON text of ``obj`` (sorted keys, no whitespace)."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
+
+
+def _json_default(obj):
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return repr(obj)
+
+
+_DIGESTS: dict[tuple, str] = {}
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's content (memoised on path, size and modification time)."""
+    path = Path(path)
+    st = path.stat()
+    memo = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if memo not in _DIGESTS:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        _DIGESTS[memo] = h.hexdigest()
+    return _DIGESTS[memo]
+
+
+def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, str]:
+    """Key of every node (``nodes`` in topological order).
+
+    Returns
+    -------
+    dict of str to str
+        Node id to hexadecimal key.
+    """
+    keys: dict[str, str] = {}
+    for nid, node in nodes.items():
+        inputs = {}
+        for name, ref in node.inputs.items():
+            inputs[name] = [keys[r] for r in ref] if isinstance(ref, list) else keys[ref]
+        for name, path in node.external.items():
+            inputs[name] = "file:" + file_digest(path)
+        record = {
+            "stage": node.stage,
+            "code": registry[node.stage].code_version(),
+            "settings": node.settings,
+            "params": node.params,
+            "seed": node.seed,
+            "inputs": inputs,
+        }
+        keys[nid] = hashlib.sha256(canonical_json(record).encode()).hexdigest()[:KEY_LENGTH]
+    return keys
+
+
+class Store:
+    """The on-disk product store of a work directory.
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        Store folder (``<workdir>/store``); created on demand.
+    """
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    def final_dir(self, stage: str, key: str) -> Path:
+        """Folder of a completed node."""
+        return self.root / stage / key
+
+    def partial_dir(self, stage: str, key: str) -> Path:
+        """Working folder of an unfinished node."""
+        return self.root / stage / (key + PARTIAL_SUFFIX)
+
+    def lookup(self, stage: str, key: str) -> dict | None:
+        """The completion record of a node, or None if it is not complete.
+
+        A record whose listed products are missing counts as not complete.
+        """
+        final = self.final_dir(stage, key)
+        marker = final / MARKER
+        try:
+            record = json.loads(marker.read_text())
+        except (OSError, json.JSONDecodeError):
+            return None
+        if not all((final / rel).is_file() for rel in record.get("products", {}).values()):
+            return None
+        return record
+
+    def begin(self, stage: str, key: str) -> Path:
+        """Create (or reuse) the node's partial folder and return it."""
+        part = self.partial_dir(stage, key)
+        part.mkdir(parents=True, exist_ok=True)
+        return part
+
+    @contextlib.contextmanager
+    def claim(self, stage: str, key: str):
+        """Hold the node's partial folder exclusively (an OS file lock).
+
+        Yields ``(partial_dir, record)``: ``record`` is the completion record when
+        another process finished the node while this one waited (then nothing is
+        left to do), else None. Two runs sharing a work directory therefore never
+        write the same node at once; a killed holder releases the lock with its
+        death.
+        """
+        part = self.begin(stage, key)
+        with open(part / LOCK_NAME, "a+b") as fh:
+            if fcntl is not None:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+            try:
+                record = self.lookup(stage, key)
+                if record is not None and part.exists():
+                    shutil.rmtree(part, ignore_errors=True)  # a leftover made while waiting
+                yield part, record
+            finally:
+                if fcntl is not None:
+                    fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+    def commit(self, stage: str, key: str, record: Mapping) -> Path:
+        """Mark the partial folder complete and move it to its final name atomically.
+
+        Returns the final folder. When another worker finished the same key
+        first, its result is kept and this partial folder is removed.
+        """
+        part = self.partial_dir(stage, key)
+        final = self.final_dir(stage, key)
+        from mavispm.core.atomic import atomic_path
+
+        with atomic_path(part / MARKER) as tmp:
+            tmp.write_text(json.dumps(record, indent=1, sort_keys=True, default=_json_default))
+        if final.exists() and self.lookup(stage, key) is None:
+            shutil.rmtree(final)  # an incomplete leftover from an older layout
+        try:
+            os.rename(part, final)
+        except OSError:
+            if self.lookup(stage, key) is None:
+                raise
+            shutil.rmtree(part, ignore_errors=True)
+        return final
+
+    def invalidate(self, stage: str, key: str) -> None:
+        """Forget a completed node (``--force``): remove its marker and folder."""
+        final = self.final_dir(stage, key)
+        with contextlib.suppress(FileNotFoundError):
+            (final / MARKER).unlink()
+        shutil.rmtree(final, ignore_errors=True)
+
+
+def product_fingerprint(path: str | os.PathLike, ignore: tuple[str, ...] = ()) -> str:
+    """Hash of a product's *content*, ignoring its creation time stamp.
+
+    For HDF5 products every dataset (name, dtype, shape, bytes) and every
+    attribute except ``created`` (and the names in ``ignore``, for example
+    attributes recording input file paths) is hashed; for other files the bytes.
+    Two products with the same fingerprint hold bitwise identical data.
+    """
+    path = Path(path)
+    if path.suffix not in (".h5", ".hdf5"):
+        return file_digest(path)
+    import h5py
+
+    h = hashlib.sha256()
+
+    def add_attrs(obj):
+        for k in sorted(obj.attrs):
+            if k == "created" or k in ignore:
+                continue
+            h.update(k.encode())
+            h.update(repr(np.asarray(obj.attrs[k]).tolist()).encode())
+
+    with h5py.File(path, "r") as f:
+        add_attrs(f)
+        names: list[str] = []
+        f.visit(names.append)
+        for name in sorted(names):
+            obj = f[name]
+            h.update(name.encode())
+            add_attrs(obj)
+            if isinstance(obj, h5py.Dataset):
+                data = np.ascontiguousarray(obj[()])
+                h.update(f"{data.dtype.str}{data.shape}".encode())
+                h.update(data.tobytes())
+    return h.hexdigest()

@@ -1,0 +1,176 @@
+"""Where tasks run: in this process, in local threads or processes, or on dask.
+
+All executors offer the same small interface (:class:`Executor`): ``submit`` a
+picklable function call, ``wait`` for the first of several futures to finish,
+and ``close``. The runner never depends on which one it has; since every task
+is a pure function of its inputs, settings and seed, products are bitwise
+identical whatever the executor.
+
+``make_executor(spec)`` understands
+
+* ``None`` or ``"threads"``: a thread pool on this machine (the default);
+* ``"processes"``: a process pool (forkserver/spawn start, no server);
+* ``"serial"``: run each task in the calling thread when submitted;
+* ``"tcp://host:port"`` (or any dask address): an existing
+  dask.distributed scheduler. Workers must see the work directory at the same
+  path (a shared file system) and have mavispm installed;
+* a ``distributed.Client`` instance.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable
+
+from mavispm.core.errors import ConfigError
+
+LOCAL_KINDS = ("threads", "processes", "serial")
+
+
+class Executor:
+    """Interface of the runner's executors."""
+
+    name = "executor"
+
+    def submit(self, fn: Callable, *args):  # pragma: no cover - interface
+        """Start ``fn(*args)``; return a future."""
+        raise NotImplementedError
+
+    def wait(self, futures: Iterable) -> tuple[set, set]:
+        """Block until at least one future is done; return (done, not_done)."""
+        return cf.wait(list(futures), return_when=cf.FIRST_COMPLETED)
+
+    @staticmethod
+    def outcome(future):
+        """The future's result (re-raising the task's exception)."""
+        return future.result()
+
+    def close(self) -> None:
+        """Release workers and connections."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class SerialExecutor(Executor):
+    """Runs each task immediately in the calling thread."""
+
+    name = "serial"
+
+    def submit(self, fn, *args):
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(fn(*args))
+        except BaseException as exc:  # delivered through the future like a pool would
+            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                raise
+            fut.set_exception(exc)
+        return fut
+
+
+class PoolExecutor(Executor):
+    """A ``concurrent.futures`` thread or process pool on this machine."""
+
+    def __init__(self, kind: str, workers: int):
+        self.name = f"{kind}({workers})"
+        if kind == "threads":
+            self._pool = cf.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mavispm")
+        else:
+            methods = multiprocessing.get_all_start_methods()
+            ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+            self._pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
+
+    def submit(self, fn, *args):
+        return self._pool.submit(fn, *args)
+
+    def close(self):
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor(Executor):
+    """Tasks on a dask.distributed cluster.
+
+    Parameters
+    ----------
+    client_or_address : distributed.Client or str
+        A connected client, or a scheduler address such as ``tcp://host:8786``.
+    timeout : float
+        Seconds to wait for the scheduler before giving up with a clear error.
+    """
+
+    def __init__(self, client_or_address, timeout: float = 20.0):
+        import distributed
+
+        self._own = not isinstance(client_or_address, distributed.Client)
+        if self._own:
+            try:
+                self.client = distributed.Client(client_or_address, timeout=timeout)
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise ConfigError(
+                    f"cannot connect to the dask scheduler {client_or_address!r} ({exc}); "
+                    "expected the address of a running scheduler, e.g. tcp://host:8786",
+                    key="--scheduler",
+                ) from None
+        else:
+            self.client = client_or_address
+        self.name = f"dask({self.client.scheduler.address})"
+
+    def submit(self, fn, *args):
+        # pure=False: each call is a task of its own even with equal arguments.
+        return self.client.submit(fn, *args, pure=False)
+
+    def wait(self, futures):
+        import distributed
+
+        done, not_done = distributed.wait(list(futures), return_when="FIRST_COMPLETED")
+        return set(done), set(not_done)
+
+    def close(self):
+        if self._own:
+            self.client.close()
+
+
+def default_workers() -> int:
+    """Number of CPUs available to this process."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def make_executor(spec=None, workers: int = 0, timeout: float = 20.0) -> Executor:
+    """Build an executor from a ``--scheduler`` value (see module docstring).
+
+    Parameters
+    ----------
+    spec : str, distributed.Client or None
+    workers : int
+        Pool size for local pools (0 = number of CPUs).
+    timeout : float
+        Seconds to wait for a dask scheduler [s].
+
+    Raises
+    ------
+    ConfigError
+        For an unknown specification or an unreachable scheduler.
+    """
+    if spec is None:
+        spec = "threads"
+    if not isinstance(spec, str):
+        return DaskExecutor(spec)
+    if spec == "serial":
+        return SerialExecutor()
+    if spec in ("threads", "processes"):
+        return PoolExecutor(spec, workers or default_workers())
+    if "://" in spec or ":" in spec:
+        return DaskExecutor(spec, timeout=timeout)
+    raise ConfigError(
+        f"unknown scheduler {spec!r}; expected one of {list(LOCAL_KINDS)} or a dask "
+        "scheduler address such as tcp://host:8786",
+        key="--scheduler",
+    )

@@ -1,0 +1,643 @@
+"""Run reports: report.md with tables and plots, from a run directory alone.
+
+:func:`write_report` reads ``summary.json`` and the products of a run
+directory and writes ``report.md`` plus its tables and PNG plots under
+``report/``. ``mavispm report RUNDIR`` calls it, so a report can be redrawn
+without running any stage.
+
+Sections: stage timings (ran / cached / wall time), per-node status, the sweep
+table and plots, the report *recipes* a workflow asks for in
+``[outputs] tables`` (:data:`RECIPES`), and each stage's own accuracy report
+(``write_report`` of the stage module) per study, sweep point and scene.
+
+Recipes
+-------
+``astrometry_by_magnitude``
+    The paper's tab:simresults: x-position dispersion (three iterations of
+    2-sigma clipping) in the paper's magnitude bins, one row per scene, with
+    star counts, the recovered fractions of tab:simparams and residual plots.
+``pm_accuracy``
+    Proper-motion error against magnitude (and radius): robust RMS, fraction of
+    stars within 50 and 150 microarcsec/yr per magnitude bin, per variant.
+``dispersion_profiles``
+    PM dispersion profiles in equal-count radial bins (default 300 stars),
+    measured and true, for every study on one plot (paper fig:imbhresults).
+``model_comparison``
+    The dynamics stage's model-comparison numbers (ln B, Delta ln L, AIC,
+    BIC, M_BH) per study and sweep point.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from mavispm.core.atomic import atomic_path
+from mavispm.core.errors import InputError, MavispmError
+
+#: Magnitude bins of the paper's tab:simresults (lower, upper).
+PAPER_BINS = (
+    (-math.inf, 16.0),
+    (16.0, 17.0),
+    (17.0, 18.0),
+    (18.0, 19.0),
+    (19.0, 20.0),
+    (20.0, 22.0),
+    (22.0, 24.0),
+    (24.0, 26.0),
+    (26.0, math.inf),
+)
+#: Measured-star flags that mean "no usable position" (not converged, no match, failed).
+BAD_FLAGS = 1 | 16 | 32
+
+
+def read_summary(rundir: str | os.PathLike) -> dict:
+    """Read a run directory's summary.json.
+
+    Raises
+    ------
+    InputError
+        When the folder is not a mavispm run directory.
+    """
+    path = Path(rundir) / "summary.json"
+    if not path.is_file():
+        raise InputError("not a mavispm run directory (no summary.json)", path=rundir)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"summary.json is not valid JSON ({exc})", path=path) from None
+
+
+def bin_label(lo: float, hi: float) -> str:
+    """Magnitude-bin label in the paper's style (``m<16``, ``[16,17)``, ``m>=26``)."""
+    if math.isinf(lo):
+        return f"m<{hi:g}"
+    if math.isinf(hi):
+        return f"m>={lo:g}"
+    return f"[{lo:g},{hi:g})"
+
+
+def clipped_dispersion(
+    values: np.ndarray, sigma: float = 2.0, iterations: int = 3
+) -> tuple[float, int]:
+    """Standard deviation after ``iterations`` rounds of ``sigma`` clipping about the mean.
+
+    Returns
+    -------
+    (float, int)
+        Dispersion (NaN for fewer than 2 values) and the number of values kept.
+    """
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    for _ in range(iterations):
+        if v.size < 2:
+            break
+        mean, std = v.mean(), v.std()
+        kept = v[(v >= mean - sigma * std) & (v <= mean + sigma * std)]
+        if kept.size == v.size:
+            break
+        v = kept
+    return (float(v.std()) if v.size >= 2 else math.nan), int(v.size)
+
+
+def _nodes(summary: Mapping, stage: str) -> list[dict]:
+    return [n for n in summary["nodes"] if n["stage"] == stage and n.get("products")]
+
+
+def _variant_label(node: Mapping) -> str:
+    lab = node["labels"]
+    return " ".join(p for p in (lab.get("study"), lab.get("point")) if p) or "-"
+
+
+def _read_table(path: Path, kind: str, table: str):
+    from mavispm.core.products import read_product
+
+    return read_product(path, kind, load_arrays=False).tables[table]
+
+
+def _q(table, name: str, unit: str) -> np.ndarray:
+    col = table[name]
+    if hasattr(col, "to_value"):
+        return np.asarray(col.to_value(unit), dtype=float)
+    return np.asarray(col, dtype=float)
+
+
+def _md_table(header: list[str], rows: list[list]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(out) + "\n"
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _rel(path: Path, rundir: Path) -> str:
+    return os.path.relpath(path, rundir)
+
+
+# --------------------------------------------------------------------------- recipes
+
+
+def astrometry_by_magnitude(summary: Mapping, rundir: Path, outdir: Path) -> str:
+    """Recipe: the paper's per-magnitude astrometric dispersion table (tab:simresults)."""
+    import matplotlib.pyplot as plt
+
+    nodes = _nodes(summary, "stars")
+    if not nodes:
+        return "No measured stars in this run.\n"
+    frames_by_id = {n["id"]: n for n in _nodes(summary, "frames")}
+    header = ["variant", "scene", "epoch"] + [bin_label(*b) + " [uas]" for b in PAPER_BINS]
+    header += ["recovered m<22", "recovered m>=22", "sigma_TT,ave [mas]"]
+    rows, csv_rows = [], []
+    fig, axes = plt.subplots(len(nodes), 1, figsize=(7, 2.2 * len(nodes) + 0.6), squeeze=False)
+    for ax, node in zip(axes[:, 0], nodes):
+        stars = _read_table(rundir / node["products"]["main"], "measured", "stars")
+        mag = _q(stars, "mag", "mag")
+        dx = (_q(stars, "x", "arcsec") - _q(stars, "x_true", "arcsec")) * 1e6
+        good = np.isfinite(dx) & np.isfinite(mag)
+        if "flag" in stars.colnames:
+            good &= (np.asarray(stars["flag"]).astype(int) & BAD_FLAGS) == 0
+        cells, csv = [], []
+        for lo, hi in PAPER_BINS:
+            sel = good & (mag >= lo) & (mag < hi)
+            disp, kept = clipped_dispersion(dx[sel])
+            cells.append("-" if not math.isfinite(disp) else f"{disp:.2f} ({kept})")
+            csv += [disp, kept]
+        frames_node = frames_by_id.get(node["id"].replace("stars/", "frames/", 1))
+        frac = _recovered(frames_node, rundir, mag[good])
+        cells += [f"{100 * f:.0f}%" if math.isfinite(f) else "-" for f in frac]
+        sigma_tt = _sigma_tt(frames_node, rundir)
+        cells.append(f"{sigma_tt:.2f}" if math.isfinite(sigma_tt) else "-")
+        frac = [*frac, sigma_tt]
+        lab = node["labels"]
+        rows.append([_variant_label(node), lab.get("scene", ""), lab.get("epoch", ""), *cells])
+        csv_rows.append(
+            [_variant_label(node), lab.get("scene", ""), lab.get("epoch", ""), *csv, *frac]
+        )
+        _residual_panel(
+            ax,
+            mag[good],
+            dx[good],
+            " ".join(filter(None, (lab.get(k) for k in ("study", "point", "scene", "epoch")))),
+        )
+    axes[-1, 0].set_xlabel("V [mag] (truth)")
+    fig.tight_layout()
+    png = _save(fig, outdir / "astrometry_by_magnitude.png")
+    csv_header = ["variant", "scene", "epoch"]
+    for b in PAPER_BINS:
+        csv_header += [f"disp_uas_{bin_label(*b)}", f"n_{bin_label(*b)}"]
+    csv_header += ["recovered_lt22", "recovered_ge22", "sigma_tt_ave_mas"]
+    _write_csv(outdir / "astrometry_by_magnitude.csv", csv_header, csv_rows)
+    return (
+        "x-position dispersion (measured minus input) after three iterations of 2-sigma "
+        "clipping, in microarcsec, stars kept in parentheses (paper tab:simresults); "
+        "recovered fractions and the field-averaged tip-tilt kernel (semi-major sigma of the "
+        'atmospheric residual over an 11 x 11 grid of the 30" field) as in tab:simparams.\n\n'
+        + _md_table(header, rows)
+        + f"\n![astrometric residuals]({_rel(png, rundir)})\n"
+        + f"\nTable as CSV: [{_rel(outdir / 'astrometry_by_magnitude.csv', rundir)}]"
+        f"({_rel(outdir / 'astrometry_by_magnitude.csv', rundir)})\n"
+    )
+
+
+def _sigma_tt(frames_node, rundir: Path) -> float:
+    """The paper's sigma_TT,ave [mas] of a frame's scene (NaN when not available).
+
+    Uses the optics module's public tip-tilt model on the scene recorded in the
+    frames product (``scene`` attribute), so it describes what was rendered.
+    """
+    if frames_node is None:
+        return math.nan
+    try:
+        from mavispm.simulate.optics import validate_settings
+        from mavispm.simulate.tiptilt import TipTiltField, field_average_sigma
+    except ImportError:
+        return math.nan
+    from mavispm.core.products import read_product
+
+    attrs = read_product(
+        rundir / frames_node["products"]["main"], "frames", load_arrays=False
+    ).attrs
+    scene = attrs.get("scene")
+    scene = json.loads(scene) if isinstance(scene, str) else scene
+    if not isinstance(scene, Mapping):
+        return math.nan
+    try:
+        s = validate_settings(scene.get("optics") or {})
+    except MavispmError:  # not the optics model's settings (another renderer)
+        return math.nan
+    if not s.tiptilt.enabled:
+        return 0.0
+    return field_average_sigma(TipTiltField(s.tiptilt, s.atmosphere, s.pupil))
+
+
+def _recovered(frames_node, rundir: Path, measured_mag: np.ndarray) -> list[float]:
+    """Fraction of rendered stars recovered, brighter and fainter than m = 22."""
+    if frames_node is None:
+        return [math.nan, math.nan]
+    truth = _read_table(rundir / frames_node["products"]["main"], "frames", "truth")
+    tmag = _q(truth, "mag", "mag")
+    out = []
+    for sel_t, sel_m in ((tmag < 22, measured_mag < 22), (tmag >= 22, measured_mag >= 22)):
+        n = int(np.count_nonzero(sel_t))
+        out.append(np.count_nonzero(sel_m) / n if n else math.nan)
+    return out
+
+
+def _residual_panel(ax, mag, dx, title):
+    ax.plot(mag, dx, ".", ms=2, color="tab:pink", alpha=0.6)
+    edges = np.arange(
+        math.floor(np.nanmin(mag, initial=14)), math.ceil(np.nanmax(mag, initial=27)) + 1
+    )
+    centres, disps = [], []
+    for lo in edges[:-1]:
+        sel = (mag >= lo) & (mag < lo + 1)
+        disp, kept = clipped_dispersion(dx[sel])
+        if kept >= 2:
+            centres.append(lo + 0.5)
+            disps.append(disp)
+    ax.errorbar(centres, np.zeros(len(centres)), yerr=disps, fmt="k_", capsize=3)
+    lim = 3 * np.nanmax(disps) if disps else 1000.0
+    ax.set_ylim(-lim, lim)
+    ax.set_ylabel("dx [uas]")
+    ax.set_title(title, fontsize=8)
+
+
+def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
+    """Recipe: proper-motion error against magnitude and radius, per variant."""
+    import matplotlib.pyplot as plt
+
+    nodes = _nodes(summary, "propermotions")
+    if not nodes:
+        return "No proper motions in this run.\n"
+    bins = (
+        (-math.inf, 18.0),
+        (18.0, 20.0),
+        (20.0, 22.0),
+        (22.0, 24.0),
+        (24.0, 25.0),
+        (25.0, 26.0),
+        (26.0, math.inf),
+    )
+    header = [
+        "variant",
+        "scene",
+        "magnitude",
+        "N",
+        "RMS dpm_x [uas/yr]",
+        "<50 uas/yr",
+        "<150 uas/yr",
+    ]
+    rows, csv_rows = [], []
+    fig, axes = plt.subplots(len(nodes), 2, figsize=(9, 2.4 * len(nodes) + 0.6), squeeze=False)
+    for (ax_m, ax_r), node in zip(axes, nodes):
+        stars = _read_table(rundir / node["products"]["main"], "propermotions", "stars")
+        if "pm_x_true" not in stars.colnames:
+            continue
+        mag = _q(stars, "mag", "mag") if "mag" in stars.colnames else np.full(len(stars), np.nan)
+        d = (_q(stars, "pm_x", "mas/yr") - _q(stars, "pm_x_true", "mas/yr")) * 1e3
+        radius = _q(stars, "R", "arcsec")
+        good = np.isfinite(d)
+        if good.any():  # measured PMs are relative to the cluster's mean motion, as on sky
+            d = d - np.median(d[good])
+        label = _variant_label(node)
+        scene = node["labels"].get("scene", "")
+        for lo, hi in (*bins, (-math.inf, math.inf)):
+            sel = good & (mag >= lo) & (mag < hi) if np.isfinite(lo) or np.isfinite(hi) else good
+            n = int(np.count_nonzero(sel))
+            if n == 0:
+                continue
+            rms = 1.4826 * float(np.median(np.abs(d[sel] - np.median(d[sel]))))
+            f50 = float(np.mean(np.abs(d[sel]) < 50))
+            f150 = float(np.mean(np.abs(d[sel]) < 150))
+            name = "all" if (math.isinf(lo) and math.isinf(hi)) else bin_label(lo, hi)
+            rows.append(
+                [label, scene, name, n, f"{rms:.1f}", f"{100 * f50:.0f}%", f"{100 * f150:.0f}%"]
+            )
+            csv_rows.append([label, scene, name, n, rms, f50, f150])
+        for ax, xval, xlabel in ((ax_m, mag, "V [mag]"), (ax_r, radius, "R [arcsec]")):
+            ax.plot(xval[good], d[good], ".", ms=2, color="0.5")
+            ok50 = good & (np.abs(d) < 50)
+            ax.plot(xval[ok50], d[ok50], ".", ms=2, color="purple", label="< 50 uas/yr")
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel("dpm_x [uas/yr]")
+            ax.set_ylim(-500, 500)
+        ax_m.set_title(f"{label} {scene}", fontsize=8)
+    fig.tight_layout()
+    png = _save(fig, outdir / "pm_accuracy.png")
+    _write_csv(
+        outdir / "pm_accuracy.csv",
+        ["variant", "scene", "magnitude", "n", "rms_uas_yr", "frac_lt50", "frac_lt150"],
+        csv_rows,
+    )
+    return (
+        "Proper-motion error (measured minus true, x component, after removing the median "
+        "offset: measured PMs are relative to the cluster's mean motion); robust RMS from "
+        "the MAD, and fraction of stars within 50 and 150 microarcsec/yr.\n\n"
+        + _md_table(header, rows)
+        + f"\n![PM accuracy]({_rel(png, rundir)})\n"
+    )
+
+
+def dispersion_profile(radius: np.ndarray, pm_x: np.ndarray, pm_y: np.ndarray, per_bin: int = 300):
+    """1-D PM dispersion in equal-count radial bins.
+
+    Parameters
+    ----------
+    radius : ndarray
+        Projected radius [any unit].
+    pm_x, pm_y : ndarray
+        Proper-motion components [mas/yr].
+    per_bin : int
+        Stars per bin (the last bin takes the remainder when it is at least half full).
+
+    Returns
+    -------
+    (ndarray, ndarray, ndarray)
+        Mean radius, dispersion sqrt((var_x + var_y) / 2) and its standard error
+        sigma / sqrt(2 (2N - 1)) per bin.
+    """
+    ok = np.isfinite(radius) & np.isfinite(pm_x) & np.isfinite(pm_y)
+    order = np.argsort(radius[ok])
+    r, vx, vy = radius[ok][order], pm_x[ok][order], pm_y[ok][order]
+    n = r.size
+    per_bin = max(2, min(per_bin, n))
+    edges = list(range(0, n, per_bin))
+    if len(edges) > 1 and n - edges[-1] < per_bin // 2:
+        edges.pop()
+    edges.append(n)
+    rr, ss, ee = [], [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b - a < 2:
+            continue
+        s = math.sqrt(0.5 * (vx[a:b].var(ddof=1) + vy[a:b].var(ddof=1)))
+        rr.append(r[a:b].mean())
+        ss.append(s)
+        ee.append(s / math.sqrt(2 * (2 * (b - a) - 1)))
+    return np.array(rr), np.array(ss), np.array(ee)
+
+
+def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: int = 300) -> str:
+    """Recipe: measured and true PM dispersion profiles of every study (fig:imbhresults)."""
+    import matplotlib.pyplot as plt
+
+    nodes = _nodes(summary, "propermotions")
+    if not nodes:
+        return "No proper motions in this run.\n"
+    fig, ax = plt.subplots(figsize=(6, 4))
+    rows = []
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, node in enumerate(nodes):
+        stars = _read_table(rundir / node["products"]["main"], "propermotions", "stars")
+        radius = _q(stars, "R", "arcsec")
+        n = len(stars)
+        nb = per_bin if n >= 2 * per_bin else max(10, n // 5)
+        label = f"{_variant_label(node)} {node['labels'].get('scene', '')}".strip()
+        c = colours[i % len(colours)]
+        r, s, e = dispersion_profile(
+            radius, _q(stars, "pm_x", "mas/yr"), _q(stars, "pm_y", "mas/yr"), nb
+        )
+        ax.errorbar(r, s, yerr=e, fmt="o", color=c, label=f"{label} measured")
+        for j in range(r.size):
+            rows.append([label, "measured", f"{r[j]:.2f}", f"{s[j]:.4f}", f"{e[j]:.4f}"])
+        if "pm_x_true" in stars.colnames:
+            r, s, e = dispersion_profile(
+                radius, _q(stars, "pm_x_true", "mas/yr"), _q(stars, "pm_y_true", "mas/yr"), nb
+            )
+            ax.fill_between(r, s - e, s + e, color=c, alpha=0.25, label=f"{label} truth")
+            for j in range(r.size):
+                rows.append([label, "truth", f"{r[j]:.2f}", f"{s[j]:.4f}", f"{e[j]:.4f}"])
+    ax.set_xlabel("R [arcsec]")
+    ax.set_ylabel("1-D PM dispersion [mas/yr]")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    png = _save(fig, outdir / "dispersion_profiles.png")
+    return (
+        f"PM dispersion sqrt((var_x + var_y)/2) in equal-count radial bins (up to {per_bin} stars; "
+        "measurement errors not deconvolved here; the dynamics stage does that).\n\n"
+        + _md_table(["variant", "source", "R [arcsec]", "sigma [mas/yr]", "error [mas/yr]"], rows)
+        + f"\n![dispersion profiles]({_rel(png, rundir)})\n"
+    )
+
+
+#: Dynamics results shown first in the model-comparison table (when present).
+KEY_DYNAMICS_METRICS = (
+    "ln_bayes_factor",
+    "ln_bayes_factor_err",
+    "delta_ln_likelihood",
+    "delta_aic",
+    "delta_bic",
+    "bh_mass_median",
+    "bh_mass_lo68",
+    "bh_mass_hi68",
+    "bh_mass_upper95",
+    "n_stars",
+    "tau_max_imbh",
+    "steps_imbh",
+)
+
+
+def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
+    """Recipe: the dynamics stage's model-comparison numbers per study and sweep point.
+
+    One column per fit, one row per result (the key results of
+    :data:`KEY_DYNAMICS_METRICS`); every scalar result goes to ``model_comparison.csv``.
+    """
+    nodes = _nodes(summary, "dynamics")
+    if not nodes:
+        return "No dynamics fits in this run.\n"
+    names: list[str] = []
+    for node in nodes:
+        names += [k for k in node.get("metrics", {}) if k not in names]
+    key = [k for k in KEY_DYNAMICS_METRICS if k in names]
+    columns = [
+        " ".join(filter(None, (n["labels"].get(k) for k in ("study", "point", "scene")))) or "fit"
+        for n in nodes
+    ]
+
+    def cell(node, name):
+        value = node.get("metrics", {}).get(name)
+        return f"{value:.4g}" if isinstance(value, (int, float)) else "-"
+
+    rows = [[name] + [cell(n, name) for n in nodes] for name in key]
+    csv_path = _write_csv(
+        outdir / "model_comparison.csv",
+        ["result", *columns],
+        [[name] + [n.get("metrics", {}).get(name, "") for n in nodes] for name in names],
+    )
+    pngs = [v for n in nodes for k, v in n["products"].items() if k.startswith("plot_")]
+    text = _md_table(["result", *columns], rows)
+    text += f"\nAll results: [{csv_path.name}]({_rel(csv_path, rundir)})\n"
+    text += "".join(f"\n![{Path(p).stem}]({p})\n" for p in pngs)
+    return text
+
+
+#: Report recipe name -> function(summary, rundir, outdir) -> Markdown text.
+RECIPES: dict[str, Callable[[Mapping, Path, Path], str]] = {
+    "astrometry_by_magnitude": astrometry_by_magnitude,
+    "pm_accuracy": pm_accuracy,
+    "dispersion_profiles": dispersion_profiles,
+    "model_comparison": model_comparison,
+}
+
+
+RECIPE_TITLES = {
+    "astrometry_by_magnitude": "Astrometric accuracy by magnitude",
+    "pm_accuracy": "Proper-motion accuracy",
+    "dispersion_profiles": "Dispersion profiles",
+    "model_comparison": "IMBH model comparison",
+}
+
+
+def _write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+    import csv
+    import io
+
+    def fmt(v):
+        if isinstance(v, float):
+            return "nan" if not math.isfinite(v) else f"{v:.6g}"
+        return v
+
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows([fmt(v) for v in r] for r in rows)
+    with atomic_path(path) as tmp:
+        tmp.write_text(buf.getvalue())
+    return path
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def write_report(rundir: str | os.PathLike) -> Path:
+    """Write ``report.md`` (and ``report/`` with tables and plots) for a run directory.
+
+    Parameters
+    ----------
+    rundir : path
+        A run directory written by :func:`mavispm.workflows.runner.run_workflow`.
+
+    Each stage's own report function (``write_report`` of the stage module, as
+    recorded in summary.json's ``stage_reports``) is called on that stage's
+    products; stage modules that cannot be imported are skipped.
+
+    Returns
+    -------
+    pathlib.Path
+        The report file.
+    """
+    from mavispm.workflows.sweeps import write_sweep_table
+
+    rundir = Path(rundir)
+    summary = read_summary(rundir)
+    outdir = rundir / "report"
+    outdir.mkdir(exist_ok=True)
+    parts = [f"# mavispm run: {summary['workflow']}\n"]
+    if summary.get("description"):
+        parts.append(summary["description"].strip() + "\n")
+    parts.append(
+        f"Workflow file `{summary['source']}`, mavispm {summary['mavispm_version']}, "
+        f"executor {summary['executor']}, finished {summary['created']}, "
+        f"wall time {summary['wall_s']:.1f} s.\n"
+    )
+    parts.append("## Stages\n")
+    from mavispm.workflows.registry import STAGE_NAMES
+
+    order = sorted(summary["stages"], key=lambda s: (STAGE_NAMES + (s,)).index(s))
+    rows = [
+        [s, v["tasks"], v["ran"], v["cached"], v.get("failed", 0), f"{v['wall_s']:.2f}"]
+        for s, v in ((s, summary["stages"][s]) for s in order)
+    ]
+    parts.append(_md_table(["stage", "tasks", "ran", "cached", "failed", "compute time [s]"], rows))
+    parts.append("\n## Nodes\n")
+    rows = []
+    for node in summary["nodes"]:
+        wall = node.get("wall_s")
+        main = node["products"].get("main", "")
+        rows.append(
+            [
+                node["id"],
+                node["status"],
+                "-" if wall is None else f"{wall:.2f}",
+                f"[{Path(main).name}]({main})" if main else "-",
+            ]
+        )
+    parts.append(_md_table(["node", "status", "time [s]", "product"], rows))
+    sweep_files = write_sweep_table(summary, outdir)
+    if sweep_files:
+        parts.append("\n## Sweep\n")
+        md = [p for p in sweep_files if p.suffix == ".md"]
+        parts.append(md[0].read_text() if md else "")
+        parts += [f"\n![{p.stem}]({_rel(p, rundir)})\n" for p in sweep_files if p.suffix == ".png"]
+    for recipe in summary.get("outputs", {}).get("tables", []):
+        parts.append(f"\n## {RECIPE_TITLES[recipe]}\n")
+        parts.append(_safe(RECIPES[recipe], summary, rundir, outdir))
+    parts += _stage_reports(summary, rundir, outdir)
+    path = rundir / "report.md"
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(parts))
+    return path
+
+
+def _safe(func, *args) -> str:
+    try:
+        return func(*args)
+    except Exception as exc:  # a broken report section must not hide the others
+        warnings.warn(f"report section {func.__name__} failed: {exc}", stacklevel=2)
+        return f"*This section could not be produced: {type(exc).__name__}: {exc}*\n"
+
+
+def _stage_reports(summary: Mapping, rundir: Path, outdir: Path) -> list[str]:
+    from mavispm.workflows.registry import resolve
+
+    parts = []
+    for stage, ref in (summary.get("stage_reports") or {}).items():
+        try:
+            func = resolve(ref)
+        except (ImportError, AttributeError):
+            continue
+        groups: dict[tuple, list[Path]] = {}
+        for node in _nodes(summary, stage):
+            lab = node["labels"]
+            key = (lab.get("study", ""), lab.get("point", ""), lab.get("scene", ""))
+            groups.setdefault(key, []).append(rundir / node["products"]["main"])
+        if not groups:
+            continue
+        parts.append(f"\n## {stage} report\n")
+        for key, paths in groups.items():
+            name = "_".join(p for p in key if p) or "all"
+            target = outdir / stage / name
+
+            def call(func=func, paths=paths, target=target):
+                return list(func(paths, target) or [])
+
+            try:
+                files = call()
+            except Exception as exc:
+                warnings.warn(f"{stage} report for {name} failed: {exc}", stacklevel=2)
+                parts.append(f"*{name}: report failed: {type(exc).__name__}: {exc}*\n")
+                continue
+            parts.append(f"\n### {name}\n")
+            for f in map(Path, files):
+                rel = _rel(f, rundir)
+                if f.suffix == ".png":
+                    parts.append(f"![{f.stem}]({rel})\n")
+                elif f.suffix == ".md":
+                    parts.append(f.read_text() + "\n")
+                else:
+                    parts.append(f"- [{f.name}]({rel})\n")
+    return parts

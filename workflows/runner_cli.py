@@ -1,0 +1,129 @@
+"""``mavispm run WORKFLOW.toml`` and ``mavispm report RUNDIR``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from mavispm.workflows.runner import DEFAULT_WORKDIR
+
+
+def register(subparsers) -> None:
+    """Add the ``run`` and ``report`` commands to the top-level sub-parsers."""
+    run = subparsers.add_parser(
+        "run",
+        help="run a workflow file (cached, resumable)",
+        description="Run a whole study described by a workflow file. Products are cached by "
+        "content: a second run does no work, a changed setting re-runs only what depends on it, "
+        "and an interrupted run resumes. Shipped workflows (quickstart, astrometric_budget, "
+        "ngc3201_imbh, pm_accuracy) can be named without a path.",
+    )
+    run.add_argument("workflow", help="workflow TOML file, or the name of a shipped workflow")
+    run.add_argument(
+        "--workdir",
+        type=Path,
+        default=Path(DEFAULT_WORKDIR),
+        help=f"work directory holding the product store and run directories (default ./{DEFAULT_WORKDIR})",
+    )
+    run.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="where tasks run (default: the workflow's [workflow] executor, threads unless set): "
+        "threads, processes, serial, or the address of a running "
+        "dask.distributed scheduler such as tcp://host:8786",
+    )
+    run.add_argument(
+        "--workers", type=int, default=None, help="local pool size (default: all CPUs)"
+    )
+    run.add_argument("--force", action="store_true", help="recompute every node even when cached")
+    run.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a workflow key (dotted, TOML value), e.g. --set dynamics.max_steps=500 "
+        "or --set 'scene.optics.tiptilt.asterism=\"bad\"' (repeatable)",
+    )
+    run.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="validate and list the nodes (cached / to run); run nothing",
+    )
+    run.add_argument("--quiet", action="store_true", help="no progress bars")
+    run.set_defaults(func=_run)
+
+    report = subparsers.add_parser(
+        "report",
+        help="(re)write the report of a run directory",
+        description="Write report.md with tables and plots from a run directory's summary.json "
+        "and products, without running any stage.",
+    )
+    report.add_argument("rundir", type=Path, help="run directory (<workdir>/<workflow name>)")
+    report.set_defaults(func=_report)
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings to a dict; values are TOML literals, else plain strings.
+
+    Raises
+    ------
+    ConfigError
+        For an item without ``=``.
+    """
+    import tomllib
+
+    from mavispm.core.errors import ConfigError
+
+    out = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"expected KEY=VALUE, got {item!r}", key="--set")
+        try:
+            value = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text
+        out[key.strip()] = value
+    return out
+
+
+def _run(args: argparse.Namespace) -> int:
+    from mavispm.workflows.config import load_workflow
+    from mavispm.workflows.runner import plan_workflow, run_workflow
+    from mavispm.workflows.stages import default_registry
+
+    registry = default_registry()
+    workflow = load_workflow(args.workflow, registry, overrides=parse_overrides(args.set))
+    if args.dry_run:
+        plan = plan_workflow(workflow, args.workdir, registry)
+        for entry in plan:
+            print(f"  {entry['status']:>7}  {entry['id']}")
+        todo = sum(e["status"] != "cached" for e in plan)
+        print(f"{len(plan)} nodes, {todo} to run, {len(plan) - todo} cached (nothing was run)")
+        return 0
+    result = run_workflow(
+        workflow,
+        registry=registry,
+        workdir=args.workdir,
+        scheduler=args.scheduler,
+        force=args.force,
+        workers=args.workers,
+        progress=not args.quiet,
+    )
+    stages = result.summary["stages"]
+    print(f"run directory: {result.rundir}")
+    for name, st in stages.items():
+        print(f"  {name:>13}: {st['ran']} ran, {st['cached']} cached, {st['wall_s']:.1f} s")
+    print(
+        f"  total wall time {result.summary['wall_s']:.1f} s; report: {result.rundir / 'report.md'}"
+    )
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from mavispm.workflows.report import write_report
+
+    path = write_report(args.rundir)
+    print(f"report: {path}")
+    return 0

@@ -1,0 +1,184 @@
+"""Glue between the workflow graph and the real stage modules (docs/stages.md).
+
+Each adapter turns the runner's uniform call
+``run(inputs, settings, params, seed, outdir) -> {"main": path, ...}`` into the
+stage's documented ``run_stage`` signature, and :func:`product_metrics` reads a
+finished product's scalar attributes for summaries and sweep tables.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
+
+_THIS = "mavispm.workflows.stages"
+
+#: Stage -> (module of run_stage/validate_settings/write_report, code globs). The
+#: globs cover the stage's whole sub-package: conservative, since stages share helpers.
+STAGE_MODULES = {
+    "cluster": ("mavispm.simulate.cluster_cli", ("simulate/**/*.py",)),
+    "optics": ("mavispm.simulate.optics_cli", ("simulate/**/*.py",)),
+    "frames": ("mavispm.simulate.render_cli", ("simulate/**/*.py",)),
+    "stars": ("mavispm.measure.photometry_cli", ("measure/**/*.py",)),
+    "propermotions": ("mavispm.measure.propermotions_cli", ("measure/**/*.py",)),
+    "dynamics": ("mavispm.dynamics.cli", ("dynamics/**/*.py",)),
+}
+
+#: Files every stage's key depends on (the shared product format).
+COMMON_CODE = ("core/*.py",)
+
+
+def default_registry() -> StageRegistry:
+    """The registry of the real mavispm stages."""
+    specs = []
+    for name, (module, code) in STAGE_MODULES.items():
+        specs.append(
+            StageSpec(
+                name=name,
+                run=f"{_THIS}:run_{name}",
+                validate=f"{module}:validate_settings",
+                summarize=f"{_THIS}:product_metrics",
+                report=f"{module}:write_report",
+                code=COMMON_CODE + code,
+                exclusive=name == "dynamics",  # draws plots with pyplot
+            )
+        )
+    return StageRegistry.of(specs)
+
+
+def _stage(name: str):
+    return resolve(f"{STAGE_MODULES[name][0]}:run_stage")
+
+
+def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:
+    """Cluster catalogue at the workflow's epochs (set as ``epochs`` in years).
+
+    The ``[epochs]`` table owns the epochs (config refuses ``[cluster] epochs``);
+    an external star list's path is already absolute and hashed as an input.
+    """
+    settings = {**settings, "epochs": [float(t) for _, t in params["epochs"]]}
+    out = _stage("cluster")(settings, outdir / "catalogue.h5", seed)
+    return {"main": out}
+
+
+def run_optics(inputs, settings, params, seed, outdir: Path) -> dict:
+    """PSF grid of a scene's optics (``[scene.optics]``).
+
+    The optics module keeps its own disk cache of PSF grids keyed by their
+    parameters; this node fills it once, before the scene's frames (one per
+    epoch) are rendered, and keeps the grid as a product of the run.
+    """
+    out = _stage("optics")(dict(settings), outdir / "psfgrid.h5", progress=False)
+    return {"main": out}
+
+
+def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
+    """Frames of one epoch of one scene (HDF5, plus FITS when ``[outputs] fits``).
+
+    The scene's optics are built by the render stage from ``scene.optics``; the
+    PSF grid comes from the optics disk cache filled by the ``optics`` node.
+    """
+    scene = dict(settings)
+    fits = outdir / "frames.fits" if params.get("fits", True) else None
+    out = _stage("frames")(
+        inputs["catalogue"], params["epoch"], scene, outdir / "frames.h5", seed, fits_path=fits
+    )
+    products = {"main": out}
+    if fits is not None and Path(fits).is_file():
+        products["fits"] = fits
+    return products
+
+
+def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
+    """Measured stars of one frame."""
+    return {"main": _stage("stars")(inputs["frames"], dict(settings), outdir / "measured.h5", seed)}
+
+
+def run_propermotions(inputs, settings, params, seed, outdir: Path) -> dict:
+    """Proper motions from the measured catalogues of all epochs.
+
+    The true motions come from the catalogue (``truth``). When ``[propermotions]``
+    sets no ``distance``, the catalogue's distance is used, so the product carries
+    the distance the dynamics stage needs (measured products do not copy it).
+    """
+    settings = dict(settings)
+    if "truth" in inputs and settings.get("distance") is None:
+        settings["distance"] = _catalogue_distance(inputs["truth"])
+    out = _stage("propermotions")(
+        list(inputs["measured"]),
+        settings,
+        outdir / "propermotions.h5",
+        truth=inputs.get("truth"),
+    )
+    return {"main": out}
+
+
+def _catalogue_distance(path) -> str | None:
+    """The catalogue product's distance as a quantity string ("4.6 kpc"), or None."""
+    from mavispm.core.products import read_product
+
+    distance = read_product(path, "catalogue", load_arrays=False).attrs.get("distance")
+    return None if distance is None else f"{float(distance.to_value('kpc'))!r} kpc"
+
+
+def run_dynamics(inputs, settings, params, seed, outdir: Path) -> dict:
+    """Dynamical fit and IMBH model comparison (plots in ``plots/``)."""
+    plots = outdir / "plots" if params.get("plots", True) else None
+    out = _stage("dynamics")(
+        inputs["propermotions"],
+        dict(settings),
+        outdir / "dynamics.h5",
+        seed,
+        plots_dir=plots,
+        truth=inputs.get("truth"),
+        truth_no_imbh=inputs.get("truth_no_imbh"),
+    )
+    products = {"main": out}
+    if plots is not None and plots.is_dir():
+        for png in sorted(plots.glob("*.png")):
+            products[f"plot_{png.stem}"] = png
+    return products
+
+
+#: Root attributes that are provenance, not results.
+_PROVENANCE = {"seed", "format_version", "format", "kind", "mavispm_version", "created", "config"}
+
+
+def product_metrics(products: Mapping[str, Path]) -> dict:
+    """Scalar results of a product: numeric root attributes and table row counts.
+
+    Parameters
+    ----------
+    products : mapping of str to Path
+        The node's products; only ``main`` (an HDF5 product) is read.
+
+    Returns
+    -------
+    dict
+        ``attr`` -> float for every finite scalar numeric root attribute (units
+        dropped; see the product's documentation), ``n_<table>`` -> row count.
+    """
+    import h5py
+
+    main = Path(products["main"])
+    if main.suffix not in (".h5", ".hdf5"):
+        return {}
+    out: dict = {}
+    with h5py.File(main, "r") as f:
+        for key, value in f.attrs.items():
+            if key in _PROVENANCE or key.endswith("__unit"):
+                continue
+            arr = np.asarray(value)
+            if arr.ndim == 0 and arr.dtype.kind in "iuf" and np.isfinite(arr):
+                out[key] = arr.item()
+
+        def visit(name, obj):
+            if isinstance(obj, h5py.Group) and obj.attrs.get("mavispm_table", False):
+                out[f"n_{name.replace('/', '_')}"] = int(obj.attrs.get("nrows", 0))
+
+        f.visititems(visit)
+    return out
