@@ -36,8 +36,9 @@ def test_help_lists_every_command(capsys):
 
 def test_user_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     missing = tmp_path / "missing.h5"
-    code = cli.main(["measure", "propermotions", str(missing), str(missing), "-o",
-                     str(tmp_path / "pm.h5")])
+    code = cli.main(
+        ["measure", "propermotions", str(missing), str(missing), "-o", str(tmp_path / "pm.h5")]
+    )
     assert code == 2
     err = capsys.readouterr().err
     assert "missing.h5" in err and "Traceback" not in err
