@@ -99,6 +99,23 @@ def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, s
     return keys
 
 
+@contextlib.contextmanager
+def exclusive_lock(path: Path):
+    """Hold an exclusive OS file lock on ``path`` (created if needed) for the block.
+
+    A killed holder releases the lock with its death. Without POSIX ``fcntl`` the
+    block runs unlocked.
+    """
+    with open(path, "a+b") as fh:
+        if fcntl is not None:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            if fcntl is not None:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
 class Store:
     """The on-disk product store of a work directory.
 
@@ -151,17 +168,11 @@ class Store:
         death.
         """
         part = self.begin(stage, key)
-        with open(part / LOCK_NAME, "a+b") as fh:
-            if fcntl is not None:
-                fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
-            try:
-                record = self.lookup(stage, key)
-                if record is not None and part.exists():
-                    shutil.rmtree(part, ignore_errors=True)  # a leftover made while waiting
-                yield part, record
-            finally:
-                if fcntl is not None:
-                    fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+        with exclusive_lock(part / LOCK_NAME):
+            record = self.lookup(stage, key)
+            if record is not None and part.exists():
+                shutil.rmtree(part, ignore_errors=True)  # a leftover made while waiting
+            yield part, record
 
     def commit(self, stage: str, key: str, record: Mapping) -> Path:
         """Mark the partial folder complete and move it to its final name atomically.

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mavispm.core.errors import MavispmError
-from mavispm.workflows.cache import Store, canonical_json, node_keys
+from mavispm.workflows.cache import Store, canonical_json, exclusive_lock, node_keys
 from mavispm.workflows.config import Workflow, load_workflow
 from mavispm.workflows.executors import make_executor
 from mavispm.workflows.graph import Node, expand
@@ -467,10 +467,21 @@ def _summary(
 def _materialize(
     rundir: Path, summary: dict, nodes, keys, store: Store, workflow: Workflow
 ) -> None:
-    """Write the run directory: product links, summary.json, a copy of the workflow."""
+    """Write the run directory: product links, summary.json, a copy of the workflow.
+
+    Runs sharing the run directory (two terminals on one workflow) take turns: the
+    directory is rebuilt under an OS file lock.
+    """
+    rundir.mkdir(parents=True, exist_ok=True)
+    with exclusive_lock(rundir / ".materialize.lock"):
+        _materialize_locked(rundir, summary, nodes, keys, store, workflow)
+
+
+def _materialize_locked(
+    rundir: Path, summary: dict, nodes, keys, store: Store, workflow: Workflow
+) -> None:
     from mavispm.core.atomic import atomic_path
 
-    rundir.mkdir(parents=True, exist_ok=True)
     new = rundir / "products.new"
     shutil.rmtree(new, ignore_errors=True)
     for entry in summary["nodes"]:
