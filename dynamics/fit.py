@@ -29,6 +29,7 @@ LABELS = {
     "beta": r"$\beta$",
     "distance": r"$d$/kpc",
     "gamma": r"$\gamma$",
+    "log_cusp_radius": r"$\log_{10} r_c/''$",
 }
 
 
@@ -54,8 +55,11 @@ def parameter_space(settings: DynamicsSettings, distance: float, with_bh: bool) 
     params.append(Parameter("beta", lo=s.beta_range[0], hi=s.beta_range[1]))
     if s.distance_error > 0:
         params.append(Parameter("distance", prior="gaussian", mean=distance, sd=s.distance_error))
-    if s.fit_gamma:
+    if s.fit_gamma or s.cusp:
         params.append(Parameter("gamma", lo=s.gamma_range[0], hi=s.gamma_range[1]))
+    if s.cusp:
+        lo, hi = s.log_cusp_radius_range
+        params.append(Parameter("log_cusp_radius", lo=lo, hi=hi))
     return ParameterSpace([Parameter(**{**p.__dict__, "label": LABELS[p.name]}) for p in params])
 
 

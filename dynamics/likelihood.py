@@ -15,7 +15,8 @@ completeness does not depend on radius inside the field.
 
 Model parameters (physical): ``log_mass`` (log10 solMass), ``log_scale_radius``
 (log10 arcsec), ``bh_mass`` (solMass; IMBH model only), ``beta``, and
-optionally ``distance`` (kpc, Gaussian prior) and ``gamma`` (Dehnen inner slope).
+optionally ``distance`` (kpc, Gaussian prior), ``gamma`` (Dehnen inner slope, or
+the cusp slope with ``log_cusp_radius``, log10 arcsec, for a cusped Plummer/King).
 """
 
 from __future__ import annotations
@@ -169,7 +170,11 @@ class DiscreteLikelihood:
         beta = theta[self.names.index("beta")]
         dist = self._value(theta, "distance", self.distance)
         tracer = self._fixed_tracer
-        if "gamma" in self.names:
+        if "log_cusp_radius" in self.names:
+            x_c = 10.0 ** (theta[self.names.index("log_cusp_radius")]) / np.exp(ln_a)
+            g = theta[self.names.index("gamma")]
+            tracer = make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_c)
+        elif "gamma" in self.names:
             tracer = make_tracer("dehnen", theta[self.names.index("gamma")])
         mom = self.projector.moments(tracer, beta)
         a_pc = np.exp(ln_a) * dist * PC_PER_ARCSEC_KPC

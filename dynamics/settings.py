@@ -18,7 +18,10 @@ class DynamicsSettings:
     """All knobs of the dynamics fit.
 
     Model: ``tracer`` ("plummer", "dehnen", "king"), ``dehnen_gamma`` (fixed
-    inner slope) or ``fit_gamma`` with ``gamma_range``; ``king_concentration``.
+    inner slope) or ``fit_gamma`` with ``gamma_range``; ``king_concentration``;
+    ``cusp`` gives a Plummer/King an inner cusp ``(1 + (r_c/r)^2)^(gamma/2)`` with
+    fitted ``gamma`` (``gamma_range``) and ``log_cusp_radius`` (``log_cusp_radius_range``,
+    log10 arcsec).
     Priors: ``log_mass_range`` (log10 solMass), ``log_scale_radius_range`` (log10
     arcsec), ``bh_mass_max`` (uniform on [0, max], solMass), ``beta_range``;
     ``distance`` [kpc] overrides the product's, ``distance_error`` [kpc] > 0 makes it
@@ -35,6 +38,8 @@ class DynamicsSettings:
     fit_gamma: bool = False
     gamma_range: tuple[float, float] = (0.0, 2.0)
     king_concentration: float = 1.5
+    cusp: bool = False
+    log_cusp_radius_range: tuple[float, float] = (0.0, 2.5)
     log_mass_range: tuple[float, float] = (3.0, 7.0)
     log_scale_radius_range: tuple[float, float] = (0.0, 3.0)
     bh_mass_max: float = unit_field(1.0e4, "solMass", "upper edge of the uniform M_bh prior")
@@ -65,13 +70,21 @@ class DynamicsSettings:
             raise ValueError(f"tracer must be one of {sorted(TRACERS)}, got {self.tracer!r}")
         if self.fit_gamma and self.tracer != "dehnen":
             raise ValueError("fit_gamma needs tracer = 'dehnen'")
-        for name in ("gamma_range", "log_mass_range", "log_scale_radius_range", "beta_range"):
+        if self.cusp and self.tracer == "dehnen":
+            raise ValueError("cusp needs tracer = 'plummer' or 'king' (Dehnen has gamma)")
+        for name in (
+            "gamma_range",
+            "log_cusp_radius_range",
+            "log_mass_range",
+            "log_scale_radius_range",
+            "beta_range",
+        ):
             lo, hi = getattr(self, name)
             if not lo < hi:
                 raise ValueError(f"{name} needs lo < hi, got ({lo}, {hi})")
         if not self.beta_range[1] < 1.0:
             raise ValueError("beta_range must stay below 1")
-        if not 0.0 <= self.gamma_range[0] and self.gamma_range[1] < 2.5:
+        if not (0.0 <= self.gamma_range[0] and self.gamma_range[1] < 2.5):
             raise ValueError("gamma_range must lie in [0, 2.5)")
         positive = {
             "bh_mass_max": self.bh_mass_max,

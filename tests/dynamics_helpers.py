@@ -334,19 +334,35 @@ def generator_stars(seed, bh_mass):
     return stars, dict(attrs["model_params"])
 
 
-def generator_fit_settings():
-    """Fit settings for generator catalogues: Dehnen tracer with free inner slope.
+def generator_fit_settings(model="dehnen"):
+    """Fit settings for generator catalogues.
 
     The generator's King (W0 = 6.3, core 79") cluster is flat inside 17" without an
     IMBH and has a gamma = 1.55 cusp inside the influence radius (39") with one;
-    Plummer or fixed-slope profiles cannot follow both, a free-gamma Dehnen can.
+    Plummer or fixed-slope profiles cannot follow both.
+
+    Parameters
+    ----------
+    model : {"dehnen", "cusped_king"}
+        Dehnen tracer with free inner slope, or the generator's own family: a King
+        profile (c = 1.33, the preset's) with a fitted cusp slope and radius.
     """
     from mavispm.dynamics.settings import DynamicsSettings
 
+    if model == "cusped_king":
+        return DynamicsSettings(
+            tracer="king",
+            king_concentration=1.33,
+            cusp=True,
+            log_scale_radius_range=(1.0, 3.0),
+            progress=False,
+        )
     return DynamicsSettings(tracer="dehnen", fit_gamma=True, progress=False)
 
 
-def generator_recovery_trial(seed, bh_mass, walkers=16, steps=1000, nlive=50, dlogz=0.5):
+def generator_recovery_trial(
+    seed, bh_mass, walkers=16, steps=1000, nlive=50, dlogz=0.5, model="dehnen"
+):
     """emcee posterior of M_bh and dynesty ln B on one generator catalogue.
 
     The 68% interval and 95% upper limit come from the emcee chain (run to
@@ -367,7 +383,7 @@ def generator_recovery_trial(seed, bh_mass, walkers=16, steps=1000, nlive=50, dl
 
     t0 = time.process_time()
     stars, params = generator_stars(seed, bh_mass)
-    s = generator_fit_settings()
+    s = generator_fit_settings(model)
     dist = params["distance"]
     sp1, sp0 = parameter_space(s, dist, True), parameter_space(s, dist, False)
     l1, l0 = make_likelihood(stars, sp1, s, dist), make_likelihood(stars, sp0, s, dist)
@@ -399,4 +415,5 @@ def generator_recovery_trial(seed, bh_mass, walkers=16, steps=1000, nlive=50, dl
         "steps": chain.steps,
         "converged": bool(chain.converged),
         "cpu_s": time.process_time() - t0,
+        "model": model,
     }

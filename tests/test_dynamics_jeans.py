@@ -9,7 +9,7 @@ import pytest
 from scipy import integrate
 
 from mavispm.dynamics.jeans import JeansProjector, cubic_weights, interpolate, projected_dispersion
-from mavispm.dynamics.tracers import Dehnen, King, Plummer
+from mavispm.dynamics.tracers import Cusped, Dehnen, King, Plummer
 
 RADII = np.logspace(-4, 3, 22)  # R = 1e-4 a ... 1e3 a
 
@@ -152,3 +152,26 @@ def test_bad_anisotropy_and_radii_raise():
         JeansProjector([1.0]).moments(Plummer(), 1.0)
     with pytest.raises(ValueError, match="radii"):
         JeansProjector([0.0])
+
+
+@pytest.mark.parametrize("base", [Plummer(), King(1.33)])
+def test_cusped_profile_mass_and_limits(base):
+    """Cusped King/Plummer: enclosed mass matches quad of 4 pi r^2 nu to 1e-3, unit total
+    mass, gamma = 0 gives back the base profile, and nu ~ r^-gamma well inside the cusp."""
+    cusped = Cusped(base, 1.55, 0.5)
+    for x in (1e-3, 0.1, 1.0, 5.0):
+        ref = integrate.quad(
+            lambda r: 4 * np.pi * r * r * cusped.density(r),
+            0,
+            x,
+            points=[1e-6, 1e-3, 0.5],
+            limit=200,
+            epsabs=0,
+            epsrel=1e-10,
+        )[0]
+        assert cusped.enclosed(x) == pytest.approx(ref, rel=1e-3)
+    assert cusped.enclosed(1e6) == pytest.approx(1.0, rel=1e-6)
+    x = np.array([0.05, 0.3, 2.0])
+    np.testing.assert_allclose(Cusped(base, 0.0, 0.5).density(x), base.density(x), rtol=1e-6)
+    slope = np.log(cusped.density(1e-4) / cusped.density(1e-3)) / np.log(0.1)
+    assert slope == pytest.approx(-1.55, abs=1e-3)

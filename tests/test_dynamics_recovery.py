@@ -1,5 +1,6 @@
 """Parameter recovery: independent Plummer mocks and the cluster generator's catalogues."""
 
+import functools
 import json
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -63,11 +64,13 @@ def test_generator_recovery_coverage_and_bayes_factor():
     """10 generator seeds each: 68% coverage >= 60% and ln B > 3 with a 1500 Msun IMBH;
     95% upper limit < 1500 Msun and ln B < 1 without (emcee posterior, dynesty ln B)."""
     seeds = list(range(100, 110))
+    model = os.environ.get("DYN_GENERATOR_MODEL", "dehnen")  # or "cusped_king"
     jobs = [(s, bh) for s in seeds for bh in (1500.0, 0.0)]
     out = os.environ.get("DYN_RECOVERY_JSON")
     results = []
     with ProcessPoolExecutor(max_workers=int(os.environ.get("DYN_WORKERS", "2"))) as ex:
-        for res in ex.map(generator_recovery_trial, *zip(*jobs)):
+        trial = functools.partial(generator_recovery_trial, model=model)
+        for res in ex.map(trial, *zip(*jobs)):
             results.append(res)
             if out:  # one JSON line per finished trial
                 with open(out, "a") as fh:
