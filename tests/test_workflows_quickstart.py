@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
-
 import astropy.units as u
 import numpy as np
 import pytest
@@ -13,25 +11,13 @@ from mavispm.core.catalogue import read_catalogue
 from mavispm.core.products import read_product
 from mavispm.workflows.config import load_workflow, shipped_workflows
 from mavispm.workflows.runner import run_workflow
-from mavispm.workflows.stages import STAGE_MODULES
 
 #: Lighter sampler settings than the shipped file (the test checks the chain, not the
 #: posterior); everything else is the quickstart as users run it.
 FAST = {"dynamics.max_steps": 200, "dynamics.nlive": 25, "dynamics.walkers": 12}
 
 
-def _stages_available() -> bool:
-    for module, _ in STAGE_MODULES.values():
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError:
-            return False
-    return True
-
-
 def test_all_shipped_workflows_are_valid():
-    if not _stages_available():
-        pytest.skip("not every stage module is in this build")
     names = shipped_workflows()
     assert {
         "quickstart.toml",
@@ -57,8 +43,6 @@ def test_all_shipped_workflows_are_valid():
 
 
 def test_quickstart_end_to_end(tmp_path):
-    if not _stages_available():
-        pytest.skip("not every stage module is in this build")
     wf = load_workflow("quickstart", overrides=FAST)  # found by name among the shipped files
     result = run_workflow(wf, workdir=tmp_path, progress=False)
     assert set(result.ran) == ALL_NODES
@@ -108,9 +92,7 @@ PATH_ATTRS = ("frames", "inputs", "propermotions", "config", "time_epsf", "time_
 @pytest.mark.slow
 def test_quickstart_products_identical_on_dask_and_threads(tmp_path):
     """Real stages: a LocalCluster on loopback gives the in-process products bit for bit."""
-    distributed = pytest.importorskip("distributed")
-    if not _stages_available():
-        pytest.skip("not every stage module is in this build")
+    import distributed
     from workflows_helpers import fingerprints
 
     wf = load_workflow("quickstart", overrides=FAST)

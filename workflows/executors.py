@@ -19,6 +19,7 @@ identical whatever the executor.
 
 from __future__ import annotations
 
+import abc
 import concurrent.futures as cf
 import multiprocessing
 import os
@@ -29,14 +30,14 @@ from mavispm.core.errors import ConfigError
 LOCAL_KINDS = ("threads", "processes", "serial")
 
 
-class Executor:
+class Executor(abc.ABC):
     """Interface of the runner's executors."""
 
     name = "executor"
 
-    def submit(self, fn: Callable, *args):  # pragma: no cover - interface
+    @abc.abstractmethod
+    def submit(self, fn: Callable, *args):
         """Start ``fn(*args)``; return a future."""
-        raise NotImplementedError
 
     def wait(self, futures: Iterable) -> tuple[set, set]:
         """Block until at least one future is done; return (done, not_done)."""
@@ -47,7 +48,7 @@ class Executor:
         """The future's result (re-raising the task's exception)."""
         return future.result()
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - nothing to release by default
         """Release workers and connections."""
 
     def __enter__(self):
