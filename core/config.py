@@ -126,6 +126,19 @@ def _coerce(value, tp, key: str, source):
     return value
 
 
+def check_known_keys(mapping: Mapping, allowed, prefix: str = "", source=None) -> None:
+    """Raise :class:`ConfigError` for the first key of ``mapping`` not in ``allowed``.
+
+    The message suggests the closest allowed key ("did you mean ...?") or lists them.
+    """
+    allowed = list(allowed)
+    for key in mapping:
+        if key not in allowed:
+            close = difflib.get_close_matches(key, allowed, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else f"; known keys: {sorted(allowed)}"
+            raise ConfigError(f"unknown key{hint}", key=_join(prefix, key), source=source)
+
+
 def from_mapping(cls, mapping: Mapping | None, prefix: str = "", source=None):
     """Build dataclass ``cls`` from ``mapping``, validating keys, types and units.
 
@@ -149,11 +162,7 @@ def from_mapping(cls, mapping: Mapping | None, prefix: str = "", source=None):
     mapping = dict(mapping or {})
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     hints = typing.get_type_hints(cls)
-    for key in mapping:
-        if key not in fields:
-            close = difflib.get_close_matches(key, list(fields), n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else f"; known keys: {sorted(fields)}"
-            raise ConfigError(f"unknown key{hint}", key=_join(prefix, key), source=source)
+    check_known_keys(mapping, fields, prefix=prefix, source=source)
     kwargs = {}
     for name, value in mapping.items():
         f = fields[name]

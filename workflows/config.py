@@ -47,7 +47,7 @@ from typing import Any, Literal
 
 import astropy.units as u
 
-from mavispm.core.config import from_mapping
+from mavispm.core.config import check_known_keys, from_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.workflows.registry import StageRegistry
 from mavispm.workflows.sweeps import SweepPoint, apply_point, deep_merge, expand_points
@@ -280,7 +280,7 @@ def load_workflow(
 def parse_workflow(mapping: Mapping, source: Path, registry: StageRegistry) -> Workflow:
     """Validate a workflow mapping read from ``source`` (see :func:`load_workflow`)."""
     src = str(source)
-    _check_keys(mapping, TOP_SECTIONS, "", src)
+    check_known_keys(mapping, TOP_SECTIONS, "", src)
     for key in TOP_SECTIONS:
         if key in mapping and key != "sweep" and not isinstance(mapping[key], Mapping):
             raise ConfigError(
@@ -298,7 +298,7 @@ def parse_workflow(mapping: Mapping, source: Path, registry: StageRegistry) -> W
                 key=f"studies.{sname}",
                 source=src,
             )
-        _check_keys(overlay, STUDY_SECTIONS, f"studies.{sname}", src)
+        check_known_keys(overlay, STUDY_SECTIONS, f"studies.{sname}", src)
     points = expand_points(axes, meta.sweep_mode)
     validated: dict[str, Any] = {}
     variants = []
@@ -316,17 +316,6 @@ def parse_workflow(mapping: Mapping, source: Path, registry: StageRegistry) -> W
         variants=tuple(variants),
         mapping=dict(mapping),
     )
-
-
-def _check_keys(mapping: Mapping, allowed, prefix: str, src: str) -> None:
-    import difflib
-
-    for key in mapping:
-        if key not in allowed:
-            close = difflib.get_close_matches(key, list(allowed), n=1)
-            hint = f"did you mean '{close[0]}'?" if close else f"expected one of {list(allowed)}"
-            full = f"{prefix}.{key}" if prefix else key
-            raise ConfigError(f"unknown key; {hint}", key=full, source=src)
 
 
 def _check_recipes(outputs: OutputsSection, src: str) -> None:
@@ -546,7 +535,7 @@ def _existing_file(raw: str, source: Path, key: str, what: str, ctx: _Context) -
 
 
 def _external_catalogue(table: Mapping, source: Path, ctx: _Context):
-    _check_keys(table, ("path",), "catalogue", ctx.src)
+    check_known_keys(table, ("path",), "catalogue", ctx.src)
     raw = table.get("path")
     if not isinstance(raw, str) or not raw:
         raise ConfigError(
@@ -573,7 +562,7 @@ def _epochs(table: Mapping | None, ctx: _Context, available: dict | None) -> lis
         if available is not None:
             return [Epoch(n, t) for n, t in available.items()]
         return [Epoch("e0", 0.0)]
-    _check_keys(table, ("times", "names"), "epochs", src)
+    check_known_keys(table, ("times", "names"), "epochs", src)
     raw = table.get("times")
     if raw is None and available is not None:
         raw = list(available.values())
