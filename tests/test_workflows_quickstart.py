@@ -24,6 +24,7 @@ def test_all_shipped_workflows_are_valid():
         "astrometric_budget.toml",
         "ngc3201_imbh.toml",
         "pm_accuracy.toml",
+        "imbh_detectability.toml",
     } <= set(names)
     budget = load_workflow("astrometric_budget")
     assert [s.name for s in budget.variants[0].scenes] == [
@@ -40,6 +41,10 @@ def test_all_shipped_workflows_are_valid():
     assert sorted(v.study for v in imbh.variants) == ["imbh", "no_imbh"]
     assert [e.time for e in imbh.variants[0].epochs] == [0.0, 10.0]
     assert len(load_workflow("pm_accuracy").variants) == 4
+    detect = load_workflow("imbh_detectability")
+    masses = sorted({v.point.values["mass"] for v in detect.variants})
+    assert masses == [0, 500, 1000, 1500, 3000]  # mass 0: the no-IMBH reference
+    assert len(detect.variants) == 10
 
 
 def test_quickstart_end_to_end(tmp_path):

@@ -143,12 +143,30 @@ def test_cli_run_dry_run_and_overrides(tmp_path, capsys, monkeypatch):
     n_calls = len(read_log(log))
     assert main(["run", *common, "--dry-run", "--set", "dynamics.per_bin=25"]) == 0
     out = capsys.readouterr().out
-    assert "8 nodes, 1 to run, 7 cached" in out and "to run  dynamics/main" in out
+    assert "8 nodes: 1 to run, 0 shared with an identical node, 7 cached" in out
+    assert "to run  dynamics/main" in out
     assert len(read_log(log)) == n_calls  # a dry run runs nothing
     assert main(["run", *common, "--set", "dynamics.per_bin=25"]) == 0
     assert "dynamics: 1 ran, 0 cached" in capsys.readouterr().out
     assert main(["run", *common, "--set", "dynamics.per_bin=2.5"]) == 2  # validated like the file
     assert "expected an integer" in capsys.readouterr().err
+
+
+def test_dry_run_counts_identical_nodes_once(tmp_path, capsys, monkeypatch):
+    """Two studies differing only in their dynamics share every upstream node."""
+    from mavispm.workflows import stages
+    from mavispm.workflows.cli import main
+
+    monkeypatch.setattr(stages, "default_registry", stand_in_registry)
+    text = (
+        TINY_WORKFLOW + "\n[studies.a.dynamics]\nper_bin = 20\n[studies.b.dynamics]\nper_bin = 40\n"
+    )
+    wf = write_workflow(tmp_path, text)
+    assert main(["run", str(wf), "--workdir", str(tmp_path / "w"), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    # 2 x 8 nodes; only the two dynamics fits differ
+    assert "16 nodes: 9 to run, 7 shared with an identical node, 0 cached" in out
+    assert "shared  b/cluster" in out and "to run  b/dynamics/main" in out
 
 
 @settings(max_examples=30, deadline=None)

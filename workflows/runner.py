@@ -286,7 +286,9 @@ def plan_workflow(
     -------
     list of dict
         Per node (execution order): ``id``, ``stage``, ``key`` and ``status``
-        (``"cached"`` when its product is in the store, else ``"to run"``).
+        (``"cached"`` when its product is in the store, ``"shared"`` when an
+        earlier node of this run has the same key and so computes it, else
+        ``"to run"``).
     """
     if registry is None:
         from mavispm.workflows.stages import default_registry
@@ -297,15 +299,16 @@ def plan_workflow(
     store = Store(Path(workdir or DEFAULT_WORKDIR).resolve() / "store")
     nodes = expand(workflow)
     keys = node_keys(nodes, registry)
-    return [
-        {
-            "id": nid,
-            "stage": node.stage,
-            "key": keys[nid],
-            "status": "cached" if store.lookup(node.stage, keys[nid]) else "to run",
-        }
-        for nid, node in nodes.items()
-    ]
+    plan, seen = [], set()
+    for nid, node in nodes.items():
+        key = keys[nid]
+        if store.lookup(node.stage, key):
+            status = "cached"
+        else:
+            status = "shared" if key in seen else "to run"
+        seen.add(key)
+        plan.append({"id": nid, "stage": node.stage, "key": key, "status": status})
+    return plan
 
 
 def _execute(nodes, keys, store: Store, registry, executor, force: bool, progress: bool):

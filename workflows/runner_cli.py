@@ -16,7 +16,7 @@ def register(subparsers) -> None:
         description="Run a whole study described by a workflow file. Products are cached by "
         "content: a second run does no work, a changed setting re-runs only what depends on it, "
         "and an interrupted run resumes. Shipped workflows (quickstart, astrometric_budget, "
-        "ngc3201_imbh, pm_accuracy) can be named without a path.",
+        "ngc3201_imbh, pm_accuracy, imbh_detectability) can be named without a path.",
     )
     run.add_argument("workflow", help="workflow TOML file, or the name of a shipped workflow")
     run.add_argument(
@@ -99,8 +99,11 @@ def _run(args: argparse.Namespace) -> int:
         plan = plan_workflow(workflow, args.workdir, registry)
         for entry in plan:
             print(f"  {entry['status']:>7}  {entry['id']}")
-        todo = sum(e["status"] != "cached" for e in plan)
-        print(f"{len(plan)} nodes, {todo} to run, {len(plan) - todo} cached (nothing was run)")
+        count = {s: sum(e["status"] == s for e in plan) for s in ("to run", "shared", "cached")}
+        print(
+            f"{len(plan)} nodes: {count['to run']} to run, {count['shared']} shared with an "
+            f"identical node, {count['cached']} cached (nothing was run)"
+        )
         return 0
     result = run_workflow(
         workflow,
