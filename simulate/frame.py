@@ -49,9 +49,13 @@ class Frame:
     attrs: dict
 
 
-def make_renderer(optics, scene: SceneSettings) -> StarRenderer:
-    """A star renderer for ``optics`` at the scene's pixel scale (reuse it across epochs)."""
-    return StarRenderer(optics.psf_grid, scene.detector.pixel_scale, scene.render)
+def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
+    """A star renderer for ``optics`` at the scene's pixel scale (reuse it across epochs).
+
+    ``cache_dir``: also keep its stamp plans (PSF-node transforms) in this folder
+    (see :class:`~mavispm.simulate.render.StarRenderer`).
+    """
+    return StarRenderer(optics.psf_grid, scene.detector.pixel_scale, scene.render, cache_dir)
 
 
 def _values(q, unit) -> np.ndarray:
