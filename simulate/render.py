@@ -54,6 +54,9 @@ FLOAT32_ROUNDOFF = 3e-8
 #: for the lower floors of bright-star batches.
 PLAN_FLOOR_DECADES = 4
 
+#: Stamp centres round positions up from this far below a half pixel (see stamp_centre).
+STAMP_CENTRE_BIAS = 1e-7
+
 #: Version of the stamp-plan computation (part of the disk-cache key).
 PLAN_CACHE_VERSION = 2
 
@@ -458,8 +461,8 @@ class StarRenderer:
         s = self.pixel_scale
         x_pix = np.asarray(x_pix, dtype=np.float64)
         y_pix = np.asarray(y_pix, dtype=np.float64)
-        ixc = np.round(x_pix).astype(np.int64)
-        iyc = np.round(y_pix).astype(np.int64)
+        ixc = stamp_centre(x_pix)
+        iyc = stamp_centre(y_pix)
         # offset of the star from stamp pixel 0, in mas (star sits at stamp index m/2)
         dx = (x_pix - ixc) * s + m * s / 2
         dy = (y_pix - iyc) * s + m * s / 2
@@ -538,10 +541,10 @@ class StarRenderer:
         cov = np.asarray(cov, dtype=np.float64)
         half = sizes // 2
         overlaps = (
-            (np.round(x_pix) + half > 0)
-            & (np.round(x_pix) - half < nx)
-            & (np.round(y_pix) + half > 0)
-            & (np.round(y_pix) - half < ny)
+            (stamp_centre(x_pix) + half > 0)
+            & (stamp_centre(x_pix) - half < nx)
+            & (stamp_centre(y_pix) + half > 0)
+            & (stamp_centre(y_pix) - half < ny)
         )
         todo = overlaps & (sizes > 0) & (flux > 0)
         bar = None
@@ -608,6 +611,19 @@ class StarRenderer:
         if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
             dtype = "float64"
         return min(floor, allowed), dtype
+
+
+def stamp_centre(pix) -> np.ndarray:
+    """The pixel a star's stamp is centred on: its position rounded, halves up.
+
+    A star exactly on a pixel boundary (``k + 0.5``) lands there only up to the
+    round-off of the frame-centre offset ``(n - 1) / 2``, which differs between
+    frame sizes; the boundary is therefore moved ``STAMP_CENTRE_BIAS`` pixels below
+    the half, so that such a star gets the same stamp, offset by the same whole
+    number of pixels, in every frame (the stamp is periodic: its centre pixel only
+    decides which copy of the wing is kept, not where the star is).
+    """
+    return np.floor(np.asarray(pix, dtype=np.float64) + (0.5 + STAMP_CENTRE_BIAS)).astype(np.int64)
 
 
 def _node_transforms_dft(cube, step: float, fy, fx) -> np.ndarray:
