@@ -113,7 +113,8 @@ def expose_stack(
         Where ``g`` is at least this value the sum is drawn exactly (Poisson +
         Gaussian); between ``skew_limit`` and it, as a skew-corrected Gaussian
         (:func:`skewed_normal`: exact mean and variance, skewness ``g`` to
-        ``O(g**3)``). Default: ``skew_limit`` (no skew-corrected tier).
+        ``O(g**3)``). Default: ``skew_limit`` (no skew-corrected tier). Ignored when
+        ``skew_limit`` is 0 (exact everywhere).
 
     Returns
     -------
@@ -133,6 +134,8 @@ def expose_stack(
         mu *= np.float32(nexp / settings.gain)
         return mu, saturated
     mean = np.asarray(mean_electrons)
+    if mean.dtype not in (np.float32, np.float64):
+        mean = mean.astype(np.float64)
     flat_mu = mean.reshape(-1)
     var_rn = nexp * rn**2
     # in chunks on `threads` threads, one generator per chunk so the result does not
@@ -141,7 +144,10 @@ def expose_stack(
     total = np.empty(flat_mu.size, dtype=np.float32)
     starts = range(0, flat_mu.size, NOISE_CHUNK)
     chunk_rngs = rng.spawn(len(starts))
-    exact_limit = skew_limit if poisson_skew_limit is None else max(poisson_skew_limit, skew_limit)
+    # skew_limit = 0 means exact draws everywhere, whatever poisson_skew_limit says
+    exact_limit = skew_limit
+    if poisson_skew_limit is not None and skew_limit > 0:
+        exact_limit = max(poisson_skew_limit, skew_limit)
     lo, hi = _skewed_window(var_rn, exact_limit)
     corrected = 0 < skew_limit < exact_limit
     risky_floor = full - SATURATION_SAFETY_SIGMA * np.sqrt(full + rn**2)

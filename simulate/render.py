@@ -113,7 +113,8 @@ class RenderParams:
         skew-corrected Gaussian (exact mean and variance, skewness to ``O(g**3)``,
         see ``detector.skewed_normal``); from it up, exact Poisson + Gaussian. The
         largest skewness of the default MAVIS stack (120 x 30 s, 3 e- read noise)
-        is 0.012, so the default 0.1 draws no Poisson variates there.
+        is 0.012, so the default 0.1 draws no Poisson variates there. With
+        ``gaussian_skew_limit = 0`` every pixel is drawn exactly.
     """
 
     oversampling: int = 2

@@ -139,3 +139,21 @@ def test_skew_corrected_tier_of_the_stack_keeps_mean_variance_and_skewness():
     skew = (d**3).mean() / d.var() ** 1.5
     # 3 standard errors (0.005): a plain Gaussian (skewness 0) would be 7 away
     assert abs(skew - 2160.0 / var**1.5) < 3 * np.sqrt(6 / e.size)
+
+
+def test_noise_tiers_exact_corrected_and_plain():
+    """skew_limit = 0: exact Poisson everywhere; between the limits: skew-corrected."""
+    det = DetectorSettings(nx=200, ny=100, read_noise=0.0)
+    mu = np.full((100, 200), 400.0)  # skewness of the 1-exposure stack: 400**-0.5 = 0.05
+    exact, _ = expose_stack(
+        mu, 1, det, np.random.default_rng(2), skew_limit=0.0, poisson_skew_limit=0.1
+    )
+    assert np.array_equal(exact, np.round(exact))  # Poisson counts (no read noise)
+    corrected, _ = expose_stack(
+        mu, 1, det, np.random.default_rng(2), skew_limit=0.01, poisson_skew_limit=0.1
+    )
+    assert not np.array_equal(corrected, np.round(corrected))
+    counts, _ = expose_stack(
+        mu.astype(int), 1, det, np.random.default_rng(2), skew_limit=0.01, poisson_skew_limit=0.04
+    )
+    assert np.array_equal(counts, np.round(counts))  # 0.05 >= 0.04: exact again
