@@ -28,6 +28,7 @@ import numpy as np
 
 from mavispm.core.config import from_mapping
 from mavispm.simulate.ao_psd import AOSettings
+from mavispm.simulate.array_cache import content_key, load_arrays, save_arrays
 from mavispm.simulate.atmosphere import (
     MAS_PER_RAD,
     AtmosphereSettings,
@@ -40,6 +41,9 @@ from mavispm.simulate.halo import Halo, HaloSettings, build_halo
 from mavispm.simulate.psf_grid import GridResult, PSFGrid, PSFSettings, cached_grid
 from mavispm.simulate.pupil import PupilSettings
 from mavispm.simulate.tiptilt import TipTiltField, TipTiltSettings
+
+#: Version of the halo computation (part of its disk-cache key).
+HALO_CACHE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -141,6 +145,31 @@ def make_halo(settings: OpticsSettings, result: GridResult) -> Halo:
     )
 
 
+def cached_halo(settings: OpticsSettings, result: GridResult, grid_path: Path | None) -> Halo:
+    """:func:`make_halo`, kept next to the PSF-grid cache file ``grid_path`` (when given).
+
+    The halo profile is a pure function of the grid's parameters (its cache key,
+    part of the file name) and the halo settings; its Hankel transforms take ~2 s,
+    which every epoch of a scene would otherwise repeat.
+    """
+    if grid_path is None:
+        return make_halo(settings, result)
+    key = content_key(
+        HALO_CACHE_VERSION,
+        Path(grid_path).name,
+        dataclasses.asdict(settings.halo),
+        [result.grid.n, float(result.grid.pixel_scale)],
+    )
+    path = Path(grid_path).parent / f"halo-{key}.npz"
+    stored = load_arrays(path)
+    names = [f.name for f in dataclasses.fields(Halo)]
+    if stored is not None and set(stored) == set(names):
+        return Halo(*(stored[n] if stored[n].ndim else float(stored[n]) for n in names))
+    halo = make_halo(settings, result)
+    save_arrays(path, {n: np.asarray(getattr(halo, n)) for n in names})
+    return halo
+
+
 def taper_grid(grid: PSFGrid, halo: Halo) -> PSFGrid:
     """Multiply every stamp by ``1 - ramp`` and renormalise to unit sum."""
     cube = grid.cube * halo.core_taper(grid.n, grid.pixel_scale)
@@ -166,7 +195,7 @@ def build_optics(
     grid = result.grid
     halo = None
     if s.halo.enabled:
-        halo = make_halo(s, result)
+        halo = cached_halo(s, result, path)
         grid = taper_grid(grid, halo)
     return Optics(
         settings=s,

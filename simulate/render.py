@@ -32,13 +32,20 @@ from __future__ import annotations
 import os
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import scipy.fft
 
-from mavispm.simulate.stamp_kernels import add_stamps, mix_kernel_fold
+from mavispm.simulate.array_cache import content_key, load_arrays, save_arrays
+from mavispm.simulate.stamp_kernels import (
+    add_stamps,
+    binned_max,
+    mix_kernel_fold,
+    wrap_2d_into,
+)
 
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
@@ -47,8 +54,15 @@ FLOAT32_ROUNDOFF = 3e-8
 #: for the lower floors of bright-star batches.
 PLAN_FLOOR_DECADES = 4
 
-#: Even stamp sizes with small prime factors (fast FFTs).
-STAMP_SIZES = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512)
+#: Stamp centres round positions up from this far below a half pixel (see stamp_centre).
+STAMP_CENTRE_BIAS = 1e-7
+
+#: Version of the stamp-plan computation (part of the disk-cache key).
+PLAN_CACHE_VERSION = 2
+
+#: Even stamp sizes with prime factors 2, 3, 5, 7 (fast FFTs), about 15-25 % apart.
+STAMP_SIZES = (8, 12, 16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 112, 128, 160, 192, 224, 256)
+STAMP_SIZES += (320, 384, 448, 512)
 
 
 @dataclass(frozen=True)
@@ -92,7 +106,15 @@ class RenderParams:
     gaussian_skew_limit : float
         Photon + read noise of the stack is drawn as a Gaussian with the exact mean
         and variance where its skewness is below this value, and exactly
-        (Poisson + Gaussian) elsewhere (0 = always exact, slower).
+        (Poisson + Gaussian) where it reaches ``poisson_skew_limit`` (0 = always
+        exact, slower).
+    poisson_skew_limit : float
+        Between ``gaussian_skew_limit`` and this skewness the stack noise is a
+        skew-corrected Gaussian (exact mean and variance, skewness to ``O(g**3)``,
+        see ``detector.skewed_normal``); from it up, exact Poisson + Gaussian. The
+        largest skewness of the default MAVIS stack (120 x 30 s, 3 e- read noise)
+        is 0.012, so the default 0.1 draws no Poisson variates there. With
+        ``gaussian_skew_limit = 0`` every pixel is drawn exactly.
     """
 
     oversampling: int = 2
@@ -106,6 +128,7 @@ class RenderParams:
     batch_size: int = 512
     spectrum_floor: float = 1e-5
     gaussian_skew_limit: float = 0.01
+    poisson_skew_limit: float = 0.1
     threads: int = 0
 
     def __post_init__(self):
@@ -123,6 +146,8 @@ class RenderParams:
             raise ValueError("render.spectrum_floor must be in [0, 1)")
         if self.gaussian_skew_limit < 0:
             raise ValueError("render.gaussian_skew_limit must be >= 0")
+        if self.poisson_skew_limit < 0:
+            raise ValueError("render.poisson_skew_limit must be >= 0")
         if self.threads < 0:
             raise ValueError("render.threads must be >= 0 (0: all cores)")
         if self.batch_size < 1:
@@ -206,14 +231,21 @@ class StarRenderer:
     pixel_scale : float
         Detector pixel size, mas.
     params : RenderParams
+    cache_dir : path, optional
+        Folder where the stamp plans (node transforms) are also kept on disk, keyed by
+        the PSF cube, the pixel scales and the knobs they depend on, so that other
+        processes rendering the same scene (e.g. the other epochs of a workflow)
+        load them instead of recomputing them. None: in memory only.
 
     Notes
     -----
     Node transforms are cached per stamp size on the instance: reuse one renderer
-    for all epochs of a scene.
+    for all epochs of a scene (or give every renderer the same ``cache_dir``).
     """
 
-    def __init__(self, psf_grid, pixel_scale: float, params: RenderParams | None = None):
+    def __init__(
+        self, psf_grid, pixel_scale: float, params: RenderParams | None = None, cache_dir=None
+    ):
         self.psf_grid = psf_grid
         self.pixel_scale = float(pixel_scale)
         self.params = params or RenderParams()
@@ -227,6 +259,21 @@ class StarRenderer:
         self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
         self._plans: dict[int, StampPlan] = {}
         self._envelope = _wing_envelope(self._cube, self.psf_pixel_scale, self.pixel_scale)
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self._cache_key = None
+        if self.cache_dir is not None:
+            p = self.params
+            self._cache_key = content_key(
+                PLAN_CACHE_VERSION,
+                [
+                    self.psf_pixel_scale,
+                    self.pixel_scale,
+                    p.oversampling,
+                    p.spectrum_floor,
+                    PLAN_FLOOR_DECADES,
+                ],
+                self._cube,
+            )
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -294,20 +341,59 @@ class StarRenderer:
         some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
         kept (the optical transfer function vanishes beyond D/lambda).
         """
-        if m not in self._plans:
-            self._plans[m] = self._make_plan(m)
-        return self._plans[m]
+        return self.plans([m])[m]
 
-    def _make_plan(self, m: int) -> StampPlan:
+    def plans(self, sizes) -> dict[int, StampPlan]:
+        """The :class:`StampPlan` of every stamp side in ``sizes``, computed together.
+
+        Plans missing from memory are loaded from ``cache_dir`` or computed; stamp
+        periods that divide one another (same odd factor, e.g. 128, 64, 32 pixels)
+        share one FFT per PSF node (see :func:`_node_transforms_fft`).
+        """
+        missing = sorted({int(m) for m in sizes} - set(self._plans))
+        todo = []
+        for m in missing:
+            stored = load_arrays(self._plan_path(m)) if self.cache_dir is not None else None
+            if stored is not None and set(stored) == {f.name for f in fields(StampPlan)}:
+                stored["m"] = int(stored["m"])
+                self._plans[m] = StampPlan(**stored)
+            else:
+                todo.append(m)
+        for plan in self._make_plans(todo):
+            self._plans[plan.m] = plan
+            if self.cache_dir is not None:
+                arrays = {f.name: np.asarray(getattr(plan, f.name)) for f in fields(plan)}
+                save_arrays(self._plan_path(plan.m), arrays)
+        return {int(m): self._plans[int(m)] for m in sizes}
+
+    def _plan_path(self, m: int) -> Path:
+        return self.cache_dir / f"stampplan-{self._cache_key}-m{m}.npz"
+
+    def _make_plans(self, sizes):
+        """Compute the plans of ``sizes`` (yields them one by one)."""
         k = self.params.oversampling
         s = self.pixel_scale
-        fy, fx = _folding_frequencies(m, k)
+        periodic = {}  # odd factor of the period -> [(m, period, fy, fx)]
+        for m in sizes:
+            fy, fx = _folding_frequencies(m, k)
+            period = m * s / self.psf_pixel_scale  # stamp period in PSF pixels
+            if abs(period - round(period)) < 1e-9 * period:
+                p = int(round(period))
+                periodic.setdefault(p // (p & -p), []).append((m, p, fy, fx))
+            else:
+                step = self.psf_pixel_scale / (m * s)
+                yield self._plan_from(m, fy, fx, _node_transforms_dft(self._cube, step, fy, fx))
+        for group in periodic.values():
+            requests = [(p, fy, fx) for _, p, fy, fx in group]
+            workers = self.params.threads or os.cpu_count() or 1
+            full = _node_transforms_fft(self._cube, requests, workers=workers)
+            for (m, _, fy, fx), transforms in zip(group, full):
+                yield self._plan_from(m, fy, fx, transforms)
+
+    def _plan_from(self, m: int, fy, fx, full) -> StampPlan:
+        """The plan of side ``m`` from the node transforms ``full`` (nodes, nfy, nfx)."""
+        s = self.pixel_scale
         df = 1.0 / (m * s)  # cycles/mas per integer frequency
-        period = m * s / self.psf_pixel_scale  # stamp period in PSF pixels
-        if abs(period - round(period)) < 1e-9 * period:
-            full = _node_transforms_fft(self._cube, int(round(period)), fy, fx)
-        else:
-            full = _node_transforms_dft(self._cube, self.psf_pixel_scale * df, fy, fx)
         full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
         peak = np.abs(full).max(axis=0)
         peak /= peak.max()
@@ -376,8 +462,8 @@ class StarRenderer:
         s = self.pixel_scale
         x_pix = np.asarray(x_pix, dtype=np.float64)
         y_pix = np.asarray(y_pix, dtype=np.float64)
-        ixc = np.round(x_pix).astype(np.int64)
-        iyc = np.round(y_pix).astype(np.int64)
+        ixc = stamp_centre(x_pix)
+        iyc = stamp_centre(y_pix)
         # offset of the star from stamp pixel 0, in mas (star sits at stamp index m/2)
         dx = (x_pix - ixc) * s + m * s / 2
         dy = (y_pix - iyc) * s + m * s / 2
@@ -456,10 +542,10 @@ class StarRenderer:
         cov = np.asarray(cov, dtype=np.float64)
         half = sizes // 2
         overlaps = (
-            (np.round(x_pix) + half > 0)
-            & (np.round(x_pix) - half < nx)
-            & (np.round(y_pix) + half > 0)
-            & (np.round(y_pix) - half < ny)
+            (stamp_centre(x_pix) + half > 0)
+            & (stamp_centre(x_pix) - half < nx)
+            & (stamp_centre(y_pix) + half > 0)
+            & (stamp_centre(y_pix) - half < ny)
         )
         todo = overlaps & (sizes > 0) & (flux > 0)
         bar = None
@@ -492,8 +578,7 @@ class StarRenderer:
                 dtype=dtype,
             )
 
-        for m in {m for m, _ in jobs}:
-            self.plan(m)  # build plans once, before the threads share them
+        self.plans({m for m, _ in jobs})  # build plans once, before the threads share them
         threads = self.params.threads or os.cpu_count() or 1
         with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
             # at most 2 batches per thread in flight (bounded memory); stamps are added
@@ -529,6 +614,19 @@ class StarRenderer:
         return min(floor, allowed), dtype
 
 
+def stamp_centre(pix) -> np.ndarray:
+    """The pixel a star's stamp is centred on: its position rounded, halves up.
+
+    A star exactly on a pixel boundary (``k + 0.5``) lands there only up to the
+    round-off of the frame-centre offset ``(n - 1) / 2``, which differs between
+    frame sizes; the boundary is therefore moved ``STAMP_CENTRE_BIAS`` pixels below
+    the half, so that such a star gets the same stamp, offset by the same whole
+    number of pixels, in every frame (the stamp is periodic: its centre pixel only
+    decides which copy of the wing is kept, not where the star is).
+    """
+    return np.floor(np.asarray(pix, dtype=np.float64) + (0.5 + STAMP_CENTRE_BIAS)).astype(np.int64)
+
+
 def _node_transforms_dft(cube, step: float, fy, fx) -> np.ndarray:
     """Direct DFT of every PSF node at integer frequencies ``fy`` x ``fx``.
 
@@ -546,36 +644,40 @@ def _node_transforms_dft(cube, step: float, fy, fx) -> np.ndarray:
     return np.matmul(ey[None], half)
 
 
-def _node_transforms_fft(cube, period: int, fy, fx, chunk: int = 8) -> np.ndarray:
-    """Same as :func:`_node_transforms_dft` when the stamp period is ``period`` PSF pixels.
+def _node_transforms_fft(cube, requests, chunk: int = 8, workers: int = 1) -> list[np.ndarray]:
+    """Same as :func:`_node_transforms_dft` for stamp periods of whole PSF pixels.
 
-    The DFT at frequencies ``q / period`` of a finely sampled PSF equals the FFT of
-    that PSF wrapped (summed) onto ``period`` samples with the optical axis at 0,
-    so this is exact, not an approximation; nodes are done a few at a time.
+    ``requests`` is a list of ``(period, fy, fx)`` (period in PSF pixels) whose
+    periods all divide the largest, ``B``. The DFT at frequencies ``q / period`` of
+    a finely sampled PSF equals the FFT of that PSF wrapped (summed) onto ``period``
+    samples with the optical axis at 0, and also the FFT of it wrapped onto ``B``
+    samples taken at every ``B / period``-th frequency, so one FFT per node serves
+    every request; this is exact, not an approximation. Nodes are done a few at a
+    time. Returns one (nodes, len(fy), len(fx)) complex array per request.
     """
-    nodes, n, _ = cube.shape
-    iy = np.asarray(fy, dtype=np.int64) % period
-    ix = np.asarray(fx, dtype=np.int64) % period
-    out = np.empty((nodes, len(fy), len(fx)), dtype=np.complex128)
-    # the nodes are real: rfft along x, negative frequencies by conjugate symmetry
-    ax = np.minimum(ix, period - ix)
-    neg = ix > period - ix
+    nodes = cube.shape[0]
+    base = max(int(p) for p, _, _ in requests)
+    outs, picks = [], []
+    for period, fy, fx in requests:
+        if base % int(period):
+            raise ValueError(f"stamp period {period} does not divide {base}")
+        step = base // int(period)
+        iy = (np.asarray(fy, dtype=np.int64) % period) * step
+        ix = (np.asarray(fx, dtype=np.int64) % period) * step
+        # the nodes are real: rfft along x, negative frequencies by conjugate symmetry
+        picks.append((iy, np.minimum(ix, base - ix), ix > base - ix))
+        outs.append(np.empty((nodes, len(fy), len(fx)), dtype=np.complex128))
     for a in range(0, nodes, chunk):
-        rows = scipy.fft.rfft(_wrap_last_axis(cube[a : a + chunk], period), axis=-1)[..., ax]
-        rows[..., neg] = rows[..., neg].conj()
-        cols = _wrap_last_axis(np.swapaxes(rows, -1, -2), period)  # (c, nfx, period)
-        out[a : a + chunk] = np.swapaxes(scipy.fft.fft(cols, axis=-1)[..., iy], -1, -2)
-    return out
-
-
-def _wrap_last_axis(a: np.ndarray, period: int) -> np.ndarray:
-    """Sum the samples of the last axis onto ``period`` bins, central sample at bin 0."""
-    n = a.shape[-1]
-    length = -(-n // period) * period
-    padded = np.zeros(a.shape[:-1] + (length,), dtype=a.dtype)
-    padded[..., :n] = a
-    padded = np.roll(padded, -((n - 1) // 2), axis=-1)
-    return padded.reshape(a.shape[:-1] + (length // period, period)).sum(axis=-2)
+        block = cube[a : a + chunk]
+        wrapped = np.zeros((len(block), base, base))
+        wrap_2d_into(block, base, wrapped)
+        spec = scipy.fft.rfft2(wrapped, workers=workers)  # (c, B, B // 2 + 1)
+        for out, (iy, ax, neg) in zip(outs, picks):
+            sel = spec[:, iy][:, :, ax]
+            # T(ky, -kx) = conj T(-ky, kx) for a real node
+            sel[..., neg] = spec[:, (base - iy) % base][:, :, ax[neg]].conj()
+            out[a : a + chunk] = sel
+    return outs
 
 
 def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
@@ -593,16 +695,15 @@ def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
     c = (n - 1) / 2
     yy, xx = np.mgrid[0:n, 0:n]
     r_pix = np.hypot(xx - c, yy - c).ravel() * psf_scale / pixel_scale
-    order = np.argsort(r_pix)[::-1]
-    r_sorted = r_pix[order]
-    radii = np.arange(0.0, r_sorted[0] + 1.0, 0.5)
-    # envelope(r) = max of per_pixel over samples with radius >= r
-    pos = np.searchsorted(-r_sorted, -radii, side="right") - 1
+    radii = np.arange(0.0, r_pix.max() + 1.0, 0.5)
+    # bin k holds the samples with radii[k] <= r < radii[k + 1]; the envelope at
+    # radii[k] is the largest bin maximum at or beyond k
+    bins = np.minimum(np.floor(r_pix / 0.5).astype(np.int64), len(radii) - 1)
+    bin_max = np.zeros((len(cube), len(radii)))
+    binned_max(cube.reshape(len(cube), -1), bins, len(radii), bin_max)
+    env = np.maximum.accumulate(bin_max[:, ::-1], axis=1)[:, ::-1]
     # a detector pixel holds about (s/p)^2 PSF samples; clip so it never exceeds 1
-    per_pixel = np.minimum(cube.reshape(len(cube), -1) * (pixel_scale / psf_scale) ** 2, 1.0)
-    cummax = np.maximum.accumulate(per_pixel[:, order], axis=1)
-    env = np.where(pos >= 0, cummax[:, np.maximum(pos, 0)], 0.0)
-    return radii, env
+    return radii, np.minimum(env * (pixel_scale / psf_scale) ** 2, 1.0)
 
 
 def _value(q, unit: str) -> float:

@@ -69,6 +69,17 @@ def build_scene_optics(scene: SceneSettings, cache_dir=None, progress: bool = Fa
     return optics.build_optics(settings, cache_dir=cache_dir, progress=progress)
 
 
+def plan_cache_dir(optics, cache_dir=None) -> Path | None:
+    """Folder for the renderer's stamp-plan cache: ``cache_dir``, else the PSF-grid cache's.
+
+    None (in memory only) when neither is known, e.g. for optics built in memory.
+    """
+    if cache_dir is not None:
+        return Path(cache_dir)
+    grid_file = getattr(optics, "cache_path", None)
+    return Path(grid_file).parent if grid_file is not None else None
+
+
 def epoch_rng(seed: int | None, epoch: str) -> np.random.Generator:
     """Noise generator of one epoch: independent per epoch name, reproducible per seed."""
     seed = 0 if seed is None else int(seed)
@@ -152,7 +163,11 @@ def run_stage(
     progress : bool
         Progress bars.
     cache_dir : path, optional
-        PSF-grid cache folder for the optics model.
+        PSF-grid cache folder for the optics model; the stamp plans (PSF-node
+        transforms) and the halo profile are cached there too, so the other
+        epochs of the scene, rendered by other calls or processes, reuse them.
+        Default: the folder of the PSF-grid cache file the optics came from
+        (``optics.cache_path``), or no disk cache when the optics have none.
 
     Returns
     -------
@@ -164,6 +179,8 @@ def run_stage(
     table, t = _select_epoch(cat, epoch)
     if optics is None:
         optics = build_scene_optics(settings, cache_dir, progress)
+    if renderer is None:
+        renderer = make_renderer(optics, settings, plan_cache_dir(optics, cache_dir))
     frame = render_frame(
         table, t, settings, optics, epoch_rng(seed, epoch), renderer=renderer, progress=progress
     )
@@ -202,7 +219,7 @@ def _handle(args: argparse.Namespace) -> int:
             path=args.catalogue,
         )
     optics = build_scene_optics(scene, args.cache_dir, args.progress)
-    renderer = make_renderer(optics, scene)
+    renderer = make_renderer(optics, scene, plan_cache_dir(optics, args.cache_dir))
     for name in todo:
         out = Path(args.output) / f"frames_{name}.h5" if many else Path(args.output)
         fits_path = None
@@ -242,6 +259,8 @@ def register(subparsers) -> None:
     p.add_argument("--fits", help="also write the image as this FITS file")
     p.add_argument("--fits-dir", help="write FITS copies into this folder (frames_<epoch>.fits)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.add_argument("--cache-dir", help="PSF-grid cache folder (default: the optics default)")
+    p.add_argument(
+        "--cache-dir", help="PSF-grid and stamp-plan cache folder (default: the optics default)"
+    )
     p.add_argument("--progress", action="store_true", help="show progress bars")
     p.set_defaults(func=_handle)

@@ -12,10 +12,9 @@ from __future__ import annotations
 
 import os
 
+import numba
 import numpy as np
 import scipy.fft
-import scipy.signal
-import scipy.sparse
 
 
 def deposit_cic(field: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndarray) -> None:
@@ -37,7 +36,15 @@ def deposit_cic(field: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndar
 
 
 def halo_field(
-    x_pix, y_pix, flux, shape, halo, pixel_scale: float, downsample: int = 1, threads: int = 1
+    x_pix,
+    y_pix,
+    flux,
+    shape,
+    halo,
+    pixel_scale: float,
+    downsample: int = 1,
+    threads: int = 1,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """The seeing field of a set of stars on the detector grid.
 
@@ -57,13 +64,17 @@ def halo_field(
         Convolve on pixels ``downsample`` times larger, then interpolate back.
     threads : int
         FFT worker threads (0: all cores).
+    out : ndarray (ny, nx) float64, optional
+        Add the field into this array (in place) instead of a new one.
 
     Returns
     -------
     ndarray (ny, nx) float64
-        Halo light per detector pixel (flux units of ``flux``).
+        Halo light per detector pixel (flux units of ``flux``): ``out`` when given.
     """
     ny, nx = shape
+    if out is None:
+        out = np.zeros(shape)
     b = int(max(downsample, 1))
     kernel = np.asarray(halo.kernel(pixel_scale * b), dtype=np.float64)
     hky, hkx = kernel.shape[0] // 2, kernel.shape[1] // 2
@@ -73,22 +84,44 @@ def halo_field(
     yc = (np.asarray(y_pix, dtype=float) + 0.5) / b - 0.5 + hky
     deposit_cic(padded, xc, yc, np.asarray(flux, dtype=float))
     if not padded.any():
-        return np.zeros(shape)
-    with scipy.fft.set_workers(threads or os.cpu_count() or 1):
-        seeing = scipy.signal.fftconvolve(padded, kernel, mode="same")
-    coarse = seeing[hky : hky + ncy, hkx : hkx + ncx]
+        return out
+    # the kernel field is padded by the kernel half-size, so the frame never wraps
+    seeing = _convolve_same(padded, kernel, threads or os.cpu_count() or 1)
+    coarse = np.ascontiguousarray(seeing[hky : hky + ncy, hkx : hkx + ncx])
     if b == 1:
-        return coarse
+        out += coarse
+        return out
     # detector pixel centres in coarse-pixel coordinates; flux density per detector pixel
-    rows = _linear_interpolation_matrix(ny, ncy, b)
-    cols = _linear_interpolation_matrix(nx, ncx, b)
-    fine = np.asarray(rows @ (cols @ coarse.T).T)
-    fine *= 1.0 / b**2
-    return fine
+    ylo, yfrac = _linear_interpolation_weights(ny, ncy, b)
+    xlo, xfrac = _linear_interpolation_weights(nx, ncx, b)
+    add_bilinear(out, coarse * (1.0 / b**2), ylo, yfrac, xlo, xfrac)
+    return out
 
 
-def _linear_interpolation_matrix(n_fine: int, n_coarse: int, b: int) -> scipy.sparse.csr_matrix:
-    """Sparse (n_fine, n_coarse) linear interpolation from coarse to fine pixel centres.
+def _convolve_same(field: np.ndarray, kernel: np.ndarray, workers: int) -> np.ndarray:
+    """Convolution of ``field`` with an odd-sized centred ``kernel``, exact away from the rim.
+
+    A circular convolution with the period of ``field`` (rounded up to a fast FFT
+    length): output pixels at least the kernel's half-size from the field's edges
+    equal those of ``scipy.signal.fftconvolve(field, kernel, mode="same")`` (the
+    kernel never wraps for them); the rim, which the caller discards, wraps. This
+    needs transforms ~2.5 times smaller than the linear convolution.
+    """
+    ky, kx = kernel.shape[0] // 2, kernel.shape[1] // 2
+    fshape = [
+        max(scipy.fft.next_fast_len(n, real=True), 2 * k + 1) for n, k in zip(field.shape, (ky, kx))
+    ]
+    wrapped = np.zeros(fshape)
+    wrapped[: kernel.shape[0], : kernel.shape[1]] = kernel
+    wrapped = np.roll(wrapped, (-ky, -kx), axis=(0, 1))  # kernel centre at [0, 0]
+    spec = scipy.fft.rfft2(field, fshape, workers=workers)
+    spec *= scipy.fft.rfft2(wrapped, workers=workers)
+    conv = scipy.fft.irfft2(spec, fshape, workers=workers)
+    return conv[: field.shape[0], : field.shape[1]]
+
+
+def _linear_interpolation_weights(n_fine: int, n_coarse: int, b: int):
+    """Lower coarse index and weight of the upper one for each fine pixel centre.
 
     Fine pixel ``i`` sits at coarse coordinate ``(i + 0.5) / b - 0.5``; beyond the
     outermost coarse centres the edge value is held (nearest).
@@ -96,9 +129,28 @@ def _linear_interpolation_matrix(n_fine: int, n_coarse: int, b: int) -> scipy.sp
     pos = np.clip((np.arange(n_fine) + 0.5) / b - 0.5, 0.0, n_coarse - 1.0)
     lo = np.minimum(np.floor(pos).astype(np.int64), max(n_coarse - 2, 0))
     frac = pos - lo
-    hi = np.minimum(lo + 1, n_coarse - 1)
-    data = np.concatenate([1.0 - frac, frac])
-    rows = np.concatenate([np.arange(n_fine), np.arange(n_fine)])
-    return scipy.sparse.csr_matrix(
-        (data, (rows, np.concatenate([lo, hi]))), shape=(n_fine, n_coarse)
-    )
+    if n_coarse == 1:
+        frac[:] = 0.0
+    return lo, frac
+
+
+@numba.njit(nogil=True, cache=True)
+def add_bilinear(out, coarse, ylo, yfrac, xlo, xfrac) -> None:  # pragma: no cover
+    """``out[i, j] += `` the bilinear interpolation of ``coarse`` at (ylo + yfrac, xlo + xfrac).
+
+    One pass over ``out`` in row order (no full-size temporary).
+    """
+    ny, nx = out.shape
+    ncx = coarse.shape[1]
+    ncy = coarse.shape[0]
+    for i in range(ny):
+        r0 = ylo[i]
+        r1 = min(r0 + 1, ncy - 1)
+        fy = yfrac[i]
+        for j in range(nx):
+            c0 = xlo[j]
+            c1 = min(c0 + 1, ncx - 1)
+            fx = xfrac[j]
+            top = coarse[r0, c0] + fx * (coarse[r0, c1] - coarse[r0, c0])
+            bot = coarse[r1, c0] + fx * (coarse[r1, c1] - coarse[r1, c0])
+            out[i, j] += top + fy * (bot - top)

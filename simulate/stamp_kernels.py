@@ -99,3 +99,35 @@ def add_stamps(image, stamps, x0, y0) -> None:  # pragma: no cover
         for yy in range(ya, yb):
             for xx in range(xa, xb):
                 image[yy, xx] += stamps[s, yy - cy, xx - cx]
+
+
+@numba.njit(nogil=True, cache=True)
+def wrap_2d_into(a, period, out) -> None:  # pragma: no cover
+    """``out[i, (y - c) % period, (x - c) % period] += a[i, y, x]``, ``c = (n - 1) // 2``.
+
+    Wraps (sums) the last two axes of ``a`` (i, n, n) onto ``period`` x ``period``
+    bins, the central sample at [0, 0], in one pass (``out`` zeroed by the caller).
+    """
+    first = (-((a.shape[2] - 1) // 2)) % period
+    for i in range(a.shape[0]):
+        by = first
+        for y in range(a.shape[1]):
+            bx = first
+            for x in range(a.shape[2]):
+                out[i, by, bx] += a[i, y, x]
+                bx += 1
+                if bx == period:
+                    bx = 0
+            by += 1
+            if by == period:
+                by = 0
+
+
+@numba.njit(nogil=True, cache=True)
+def binned_max(values, bins, n_bins, out) -> None:  # pragma: no cover
+    """``out[i, b] = max(values[i, p] for p with bins[p] == b)`` (``out`` pre-filled with 0)."""
+    for i in range(values.shape[0]):
+        for p in range(values.shape[1]):
+            b = bins[p]
+            if values[i, p] > out[i, b]:
+                out[i, b] = values[i, p]

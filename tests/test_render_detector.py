@@ -97,3 +97,63 @@ def test_exact_draw_window_is_where_skewness_reaches_the_limit(var_rn, limit):
     skew = lam / (lam + var_rn) ** 1.5
     inside = (lam >= lo) & (lam <= hi)
     assert np.array_equal(inside, skew >= limit)
+
+
+@pytest.mark.parametrize("lam,var_rn", [(400.0, 0.0), (2160.0, 1080.0), (25.0, 4.0)])
+def test_skew_corrected_draws_match_three_moments_of_poisson_plus_read_noise(lam, var_rn):
+    from mavispm.simulate.detector import normal_stack_draws, skewed_normal
+
+    n = 400_000
+    z = np.random.default_rng(3).standard_normal(n, dtype=np.float32)
+    mu = np.full(n, lam / 6.0)  # per sub-exposure, 6 sub-exposures
+    compiled = np.empty(n, dtype=np.float32)
+    normal_stack_draws(mu, z, 6, var_rn, 0.0, compiled)
+    reference = skewed_normal(np.full(n, lam), var_rn, z.astype(float), 0.0)
+    assert np.allclose(compiled, reference, rtol=1e-6, atol=1e-3)
+    sd = np.sqrt(lam + var_rn)
+    g = lam / sd**3  # skewness of Poisson(lam) + N(0, var_rn)
+    d = compiled - compiled.mean()
+    assert compiled.mean() == pytest.approx(lam, abs=5 * sd / np.sqrt(n))
+    assert d.var() == pytest.approx(sd**2, rel=5 * np.sqrt(2 / n))
+    skew = (d**3).mean() / d.var() ** 1.5
+    assert abs(skew - g) < 5 * np.sqrt(6 / n)
+    # below the limit: a plain Gaussian (no skewness)
+    plain = np.empty(n, dtype=np.float32)
+    normal_stack_draws(mu, z, 6, var_rn, np.inf, plain)
+    assert np.allclose(plain, lam + sd * z, rtol=1e-6, atol=1e-3)
+
+
+def test_skew_corrected_tier_of_the_stack_keeps_mean_variance_and_skewness():
+    """With poisson_skew_limit above the largest skewness, no Poisson draw, same moments."""
+    det = DetectorSettings(nx=1000, ny=2000, read_noise=3.0)
+    nexp = 120
+    mu = np.full((2000, 1000), 2160.0 / nexp)  # the most skewed level of this stack (0.0117)
+    img, _ = expose_stack(
+        mu, nexp, det, np.random.default_rng(8), skew_limit=0.01, poisson_skew_limit=0.1
+    )
+    e = img.astype(float).ravel()
+    var = 2160.0 + nexp * 9.0
+    d = e - e.mean()
+    assert e.mean() == pytest.approx(2160.0, abs=5 * np.sqrt(var / e.size))
+    assert d.var() == pytest.approx(var, rel=5 * np.sqrt(2 / e.size))
+    skew = (d**3).mean() / d.var() ** 1.5
+    # 3 standard errors (0.005): a plain Gaussian (skewness 0) would be 7 away
+    assert abs(skew - 2160.0 / var**1.5) < 3 * np.sqrt(6 / e.size)
+
+
+def test_noise_tiers_exact_corrected_and_plain():
+    """skew_limit = 0: exact Poisson everywhere; between the limits: skew-corrected."""
+    det = DetectorSettings(nx=200, ny=100, read_noise=0.0)
+    mu = np.full((100, 200), 400.0)  # skewness of the 1-exposure stack: 400**-0.5 = 0.05
+    exact, _ = expose_stack(
+        mu, 1, det, np.random.default_rng(2), skew_limit=0.0, poisson_skew_limit=0.1
+    )
+    assert np.array_equal(exact, np.round(exact))  # Poisson counts (no read noise)
+    corrected, _ = expose_stack(
+        mu, 1, det, np.random.default_rng(2), skew_limit=0.01, poisson_skew_limit=0.1
+    )
+    assert not np.array_equal(corrected, np.round(corrected))
+    counts, _ = expose_stack(
+        mu.astype(int), 1, det, np.random.default_rng(2), skew_limit=0.01, poisson_skew_limit=0.04
+    )
+    assert np.array_equal(counts, np.round(counts))  # 0.05 >= 0.04: exact again

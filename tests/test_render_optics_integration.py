@@ -80,3 +80,32 @@ def test_documented_scene_example_is_valid():
     scene = render_cli.validate_settings(tomllib.loads(block))
     default = render_cli.validate_settings({})
     assert scene == default
+
+
+def test_run_stage_caches_stamp_plans_and_halo_next_to_the_psf_grid(tmp_path, cache):
+    """A second epoch (as from another process) loads the plans and halo, same frame."""
+    from mavispm.simulate.frame import make_renderer
+
+    cat = tmp_path / "cat.h5"
+    write_catalogue(cat, {"e0": epoch_table([0.0, 0.3], [0.1, -0.2], [19.0, 21.0])})
+    scene = _scene(noise=True)
+    first = render_cli.run_stage(cat, "e0", scene, tmp_path / "a.h5", 4, cache_dir=cache)
+    plans = sorted(cache.glob("stampplan-*.npz"))
+    halos = sorted(cache.glob("halo-*.npz"))
+    assert plans and len(halos) == 1
+    again = render_cli.run_stage(cat, "e0", scene, tmp_path / "b.h5", 4, cache_dir=cache)
+    image_a = read_product(first, "frames").arrays["image"]
+    image_b = read_product(again, "frames").arrays["image"]
+    assert np.array_equal(image_a, image_b)
+    # the stored plans equal freshly computed ones; a corrupt file is recomputed
+    settings = render_cli.validate_settings(scene)
+    optics = render_cli.build_scene_optics(settings, cache)
+    fresh = make_renderer(optics, settings)
+    m = int(plans[0].stem.rsplit("-m", 1)[1])
+    plans[0].write_bytes(b"not a zip file")
+    cached = make_renderer(optics, settings, cache)
+    for size in {m, *(int(p.stem.rsplit("-m", 1)[1]) for p in plans)}:
+        a, b = fresh.plan(size), cached.plan(size)
+        assert np.array_equal(a.target, b.target)
+        assert np.allclose(a.transforms, b.transforms, rtol=0, atol=1e-12)
+    assert render_cli.plan_cache_dir(optics) == cache

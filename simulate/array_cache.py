@@ -1,0 +1,53 @@
+"""Small on-disk caches of named arrays (``.npz`` files), written atomically.
+
+For results that are expensive but pure functions of their inputs: the renderer's
+stamp plans (the PSF-node transforms) and the optics' seeing-halo profile, which
+every epoch of a scene (every ``frames`` node of a workflow, each in its own
+process) would otherwise recompute. The caller names the folder (nothing is
+cached unless it does) and builds the key from everything the content depends
+on; a missing or unreadable file is a miss, and a folder that cannot be written
+only costs the recomputation.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from mavispm.core.atomic import atomic_path
+
+
+def content_key(*parts) -> str:
+    """Hash (20 hex digits) of arrays (dtype, shape and bytes) and JSON-able values."""
+    digest = hashlib.sha1()
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            digest.update(repr((part.dtype.str, part.shape)).encode())
+            digest.update(np.ascontiguousarray(part).data)
+        else:
+            digest.update(json.dumps(part, sort_keys=True, default=str).encode())
+        digest.update(b"\0")
+    return digest.hexdigest()[:20]
+
+
+def load_arrays(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of a cache file, or None when it is missing or unreadable."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> bool:
+    """Write ``arrays`` to ``path`` atomically; False (nothing written) if the folder is not writable."""
+    try:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    except OSError:
+        return False
+    return True
