@@ -96,8 +96,9 @@ class FitResult:
         Bitmask (see module docstring).
     iterations : int
         Sweeps performed.
-    model_image : ndarray
-        Sum of the fitted star models (no sky) [electron], frame shaped.
+    model_image : ndarray or None
+        Sum of the fitted star models (no sky) [electron], frame shaped (None
+        when not asked for).
     """
 
     x: np.ndarray
@@ -111,7 +112,7 @@ class FitResult:
     chi2: np.ndarray
     flag: np.ndarray
     iterations: int
-    model_image: np.ndarray
+    model_image: np.ndarray | None
 
 
 def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
@@ -228,6 +229,7 @@ def fit_stars(
     bad: np.ndarray | None = None,
     saturated: np.ndarray | None = None,
     options: FitOptions | None = None,
+    return_model: bool = True,
 ) -> FitResult:
     """Fit positions, fluxes and local skies of all stars simultaneously.
 
@@ -250,6 +252,9 @@ def fit_stars(
     saturated : ndarray of bool, optional
         Saturated pixels (ignored, and the star flagged 2).
     options : FitOptions, optional
+    return_model : bool
+        Also return the frame-sized model image (the ePSF builder's many small
+        fits do not need it).
 
     Returns
     -------
@@ -270,10 +275,6 @@ def fit_stars(
             raise InputError(
                 f"{name} mask shape {np.shape(m)} differs from image shape {image.shape}"
             )
-    sat = np.zeros(image.shape, bool) if saturated is None else np.asarray(saturated, bool)
-    badpix = ~np.isfinite(image) | sat
-    if bad is not None:
-        badpix |= np.asarray(bad, bool)
     flag = np.zeros(n, dtype=np.int64)
     usable = np.isfinite(x0) & np.isfinite(y0)
     usable &= (x0 > -0.5) & (x0 < nx - 0.5) & (y0 > -0.5) & (y0 < ny - 0.5)
@@ -287,14 +288,27 @@ def fit_stars(
     s = geom.size
     rows, cols = geom.rows(), geom.columns()
     inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
-    flat = (
+    # work on the pixels the stamps touch only (compact index), never on full-frame
+    # arrays: the ePSF builder fits a few hundred stars of a 4k x 4k frame many times
+    frame_index = (
         np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
     ).reshape(n, -1)
+    pixels, flat = np.unique(frame_index, return_inverse=True)
+    flat = flat.reshape(n, -1)
+    values = np.asarray(image.reshape(-1)[pixels], dtype=float)
+    sat_pix = (
+        np.zeros(len(pixels), bool)
+        if saturated is None
+        else np.asarray(saturated, bool).reshape(-1)[pixels]
+    )
+    bad_pix = ~np.isfinite(values) | sat_pix
+    if bad is not None:
+        bad_pix |= np.asarray(bad, bool).reshape(-1)[pixels]
     inside = inside.reshape(n, -1) & usable[:, None]
-    data = np.where(inside, np.nan_to_num(image.reshape(-1)[flat].astype(float)), 0.0)
-    valid = inside & ~badpix.reshape(-1)[flat]
+    data = np.where(inside, np.nan_to_num(values[flat]), 0.0)
+    valid = inside & ~bad_pix[flat]
     flag[np.any(~inside, axis=1) & usable] |= FLAG_EDGE
-    flag[np.any(inside & sat.reshape(-1)[flat], axis=1)] |= FLAG_SATURATED
+    flag[np.any(inside & sat_pix[flat], axis=1)] |= FLAG_SATURATED
     npix_valid = valid.sum(axis=1)
     usable &= npix_valid > 4
     flag[~usable] |= FLAG_FAILED
@@ -303,7 +317,7 @@ def fit_stars(
     sky = np.full(n, float(sky0))
     flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
-    model = np.zeros(ny * nx, dtype=np.float32)  # sum of all star models (float32: memory)
+    model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
     colour = colour_stars(x, y, 2 * r + 1.0)
     groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
     pairs = (
@@ -315,7 +329,9 @@ def fit_stars(
 
     def deposit(idx, new):
         ins = inside[idx]
-        np.add.at(model, flat[idx][ins], (new - own[idx])[ins])
+        model[:] += np.bincount(
+            flat[idx][ins], weights=(new - own[idx])[ins], minlength=len(pixels)
+        )
         own[idx] = new
 
     def evaluate(idx):
@@ -441,8 +457,15 @@ def fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
-        model_image=model.reshape(ny, nx),
+        model_image=_frame_image(model, pixels, (ny, nx)) if return_model else None,
     )
+
+
+def _frame_image(values: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Frame-shaped float32 image with ``values`` at the flat ``pixels``, zero elsewhere."""
+    out = np.zeros(shape[0] * shape[1], dtype=np.float32)
+    out[pixels] = values
+    return out.reshape(shape)
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
