@@ -230,6 +230,7 @@ def fit_stars(
     saturated: np.ndarray | None = None,
     options: FitOptions | None = None,
     return_model: bool = True,
+    uncertainties: bool = True,
 ) -> FitResult:
     """Fit positions, fluxes and local skies of all stars simultaneously.
 
@@ -255,6 +256,9 @@ def fit_stars(
     return_model : bool
         Also return the frame-sized model image (the ePSF builder's many small
         fits do not need it).
+    uncertainties : bool
+        Compute the Fisher errors and chi^2 at the solution (otherwise NaN, and
+        only non-positive fluxes count as failed).
 
     Returns
     -------
@@ -427,10 +431,11 @@ def fit_stars(
     s_err = np.full(n, np.nan)
     chi2 = np.full(n, np.nan)
     all_idx = np.flatnonzero(usable)
-    for idx in _chunks(all_idx, opt.chunk):
-        v, *_ = normal_equations(idx, None)
-        deposit(idx, flux[idx, None] * v)
-    for idx in _chunks(all_idx, opt.chunk):
+    if uncertainties or return_model:  # exact (not linearised) models at the solution
+        for idx in _chunks(all_idx, opt.chunk):
+            v, *_ = normal_equations(idx, None)
+            deposit(idx, flux[idx, None] * v)
+    for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
         _, _, _, a, _, w, resid = normal_equations(idx, None)
         cov, ok = safe_inverse(a)
         err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
@@ -439,7 +444,9 @@ def fit_stars(
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
         flag[idx[~ok]] |= FLAG_FAILED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
-    failed = ~usable | ~(flux > 0) | ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
+    failed = ~usable | ~(flux > 0)
+    if uncertainties:
+        failed |= ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
     flag[failed] |= FLAG_FAILED
     x_out = np.where(usable, x, x0)
     y_out = np.where(usable, y, y0)

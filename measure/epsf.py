@@ -176,25 +176,30 @@ def build_epsf(
 
 
 def _near_neighbour(x, y, rows, cols, others, radius):
-    """Stamp pixels closer to another star than to their own and within ``radius`` of it."""
-    tree = cKDTree(others)
-    px = np.broadcast_to(cols[:, None, :], (len(x), rows.shape[1], cols.shape[1]))
-    py = np.broadcast_to(rows[:, :, None], px.shape)
-    pts = np.column_stack([px.ravel(), py.ravel()])
-    d_self = np.hypot(px - x[:, None, None], py - y[:, None, None]).ravel()
-    near = np.zeros(len(pts), bool)
-    dist, idx = tree.query(pts, k=2, distance_upper_bound=radius)
-    for k in range(2):
-        hit = np.isfinite(dist[:, k])
-        j = np.minimum(idx[:, k], len(others) - 1)
-        own = (
-            np.hypot(
-                others[j, 0] - np.repeat(x, px[0].size), others[j, 1] - np.repeat(y, px[0].size)
-            )
-            < 0.5
-        )
-        near |= hit & ~own & (dist[:, k] < d_self)
-    return near.reshape(px.shape)
+    """Stamp pixels closer to another star than to their own and within ``radius`` of it.
+
+    Works on the (PSF star, other star) pairs within reach of a stamp only: PSF
+    stars are isolated, so there are few.
+    """
+    n, sy, sx = len(x), rows.shape[1], cols.shape[1]
+    near = np.zeros((n, sy, sx), bool)
+    reach = np.sqrt(2) * max(sy, sx) / 2 + radius + 1
+    lists = cKDTree(others).query_ball_point(np.column_stack([x, y]), reach)
+    star = np.repeat(np.arange(n), [len(hits) for hits in lists])
+    if len(star) == 0:
+        return near
+    other = np.concatenate([np.asarray(hits, np.intp) for hits in lists])
+    ox, oy = others[other, 0], others[other, 1]
+    keep = np.hypot(ox - x[star], oy - y[star]) >= 0.5  # the star itself
+    star, ox, oy = star[keep], ox[keep], oy[keep]
+    for start in range(0, len(star), 2048):
+        sl = slice(start, start + 2048)
+        k = star[sl]
+        px, py = cols[k][:, None, :], rows[k][:, :, None]
+        d_other = np.hypot(px - ox[sl, None, None], py - oy[sl, None, None])
+        d_self = np.hypot(px - x[k, None, None], py - y[k, None, None])
+        np.logical_or.at(near, k, (d_other < radius) & (d_other < d_self))
+    return near
 
 
 def _smoothing_kernel(wide: bool = False) -> np.ndarray:
@@ -360,6 +365,7 @@ def build_epsf_fast(
                 bad=badpix,
                 options=fit_opt,
                 return_model=False,
+                uncertainties=False,
             )
             good = (fit.flag & 32) == 0
             if good.sum() >= _MIN_STARS_REFIT:
