@@ -63,6 +63,9 @@ class FitOptions:
         Stars evaluated at once (memory ~ chunk * S^2 * 16 * 8 bytes * mixing terms).
     progress : bool
         Show a tqdm progress bar over iterations.
+    blend_radius : float
+        Neighbours closer than this [pixel] are marginalised in the reported
+        errors (:func:`marginalise_neighbours`).
     """
 
     radius: int = 5
@@ -75,6 +78,7 @@ class FitOptions:
     min_snr: float = 3.0
     chunk: int = 512
     progress: bool = False
+    blend_radius: float = 5.0
 
 
 @dataclass
@@ -435,14 +439,29 @@ def fit_stars(
         for idx in _chunks(all_idx, opt.chunk):
             v, *_ = normal_equations(idx, None)
             deposit(idx, flux[idx, None] * v)
+    fisher = np.zeros((n, 4, 4))
+    weight = np.zeros((n, s * s))
     for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
         _, _, _, a, _, w, resid = normal_equations(idx, None)
-        cov, ok = safe_inverse(a)
-        err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
-        x_err[idx], y_err[idx], f_err[idx], s_err[idx] = err.T
+        fisher[idx], weight[idx] = a, w
         dof = np.maximum(valid[idx].sum(axis=1) - 4, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
-        flag[idx[~ok]] |= FLAG_FAILED
+    if uncertainties:
+        separation = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
+        close = pairs[(separation < opt.blend_radius) & usable[pairs].all(axis=1)]
+        fisher_eff = marginalise_neighbours(
+            psf, fisher, weight, x, y, flux, geom, mix, close, opt.chunk
+        )
+        cov, ok = safe_inverse(fisher_eff[all_idx])
+        plain, ok_plain = safe_inverse(fisher[all_idx])
+        # marginalising can only add variance; a degenerate joint fit (two stars at one
+        # position) or a breakdown of the independent-neighbour sum keeps the star's own
+        var, var_plain = np.einsum("nkk->nk", cov), np.einsum("nkk->nk", plain)
+        keep = ~ok | ~np.all(np.isfinite(var) & (var >= var_plain * (1 - 1e-9)), axis=1)
+        cov[keep] = plain[keep]
+        err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
+        x_err[all_idx], y_err[all_idx], f_err[all_idx], s_err[all_idx] = err.T
+        flag[all_idx[~ok_plain]] |= FLAG_FAILED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0)
     if uncertainties:
@@ -473,6 +492,72 @@ def _frame_image(values: np.ndarray, pixels: np.ndarray, shape: tuple[int, int])
     out = np.zeros(shape[0] * shape[1], dtype=np.float32)
     out[pixels] = values
     return out.reshape(shape)
+
+
+def marginalise_neighbours(
+    psf: VariableEPSF,
+    fisher: np.ndarray,
+    weight: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    geom: StampGeometry,
+    mix: tuple[np.ndarray, np.ndarray],
+    pairs: np.ndarray,
+    chunk: int = 512,
+) -> np.ndarray:
+    """Fisher matrices of stars with their close neighbours' parameters marginalised.
+
+    A star fitted with its neighbours subtracted has the per-star Fisher matrix
+    ``A_ii``; but a close neighbour's position and flux are not known exactly,
+    and their errors covary with the star's (a faint star 2 px from a bright one
+    moves it). The joint-fit information of star i is the Schur complement
+    ``A_ii - sum_j A_ij A_jj^-1 A_ji`` with ``A_ij = J_i W_i J_j^T`` on star i's
+    stamp (``J_j`` the neighbour's model derivatives there, no sky term: each star
+    has its own local sky) and ``A_jj`` the neighbour's own Fisher matrix. Summing
+    over neighbours treats them as independent (adequate for pairs and sparse
+    groups).
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+    fisher : ndarray, shape (N, 4, 4)
+        Per-star Fisher matrices.
+    weight : ndarray, shape (N, S*S)
+        Pixel weights of each star's stamp [1/electron^2].
+    x, y, flux : ndarray, shape (N,)
+        Fitted positions [pixel] and fluxes [electron].
+    geom : StampGeometry
+        The stars' stamps.
+    mix : tuple
+        ``psf.mixing(x, y)`` at the stamps' stars.
+    pairs : ndarray of int, shape (P, 2)
+        Close pairs (each once).
+    chunk : int
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 4)
+    """
+    out = fisher.copy()
+    if len(pairs) == 0:
+        return out
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    inv_other, ok_other = safe_inverse(fisher[both[:, 1]])
+    for start in range(0, len(both), chunk):
+        i, j = both[start : start + chunk, 0], both[start : start + chunk, 1]
+        stamps = StampGeometry(geom.cx[i], geom.cy[i], geom.radius)
+        own = psf.evaluate(x[i], y[i], stamps, mix=(mix[0][i], mix[1][i]))
+        other = psf.evaluate(x[j], y[j], stamps, mix=(mix[0][j], mix[1][j]))
+        jac_i = jacobian(flux[i], *own)
+        jac_j = jacobian(flux[j], *other)
+        jac_j[:, 3] = 0.0
+        cross = np.einsum("nkm,nlm,nm->nkl", jac_i, jac_j, weight[i])
+        inv = np.nan_to_num(inv_other[start : start + chunk])
+        term = np.einsum("nkl,nlm,npm->nkp", cross, inv, cross)
+        term[~ok_other[start : start + chunk]] = 0.0
+        np.add.at(out, i, -term)
+    return out
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:

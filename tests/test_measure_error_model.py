@@ -7,10 +7,17 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from measure_helpers import SynthPSF, normalised_residuals, robust_sigma, write_frames
+from measure_helpers import (
+    SynthPSF,
+    normalised_residuals,
+    render_image,
+    robust_sigma,
+    write_frames,
+)
 
 from mavispm.core.errors import ConfigError
 from mavispm.core.products import read_product
+from mavispm.measure.batched_fit import FitOptions, fit_stars
 from mavispm.measure.epsf import AUTO_OVERSAMPLING_X4, resolve_oversampling
 from mavispm.measure.error_model import (
     ErrorModel,
@@ -57,6 +64,45 @@ def test_linearised_shift_recovers_a_known_epsf_offset():
     )  # fmt: skip
     np.testing.assert_allclose(same[0], 0.0, atol=1e-10)
     assert np.all(np.isnan(same[1]))
+
+
+@pytest.mark.parametrize("sep, ratio", [(1.8, 0.02), (2.5, 0.1), (3.0, 1.0)])
+def test_blended_pair_errors_match_the_joint_fisher_matrix(sep, ratio):
+    """Errors of a close pair = brute-force joint Fisher matrix of both stars."""
+    psf = SynthPSF(1.2)
+    epsf = constant_epsf(sample_epsf(psf.prf_at(0, 0, (1, 1)), 21, 4), 4)
+    sky, rn2, n = 100.0, 36.0, 61
+    x, y = np.array([30.3, 30.3 + sep]), np.array([30.2, 30.2])
+    flux = np.array([1e6, 1e6 * ratio])
+    image = render_image((n, n), x, y, flux, psf) + sky
+    plain = fit_stars(
+        image, epsf, x, y, read_noise_var=rn2, sky0=sky, options=FitOptions(blend_radius=0.0)
+    )
+    joint_fit = fit_stars(image, epsf, x, y, read_noise_var=rn2, sky0=sky)
+    # brute force: 7 parameters (x, y, flux of both, one sky) on the union of the stamps
+    yy, xx = np.mgrid[:n, :n]
+    inside = np.zeros((n, n), bool)
+    for xi, yi in zip(x, y):
+        inside |= (np.abs(xx - np.rint(xi)) <= 5) & (np.abs(yy - np.rint(yi)) <= 5)
+    model, columns, h = np.full((n, n), sky), [], 1e-4
+    for k in range(2):
+
+        def prf(xs, ys):
+            return psf.prf(xx - xs, yy - ys, 1.2, 1.2)
+
+        model += flux[k] * prf(x[k], y[k])
+        columns += [
+            flux[k] * (prf(x[k] + h, y[k]) - prf(x[k] - h, y[k])) / (2 * h),
+            flux[k] * (prf(x[k], y[k] + h) - prf(x[k], y[k] - h)) / (2 * h),
+            prf(x[k], y[k]),
+        ]
+    columns.append(np.ones((n, n)))
+    jac = np.array([c[inside] for c in columns])
+    cov = np.linalg.inv((jac / (model[inside] + rn2)) @ jac.T)
+    joint = np.sqrt(np.diag(cov))[[0, 3]]
+    np.testing.assert_allclose(joint_fit.x_err, joint, rtol=0.05)
+    # the per-star Fisher errors miss the pair's covariance
+    assert np.all(plain.x_err < 0.9 * joint)
 
 
 def test_flux_trend_follows_a_known_law():
