@@ -198,6 +198,17 @@ class ErrorModel:
     chi2_ratio: np.ndarray
     chi2_inflation: np.ndarray
 
+    @classmethod
+    def fisher_only(cls, n: int, chi2_ratio=None, chi2_inflation=None) -> ErrorModel:
+        """No model terms (the Fisher errors), optionally with chi^2 terms."""
+        ones = np.ones(n)
+        return cls(
+            np.zeros(n),
+            np.zeros(n),
+            ones if chi2_ratio is None else chi2_ratio,
+            ones if chi2_inflation is None else chi2_inflation,
+        )
+
     def total(self, fisher_err: np.ndarray, model_err: np.ndarray) -> np.ndarray:
         """Total 1-sigma error from a Fisher error and the matching model error."""
         return np.sqrt(fisher_err**2 * self.chi2_inflation + model_err**2 * self.chi2_ratio)
@@ -243,12 +254,12 @@ def estimate_error_model(
     if shifts is not None:
         ref &= np.all(np.isfinite(shifts[:, :3]), axis=1)
     if ref.sum() < 2:
-        return ErrorModel(np.zeros(n), np.zeros(n), np.ones(n), inflation)
+        return ErrorModel.fisher_only(n, chi2_inflation=inflation)
     f = np.where(np.isfinite(flux) & (flux > 0), flux, np.min(flux[ref]))
     typical = flux_trend(flux[ref], chi2[ref], np.median, min_per_bin, log_values=True)(f)
     ratio = np.where(np.isfinite(chi2), np.maximum(chi2 / typical, 1.0), 1.0)
     if shifts is None:
-        return ErrorModel(np.zeros(n), np.zeros(n), ratio, inflation)
+        return ErrorModel.fisher_only(n, ratio, inflation)
     delta = np.column_stack([shifts[:, :2], shifts[:, 2] / f])
     cells = np.zeros(n, np.intp) if cells is None else np.asarray(cells)
     for cell in np.unique(cells[ref]):

@@ -406,11 +406,13 @@ def epsf_flux_fraction(fit: FitResult, flux_true: np.ndarray, usable: np.ndarray
     return float(np.clip(np.median(ratio[good]), 1e-3, 2.0))
 
 
-def error_terms(frame: Frame, frame_psf: FramePSF, fit: FitResult, settings) -> ErrorModel:
+def error_terms(
+    frame: Frame, frame_psf: FramePSF, fit: FitResult, settings: MeasureSettings
+) -> ErrorModel:
     """Error-model terms of every fitted star (:mod:`mavispm.measure.error_model`)."""
     n = len(fit.x)
     if settings.error_model == "fisher":
-        return ErrorModel(np.zeros(n), np.zeros(n), np.ones(n), np.ones(n))
+        return ErrorModel.fisher_only(n)
     usable = (fit.flag & FLAG_FAILED) == 0
     shifts = None
     if frame_psf.halves is not None:

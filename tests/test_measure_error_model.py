@@ -142,7 +142,7 @@ def test_error_model_edges_are_finite(n, bad, with_shifts):
 
 
 def test_error_model_without_model_terms_is_fisher():
-    model = ErrorModel(np.zeros(3), np.zeros(3), np.ones(3), np.ones(3))
+    model = ErrorModel.fisher_only(3)
     np.testing.assert_array_equal(
         model.total(np.array([0.1, 0.2, np.nan]), model.position)[:2], [0.1, 0.2]
     )
