@@ -17,7 +17,7 @@ Run ``python benchmarks/bench_measure.py [--quick]`` (with the repository's
    Fisher errors and with the reported errors (std; robust sigma). A crowded
    Moffat frame of the synthesiser by default; ``--frames F.h5 ...`` adds
    frames products (e.g. the NGC 3201 workflow's) measured with
-   ``--grid`` (3) x ``--grid`` gridded ePSFs.
+   ``--grid`` (3) x ``--grid`` gridded ePSFs; ``--only-stage`` runs this section only.
 
 Frames come from the independent synthesiser of the tests (Gaussian PSF whose
 width varies by +-20 % over the field, 2 x 2 pixel-scale FWHM ~ 2.8 px).
