@@ -286,9 +286,16 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
 
 
 def run_engine(
-    frame: Frame, psf: VariableEPSF, x0, y0, settings: MeasureSettings, engine=None
+    frame: Frame,
+    psf: VariableEPSF,
+    x0,
+    y0,
+    settings: MeasureSettings,
+    engine=None,
+    return_model: bool = True,
 ) -> FitResult:
-    """Fit all stars with the selected engine."""
+    """Fit all stars with the selected engine (``return_model``: the fast engine's
+    frame-sized model image, needed for neighbour subtraction only)."""
     engine = engine or settings.engine
     common = dict(
         read_noise_var=frame.read_noise_var,
@@ -297,7 +304,15 @@ def run_engine(
         saturated=frame.saturated,
     )
     if engine == "fast":
-        return fit_stars(frame.image, psf, x0, y0, options=fit_options(settings), **common)
+        return fit_stars(
+            frame.image,
+            psf,
+            x0,
+            y0,
+            options=fit_options(settings),
+            return_model=return_model,
+            **common,
+        )
     if engine == "photutils":
         opt = PhotutilsOptions(
             radius=settings.stamp_radius,
@@ -475,7 +490,7 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
     frame_psf = build_psf(frame, x0, y0, settings)
     psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
     t_psf = time.perf_counter()
-    fit = run_engine(frame, psf, x0, y0, settings)
+    fit = run_engine(frame, psf, x0, y0, settings, return_model=False)
     t_fit = time.perf_counter()
     errors = error_terms(frame, frame_psf, fit, settings)
     t_err = time.perf_counter()
