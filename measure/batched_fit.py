@@ -63,6 +63,9 @@ class FitOptions:
         Stars evaluated at once (memory ~ chunk * S^2 * 16 * 8 bytes * mixing terms).
     progress : bool
         Show a tqdm progress bar over iterations.
+    blend_radius : float
+        Neighbours closer than this [pixel] are marginalised in the reported
+        errors (:func:`marginalise_neighbours`).
     """
 
     radius: int = 5
@@ -75,6 +78,7 @@ class FitOptions:
     min_snr: float = 3.0
     chunk: int = 512
     progress: bool = False
+    blend_radius: float = 5.0
 
 
 @dataclass
@@ -96,8 +100,9 @@ class FitResult:
         Bitmask (see module docstring).
     iterations : int
         Sweeps performed.
-    model_image : ndarray
-        Sum of the fitted star models (no sky) [electron], frame shaped.
+    model_image : ndarray or None
+        Sum of the fitted star models (no sky) [electron], frame shaped (None
+        when not asked for).
     """
 
     x: np.ndarray
@@ -111,7 +116,7 @@ class FitResult:
     chi2: np.ndarray
     flag: np.ndarray
     iterations: int
-    model_image: np.ndarray
+    model_image: np.ndarray | None
 
 
 def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
@@ -228,6 +233,8 @@ def fit_stars(
     bad: np.ndarray | None = None,
     saturated: np.ndarray | None = None,
     options: FitOptions | None = None,
+    return_model: bool = True,
+    uncertainties: bool = True,
 ) -> FitResult:
     """Fit positions, fluxes and local skies of all stars simultaneously.
 
@@ -250,6 +257,12 @@ def fit_stars(
     saturated : ndarray of bool, optional
         Saturated pixels (ignored, and the star flagged 2).
     options : FitOptions, optional
+    return_model : bool
+        Also return the frame-sized model image (the ePSF builder's many small
+        fits do not need it).
+    uncertainties : bool
+        Compute the Fisher errors and chi^2 at the solution (otherwise NaN, and
+        only non-positive fluxes count as failed).
 
     Returns
     -------
@@ -270,10 +283,6 @@ def fit_stars(
             raise InputError(
                 f"{name} mask shape {np.shape(m)} differs from image shape {image.shape}"
             )
-    sat = np.zeros(image.shape, bool) if saturated is None else np.asarray(saturated, bool)
-    badpix = ~np.isfinite(image) | sat
-    if bad is not None:
-        badpix |= np.asarray(bad, bool)
     flag = np.zeros(n, dtype=np.int64)
     usable = np.isfinite(x0) & np.isfinite(y0)
     usable &= (x0 > -0.5) & (x0 < nx - 0.5) & (y0 > -0.5) & (y0 < ny - 0.5)
@@ -287,14 +296,27 @@ def fit_stars(
     s = geom.size
     rows, cols = geom.rows(), geom.columns()
     inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
-    flat = (
+    # work on the pixels the stamps touch only (compact index), never on full-frame
+    # arrays: the ePSF builder fits a few hundred stars of a 4k x 4k frame many times
+    frame_index = (
         np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
     ).reshape(n, -1)
+    pixels, flat = np.unique(frame_index, return_inverse=True)
+    flat = flat.reshape(n, -1)
+    values = np.asarray(image.reshape(-1)[pixels], dtype=float)
+    sat_pix = (
+        np.zeros(len(pixels), bool)
+        if saturated is None
+        else np.asarray(saturated, bool).reshape(-1)[pixels]
+    )
+    bad_pix = ~np.isfinite(values) | sat_pix
+    if bad is not None:
+        bad_pix |= np.asarray(bad, bool).reshape(-1)[pixels]
     inside = inside.reshape(n, -1) & usable[:, None]
-    data = np.where(inside, np.nan_to_num(image.reshape(-1)[flat].astype(float)), 0.0)
-    valid = inside & ~badpix.reshape(-1)[flat]
+    data = np.where(inside, np.nan_to_num(values[flat]), 0.0)
+    valid = inside & ~bad_pix[flat]
     flag[np.any(~inside, axis=1) & usable] |= FLAG_EDGE
-    flag[np.any(inside & sat.reshape(-1)[flat], axis=1)] |= FLAG_SATURATED
+    flag[np.any(inside & sat_pix[flat], axis=1)] |= FLAG_SATURATED
     npix_valid = valid.sum(axis=1)
     usable &= npix_valid > 4
     flag[~usable] |= FLAG_FAILED
@@ -303,7 +325,7 @@ def fit_stars(
     sky = np.full(n, float(sky0))
     flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
-    model = np.zeros(ny * nx, dtype=np.float32)  # sum of all star models (float32: memory)
+    model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
     colour = colour_stars(x, y, 2 * r + 1.0)
     groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
     pairs = (
@@ -315,7 +337,9 @@ def fit_stars(
 
     def deposit(idx, new):
         ins = inside[idx]
-        np.add.at(model, flat[idx][ins], (new - own[idx])[ins])
+        model[:] += np.bincount(
+            flat[idx][ins], weights=(new - own[idx])[ins], minlength=len(pixels)
+        )
         own[idx] = new
 
     def evaluate(idx):
@@ -411,19 +435,37 @@ def fit_stars(
     s_err = np.full(n, np.nan)
     chi2 = np.full(n, np.nan)
     all_idx = np.flatnonzero(usable)
-    for idx in _chunks(all_idx, opt.chunk):
-        v, *_ = normal_equations(idx, None)
-        deposit(idx, flux[idx, None] * v)
-    for idx in _chunks(all_idx, opt.chunk):
+    if uncertainties or return_model:  # exact (not linearised) models at the solution
+        for idx in _chunks(all_idx, opt.chunk):
+            v, *_ = normal_equations(idx, None)
+            deposit(idx, flux[idx, None] * v)
+    fisher = np.zeros((n, 4, 4))
+    weight = np.zeros((n, s * s))
+    for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
         _, _, _, a, _, w, resid = normal_equations(idx, None)
-        cov, ok = safe_inverse(a)
-        err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
-        x_err[idx], y_err[idx], f_err[idx], s_err[idx] = err.T
+        fisher[idx], weight[idx] = a, w
         dof = np.maximum(valid[idx].sum(axis=1) - 4, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
-        flag[idx[~ok]] |= FLAG_FAILED
+    if uncertainties:
+        separation = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
+        close = pairs[(separation < opt.blend_radius) & usable[pairs].all(axis=1)]
+        fisher_eff = marginalise_neighbours(
+            psf, fisher, weight, x, y, flux, geom, mix, close, opt.chunk
+        )
+        cov, ok = safe_inverse(fisher_eff[all_idx])
+        plain, ok_plain = safe_inverse(fisher[all_idx])
+        # marginalising can only add variance; a degenerate joint fit (two stars at one
+        # position) or a breakdown of the independent-neighbour sum keeps the star's own
+        var, var_plain = np.einsum("nkk->nk", cov), np.einsum("nkk->nk", plain)
+        keep = ~ok | ~np.all(np.isfinite(var) & (var >= var_plain * (1 - 1e-9)), axis=1)
+        cov[keep] = plain[keep]
+        err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
+        x_err[all_idx], y_err[all_idx], f_err[all_idx], s_err[all_idx] = err.T
+        flag[all_idx[~ok_plain]] |= FLAG_FAILED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
-    failed = ~usable | ~(flux > 0) | ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
+    failed = ~usable | ~(flux > 0)
+    if uncertainties:
+        failed |= ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
     flag[failed] |= FLAG_FAILED
     x_out = np.where(usable, x, x0)
     y_out = np.where(usable, y, y0)
@@ -441,8 +483,81 @@ def fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
-        model_image=model.reshape(ny, nx),
+        model_image=_frame_image(model, pixels, (ny, nx)) if return_model else None,
     )
+
+
+def _frame_image(values: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Frame-shaped float32 image with ``values`` at the flat ``pixels``, zero elsewhere."""
+    out = np.zeros(shape[0] * shape[1], dtype=np.float32)
+    out[pixels] = values
+    return out.reshape(shape)
+
+
+def marginalise_neighbours(
+    psf: VariableEPSF,
+    fisher: np.ndarray,
+    weight: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    geom: StampGeometry,
+    mix: tuple[np.ndarray, np.ndarray],
+    pairs: np.ndarray,
+    chunk: int = 512,
+) -> np.ndarray:
+    """Fisher matrices of stars with their close neighbours' parameters marginalised.
+
+    A star fitted with its neighbours subtracted has the per-star Fisher matrix
+    ``A_ii``; but a close neighbour's position and flux are not known exactly,
+    and their errors covary with the star's (a faint star 2 px from a bright one
+    moves it). The joint-fit information of star i is the Schur complement
+    ``A_ii - sum_j A_ij A_jj^-1 A_ji`` with ``A_ij = J_i W_i J_j^T`` on star i's
+    stamp (``J_j`` the neighbour's model derivatives there, no sky term: each star
+    has its own local sky) and ``A_jj`` the neighbour's own Fisher matrix. Summing
+    over neighbours treats them as independent (adequate for pairs and sparse
+    groups).
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+    fisher : ndarray, shape (N, 4, 4)
+        Per-star Fisher matrices.
+    weight : ndarray, shape (N, S*S)
+        Pixel weights of each star's stamp [1/electron^2].
+    x, y, flux : ndarray, shape (N,)
+        Fitted positions [pixel] and fluxes [electron].
+    geom : StampGeometry
+        The stars' stamps.
+    mix : tuple
+        ``psf.mixing(x, y)`` at the stamps' stars.
+    pairs : ndarray of int, shape (P, 2)
+        Close pairs (each once).
+    chunk : int
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 4)
+    """
+    out = fisher.copy()
+    if len(pairs) == 0:
+        return out
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    inv_other, ok_other = safe_inverse(fisher[both[:, 1]])
+    for start in range(0, len(both), chunk):
+        i, j = both[start : start + chunk, 0], both[start : start + chunk, 1]
+        stamps = StampGeometry(geom.cx[i], geom.cy[i], geom.radius)
+        own = psf.evaluate(x[i], y[i], stamps, mix=(mix[0][i], mix[1][i]))
+        other = psf.evaluate(x[j], y[j], stamps, mix=(mix[0][j], mix[1][j]))
+        jac_i = jacobian(flux[i], *own)
+        jac_j = jacobian(flux[j], *other)
+        jac_j[:, 3] = 0.0
+        cross = np.einsum("nkm,nlm,nm->nkl", jac_i, jac_j, weight[i])
+        inv = np.nan_to_num(inv_other[start : start + chunk])
+        term = np.einsum("nkl,nlm,npm->nkp", cross, inv, cross)
+        term[~ok_other[start : start + chunk]] = 0.0
+        np.add.at(out, i, -term)
+    return out
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -36,6 +36,7 @@ from mavispm.measure.batched_fit import (
 from mavispm.measure.crlb import crlb
 from mavispm.measure.detect import completeness, detect_sources
 from mavispm.measure.epsf import EPSFOptions, build_field_epsf
+from mavispm.measure.error_model import ErrorModel, epsf_difference_shifts, estimate_error_model
 from mavispm.measure.photutils_engine import PhotutilsOptions, fit_stars_photutils
 from mavispm.measure.settings import MeasureSettings
 from mavispm.measure.truth_match import match_to_truth
@@ -79,6 +80,10 @@ MEASURED_SPEC = TableSpec(
         "flux_true": "electron",
         "crlb_x": "arcsec",
         "crlb_y": "arcsec",
+        "x_err_fisher": "arcsec",
+        "y_err_fisher": "arcsec",
+        "flux_err_fisher": "electron",
+        "err_epsf": "arcsec",
     },
     allow_nan=(
         "x_err",
@@ -94,6 +99,10 @@ MEASURED_SPEC = TableSpec(
         "flux_true",
         "crlb_x",
         "crlb_y",
+        "x_err_fisher",
+        "y_err_fisher",
+        "flux_err_fisher",
+        "err_epsf",
     ),
 )
 
@@ -277,9 +286,16 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
 
 
 def run_engine(
-    frame: Frame, psf: VariableEPSF, x0, y0, settings: MeasureSettings, engine=None
+    frame: Frame,
+    psf: VariableEPSF,
+    x0,
+    y0,
+    settings: MeasureSettings,
+    engine=None,
+    return_model: bool = True,
 ) -> FitResult:
-    """Fit all stars with the selected engine."""
+    """Fit all stars with the selected engine (``return_model``: the fast engine's
+    frame-sized model image, needed for neighbour subtraction only)."""
     engine = engine or settings.engine
     common = dict(
         read_noise_var=frame.read_noise_var,
@@ -288,7 +304,15 @@ def run_engine(
         saturated=frame.saturated,
     )
     if engine == "fast":
-        return fit_stars(frame.image, psf, x0, y0, options=fit_options(settings), **common)
+        return fit_stars(
+            frame.image,
+            psf,
+            x0,
+            y0,
+            options=fit_options(settings),
+            return_model=return_model,
+            **common,
+        )
     if engine == "photutils":
         opt = PhotutilsOptions(
             radius=settings.stamp_radius,
@@ -300,35 +324,64 @@ def run_engine(
     raise InputError(f"unknown engine '{engine}'; expected 'fast' or 'photutils'")
 
 
-def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> tuple[VariableEPSF, int]:
+@dataclass
+class FramePSF:
+    """The frame's ePSF and what the error model needs of its building.
+
+    Attributes
+    ----------
+    psf : VariableEPSF
+        The ePSF from all PSF stars.
+    n_psf_stars : int
+        PSF stars used.
+    halves : tuple of VariableEPSF or None
+        ePSFs from the two halves of every node's PSF stars (None when not asked
+        for, or with fewer than :data:`MIN_STARS_SPLIT` PSF stars per node).
+    """
+
+    psf: VariableEPSF
+    n_psf_stars: int
+    halves: tuple[VariableEPSF, VariableEPSF] | None = None
+
+
+#: PSF stars per node needed to build the two half-set ePSFs of the error model.
+MIN_STARS_SPLIT = 6
+
+
+def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
     """ePSF from the frame, rebuilt after neighbour subtraction ``neighbour_passes`` times.
 
-    Returns
-    -------
-    psf : VariableEPSF
-    n_psf_stars : int
+    With ``settings.error_model == "epsf"`` the last build is repeated with each
+    half of the PSF stars (the ePSF model-error estimate).
     """
     opts = epsf_options(settings)
     data = frame.image - frame.sky
     noise = frame.sky + frame.read_noise_var
     flux = box_flux(frame, x0, y0)
-    psf, used = build_field_epsf(data, x0, y0, flux, frame.bad, noise, opts)
+    build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
+    psf, used = build_field_epsf(options=opts, **build)
+    opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
         fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
         fitted_flux = np.where(fit.flag & FLAG_FAILED, 0.0, np.nan_to_num(fit.flux))
-        psf, used = build_field_epsf(
-            data,
-            fit.x,
-            fit.y,
-            fitted_flux,
-            frame.bad,
-            noise,
-            opts,
+        build = dict(
+            build,
+            x=fit.x,
+            y=fit.y,
+            flux=fitted_flux,
             neighbour_model=fit.model_image,
             previous=psf,
             model_radius=settings.stamp_radius,
         )
-    return psf, len(used)
+        psf, used = build_field_epsf(options=opts, **build)
+    halves = None
+    per_node = min(settings.psf_stars_per_node, len(used))
+    if settings.error_model == "epsf" and per_node >= MIN_STARS_SPLIT:
+        try:
+            halves = tuple(build_field_epsf(options=opts, half=h, **build)[0] for h in (0, 1))
+        except InputError:  # a half too poor for an ePSF: chi^2 terms only
+            halves = None
+    return FramePSF(psf, len(used), halves)
 
 
 def starting_positions(frame: Frame, settings: MeasureSettings, rng: np.random.Generator):
@@ -368,6 +421,36 @@ def epsf_flux_fraction(fit: FitResult, flux_true: np.ndarray, usable: np.ndarray
     return float(np.clip(np.median(ratio[good]), 1e-3, 2.0))
 
 
+def error_terms(
+    frame: Frame, frame_psf: FramePSF, fit: FitResult, settings: MeasureSettings
+) -> ErrorModel:
+    """Error-model terms of every fitted star (:mod:`mavispm.measure.error_model`)."""
+    n = len(fit.x)
+    if settings.error_model == "fisher":
+        return ErrorModel.fisher_only(n)
+    usable = (fit.flag & FLAG_FAILED) == 0
+    shifts = None
+    if frame_psf.halves is not None:
+        sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
+        shifts = epsf_difference_shifts(
+            frame_psf.psf,
+            *frame_psf.halves,
+            np.where(usable, fit.x, np.nan),
+            fit.y,
+            fit.flux,
+            sky,
+            frame.read_noise_var,
+            settings.stamp_radius,
+            settings.chunk,
+        )
+    grid = 1 if settings.psf_variation == "constant" else settings.psf_grid
+    ny, nx = frame.shape
+    col = np.clip(np.nan_to_num(fit.x) * grid // nx, 0, grid - 1)
+    row = np.clip(np.nan_to_num(fit.y) * grid // ny, 0, grid - 1)
+    cells = (row * grid + col).astype(np.intp)
+    return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells)
+
+
 def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = None):
     """Measure all stars of a frame.
 
@@ -404,10 +487,13 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
     else:
         x0, y0 = starting_positions(frame, settings, rng)
         ids = np.asarray(truth["id"], np.int64)
-    psf, n_psf = build_psf(frame, x0, y0, settings)
+    frame_psf = build_psf(frame, x0, y0, settings)
+    psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
     t_psf = time.perf_counter()
-    fit = run_engine(frame, psf, x0, y0, settings)
+    fit = run_engine(frame, psf, x0, y0, settings, return_model=False)
     t_fit = time.perf_counter()
+    errors = error_terms(frame, frame_psf, fit, settings)
+    t_err = time.perf_counter()
     flag = fit.flag.copy()
     flag[
         crowding_flags(fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio)
@@ -457,10 +543,10 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
     stars["y_pix"] = fit.y
     stars["x"] = x_as * u.arcsec
     stars["y"] = y_as * u.arcsec
-    stars["x_err"] = fit.x_err * scale * u.arcsec
-    stars["y_err"] = fit.y_err * scale * u.arcsec
+    stars["x_err"] = errors.total(fit.x_err, errors.position) * scale * u.arcsec
+    stars["y_err"] = errors.total(fit.y_err, errors.position) * scale * u.arcsec
     stars["flux"] = fit.flux * u.electron
-    stars["flux_err"] = fit.flux_err * u.electron
+    stars["flux_err"] = errors.total(fit.flux_err, errors.flux) * u.electron
     stars["sky"] = fit.sky * u.electron
     stars["chi2"] = fit.chi2
     stars["flag"] = flag.astype(np.int64)
@@ -472,13 +558,20 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
         stars["flux_true"] = flux_true * u.electron
         stars["crlb_x"] = crlb_x * scale * u.arcsec
         stars["crlb_y"] = crlb_y * scale * u.arcsec
+    stars["x_err_fisher"] = fit.x_err * scale * u.arcsec
+    stars["y_err_fisher"] = fit.y_err * scale * u.arcsec
+    stars["flux_err_fisher"] = fit.flux_err * u.electron
+    stars["err_epsf"] = errors.position * scale * u.arcsec
     attrs = {
         "engine": settings.engine,
         "psf_variation": psf.kind,
         "n_psf_stars": int(n_psf),
         "time_epsf": (t_psf - t0) * u.s,
         "time_fit": (t_fit - t_psf) * u.s,
+        "time_errors": (t_err - t_fit) * u.s,
         "fit_iterations": int(fit.iterations),
+        "error_model": settings.error_model if frame_psf.halves is not None else "chi2",
+        "epsf_position_error": float(np.nanmedian(errors.position) * scale * 1000.0) * u.mas,
         "blind": bool(settings.blind),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),
         "epsf_flux_fraction": extra.pop("epsf_flux_fraction", None),

@@ -27,8 +27,10 @@ class MeasureSettings:
         ePSF grid nodes per axis (also the sampling of a polynomial ePSF).
     psf_poly_order : int
         Order of the polynomial ePSF (3: DAOPhot's cubically variable PSF).
-    oversampling : int
-        ePSF oversampling factor.
+    oversampling : int or "auto"
+        ePSF oversampling factor; "auto" (default): 4 with at least 200
+        usable PSF stars per ePSF node, else 2
+        (:func:`mavispm.measure.epsf.resolve_oversampling`).
     epsf_size : int
         ePSF footprint [pixel] (odd).
     epsf_iterations : int
@@ -37,13 +39,18 @@ class MeasureSettings:
         Our vectorised residual-stacking builder or photutils' EPSFBuilder
         (about 100x slower; cross-check).
     psf_stars_per_node : int
-        PSF stars per ePSF grid node.
+        Cap on the PSF stars per ePSF grid node (the brightest of its cell).
     psf_star_isolation : float [pix]
         Isolation radius of PSF stars.
     psf_star_min_snr : float
         Minimum flux SNR of PSF stars.
     neighbour_passes : int
         Times the ePSF is rebuilt after subtracting fitted neighbours (0 = none).
+    error_model : {"epsf", "fisher"}
+        Reported errors: "epsf" (default) adds the ePSF model error measured
+        from two half-set ePSFs and inflates by the fit chi^2
+        (:mod:`mavispm.measure.error_model`); "fisher": the Fisher (Cramér-Rao)
+        errors alone. The Fisher errors are always in ``x_err_fisher`` etc.
     stamp_radius : int
         Fit stamp half-width [pixel].
     iterations : int
@@ -85,7 +92,7 @@ class MeasureSettings:
     psf_variation: Literal["constant", "grid", "polynomial"] = "grid"
     psf_grid: int = 3
     psf_poly_order: int = 2
-    oversampling: int = 4
+    oversampling: int | Literal["auto"] = "auto"
     epsf_size: int = 25
     epsf_iterations: int = 10
     epsf_builder: Literal["fast", "photutils"] = "fast"
@@ -93,6 +100,7 @@ class MeasureSettings:
     psf_star_isolation: float = unit_field(12.0, "pix")
     psf_star_min_snr: float = 100.0
     neighbour_passes: int = 1
+    error_model: Literal["epsf", "fisher"] = "epsf"
     stamp_radius: int = 5
     iterations: int = 10
     tolerance: float = unit_field(1e-4, "pix")
@@ -114,7 +122,7 @@ class MeasureSettings:
     def __post_init__(self):
         positive_ints = {
             "psf_grid": self.psf_grid,
-            "oversampling": self.oversampling,
+            "oversampling": 1 if self.oversampling == "auto" else self.oversampling,
             "epsf_iterations": self.epsf_iterations,
             "psf_stars_per_node": self.psf_stars_per_node,
             "stamp_radius": self.stamp_radius,

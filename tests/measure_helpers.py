@@ -202,3 +202,36 @@ def robust_sigma(values):
     """Normalised median absolute deviation (Gaussian-equivalent sigma)."""
     values = np.asarray(values, float)
     return 1.4826 * np.median(np.abs(values - np.median(values)))
+
+
+#: Magnitude bins of the error-model checks (bench and tests).
+ERROR_BINS = ((-np.inf, 20.0), (20.0, 22.0), (22.0, 24.0), (24.0, np.inf))
+
+
+def normalised_residuals(stars, column="x_err", bins=ERROR_BINS):
+    """(measured - true) / reported error of a measured ``stars`` table, x and y pooled.
+
+    Stars flagged 16 or 32 are left out; the median offset of the stars brighter
+    than m = 22 is removed per axis (a frame offset the epoch alignment absorbs).
+
+    Returns
+    -------
+    dict
+        ``(lo, hi) -> ndarray`` of normalised residuals per magnitude bin.
+    """
+    ok = (np.asarray(stars["flag"]) & (16 | 32)) == 0
+    mag = stars["mag"].to_value(u.mag)
+    err_x = stars[column].to_value(u.mas)
+    err_y = stars[column.replace("x_", "y_")].to_value(u.mas)
+    ok &= np.isfinite(err_x) & np.isfinite(err_y)
+    dx = (stars["x"] - stars["x_true"]).to_value(u.mas)
+    dy = (stars["y"] - stars["y_true"]).to_value(u.mas)
+    ref = ok & (mag < 22)
+    if ref.any():
+        dx = dx - np.median(dx[ref])
+        dy = dy - np.median(dy[ref])
+    out = {}
+    for lo, hi in bins:
+        s = ok & (mag >= lo) & (mag < hi)
+        out[(lo, hi)] = np.concatenate([dx[s] / err_x[s], dy[s] / err_y[s]])
+    return out

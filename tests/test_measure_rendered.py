@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import astropy.units as u
 import numpy as np
 import pytest
@@ -40,13 +42,13 @@ def test_measure_rendered_frame(rendered, tmp_path):
         "psf_star_min_snr": 30.0,
         "psf_star_isolation": "8 pix",
         "epsf_size": 21,
-        # 49 PSF stars fill 2 x 2 pixel phases well but not 4 x 4: x4 leaves the
-        # bright stars at ~5 x CRLB here, x2 at ~1.3 x (docs/measure.md)
-        "oversampling": 2,
     }
     out = run_stage(rendered, settings, tmp_path / "measured.h5", seed=0)
     product = read_product(out, "measured", specs={"stars": MEASURED_SPEC})
     stars = product.tables["stars"]
+    # 49 PSF stars fill 2 x 2 pixel phases well but not 4 x 4: x4 leaves the bright
+    # stars at ~5 x CRLB here, x2 at ~1.3 x (docs/measure.md); "auto" chooses x2
+    assert json.loads(product.attrs["epsf"])["oversampling"] == 2
     # the seeing halo (~40 % of the light here) lies outside the ePSF footprint: the
     # Cramer-Rao bound uses the flux the ePSF describes, not the total
     assert 0.3 < product.attrs["epsf_flux_fraction"] < 0.65
