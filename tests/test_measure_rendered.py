@@ -71,7 +71,10 @@ def test_measure_rendered_frame(rendered, tmp_path):
     for sel in (mag < 19, mag > 20.5):
         z = np.concatenate([dx[sel] / err_x[sel], dy[sel] / err_y[sel]])
         assert 0.7 < np.std(z) < 1.7
-    # bright stars (PSF stars themselves) come close to their Cramer-Rao bound
+    # bright stars (PSF stars themselves) come close to their Cramer-Rao bound: the
+    # ePSF is built from these 49 stars, so its own noise adds; over 8 noise
+    # realisations of this frame (exact Poisson and the tiered noise alike) the ~10
+    # bright stars gave rms / CRLB = 1.3-2.05
     bright = mag < 19
     rms = np.sqrt(np.mean(np.concatenate([dx[bright], dy[bright]]) ** 2))
-    assert rms < 2 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
+    assert rms < 2.5 * np.median(stars["crlb_x"].to_value(u.mas)[good][bright])
