@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 
+import numpy as np
 import pytest
 from workflows_helpers import (
     ALL_NODES,
@@ -178,3 +179,20 @@ def test_external_catalogue_source(tmp_path, log):
     assert shared and all(fa[k] == fb[k] for k in shared)
     # a second run reuses everything; changing the file's content re-runs its users
     assert _run(ext, tmp_path / "w").ran == []
+
+
+def test_fingerprint_ignores_only_time_stamps_and_timings(tmp_path):
+    from mavispm.core.products import write_product
+    from mavispm.workflows.cache import product_fingerprint
+
+    def make(name, time_fit, value):
+        return write_product(
+            tmp_path / name,
+            "measured",
+            arrays={"a": np.array([1.0, value])},
+            attrs={"time_fit": time_fit, "engine": "fast"},
+        )
+
+    reference = product_fingerprint(make("a.h5", 1.0, 2.0))
+    assert product_fingerprint(make("b.h5", 9.5, 2.0)) == reference  # only the timing differs
+    assert product_fingerprint(make("c.h5", 1.0, 2.0 + 1e-12)) != reference  # one bit of data

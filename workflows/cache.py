@@ -205,10 +205,11 @@ class Store:
 
 
 def product_fingerprint(path: str | os.PathLike, ignore: tuple[str, ...] = ()) -> str:
-    """Hash of a product's *content*, ignoring its creation time stamp.
+    """Hash of a product's *content*, ignoring its creation time stamp and timings.
 
     For HDF5 products every dataset (name, dtype, shape, bytes) and every
-    attribute except ``created`` (and the names in ``ignore``, for example
+    attribute except ``created``, the wall-clock timings (attributes named
+    ``time_*``, docs/formats.md) and the names in ``ignore`` (for example
     attributes recording input file paths) is hashed; for other files the bytes.
     Two products with the same fingerprint hold bitwise identical data.
     """
@@ -221,7 +222,7 @@ def product_fingerprint(path: str | os.PathLike, ignore: tuple[str, ...] = ()) -
 
     def add_attrs(obj):
         for k in sorted(obj.attrs):
-            if k == "created" or k in ignore:
+            if k == "created" or k.startswith("time_") or k in ignore:
                 continue
             h.update(k.encode())
             h.update(repr(np.asarray(obj.attrs[k]).tolist()).encode())
