@@ -33,6 +33,7 @@ from mavispm.dynamics.jeans import (
     cubic_weights,
     interpolate,
 )
+from mavispm.dynamics.star_sums import star_sums
 from mavispm.dynamics.tracers import make_tracer
 
 #: parsec per (arcsec * kpc)
@@ -144,8 +145,8 @@ class DiscreteLikelihood:
         self.projector = JeansProjector(
             np.exp(self.lnX_grid), x_max=x_max, n_panels=n_panels, n_gl=n_gl
         )
-        self._v2 = np.stack([stars.v_r**2, stars.v_t**2])
-        self._e2 = np.stack([stars.e_r**2, stars.e_t**2])
+        self._v2 = np.ascontiguousarray(np.stack([stars.v_r**2, stars.v_t**2]), dtype=float)
+        self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)
         self._ln_field = np.log(stars.field_radius)
         self.n_stars = len(stars.R)
 
@@ -213,12 +214,12 @@ class DiscreteLikelihood:
             return -np.inf
         lnX, s2, ln_sig, ln_proj = self.model_on_grid(theta)
         ln_a = np.log(10.0) * theta[self.names.index("log_scale_radius")]
-        idx, w = cubic_weights(lnX[0], self.step, lnX.size, self.lnR - ln_a)
-        var = np.exp(interpolate(np.log(s2), idx, w)) + self._e2
-        lnl = -0.5 * float(np.sum(self._v2 / var + np.log(var))) - self.n_stars * _LN_2PI
+        chi, ln_sigma_stars = star_sums(
+            self.lnR - ln_a, lnX[0], self.step, np.log(s2), ln_sig, self._v2, self._e2
+        )
+        lnl = -0.5 * chi - self.n_stars * _LN_2PI
         if self.star_counts:
-            ln_sigma_stars = interpolate(ln_sig, idx, w)
             i_f, w_f = cubic_weights(lnX[0], self.step, lnX.size, [self._ln_field - ln_a])
             ln_norm = float(interpolate(ln_proj, i_f, w_f)[0])
-            lnl += float(np.sum(ln_sigma_stars)) - self.n_stars * (2.0 * ln_a + ln_norm)
+            lnl += ln_sigma_stars - self.n_stars * (2.0 * ln_a + ln_norm)
         return lnl if np.isfinite(lnl) else -np.inf
