@@ -70,6 +70,10 @@ class Plummer:
         """Evaluator of ``(nu, m)`` at fixed points."""
         return AtPoints(points, mass_points)
 
+    def radius_enclosing(self, q: float) -> float:
+        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
+        return _radius_enclosing(self, q)
+
 
 @dataclass(frozen=True)
 class Dehnen:
@@ -185,6 +189,24 @@ class King:
     def at_points(self, points, mass_points=None):
         """Evaluator of ``(nu, m)`` at fixed points."""
         return AtPoints(points, mass_points)
+
+    def radius_enclosing(self, q: float) -> float:
+        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
+        return _radius_enclosing(self, q)
+
+
+def _radius_enclosing(profile, q: float) -> float:
+    """Inverse of ``profile.enclosed`` (Plummer analytic, King from its table)."""
+    if not 0.0 < q < 1.0:
+        raise ValueError(f"mass fraction must be in (0, 1), got {q}")
+    if isinstance(profile, Plummer):
+        q23 = q ** (2.0 / 3.0)
+        return float(q ** (1.0 / 3.0) / np.sqrt(1.0 - q23))
+    lx, lm, _ = _king_table(profile.concentration)
+    lq = np.log(q)
+    if lq < lm[0]:  # flat core: m ~ x^3
+        return float(np.exp(lx[0] + (lq - lm[0]) / 3.0))
+    return float(np.exp(np.interp(lq, lm, lx)))
 
 
 @functools.lru_cache(maxsize=16)

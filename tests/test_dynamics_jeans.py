@@ -235,3 +235,12 @@ def test_cusped_king_surface_density_matches_quad():
 
     ref = [_project_quad(dens, R, np.ones_like) for R in X]
     np.testing.assert_allclose(mom.surface_density, ref, rtol=1e-4)
+
+
+@pytest.mark.parametrize("base", [Plummer(), King(1.33)])
+def test_radius_enclosing_inverts_enclosed_mass(base):
+    q = np.array([1e-12, 1e-6, 1e-3, 0.05, 0.5, 0.9])
+    x = np.array([base.radius_enclosing(qi) for qi in q])
+    np.testing.assert_allclose(base.enclosed(x), q, rtol=1e-4)
+    with pytest.raises(ValueError, match="mass fraction"):
+        base.radius_enclosing(1.0)
