@@ -76,6 +76,47 @@ def bench_likelihood(quick):
             print(f"{n:6d} {grid:5d} {1e3 * t:8.3f} {like(theta) - ref_like:17.2e}")
 
 
+def bench_tracers(quick):
+    print("\n# likelihood per tracer family, 3,500 stars, grid 64 (new parameters every call)")
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+    from mavispm.dynamics.star_sums import star_sums, star_sums_numpy
+
+    stars, _, _ = mock_likelihoods(1, 1500.0)
+    rng = np.random.default_rng(0)
+    pick = rng.integers(0, stars.R.size, 3500)
+    s = StarSample(
+        stars.R[pick], stars.v_r[pick], stars.v_t[pick], stars.e_r[pick], stars.e_t[pick], 17.0
+    )
+    king = {"tracer": "king", "king_concentration": 1.33, "log_scale_radius_range": (1.0, 3.0)}
+    cases = {
+        "plummer": {},
+        "dehnen, free gamma": {"tracer": "dehnen", "fit_gamma": True},
+        "cusped King, free cusp radius": {**king, "cusp": True},
+        "cusped King, influence radius": {**king, "cusp": True, "cusp_link": "influence"},
+    }
+    n_calls = 50 if quick else 300
+    print(f"{'tracer':>32} {'ms/call':>8}")
+    for name, kw in cases.items():
+        settings = DynamicsSettings(**kw)
+        space = parameter_space(settings, 4.6, True)
+        like = make_likelihood(s, space, settings, 4.6)
+        thetas = space.from_scaled(rng.uniform(-0.5, 0.5, (n_calls, len(space))))
+        thetas[:, space.index("log_mass")] = 5.0
+        like(thetas[0])  # build the cached tables
+        t = _time(lambda lk=like, th=thetas: [lk(v) for v in th], 1) / n_calls
+        print(f"{name:>32} {1e3 * t:8.3f}")
+    # the star loop alone: fused numba kernel vs the numpy reference
+    grid = np.linspace(-6, 2, 64)
+    ln_s2 = np.stack([-grid, -grid - 0.1])
+    args = (np.log(s.R) - 3.0, grid[0], grid[1] - grid[0], ln_s2, -grid)
+    args += (np.stack([s.v_r, s.v_t]) ** 2, np.stack([s.e_r, s.e_t]) ** 2)
+    star_sums(*args)
+    t_nb = _time(lambda: star_sums(*args), 200)
+    t_np = _time(lambda: star_sums_numpy(*args), 200)
+    print(f"star sums (3,500 stars): numba {1e3 * t_nb:.3f} ms, numpy {1e3 * t_np:.3f} ms")
+
+
 def bench_samplers(quick):
     print("\n# samplers on the recovery mock (2000 stars, M_bh = 1500 Msun)")
     _, (sp1, l1), (sp0, l0) = mock_likelihoods(1, 1500.0)
@@ -120,6 +161,7 @@ def main(argv=None):
     print(f"mock: {RECOVERY_MOCK}")
     bench_projection(args.quick)
     bench_likelihood(args.quick)
+    bench_tracers(args.quick)
     if not args.no_samplers:
         bench_samplers(args.quick)
 

@@ -49,7 +49,8 @@ def load_stars(path, settings: DynamicsSettings):
     """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
 
     Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
-    error are dropped; stars outside the field radius are dropped.
+    error are dropped; stars outside the field radius are dropped. Errors become
+    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
 
     Raises
     ------
@@ -84,12 +85,13 @@ def load_stars(path, settings: DynamicsSettings):
     ok &= cols["R"] <= field
     if ok.sum() < 2:
         raise InputError(f"only {int(ok.sum())} usable stars inside {field:.3g} arcsec", path=path)
+    scale, floor = settings.pm_error_scale, settings.pm_error_floor
     stars = StarSample(
         R=np.maximum(cols["R"][ok], settings.min_radius),
         v_r=cols["pm_r"][ok],
         v_t=cols["pm_t"][ok],
-        e_r=cols["pm_r_err"][ok],
-        e_t=cols["pm_t_err"][ok],
+        e_r=np.hypot(scale * cols["pm_r_err"][ok], floor),
+        e_t=np.hypot(scale * cols["pm_t_err"][ok], floor),
         field_radius=field,
     )
     return stars, float(distance)
@@ -230,6 +232,8 @@ def run_stage(
         attrs[f"aic_{fit.name}"] = float(fit.criteria["aic"])
         attrs[f"bic_{fit.name}"] = float(fit.criteria["bic"])
         attrs[f"max_log_like_{fit.name}"] = float(fit.criteria["max_log_like"])
+        for part, seconds in fit.wall_s.items():
+            attrs[f"wall_{part}_{fit.name}"] = float(seconds) * u.s
         if fit.evidence is not None:
             attrs[f"log_z_{fit.name}"] = fit.evidence.log_z
             attrs[f"log_z_err_{fit.name}"] = fit.evidence.log_z_err

@@ -6,6 +6,7 @@ no file input or output here (see :mod:`mavispm.dynamics.cli`).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,15 @@ LABELS = {
 }
 
 
+def _scale_radius_parameter(s: DynamicsSettings) -> Parameter:
+    """Uniform on ``log_scale_radius_range``, or Gaussian (``log_scale_radius_prior``)."""
+    if s.log_scale_radius_prior is not None:
+        mean, sd = s.log_scale_radius_prior
+        return Parameter("log_scale_radius", prior="gaussian", mean=mean, sd=sd)
+    lo, hi = s.log_scale_radius_range
+    return Parameter("log_scale_radius", lo=lo, hi=hi)
+
+
 def parameter_space(settings: DynamicsSettings, distance: float, with_bh: bool) -> ParameterSpace:
     """Priors of the IMBH (``with_bh``) or no-IMBH model.
 
@@ -46,18 +56,17 @@ def parameter_space(settings: DynamicsSettings, distance: float, with_bh: bool) 
     s = settings
     params = [
         Parameter("log_mass", lo=s.log_mass_range[0], hi=s.log_mass_range[1]),
-        Parameter(
-            "log_scale_radius", lo=s.log_scale_radius_range[0], hi=s.log_scale_radius_range[1]
-        ),
+        _scale_radius_parameter(s),
     ]
     if with_bh:
         params.append(Parameter("bh_mass", lo=0.0, hi=s.bh_mass_max))
     params.append(Parameter("beta", lo=s.beta_range[0], hi=s.beta_range[1]))
     if s.distance_error > 0:
         params.append(Parameter("distance", prior="gaussian", mean=distance, sd=s.distance_error))
-    if s.fit_gamma or s.cusp:
+    linked = s.cusp and s.cusp_link == "influence"
+    if s.fit_gamma or (s.cusp and (with_bh or not linked)):
         params.append(Parameter("gamma", lo=s.gamma_range[0], hi=s.gamma_range[1]))
-    if s.cusp:
+    if s.cusp and not linked:
         lo, hi = s.log_cusp_radius_range
         params.append(Parameter("log_cusp_radius", lo=lo, hi=hi))
     return ParameterSpace([Parameter(**{**p.__dict__, "label": LABELS[p.name]}) for p in params])
@@ -74,6 +83,7 @@ def make_likelihood(
         tracer=s.tracer,
         gamma=s.dehnen_gamma,
         concentration=s.king_concentration,
+        cusp_link=s.cusp_link if s.cusp else None,
         distance=distance,
         scale_radius_range=tuple(10.0 ** np.asarray(s.log_scale_radius_range)),
         min_radius=s.min_radius,
@@ -96,6 +106,8 @@ class ModelFit:
     summary: dict
     evidence: EvidenceResult | None = None
     criteria: dict = field(default_factory=dict)
+    #: wall-clock seconds of the emcee run and of the nested sampling
+    wall_s: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -120,6 +132,7 @@ def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> Mo
     name = "imbh" if with_bh else "no_imbh"
     space = parameter_space(settings, distance, with_bh)
     like = make_likelihood(stars, space, settings, distance)
+    t0 = time.perf_counter()
     chain = run_emcee(
         like,
         space,
@@ -132,10 +145,13 @@ def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> Mo
         backend_name=name,
         progress=settings.progress,
     )
+    wall = {"emcee": time.perf_counter() - t0}
     max_ll = chain.max_log_like
     evid = None
     if settings.evidence:
+        t0 = time.perf_counter()
         evid = run_dynesty(like, space, seed + 1, nlive=settings.nlive, dlogz=settings.dlogz)
+        wall["evidence"] = time.perf_counter() - t0
         max_ll = max(max_ll, evid.max_log_like)
     return ModelFit(
         name=name,
@@ -145,6 +161,7 @@ def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> Mo
         summary=summarise(chain.samples, chain.names),
         evidence=evid,
         criteria={"max_log_like": max_ll, **information_criteria(max_ll, len(space), stars.R.size)},
+        wall_s=wall,
     )
 
 

@@ -115,24 +115,39 @@ class JeansProjector:
         self._wsub = np.concatenate([0.5 * gap, 0.5 * gap])
         self._ngap = gap.size
         self._lnnode = ls[:-1]
+        # radii where the tracer density (sub-nodes, nodes, x_max) and the
+        # enclosed mass (sub-nodes, X, x_max) are needed
+        sub = np.exp(self._lnsub)
+        self._points = np.concatenate([sub, self.r.ravel(), [self.x_max]])
+        self._mass_points = np.concatenate([sub, X, [self.x_max]])
+        self._evaluators = {}
         self._cache_key = None
         self._cache = None
 
     def _tracer_tables(self, tracer):
-        """Tracer quantities at the nodes and sub-nodes (cached per tracer)."""
+        """Tracer quantities at the nodes and sub-nodes (cached per tracer).
+
+        The parameter-free parts are cached per profile family
+        (``tracer.at_points``), so a new Dehnen slope or cusp costs a few
+        vectorised passes over the fixed points.
+        """
         if self._cache_key != tracer:
-            xs = np.exp(self._lnsub)
-            nu_s = tracer.density(xs)
-            m_s = tracer.enclosed(xs)
-            x_end = self.x_max
+            evaluator = self._evaluators.get(tracer.family)
+            if evaluator is None:
+                evaluator = tracer.at_points(self._points, self._mass_points)
+                self._evaluators[tracer.family] = evaluator
+            nu, m = evaluator(tracer)
+            n_sub = self._lnsub.size
+            xs = self._points[:n_sub]
+            nu_s, m_s = nu[:n_sub], m[:n_sub]
             self._cache = {
                 # integrands without the r^(2 beta) factor, per d ln r: r * nu * m / r^2
                 "f_cl": nu_s * m_s / xs * self._wsub,
                 "f_bh": nu_s / xs * self._wsub,
-                "nu_node": tracer.density(self.r),
-                "m_X": tracer.enclosed(self.X),
-                "nu_end": float(tracer.density(x_end)),
-                "m_end": float(tracer.enclosed(x_end)),
+                "nu_node": nu[n_sub:-1].reshape(self.r.shape),
+                "m_X": m[n_sub:-1],
+                "nu_end": float(nu[-1]),
+                "m_end": float(m[-1]),
             }
             self._cache_key = tracer
         return self._cache

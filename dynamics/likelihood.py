@@ -33,6 +33,7 @@ from mavispm.dynamics.jeans import (
     cubic_weights,
     interpolate,
 )
+from mavispm.dynamics.star_sums import star_sums
 from mavispm.dynamics.tracers import make_tracer
 
 #: parsec per (arcsec * kpc)
@@ -91,6 +92,10 @@ class DiscreteLikelihood:
         Tracer/mass profile name ("plummer", "dehnen", "king").
     gamma, concentration : float
         Fixed Dehnen slope / King concentration (``gamma`` may instead be a parameter).
+    cusp_link : {None, "free", "influence"}
+        Cusped Plummer/King tracer: ``"free"`` fits ``gamma`` and ``log_cusp_radius``;
+        ``"influence"`` fits ``gamma`` with the cusp radius set to the BH influence
+        radius (where the cored profile encloses ``2 M_bh``; no cusp without a BH).
     distance : float
         Distance [kpc] used when ``distance`` is not a parameter.
     scale_radius_range : (float, float)
@@ -110,6 +115,7 @@ class DiscreteLikelihood:
         tracer: str = "plummer",
         gamma: float = 1.0,
         concentration: float = 1.5,
+        cusp_link: str | None = None,
         distance: float = 5.0,
         scale_radius_range=(1.0, 1000.0),
         min_radius: float = 0.01,
@@ -124,10 +130,12 @@ class DiscreteLikelihood:
         self.tracer_name = tracer
         self.gamma = gamma
         self.concentration = concentration
+        self.cusp_link = cusp_link
         self.distance = distance
         self.star_counts = star_counts
         self._fixed_tracer = make_tracer(tracer, gamma, concentration)
         a_lo, a_hi = scale_radius_range
+        self._log_a_range = (np.log10(a_lo) - 1e-9, np.log10(a_hi) + 1e-9)
         r_lo = max(min_radius, 1e-6)
         self.lnR = np.log(np.maximum(stars.R, r_lo))
         x_lo = r_lo / a_hi / 1.5
@@ -144,8 +152,8 @@ class DiscreteLikelihood:
         self.projector = JeansProjector(
             np.exp(self.lnX_grid), x_max=x_max, n_panels=n_panels, n_gl=n_gl
         )
-        self._v2 = np.stack([stars.v_r**2, stars.v_t**2])
-        self._e2 = np.stack([stars.e_r**2, stars.e_t**2])
+        self._v2 = np.ascontiguousarray(np.stack([stars.v_r**2, stars.v_t**2]), dtype=float)
+        self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)
         self._ln_field = np.log(stars.field_radius)
         self.n_stars = len(stars.R)
 
@@ -170,7 +178,9 @@ class DiscreteLikelihood:
         beta = theta[self.names.index("beta")]
         dist = self._value(theta, "distance", self.distance)
         tracer = self._fixed_tracer
-        if "log_cusp_radius" in self.names:
+        if self.cusp_link == "influence":
+            tracer = self._influence_cusp(theta, bh, 10.0**log_m)
+        elif "log_cusp_radius" in self.names:
             x_c = 10.0 ** (theta[self.names.index("log_cusp_radius")]) / np.exp(ln_a)
             g = theta[self.names.index("gamma")]
             tracer = make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_c)
@@ -195,6 +205,21 @@ class DiscreteLikelihood:
             np.log(np.maximum(mom.projected_enclosed, tiny)),
         )
 
+    def _influence_cusp(self, theta, bh_mass, mass):
+        """Cusped tracer whose cusp radius is the BH influence radius (base without a BH).
+
+        The influence radius encloses ``2 M_bh`` of the cored profile (capped at half
+        its mass); below 1e-6 scale radii the cusp has no effect and is dropped.
+        """
+        base = self._fixed_tracer
+        if bh_mass <= 0:
+            return base
+        x_infl = base.radius_enclosing(min(2.0 * bh_mass / mass, 0.5))
+        if x_infl < 1e-6:
+            return base
+        g = theta[self.names.index("gamma")]
+        return make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_infl)
+
     def dispersion_at(self, theta, R):
         """Model radial and tangential PM dispersions [mas/yr] at radii ``R`` [arcsec]."""
         lnX, s2, _, _ = self.model_on_grid(theta)
@@ -211,14 +236,17 @@ class DiscreteLikelihood:
             return -np.inf
         if "gamma" in self.names and not 0 <= theta[self.names.index("gamma")] < 2.5:
             return -np.inf
+        log_a = theta[self.names.index("log_scale_radius")]
+        if not self._log_a_range[0] <= log_a <= self._log_a_range[1]:
+            return -np.inf  # outside the radial grid (Gaussian prior tails)
         lnX, s2, ln_sig, ln_proj = self.model_on_grid(theta)
         ln_a = np.log(10.0) * theta[self.names.index("log_scale_radius")]
-        idx, w = cubic_weights(lnX[0], self.step, lnX.size, self.lnR - ln_a)
-        var = np.exp(interpolate(np.log(s2), idx, w)) + self._e2
-        lnl = -0.5 * float(np.sum(self._v2 / var + np.log(var))) - self.n_stars * _LN_2PI
+        chi, ln_sigma_stars = star_sums(
+            self.lnR - ln_a, lnX[0], self.step, np.log(s2), ln_sig, self._v2, self._e2
+        )
+        lnl = -0.5 * chi - self.n_stars * _LN_2PI
         if self.star_counts:
-            ln_sigma_stars = interpolate(ln_sig, idx, w)
             i_f, w_f = cubic_weights(lnX[0], self.step, lnX.size, [self._ln_field - ln_a])
             ln_norm = float(interpolate(ln_proj, i_f, w_f)[0])
-            lnl += float(np.sum(ln_sigma_stars)) - self.n_stars * (2.0 * ln_a + ln_norm)
+            lnl += ln_sigma_stars - self.n_stars * (2.0 * ln_a + ln_norm)
         return lnl if np.isfinite(lnl) else -np.inf

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mavispm.dynamics.jeans import cubic_weights
+
 _FOUR_PI = 4.0 * np.pi
 
 
@@ -59,6 +61,19 @@ class Plummer:
         X = np.asarray(X, dtype=float)
         return X * X / (1.0 + X * X)
 
+    @property
+    def family(self):
+        """Profiles sharing :meth:`at_points` tables (just this one)."""
+        return self
+
+    def at_points(self, points, mass_points=None):
+        """Evaluator of ``(nu, m)`` at fixed points."""
+        return AtPoints(points, mass_points)
+
+    def radius_enclosing(self, q: float) -> float:
+        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
+        return _radius_enclosing(self, q)
+
 
 @dataclass(frozen=True)
 class Dehnen:
@@ -88,6 +103,15 @@ class Dehnen:
         """Mass fraction inside 3-D radius ``x``."""
         x = np.asarray(x, dtype=float)
         return (x / (1.0 + x)) ** (3.0 - self.gamma)
+
+    @property
+    def family(self):
+        """Profiles sharing :meth:`at_points` tables (every gamma)."""
+        return ("dehnen",)
+
+    def at_points(self, points, mass_points=None):
+        """Evaluator of ``(nu, m)`` at fixed points for any Dehnen ``gamma``."""
+        return DehnenAtPoints(points, mass_points)
 
     # surface density and projected mass: numerical (see jeans.JeansProjector)
     surface_density = None
@@ -157,6 +181,33 @@ class King:
         """Mass fraction inside projected radius ``X``."""
         return self._projected_raw(X) / self._projected_raw(self.tidal_radius)
 
+    @property
+    def family(self):
+        """Profiles sharing :meth:`at_points` tables (just this one)."""
+        return self
+
+    def at_points(self, points, mass_points=None):
+        """Evaluator of ``(nu, m)`` at fixed points."""
+        return AtPoints(points, mass_points)
+
+    def radius_enclosing(self, q: float) -> float:
+        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
+        return _radius_enclosing(self, q)
+
+
+def _radius_enclosing(profile, q: float) -> float:
+    """Inverse of ``profile.enclosed`` (Plummer analytic, King from its table)."""
+    if not 0.0 < q < 1.0:
+        raise ValueError(f"mass fraction must be in (0, 1), got {q}")
+    if isinstance(profile, Plummer):
+        q23 = q ** (2.0 / 3.0)
+        return float(q ** (1.0 / 3.0) / np.sqrt(1.0 - q23))
+    lx, lm, _ = _king_table(profile.concentration)
+    lq = np.log(q)
+    if lq < lm[0]:  # flat core: m ~ x^3
+        return float(np.exp(lx[0] + (lq - lm[0]) / 3.0))
+    return float(np.exp(np.interp(lq, lm, lx)))
+
 
 @functools.lru_cache(maxsize=16)
 def _king_table(concentration: float):
@@ -180,14 +231,188 @@ def _king_table(concentration: float):
     return edges, np.log(np.concatenate([[m0], cum]) / total), total
 
 
+#: Cumulative-mass grid of the cusped profiles: ``_CUSP_PANELS`` Gauss-Legendre panels
+#: of ``_CUSP_NODES`` nodes, uniform in ln x from ``_CUSP_X_IN`` to the base profile's
+#: outer radius (tidal radius, or 1e5 scale radii).
+_CUSP_X_IN = 1e-8
+_CUSP_PANELS = 800
+_CUSP_NODES = 4
+
+
+def cusp_factor(cusp_radius: float, gamma: float, inv_x2):
+    """Cusp multiplier ``(1 + (x_c / x)^2)^(gamma / 2)`` from precomputed ``1 / x^2``."""
+    return np.exp(0.5 * gamma * np.log1p(cusp_radius * cusp_radius * inv_x2))
+
+
+def _inverse_square(x):
+    """``1 / x^2`` capped at 1e300 (x = 0 allowed)."""
+    x = np.asarray(x, dtype=float)
+    return 1.0 / np.maximum(x * x, 1e-300)
+
+
+@dataclass(frozen=True, eq=False)
+class _CuspMassGrid:
+    """Parameter-free part of the cumulative mass of ``base x cusp_factor`` (one per base).
+
+    Attributes
+    ----------
+    ln_edges : ndarray (P + 1,)
+        Uniform panel edges in ln x.
+    f_base : ndarray (P, n)
+        ``4 pi x^3 nu_base(x)`` times the Gauss-Legendre weight (in ln x) at the nodes.
+    inv_x2 : ndarray (P, n)
+        ``1 / x^2`` at the nodes.
+    nu0 : float
+        Central density of the base profile.
+    x_hi, m_out : float
+        Outer edge of the grid and the base mass beyond it (0 for a King profile).
+    """
+
+    ln_edges: np.ndarray
+    f_base: np.ndarray
+    inv_x2: np.ndarray
+    nu0: float
+    x_hi: float
+    m_out: float
+
+    def cumulative(self, gamma: float, cusp_radius: float):
+        """Unnormalised mass inside each edge and the total mass.
+
+        The mass inside ``x_in = exp(ln_edges[0])`` is the analytic power law
+        ``4 pi nu0 x_c^gamma x_in^(3 - gamma) / (3 - gamma)`` (the cusp factor is
+        ``(x_c / x)^gamma`` there to relative order ``(x_in / x_c)^2``); beyond the
+        grid the cusp factor is 1 and the base profile's own mass is added.
+        """
+        x_in = np.exp(self.ln_edges[0])
+        m_in = _FOUR_PI * self.nu0 * cusp_radius**gamma * x_in ** (3.0 - gamma) / (3.0 - gamma)
+        panels = np.einsum("pk,pk->p", self.f_base, cusp_factor(cusp_radius, gamma, self.inv_x2))
+        cum = np.empty(panels.size + 1)
+        cum[0] = m_in
+        np.cumsum(panels, out=cum[1:])
+        cum[1:] += m_in
+        return cum, cum[-1] + self.m_out
+
+
+@functools.lru_cache(maxsize=8)
+def _cusp_mass_grid(base) -> _CuspMassGrid:
+    x_hi = float(getattr(base, "tidal_radius", 1e5))
+    edges = np.linspace(np.log(_CUSP_X_IN), np.log(x_hi), _CUSP_PANELS + 1)
+    nodes, weights = np.polynomial.legendre.leggauss(_CUSP_NODES)
+    mid = 0.5 * (edges[1:] + edges[:-1])
+    half = 0.5 * np.diff(edges)
+    x = np.exp(mid[:, None] + half[:, None] * nodes[None, :])
+    f = _FOUR_PI * x**3 * base.density(x) * half[:, None] * weights[None, :]
+    return _CuspMassGrid(
+        ln_edges=edges,
+        f_base=f,
+        inv_x2=_inverse_square(x),
+        nu0=float(base.density(0.0)),
+        x_hi=x_hi,
+        m_out=float(1.0 - base.enclosed(x_hi)),
+    )
+
+
+class AtPoints:
+    """Density and enclosed mass of any profile of one family at fixed points.
+
+    The generic version simply calls the profile; subclasses cache what does not
+    depend on the profile's parameters (used by the Jeans projector, whose
+    quadrature points are fixed).
+
+    Parameters
+    ----------
+    points : array_like
+        Radii where the density is needed, in scale radii (> 0).
+    mass_points : array_like, optional
+        Radii where the enclosed mass is needed (default: ``points``).
+    """
+
+    def __init__(self, points, mass_points=None):
+        self.points = np.asarray(points, dtype=float)
+        self.mass_points = self.points if mass_points is None else np.asarray(mass_points, float)
+
+    def __call__(self, tracer):
+        """``(nu at points, m at mass_points)`` of ``tracer``."""
+        return tracer.density(self.points), tracer.enclosed(self.mass_points)
+
+
+class DehnenAtPoints(AtPoints):
+    """Dehnen profiles of any ``gamma`` at fixed points (ln x and ln(1 + x) cached)."""
+
+    def __init__(self, points, mass_points=None):
+        super().__init__(points, mass_points)
+        self._logs = [
+            (np.log(x), np.log1p(x))
+            for x in (np.maximum(self.points, 1e-300), np.maximum(self.mass_points, 1e-300))
+        ]
+
+    def __call__(self, tracer):
+        g = tracer.gamma
+        (lnx, ln1px), (lnm, ln1pm) = self._logs
+        nu = (3.0 - g) / _FOUR_PI * np.exp((g - 4.0) * ln1px - g * lnx)
+        return nu, np.exp((3.0 - g) * (lnm - ln1pm))
+
+
+class CuspedAtPoints(AtPoints):
+    """Cusped profiles over one base profile at fixed points, for any slope and cusp radius.
+
+    The base density at the points, the base part of the mass integrand on the
+    cumulative grid and the cubic (4-point Lagrange) interpolation of ``ln m``
+    from the grid edges to the mass points (a sparse matrix) are built once; a
+    call costs two cusp-factor evaluations (grid nodes and points), one
+    cumulative sum and one sparse matrix-vector product.
+
+    Parameters
+    ----------
+    base : Plummer or King
+    points, mass_points : array_like
+        See :class:`AtPoints` (radii >= 0 in scale radii).
+    """
+
+    def __init__(self, base, points, mass_points=None):
+        super().__init__(points, mass_points)
+        from scipy.sparse import csr_array
+
+        self.grid = _cusp_mass_grid(base)
+        x = self.mass_points
+        lnx = np.log(np.maximum(x, 1e-300))
+        edges = self.grid.ln_edges
+        idx, w = cubic_weights(edges[0], edges[1] - edges[0], edges.size, lnx)
+        rows = np.broadcast_to(np.arange(x.size), idx.shape)
+        self._interp = csr_array(
+            (w.ravel(), (rows.ravel(), idx.ravel())), shape=(x.size, edges.size)
+        )
+        self._below = lnx < edges[0]
+        self._dln_below = np.minimum(lnx - edges[0], 0.0)
+        self._above = x > self.grid.x_hi
+        x_hi = self.grid.x_hi
+        self._outer = base.enclosed(np.maximum(x, x_hi)) - base.enclosed(x_hi)
+        self._base_nu = base.density(self.points)
+        self._inv_x2 = _inverse_square(self.points)
+
+    def __call__(self, tracer):
+        g, xc = tracer.gamma, tracer.cusp_radius
+        cum, total = self.grid.cumulative(g, xc)
+        m = np.exp(self._interp @ np.log(cum))
+        if self._below.any():
+            m = np.where(self._below, cum[0] * np.exp((3.0 - g) * self._dln_below), m)
+        if self._above.any():
+            m = np.where(self._above, cum[-1] + self._outer, m)
+        nu = self._base_nu * cusp_factor(xc, g, self._inv_x2) / total
+        return nu, np.minimum(m / total, 1.0)
+
+
 @dataclass(frozen=True)
 class Cusped:
     """A cored profile with an inner cusp: ``nu ~ base(x) (1 + (x_c / x)^2)^(gamma / 2)``.
 
     The same multiplier as the cluster generator's cusp: ``nu ~ x^-gamma`` inside
     ``x_c`` and the base profile (King core, Plummer) outside it. Renormalised to
-    unit mass; the enclosed mass is integrated numerically per instance
-    (Gauss-Legendre panels in ``ln x``, analytic power law inside ``1e-8``).
+    unit mass. The enclosed mass is a cumulative Gauss-Legendre quadrature in
+    ``ln x`` on a fixed grid (800 panels x 4 nodes from 1e-8 to the base's outer
+    radius, analytic power law inside 1e-8) whose parameter-free part is cached
+    per base profile, interpolated to any radius with cubic Lagrange weights in
+    ``ln m`` (see :class:`CuspedAtPoints`).
 
     Parameters
     ----------
@@ -216,41 +441,27 @@ class Cusped:
         """Outer slope of the base profile (the multiplier tends to 1)."""
         return self.base.outer_slope
 
-    def _shape(self, x):
-        x = np.maximum(np.asarray(x, dtype=float), 1e-300)
-        return self.base.density(x) * (1.0 + (self.cusp_radius / x) ** 2) ** (0.5 * self.gamma)
+    @property
+    def family(self):
+        """Profiles sharing :meth:`at_points` tables (same base, any gamma / cusp radius)."""
+        return ("cusped", self.base)
 
-    @functools.cached_property
-    def _table(self):
-        x_hi = getattr(self.base, "tidal_radius", 1e5)
-        edges = np.linspace(np.log(1e-8), np.log(x_hi), 801)
-        nodes, weights = np.polynomial.legendre.leggauss(4)
-        mid = 0.5 * (edges[1:] + edges[:-1])
-        half = 0.5 * np.diff(edges)
-        x = np.exp((mid[:, None] + half[:, None] * nodes[None, :]).ravel())
-        f = _FOUR_PI * x**3 * self._shape(x) * (half[:, None] * weights[None, :]).ravel()
-        g = self.gamma
-        m0 = _FOUR_PI * float(self.base.density(0.0)) * self.cusp_radius**g * 1e-8 ** (3.0 - g)
-        cum = np.concatenate(
-            [[m0 / (3.0 - g)], m0 / (3.0 - g) + np.cumsum(f.reshape(-1, 4).sum(1))]
-        )
-        total = cum[-1] + (1.0 - float(self.base.enclosed(x_hi)))  # multiplier ~ 1 beyond x_hi
-        return edges, cum, total, x_hi
+    def at_points(self, points, mass_points=None) -> CuspedAtPoints:
+        """Evaluator of ``(nu, m)`` at fixed points for every profile of this family."""
+        return CuspedAtPoints(self.base, points, mass_points)
+
+    def _evaluate(self, x):
+        x = np.asarray(x, dtype=float)
+        nu, m = self.at_points(x.ravel())(self)
+        return nu.reshape(x.shape), m.reshape(x.shape)
 
     def density(self, x):
         """3-D density ``nu(x)`` (unit mass, unit scale radius)."""
-        return self._shape(x) / self._table[2]
+        return self._evaluate(x)[0]
 
     def enclosed(self, x):
         """Mass fraction inside 3-D radius ``x``."""
-        edges, cum, total, x_hi = self._table
-        x = np.asarray(x, dtype=float)
-        lnx = np.log(np.maximum(x, 1e-300))
-        inside = np.exp(np.interp(lnx, edges, np.log(cum)))
-        small = cum[0] * np.exp((3.0 - self.gamma) * (lnx - edges[0]))
-        outside = cum[-1] + self.base.enclosed(np.maximum(x, x_hi)) - self.base.enclosed(x_hi)
-        out = np.where(lnx < edges[0], small, np.where(x > x_hi, outside, inside))
-        return np.minimum(out / total, 1.0)
+        return self._evaluate(x)[1]
 
     surface_density = None
     projected_enclosed = None

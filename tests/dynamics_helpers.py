@@ -343,18 +343,28 @@ def generator_fit_settings(model="dehnen"):
 
     Parameters
     ----------
-    model : {"dehnen", "cusped_king"}
+    model : {"dehnen", "cusped_king", "king_influence"}
         Dehnen tracer with free inner slope, or the generator's own family: a King
-        profile (c = 1.33, the preset's) with a fitted cusp slope and radius.
+        profile (c = 1.33, the preset's) with a fitted cusp slope and radius
+        (``cusped_king``), or with the cusp radius tied to the BH influence radius
+        (``king_influence``: no cusp without a BH). A suffix ``_rc`` adds a Gaussian
+        prior on the King core radius (the generator's 79" +- 12%), as a photometric
+        surface-density profile would give.
     """
     from mavispm.dynamics.settings import DynamicsSettings
 
-    if model == "cusped_king":
+    # the generator's King core radius (79", NGC 3201's photometric value) as known
+    # from the surface-brightness profile, 12% (0.05 dex) uncertainty
+    prior = (np.log10(79.0), 0.05) if model.endswith("_rc") else None
+    model = model.removesuffix("_rc")
+    if model in ("cusped_king", "king_influence"):
         return DynamicsSettings(
             tracer="king",
             king_concentration=1.33,
             cusp=True,
+            cusp_link="influence" if model == "king_influence" else "free",
             log_scale_radius_range=(1.0, 3.0),
+            log_scale_radius_prior=prior,
             progress=False,
         )
     return DynamicsSettings(tracer="dehnen", fit_gamma=True, progress=False)

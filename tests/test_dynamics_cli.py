@@ -9,7 +9,7 @@ from dynamics_helpers import write_mock_propermotions
 
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import read_product, write_product
-from mavispm.dynamics.cli import run_stage, validate_settings
+from mavispm.dynamics.cli import load_stars, run_stage, validate_settings
 from mavispm.dynamics.evidence import run_dynesty, savage_dickey
 from mavispm.dynamics.parameters import Parameter, ParameterSpace
 from mavispm.dynamics.sampling import run_emcee
@@ -86,6 +86,8 @@ def test_settings_validation():
         validate_settings({"tracer": "hernquist"})
     with pytest.raises(ConfigError):
         validate_settings({"fit_gamma": True})
+    with pytest.raises(ConfigError, match="cusp_link"):
+        validate_settings({"tracer": "king", "cusp": True, "cusp_link": "fixed"})
 
 
 def _pm_table(n=20, drop=()):
@@ -157,3 +159,15 @@ def test_savage_dickey_valid_only_with_support_at_zero():
     assert lnb == pytest.approx(0.0, abs=0.15) and note.startswith("valid")
     lnb, note = savage_dickey(rng.normal(3000, 300, 20000), 1e4)
     assert np.isnan(lnb) and "not valid" in note
+
+
+def test_pm_error_scale_and_floor(pm_file):
+    """Errors become sqrt((scale e)^2 + floor^2); the same stars are kept."""
+    base, _ = load_stars(pm_file, validate_settings({}))
+    s = validate_settings({"pm_error_scale": 2.0, "pm_error_floor": "0.05 mas/yr"})
+    stars, _ = load_stars(pm_file, s)
+    np.testing.assert_allclose(stars.e_r, np.sqrt((2 * base.e_r) ** 2 + 0.05**2))
+    np.testing.assert_allclose(stars.e_t, np.sqrt((2 * base.e_t) ** 2 + 0.05**2))
+    np.testing.assert_array_equal(stars.v_r, base.v_r)
+    with pytest.raises(ConfigError, match="pm_error"):
+        validate_settings({"pm_error_scale": 0.0})

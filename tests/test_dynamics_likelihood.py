@@ -118,3 +118,51 @@ def test_parameter_scaling_round_trip_and_priors():
     assert sp.log_prior_scaled(np.array([1.5, 0.0])) == -np.inf
     with pytest.raises(ValueError):
         Parameter("x", lo=1.0, hi=1.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    shift=st.floats(-8.0, 8.0),
+    err_scale=st.sampled_from([0.0, 1e-3, 0.05, 1e3]),
+    seed=st.integers(0, 10_000),
+)
+def test_fused_star_sums_match_numpy_reference(n, shift, err_scale, seed):
+    """The numba star loop equals the vectorised numpy path, also for stars off the grid ends."""
+    from mavispm.dynamics.star_sums import star_sums, star_sums_numpy
+
+    rng = np.random.default_rng(seed)
+    grid = np.linspace(-6.0, 2.0, 40)
+    ln_s2 = np.stack([np.log(0.1 + np.exp(-grid)), np.log(0.2 + 0.5 * np.exp(-grid))])
+    ln_sig = -2.0 * np.log1p(np.exp(grid))
+    u_ = rng.uniform(-7.0, 3.0, n) + shift
+    v2 = rng.normal(0, 0.4, (2, n)) ** 2
+    e2 = (err_scale * rng.uniform(0.5, 1.5, (2, n))) ** 2
+    step = grid[1] - grid[0]
+    fused = star_sums(u_, grid[0], step, ln_s2, ln_sig, v2, e2)
+    ref = star_sums_numpy(u_, grid[0], step, ln_s2, ln_sig, v2, e2)
+    np.testing.assert_allclose(fused, ref, rtol=1e-10, atol=1e-9)
+
+
+def test_influence_linked_cusp():
+    """cusp_link = "influence": the cusp radius encloses 2 M_bh of the cored King profile,
+    the no-IMBH model is the plain King profile (no cusp parameters), and M_bh = 0 in the
+    IMBH model gives the no-IMBH likelihood."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+    from mavispm.dynamics.tracers import Cusped, King
+
+    s = DynamicsSettings(tracer="king", king_concentration=1.33, cusp=True, cusp_link="influence")
+    sp1, sp0 = parameter_space(s, 4.6, True), parameter_space(s, 4.6, False)
+    assert sp1.names == ["log_mass", "log_scale_radius", "bh_mass", "beta", "gamma"]
+    assert sp0.names == ["log_mass", "log_scale_radius", "beta"]
+    stars = _stars(200, seed=4)
+    l1, l0 = make_likelihood(stars, sp1, s, 4.6), make_likelihood(stars, sp0, s, 4.6)
+    theta = np.array([5.2, 1.9, 3000.0, 0.1, 1.55])
+    tracer = l1._influence_cusp(theta, 3000.0, 10**5.2)
+    assert isinstance(tracer, Cusped) and tracer.gamma == 1.55
+    assert King(1.33).enclosed(tracer.cusp_radius) == pytest.approx(6000.0 / 10**5.2, rel=1e-4)
+    no_bh = theta.copy()
+    no_bh[2] = 0.0
+    assert l1(no_bh) == pytest.approx(l0(theta[[0, 1, 3]]), rel=1e-12)
+    assert np.isfinite(l1(theta)) and l1(theta) != l1(no_bh)

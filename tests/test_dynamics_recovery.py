@@ -64,12 +64,14 @@ def test_generator_recovery_coverage_and_bayes_factor():
     """10 generator seeds each: 68% coverage >= 60% and ln B > 3 with a 1500 Msun IMBH;
     95% upper limit < 1500 Msun and ln B < 1 without (emcee posterior, dynesty ln B)."""
     seeds = list(range(100, 110))
-    model = os.environ.get("DYN_GENERATOR_MODEL", "dehnen")  # or "cusped_king"
+    # "dehnen", "cusped_king", "king_influence", "king_influence_rc", "cusped_king_rc"
+    model = os.environ.get("DYN_GENERATOR_MODEL", "king_influence_rc")
+    steps = int(os.environ.get("DYN_STEPS", "2000"))
     jobs = [(s, bh) for s in seeds for bh in (1500.0, 0.0)]
     out = os.environ.get("DYN_RECOVERY_JSON")
     results = []
     with ProcessPoolExecutor(max_workers=int(os.environ.get("DYN_WORKERS", "2"))) as ex:
-        trial = functools.partial(generator_recovery_trial, model=model)
+        trial = functools.partial(generator_recovery_trial, model=model, steps=steps)
         for res in ex.map(trial, *zip(*jobs)):
             results.append(res)
             if out:  # one JSON line per finished trial
