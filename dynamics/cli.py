@@ -233,7 +233,7 @@ def run_stage(
         attrs[f"bic_{fit.name}"] = float(fit.criteria["bic"])
         attrs[f"max_log_like_{fit.name}"] = float(fit.criteria["max_log_like"])
         for part, seconds in fit.wall_s.items():
-            attrs[f"wall_{part}_{fit.name}"] = float(seconds) * u.s
+            attrs[f"time_{part}_{fit.name}"] = float(seconds) * u.s
         if fit.evidence is not None:
             attrs[f"log_z_{fit.name}"] = fit.evidence.log_z
             attrs[f"log_z_err_{fit.name}"] = fit.evidence.log_z_err
