@@ -105,6 +105,7 @@ def select_psf_stars(
     isolation: float,
     ratio: float,
     min_flux: float,
+    neighbour_flux: np.ndarray | None = None,
 ) -> np.ndarray:
     """Indices of good PSF stars, brightest first.
 
@@ -124,6 +125,11 @@ def select_psf_stars(
     ratio : float
     min_flux : float
         Minimum flux [electron].
+    neighbour_flux : ndarray, optional
+        Flux estimates [electron] of the stars as neighbours, for the isolation
+        test (default ``flux``): an upper bound such as the box flux against the
+        frame's global sky, as a faint star's local background is raised by the
+        bright PSF-star candidate next to it (which would then pass as isolated).
 
     Returns
     -------
@@ -150,7 +156,8 @@ def select_psf_stars(
         return idx
     good_all = np.isfinite(x) & np.isfinite(y)
     tree = cKDTree(np.column_stack([x[good_all], y[good_all]]))
-    fall = np.where(np.isfinite(flux), flux, 0.0)[good_all]
+    as_neighbour = flux if neighbour_flux is None else neighbour_flux
+    fall = np.where(np.isfinite(as_neighbour), as_neighbour, 0.0)[good_all]
     isolated = np.ones(len(idx), bool)
     for k, neigh in enumerate(tree.query_ball_point(np.column_stack([x[idx], y[idx]]), isolation)):
         others = [j for j in neigh if fall[j] > ratio * flux[idx[k]]]
@@ -504,6 +511,7 @@ def build_field_epsf(
     previous: VariableEPSF | None = None,
     model_radius: int = 5,
     half: int | None = None,
+    neighbour_flux: np.ndarray | None = None,
 ) -> tuple[VariableEPSF, np.ndarray]:
     """Build a (field-variable) ePSF from the frame.
 
@@ -526,6 +534,9 @@ def build_field_epsf(
         The ePSF that made ``neighbour_model`` (needed with it).
     model_radius : int
         Stamp radius [pixel] of the stars in ``neighbour_model``.
+    neighbour_flux : ndarray, optional
+        Flux estimates of the stars as neighbours in the isolation test
+        (:func:`select_psf_stars`; default ``flux``).
     half : {0, 1}, optional
         Build from every other PSF star of each node only (0: the brightest,
         third, ...; 1: the second, fourth, ...): two disjoint halves for the ePSF
@@ -547,7 +558,7 @@ def build_field_epsf(
     min_flux = options.min_snr**2 / 2 * (1 + np.sqrt(1 + 4 * 10 * noise_floor / options.min_snr**2))
     ratio = options.isolation_ratio if neighbour_model is None else options.neighbour_ratio
     chosen = select_psf_stars(
-        x, y, flux, shape, bad, options.size, options.isolation, ratio, min_flux
+        x, y, flux, shape, bad, options.size, options.isolation, ratio, min_flux, neighbour_flux
     )
     if options.max_gradient > 0 and len(chosen):
         flat = background_gradient(image, x[chosen], y[chosen], options.size)

@@ -255,13 +255,14 @@ def box_flux(
     x: np.ndarray,
     y: np.ndarray,
     half: int = 2,
-    ring: tuple[int, int] = LOCAL_SKY_RING,
+    ring: tuple[int, int] | None = LOCAL_SKY_RING,
     chunk: int = 4096,
 ) -> np.ndarray:
     """Rough flux [electron] in a (2 half + 1)^2 box, minus the star's local background.
 
     The background of each star is the median of the pixels at Chebyshev
-    distance ``ring[0]..ring[1]`` from it (the frame's sky where none is usable).
+    distance ``ring[0]..ring[1]`` from it (the frame's sky where none is usable;
+    ``ring = None``: the frame's sky).
     With the frame's global sky instead, the seeing halo and the wings of the
     bright stars in a cluster centre (there ~7 % of the sky, plus the wing
     plateau of every bright star) made faint stars look bright: on the NGC 3201
@@ -273,10 +274,11 @@ def box_flux(
     x = np.rint(np.nan_to_num(np.asarray(x, float))).astype(int)
     y = np.rint(np.nan_to_num(np.asarray(y, float))).astype(int)
     out = np.zeros(len(x))
-    reach = max(half, ring[1])
+    reach = half if ring is None else max(half, ring[1])
     off = np.arange(-reach, reach + 1)
     cheb = np.maximum(np.abs(off)[:, None], np.abs(off)[None, :])
-    in_box, in_ring = cheb <= half, (cheb >= ring[0]) & (cheb <= ring[1])
+    in_box = cheb <= half
+    in_ring = None if ring is None else (cheb >= ring[0]) & (cheb <= ring[1])
     for start in range(0, len(x), chunk):
         sl = slice(start, start + chunk)
         cx, cy = x[sl, None] + off, y[sl, None] + off
@@ -284,10 +286,12 @@ def box_flux(
         rows, cols = np.clip(cy, 0, ny - 1)[:, :, None], np.clip(cx, 0, nx - 1)[:, None, :]
         cut = frame.image[rows, cols]
         good = inside & ~frame.bad[rows, cols] & np.isfinite(cut)
-        with warnings.catch_warnings():  # a ring without usable pixels: the frame's sky
-            warnings.simplefilter("ignore", RuntimeWarning)
-            local = np.nanmedian(np.where(good & in_ring, cut, np.nan).reshape(len(cut), -1), 1)
-        local = np.where(np.isfinite(local), local, frame.sky)
+        local = np.full(len(cut), frame.sky)
+        if in_ring is not None:
+            with warnings.catch_warnings():  # a ring without usable pixels: the frame's sky
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(np.where(good & in_ring, cut, np.nan).reshape(len(cut), -1), 1)
+            local = np.where(np.isfinite(med), med, frame.sky)
         out[sl] = np.sum(np.where(good & in_box, cut - local[:, None, None], 0.0), axis=(1, 2))
     return out
 
@@ -396,8 +400,11 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
     data = frame.image - frame.sky
     noise = frame.sky + frame.read_noise_var
     flux = box_flux(frame, x0, y0)
+    # as neighbours in the isolation test: not below the flux over the global sky
+    # (a faint star's local background is raised by the bright candidate next to it)
+    upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
-    psf, used = build_field_epsf(options=opts, **build)
+    psf, used = build_field_epsf(options=opts, neighbour_flux=upper, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
         fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
