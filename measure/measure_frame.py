@@ -324,6 +324,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         min_snr=settings.min_snr,
         chunk=settings.chunk,
         progress=settings.progress,
+        sky_gradient=settings.sky_gradient,
     )
 
 
@@ -487,6 +488,7 @@ def error_terms(
             frame.read_noise_var,
             settings.stamp_radius,
             settings.chunk,
+            sky_gradient=settings.sky_gradient and settings.engine == "fast",
         )
     grid = 1 if settings.psf_variation == "constant" else settings.psf_grid
     ny, nx = frame.shape

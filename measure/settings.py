@@ -57,6 +57,9 @@ class MeasureSettings:
         errors alone. The Fisher errors are always in ``x_err_fisher`` etc.
     stamp_radius : int
         Fit stamp half-width [pixel].
+    sky_gradient : bool
+        Fast engine: fit each star's local sky as a plane instead of a constant
+        (the wings of a much brighter star tilt the background of its stamp).
     iterations : int
         Maximum fitter sweeps.
     tolerance : float [pix]
@@ -107,6 +110,7 @@ class MeasureSettings:
     neighbour_passes: int = 1
     error_model: Literal["epsf", "fisher"] = "epsf"
     stamp_radius: int = 5
+    sky_gradient: bool = True
     iterations: int = 10
     tolerance: float = unit_field(1e-4, "pix")
     max_shift: float = unit_field(2.0, "pix")
