@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from mavispm.core.errors import InputError
-from mavispm.measure.crlb import fisher_matrix, jacobian, safe_inverse
+from mavispm.measure.crlb import fisher_matrix, jacobian, safe_inverse, sky_plane_basis
 from mavispm.measure.variable_psf import StampGeometry, VariableEPSF
 
 FLAG_NOT_CONVERGED = 1
@@ -66,6 +66,11 @@ class FitOptions:
     blend_radius : float
         Neighbours closer than this [pixel] are marginalised in the reported
         errors (:func:`marginalise_neighbours`).
+    sky_gradient : bool
+        Fit each star's local sky as a plane (level and two slopes) instead of a
+        constant: the wings and halo of a much brighter star tens of pixels away
+        tilt the background of the stamp, which a constant sky leaves in the
+        positions. The slopes are marginalised in the reported errors.
     """
 
     radius: int = 5
@@ -79,6 +84,7 @@ class FitOptions:
     chunk: int = 512
     progress: bool = False
     blend_radius: float = 5.0
+    sky_gradient: bool = False
 
 
 @dataclass
@@ -323,6 +329,10 @@ def fit_stars(
 
     mix = psf.mixing(x, y)
     sky = np.full(n, float(sky0))
+    # sky plane: slopes [electron / pixel^2] on the stamp offsets from its centre
+    npar = 6 if opt.sky_gradient else 4
+    slope = np.zeros((n, 2))
+    plane_basis = sky_plane_basis(s)
     flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
     model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
@@ -350,10 +360,17 @@ def fit_stars(
         v, dvx, dvy = (a.reshape(len(idx), -1) for a in evaluate(idx))
         neigh = model[flat[idx]] - own[idx]
         mod_star = flux[idx, None] * v
-        resid = data[idx] - neigh - mod_star - sky[idx, None]
-        var = np.maximum(model[flat[idx]] - own[idx] + mod_star + sky[idx, None], 0.0)
+        background = sky[idx, None] + slope[idx] @ plane_basis
+        resid = data[idx] - neigh - mod_star - background
+        var = np.maximum(model[flat[idx]] - own[idx] + mod_star + background, 0.0)
         w = valid[idx] / (var + read_noise_var)
-        jac = jacobian(flux[idx], v.reshape(-1, s, s), dvx.reshape(-1, s, s), dvy.reshape(-1, s, s))
+        jac = jacobian(
+            flux[idx],
+            v.reshape(-1, s, s),
+            dvx.reshape(-1, s, s),
+            dvy.reshape(-1, s, s),
+            sky_gradient=opt.sky_gradient,
+        )
         if fix_positions is not None:
             jac[fix_positions, :2] = 0.0
         a = fisher_matrix(jac, w)
@@ -374,7 +391,7 @@ def fit_stars(
                 freeze = np.ones(len(idx), bool) if fixed else None
                 v, dvx, dvy, a, b, w, _ = normal_equations(idx, freeze)
                 diag = np.einsum("nkk->nk", a)
-                a_d = a + opt.damping * diag[:, :, None] * np.eye(4)
+                a_d = a + opt.damping * diag[:, :, None] * np.eye(npar)
                 if fixed:
                     a_d[:, :2, :2] = np.eye(2)
                 step = _solve(a_d, b)
@@ -403,6 +420,8 @@ def fit_stars(
                 y[idx] += dy
                 flux[idx] += step[:, 2]
                 sky[idx] += step[:, 3]
+                if opt.sky_gradient:
+                    slope[idx] += step[:, 4:]
                 # keep within max_shift of the start
                 off_x, off_y = x[idx] - start_x[idx], y[idx] - start_y[idx]
                 dist = np.hypot(off_x, off_y)
@@ -443,8 +462,8 @@ def fit_stars(
     weight = np.zeros((n, s * s))
     for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
         _, _, _, a, _, w, resid = normal_equations(idx, None)
-        fisher[idx], weight[idx] = a, w
-        dof = np.maximum(valid[idx].sum(axis=1) - 4, 1)
+        fisher[idx], weight[idx] = _marginalise_slopes(a), w
+        dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
     if uncertainties:
         separation = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
@@ -485,6 +504,18 @@ def fit_stars(
         iterations=done,
         model_image=_frame_image(model, pixels, (ny, nx)) if return_model else None,
     )
+
+
+def _marginalise_slopes(a: np.ndarray) -> np.ndarray:
+    """The (x, y, flux, sky) block of Fisher matrices with sky slopes (parameters
+    4, 5) marginalised (Schur complement); 4 x 4 matrices are returned as they are."""
+    if a.shape[1] == 4:
+        return a
+    inv, ok = safe_inverse(a[:, 4:, 4:])
+    cross = a[:, :4, 4:]
+    out = a[:, :4, :4] - np.einsum("nkl,nlm,npm->nkp", cross, np.nan_to_num(inv), cross)
+    out[~ok] = a[~ok, :4, :4]
+    return out
 
 
 def _frame_image(values: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

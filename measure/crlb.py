@@ -23,8 +23,20 @@ from mavispm.measure.variable_psf import StampGeometry, VariableEPSF
 PARAMETERS = ("x", "y", "flux", "sky")
 
 
-def jacobian(flux: np.ndarray, value: np.ndarray, dvx: np.ndarray, dvy: np.ndarray) -> np.ndarray:
-    """Model derivatives d m / d (x0, y0, F, s) on stamps.
+def sky_plane_basis(size: int) -> np.ndarray:
+    """Column and row offsets [pixel] of a ``size x size`` stamp from its centre, (2, size^2)."""
+    off = np.arange(size, dtype=float) - (size - 1) / 2
+    return np.stack([np.tile(off, size), np.repeat(off, size)])
+
+
+def jacobian(
+    flux: np.ndarray,
+    value: np.ndarray,
+    dvx: np.ndarray,
+    dvy: np.ndarray,
+    sky_gradient: bool = False,
+) -> np.ndarray:
+    """Model derivatives d m / d (x0, y0, F, s[, s_x, s_y]) on stamps.
 
     Parameters
     ----------
@@ -32,15 +44,20 @@ def jacobian(flux: np.ndarray, value: np.ndarray, dvx: np.ndarray, dvy: np.ndarr
         Star fluxes [electron].
     value, dvx, dvy : ndarray, shape (N, S, S)
         Unit-flux ePSF on the stamps and its position derivatives [1/pixel].
+    sky_gradient : bool
+        Also the derivatives by the slopes of a sky plane (:func:`sky_plane_basis`).
 
     Returns
     -------
-    ndarray, shape (N, 4, S*S)
+    ndarray, shape (N, 4, S*S), or (N, 6, S*S) with ``sky_gradient``
     """
     n = value.shape[0]
     f = flux[:, None, None]
-    jac = np.stack([f * dvx, f * dvy, value, np.ones_like(value)], axis=1)
-    return jac.reshape(n, 4, -1)
+    jac = np.stack([f * dvx, f * dvy, value, np.ones_like(value)], axis=1).reshape(n, 4, -1)
+    if not sky_gradient:
+        return jac
+    tilt = np.broadcast_to(sky_plane_basis(value.shape[-1]), (n, 2, jac.shape[-1]))
+    return np.concatenate([jac, tilt], axis=1)
 
 
 def fisher_matrix(jac: np.ndarray, weight: np.ndarray) -> np.ndarray:

@@ -54,6 +54,7 @@ def epsf_difference_shifts(
     read_noise_var: float,
     radius: int,
     chunk: int = 512,
+    sky_gradient: bool = False,
 ) -> np.ndarray:
     """Linearised change of each star's fit between two ePSFs.
 
@@ -79,6 +80,8 @@ def epsf_difference_shifts(
         Fit stamp half-width [pixel].
     chunk : int
         Stars evaluated at once.
+    sky_gradient : bool
+        The fit has a sky plane (its slopes take part in the step, as in the fit).
 
     Returns
     -------
@@ -103,14 +106,14 @@ def epsf_difference_shifts(
         f = flux[idx, None]
         var = np.maximum(f * v.reshape(len(idx), -1) + sky[idx, None], 0.0) + read_noise_var
         w = 1.0 / var
-        jac = jacobian(flux[idx], v, dvx, dvy)
+        jac = jacobian(flux[idx], v, dvx, dvy, sky_gradient=sky_gradient)
         a = fisher_matrix(jac, w)
         diff = (f * (vb - va).reshape(len(idx), -1)).reshape(len(idx), s * s)
         b = np.einsum("nkm,nm->nk", jac, w * diff)
         cov, ok = safe_inverse(a)
         step = np.einsum("nkl,nl->nk", np.nan_to_num(cov), b)
         step[~ok] = np.nan
-        out[idx] = step
+        out[idx] = step[:, :4]
     return out
 
 

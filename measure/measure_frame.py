@@ -14,6 +14,7 @@ This is the engine-independent pipeline behind ``mavispm measure stars``:
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -245,14 +246,54 @@ def read_frame(path, require_truth: bool = True) -> Frame:
     )
 
 
-def box_flux(frame: Frame, x: np.ndarray, y: np.ndarray, half: int = 2) -> np.ndarray:
-    """Rough sky-subtracted flux [electron] in a (2 half + 1)^2 box around each position."""
+#: Square ring [pixel, Chebyshev distance] whose median is a star's local background.
+LOCAL_SKY_RING = (6, 8)
+
+
+def box_flux(
+    frame: Frame,
+    x: np.ndarray,
+    y: np.ndarray,
+    half: int = 2,
+    ring: tuple[int, int] | None = LOCAL_SKY_RING,
+    chunk: int = 4096,
+) -> np.ndarray:
+    """Rough flux [electron] in a (2 half + 1)^2 box, minus the star's local background.
+
+    The background of each star is the median of the pixels at Chebyshev
+    distance ``ring[0]..ring[1]`` from it (the frame's sky where none is usable;
+    ``ring = None``: the frame's sky).
+    With the frame's global sky instead, the seeing halo and the wings of the
+    bright stars in a cluster centre (there ~7 % of the sky, plus the wing
+    plateau of every bright star) made faint stars look bright: on the NGC 3201
+    frames every star within ~5" of the centre passed the PSF-star SNR cut, the
+    central ePSF was built from m = 24-27 stars (box / true flux up to 14) and
+    its peak came out 40 % low, leaving the m < 21 stars there ~1 mas off.
+    """
     ny, nx = frame.shape
-    data = np.where(frame.bad, frame.sky, frame.image) - frame.sky
-    off = np.arange(-half, half + 1)
-    cx = np.clip(np.rint(np.nan_to_num(x)).astype(int)[:, None] + off, 0, nx - 1)
-    cy = np.clip(np.rint(np.nan_to_num(y)).astype(int)[:, None] + off, 0, ny - 1)
-    return data[cy[:, :, None], cx[:, None, :]].sum(axis=(1, 2))
+    x = np.rint(np.nan_to_num(np.asarray(x, float))).astype(int)
+    y = np.rint(np.nan_to_num(np.asarray(y, float))).astype(int)
+    out = np.zeros(len(x))
+    reach = half if ring is None else max(half, ring[1])
+    off = np.arange(-reach, reach + 1)
+    cheb = np.maximum(np.abs(off)[:, None], np.abs(off)[None, :])
+    in_box = cheb <= half
+    in_ring = None if ring is None else (cheb >= ring[0]) & (cheb <= ring[1])
+    for start in range(0, len(x), chunk):
+        sl = slice(start, start + chunk)
+        cx, cy = x[sl, None] + off, y[sl, None] + off
+        inside = ((cy >= 0) & (cy < ny))[:, :, None] & ((cx >= 0) & (cx < nx))[:, None, :]
+        rows, cols = np.clip(cy, 0, ny - 1)[:, :, None], np.clip(cx, 0, nx - 1)[:, None, :]
+        cut = frame.image[rows, cols]
+        good = inside & ~frame.bad[rows, cols] & np.isfinite(cut)
+        local = np.full(len(cut), frame.sky)
+        if in_ring is not None:
+            with warnings.catch_warnings():  # a ring without usable pixels: the frame's sky
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(np.where(good & in_ring, cut, np.nan).reshape(len(cut), -1), 1)
+            local = np.where(np.isfinite(med), med, frame.sky)
+        out[sl] = np.sum(np.where(good & in_box, cut - local[:, None, None], 0.0), axis=(1, 2))
+    return out
 
 
 def epsf_options(settings: MeasureSettings) -> EPSFOptions:
@@ -269,6 +310,7 @@ def epsf_options(settings: MeasureSettings) -> EPSFOptions:
         isolation=settings.psf_star_isolation,
         min_snr=settings.psf_star_min_snr,
         fit_radius=settings.stamp_radius,
+        max_gradient=settings.psf_star_max_gradient,
     )
 
 
@@ -282,6 +324,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         min_snr=settings.min_snr,
         chunk=settings.chunk,
         progress=settings.progress,
+        sky_gradient=settings.sky_gradient,
     )
 
 
@@ -358,8 +401,11 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
     data = frame.image - frame.sky
     noise = frame.sky + frame.read_noise_var
     flux = box_flux(frame, x0, y0)
+    # as neighbours in the isolation test: not below the flux over the global sky
+    # (a faint star's local background is raised by the bright candidate next to it)
+    upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
-    psf, used = build_field_epsf(options=opts, **build)
+    psf, used = build_field_epsf(options=opts, neighbour_flux=upper, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
         fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
@@ -442,6 +488,7 @@ def error_terms(
             frame.read_noise_var,
             settings.stamp_radius,
             settings.chunk,
+            sky_gradient=settings.sky_gradient and settings.engine == "fast",
         )
     grid = 1 if settings.psf_variation == "constant" else settings.psf_grid
     ny, nx = frame.shape

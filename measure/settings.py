@@ -44,6 +44,10 @@ class MeasureSettings:
         Isolation radius of PSF stars.
     psf_star_min_snr : float
         Minimum flux SNR of PSF stars.
+    psf_star_max_gradient : float
+        Largest background gradient across a PSF star's cut-out (centre to edge,
+        relative to its flux; :func:`mavispm.measure.epsf.background_gradient`):
+        stars in the wings of much brighter stars are not PSF stars. 0: no test.
     neighbour_passes : int
         Times the ePSF is rebuilt after subtracting fitted neighbours (0 = none).
     error_model : {"epsf", "fisher"}
@@ -53,6 +57,9 @@ class MeasureSettings:
         errors alone. The Fisher errors are always in ``x_err_fisher`` etc.
     stamp_radius : int
         Fit stamp half-width [pixel].
+    sky_gradient : bool
+        Fast engine: fit each star's local sky as a plane instead of a constant
+        (the wings of a much brighter star tilt the background of its stamp).
     iterations : int
         Maximum fitter sweeps.
     tolerance : float [pix]
@@ -99,9 +106,11 @@ class MeasureSettings:
     psf_stars_per_node: int = 150
     psf_star_isolation: float = unit_field(12.0, "pix")
     psf_star_min_snr: float = 100.0
+    psf_star_max_gradient: float = 0.01
     neighbour_passes: int = 1
     error_model: Literal["epsf", "fisher"] = "epsf"
     stamp_radius: int = 5
+    sky_gradient: bool = True
     iterations: int = 10
     tolerance: float = unit_field(1e-4, "pix")
     max_shift: float = unit_field(2.0, "pix")
@@ -153,6 +162,12 @@ class MeasureSettings:
         ):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=key)
-        for key in ("perturbation", "detection_fwhm", "crowding_ratio", "min_snr"):
+        for key in (
+            "perturbation",
+            "detection_fwhm",
+            "crowding_ratio",
+            "min_snr",
+            "psf_star_max_gradient",
+        ):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=key)
