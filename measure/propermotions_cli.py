@@ -80,6 +80,7 @@ def run_stage(measured, settings, output, truth=None) -> Path:
         "frame_error_mas": frame_err,
         "inputs": [str(p) for p in measured],
         "notes": "; ".join(result.notes),
+        **accuracy_attrs(result.stars),
     }
     return write_product(
         output,
@@ -88,6 +89,36 @@ def run_stage(measured, settings, output, truth=None) -> Path:
         attrs=attrs,
         config={"propermotions": to_mapping(cfg)},
     )
+
+
+def accuracy_attrs(stars) -> dict:
+    """Scalar accuracy summaries of a propermotions table (for sweep tables and plots).
+
+    ``pm_err_median`` [mas/yr]: median per-axis reported PM error; with the truth
+    columns also ``pm_rms_true`` [mas/yr], the robust (MAD) per-axis RMS of
+    ``pm - pm_true`` after removing the median offset (measured PMs are relative to
+    the cluster's mean motion), and ``pm_frac_50uas``, the fraction of stars with
+    ``|pm - pm_true| <= 50 microarcsec/yr`` (the paper's statistic). Stars with
+    non-finite values are left out; an empty selection gives NaN.
+    """
+    mas_yr = u.mas / u.yr
+    ex, ey = (stars[c].to_value(mas_yr) for c in ("pm_x_err", "pm_y_err"))
+    err = np.sqrt(0.5 * (ex**2 + ey**2))
+    err = err[np.isfinite(err)]
+    out = {"pm_err_median": (float(np.median(err)) if err.size else np.nan) * mas_yr}
+    if "pm_x_true" not in stars.colnames:
+        return out
+    d = np.stack(
+        [stars[c].to_value(mas_yr) - stars[f"{c}_true"].to_value(mas_yr) for c in ("pm_x", "pm_y")]
+    )
+    d = d[:, np.all(np.isfinite(d), axis=0)]
+    if d.shape[1] == 0:
+        return {**out, "pm_rms_true": np.nan * mas_yr, "pm_frac_50uas": np.nan}
+    d -= np.median(d, axis=1, keepdims=True)
+    mad = np.median(np.abs(d - np.median(d, axis=1, keepdims=True)), axis=1)
+    out["pm_rms_true"] = float(1.4826 * np.sqrt(np.mean(mad**2))) * mas_yr
+    out["pm_frac_50uas"] = float(np.mean(np.hypot(d[0], d[1]) <= 0.05))
+    return out
 
 
 def summary_line(path) -> str:

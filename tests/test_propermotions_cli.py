@@ -170,3 +170,32 @@ def _no_truth_report(tmp_path, paths):
     pm["flag"] = np.zeros(len(stars), np.int64)
     path = write_product(tmp_path / "nt.h5", "propermotions", tables={"stars": pm})
     propermotions_cli.write_report([path], tmp_path / "r")
+
+
+def test_accuracy_attrs_against_injected_residuals():
+    from mavispm.measure.propermotions_cli import accuracy_attrs
+
+    rng = np.random.default_rng(11)
+    n, sigma = 40000, 0.03  # mas/yr per axis
+    mas_yr = u.mas / u.yr
+    true = rng.normal(0, 0.2, (2, n))
+    meas = true + 0.7 + rng.normal(0, sigma, (2, n))  # a common offset (mean motion) + noise
+    table = QTable(
+        {
+            "pm_x": meas[0] * mas_yr,
+            "pm_y": meas[1] * mas_yr,
+            "pm_x_err": np.full(n, 0.02) * mas_yr,
+            "pm_y_err": np.full(n, 0.04) * mas_yr,
+            "pm_x_true": true[0] * mas_yr,
+            "pm_y_true": true[1] * mas_yr,
+        }
+    )
+    table["pm_x"][0] = np.nan * mas_yr  # left out, not propagated
+    out = accuracy_attrs(table)
+    assert out["pm_err_median"].to_value(mas_yr) == pytest.approx(
+        np.sqrt(0.5 * (0.02**2 + 0.04**2))
+    )
+    assert out["pm_rms_true"].to_value(mas_yr) == pytest.approx(sigma, rel=0.02)
+    # |d| of a 2-D Gaussian is Rayleigh: P(|d| <= 0.05) = 1 - exp(-0.05^2 / (2 sigma^2))
+    assert out["pm_frac_50uas"] == pytest.approx(1 - np.exp(-(0.05**2) / (2 * sigma**2)), abs=0.01)
+    assert set(accuracy_attrs(table[["pm_x_err", "pm_y_err"]])) == {"pm_err_median"}

@@ -61,6 +61,7 @@ def test_sweep_expands_shares_upstream_and_tabulates(tmp_path, monkeypatch):
         attrs = read_product(result.rundir / by_point[point]["products"]["main"], "dynamics").attrs
         assert float(cells[col]) == pytest.approx(attrs["ln_bayes_factor"], rel=1e-5)
     assert list((result.rundir / "report").glob("sweep_dynamics*ln_bayes_factor.png"))
+    assert not list((result.rundir / "report").glob("sweep_*distance.png"))  # constant: no plot
     assert "## Sweep" in (result.rundir / "report.md").read_text()
 
 

@@ -343,6 +343,7 @@ def run_dynamics(inputs, settings, params, seed, outdir):
     attrs = {
         "ln_bayes_factor": float(np.log(inner / outer) * 10),
         "sigma_inner": inner * u.mas / u.yr,
+        "distance": 4.6 * u.kpc,  # the same at every sweep point
     }
     path = write_product(
         outdir / "dynamics.h5",

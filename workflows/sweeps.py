@@ -246,9 +246,10 @@ def _plot_sweep(rows, axes, columns, outdir: Path) -> list[Path]:
     # plot the results of the most downstream stage only (the sweep's science output)
     rank = {s: i for i, s in enumerate(STAGE_NAMES)}
     last = max((rank.get(c.split("[")[0].split(".")[0], -1) for c in metrics), default=-1)
-    metrics = [c for c in metrics if rank.get(c.split("[")[0].split(".")[0], -1) == last][
-        :MAX_PLOTS
-    ]
+    metrics = [c for c in metrics if rank.get(c.split("[")[0].split(".")[0], -1) == last]
+    # a result that is the same at every sweep point (a distance, a reference epoch)
+    # says nothing about the sweep: no plot
+    metrics = [c for c in metrics if len({repr(row.get(c)) for row in rows}) > 1][:MAX_PLOTS]
     written = []
     for metric in metrics:
         fig, ax = plt.subplots(figsize=(5, 3.5))
