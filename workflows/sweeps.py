@@ -189,6 +189,8 @@ def write_sweep_table(summary: Mapping, outdir: Path) -> list[Path]:
     if not axes or not rows:
         return []
     outdir.mkdir(parents=True, exist_ok=True)
+    for stale in outdir.glob("sweep_*.png"):  # plots of an earlier report of this run
+        stale.unlink()
     columns: list[str] = []
     for row in rows:
         for col in row:
