@@ -33,8 +33,26 @@ from mavispm.dynamics.jeans import cubic_weights
 _FOUR_PI = 4.0 * np.pi
 
 
+class _ClosedFormEnclosedMass:
+    """Shared methods of the profiles whose enclosed mass needs no per-call quadrature
+    (Plummer analytic, King tabulated once per concentration)."""
+
+    @property
+    def family(self):
+        """Profiles sharing :meth:`at_points` tables (just this one)."""
+        return self
+
+    def at_points(self, points, mass_points=None):
+        """Evaluator of ``(nu, m)`` at fixed points."""
+        return AtPoints(points, mass_points)
+
+    def radius_enclosing(self, q: float) -> float:
+        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
+        return _radius_enclosing(self, q)
+
+
 @dataclass(frozen=True)
-class Plummer:
+class Plummer(_ClosedFormEnclosedMass):
     """Plummer (1911) sphere with unit mass and unit scale radius."""
 
     name = "plummer"
@@ -60,19 +78,6 @@ class Plummer:
         """Mass fraction inside projected radius ``X``."""
         X = np.asarray(X, dtype=float)
         return X * X / (1.0 + X * X)
-
-    @property
-    def family(self):
-        """Profiles sharing :meth:`at_points` tables (just this one)."""
-        return self
-
-    def at_points(self, points, mass_points=None):
-        """Evaluator of ``(nu, m)`` at fixed points."""
-        return AtPoints(points, mass_points)
-
-    def radius_enclosing(self, q: float) -> float:
-        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
-        return _radius_enclosing(self, q)
 
 
 @dataclass(frozen=True)
@@ -119,7 +124,7 @@ class Dehnen:
 
 
 @dataclass(frozen=True)
-class King:
+class King(_ClosedFormEnclosedMass):
     """King (1962) profile with core radius 1 and concentration ``c``.
 
     Parameters
@@ -180,19 +185,6 @@ class King:
     def projected_enclosed(self, X):
         """Mass fraction inside projected radius ``X``."""
         return self._projected_raw(X) / self._projected_raw(self.tidal_radius)
-
-    @property
-    def family(self):
-        """Profiles sharing :meth:`at_points` tables (just this one)."""
-        return self
-
-    def at_points(self, points, mass_points=None):
-        """Evaluator of ``(nu, m)`` at fixed points."""
-        return AtPoints(points, mass_points)
-
-    def radius_enclosing(self, q: float) -> float:
-        """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
-        return _radius_enclosing(self, q)
 
 
 def _radius_enclosing(profile, q: float) -> float:
