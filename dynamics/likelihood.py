@@ -240,7 +240,7 @@ class DiscreteLikelihood:
         if not self._log_a_range[0] <= log_a <= self._log_a_range[1]:
             return -np.inf  # outside the radial grid (Gaussian prior tails)
         lnX, s2, ln_sig, ln_proj = self.model_on_grid(theta)
-        ln_a = np.log(10.0) * theta[self.names.index("log_scale_radius")]
+        ln_a = np.log(10.0) * log_a
         chi, ln_sigma_stars = star_sums(
             self.lnR - ln_a, lnX[0], self.step, np.log(s2), ln_sig, self._v2, self._e2
         )

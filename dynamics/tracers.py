@@ -48,7 +48,9 @@ class _ClosedFormEnclosedMass:
 
     def radius_enclosing(self, q: float) -> float:
         """3-D radius inside which the mass fraction is ``q`` (0 < q < 1)."""
-        return _radius_enclosing(self, q)
+        if not 0.0 < q < 1.0:
+            raise ValueError(f"mass fraction must be in (0, 1), got {q}")
+        return self._inverse_enclosed(q)
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,10 @@ class Plummer(_ClosedFormEnclosedMass):
         """Mass fraction inside projected radius ``X``."""
         X = np.asarray(X, dtype=float)
         return X * X / (1.0 + X * X)
+
+    def _inverse_enclosed(self, q: float) -> float:
+        q23 = q ** (2.0 / 3.0)
+        return float(q ** (1.0 / 3.0) / np.sqrt(1.0 - q23))
 
 
 @dataclass(frozen=True)
@@ -186,19 +192,12 @@ class King(_ClosedFormEnclosedMass):
         """Mass fraction inside projected radius ``X``."""
         return self._projected_raw(X) / self._projected_raw(self.tidal_radius)
 
-
-def _radius_enclosing(profile, q: float) -> float:
-    """Inverse of ``profile.enclosed`` (Plummer analytic, King from its table)."""
-    if not 0.0 < q < 1.0:
-        raise ValueError(f"mass fraction must be in (0, 1), got {q}")
-    if isinstance(profile, Plummer):
-        q23 = q ** (2.0 / 3.0)
-        return float(q ** (1.0 / 3.0) / np.sqrt(1.0 - q23))
-    lx, lm, _ = _king_table(profile.concentration)
-    lq = np.log(q)
-    if lq < lm[0]:  # flat core: m ~ x^3
-        return float(np.exp(lx[0] + (lq - lm[0]) / 3.0))
-    return float(np.exp(np.interp(lq, lm, lx)))
+    def _inverse_enclosed(self, q: float) -> float:
+        lx, lm, _ = _king_table(self.concentration)
+        lq = np.log(q)
+        if lq < lm[0]:  # flat core: m ~ x^3
+            return float(np.exp(lx[0] + (lq - lm[0]) / 3.0))
+        return float(np.exp(np.interp(lq, lm, lx)))
 
 
 @functools.lru_cache(maxsize=16)

@@ -194,22 +194,28 @@ class ErrorModel:
         ``max(chi2 / chi2_typ(F), 1)``: the star's fit against its peers'.
     chi2_inflation : ndarray
         ``max(chi2, 1)``, applied to the Fisher variances.
+    kind : {"epsf", "chi2", "fisher"}
+        What the terms hold: the ePSF model error and the chi^2 terms, the
+        chi^2 terms only, or nothing beyond the Fisher errors.
     """
 
     position: np.ndarray
     flux: np.ndarray
     chi2_ratio: np.ndarray
     chi2_inflation: np.ndarray
+    kind: str = "epsf"
 
     @classmethod
     def fisher_only(cls, n: int, chi2_ratio=None, chi2_inflation=None) -> ErrorModel:
         """No model terms (the Fisher errors), optionally with chi^2 terms."""
         ones = np.ones(n)
+        plain = chi2_ratio is None and chi2_inflation is None
         return cls(
             np.zeros(n),
             np.zeros(n),
             ones if chi2_ratio is None else chi2_ratio,
             ones if chi2_inflation is None else chi2_inflation,
+            "fisher" if plain else "chi2",
         )
 
     def total(self, fisher_err: np.ndarray, model_err: np.ndarray) -> np.ndarray:

@@ -617,7 +617,7 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
         "time_fit": (t_fit - t_psf) * u.s,
         "time_errors": (t_err - t_fit) * u.s,
         "fit_iterations": int(fit.iterations),
-        "error_model": settings.error_model if frame_psf.halves is not None else "chi2",
+        "error_model": errors.kind,
         "epsf_position_error": float(np.nanmedian(errors.position) * scale * 1000.0) * u.mas,
         "blind": bool(settings.blind),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),

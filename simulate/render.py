@@ -541,12 +541,8 @@ class StarRenderer:
         y_field = np.asarray(y_field, dtype=np.float64)
         cov = np.asarray(cov, dtype=np.float64)
         half = sizes // 2
-        overlaps = (
-            (stamp_centre(x_pix) + half > 0)
-            & (stamp_centre(x_pix) - half < nx)
-            & (stamp_centre(y_pix) + half > 0)
-            & (stamp_centre(y_pix) - half < ny)
-        )
+        cx, cy = stamp_centre(x_pix), stamp_centre(y_pix)
+        overlaps = (cx + half > 0) & (cx - half < nx) & (cy + half > 0) & (cy - half < ny)
         todo = overlaps & (sizes > 0) & (flux > 0)
         bar = None
         if progress:

@@ -195,18 +195,18 @@ def recovery_trial(seed, bh_mass, nlive=100, dlogz=0.5):
     _, (sp1, l1), (sp0, l0) = mock_likelihoods(seed, bh_mass)
     e1 = run_dynesty(l1, sp1, seed, nlive=nlive, dlogz=dlogz)
     e0 = run_dynesty(l0, sp0, seed, nlive=nlive, dlogz=dlogz)
-    ln_b, err = bayes_factor(e1, e0)
-    bh = e1.samples[:, sp1.index("bh_mass")]
-    q = np.percentile(bh, [16, 50, 84, 95])
+    return _trial_row(seed, bh_mass, bayes_factor(e1, e0), e1.samples[:, sp1.index("bh_mass")])
+
+
+def _trial_row(seed, bh_mass, ln_b_and_err, bh_samples) -> dict:
+    """One recovery-trial row: ln B with its error and the M_bh posterior quantiles."""
+    q = np.percentile(bh_samples, [16, 50, 84, 95])
     return {
         "seed": seed,
         "bh_true": bh_mass,
-        "ln_b": ln_b,
-        "ln_b_err": err,
-        "q16": q[0],
-        "q50": q[1],
-        "q84": q[2],
-        "q95": q[3],
+        "ln_b": ln_b_and_err[0],
+        "ln_b_err": ln_b_and_err[1],
+        **{f"q{p}": v for p, v in zip((16, 50, 84, 95), q)},
     }
 
 
@@ -409,18 +409,9 @@ def generator_recovery_trial(
     )
     e1 = run_dynesty(l1, sp1, seed, nlive=nlive, dlogz=dlogz)
     e0 = run_dynesty(l0, sp0, seed, nlive=nlive, dlogz=dlogz)
-    ln_b, err = bayes_factor(e1, e0)
-    q = np.percentile(chain.samples[:, sp1.index("bh_mass")], [16, 50, 84, 95])
     return {
-        "seed": seed,
-        "bh_true": bh_mass,
+        **_trial_row(seed, bh_mass, bayes_factor(e1, e0), chain.samples[:, sp1.index("bh_mass")]),
         "n_stars": int(stars.R.size),
-        "ln_b": ln_b,
-        "ln_b_err": err,
-        "q16": q[0],
-        "q50": q[1],
-        "q84": q[2],
-        "q95": q[3],
         "tau": float(np.max(chain.tau)),
         "steps": chain.steps,
         "converged": bool(chain.converged),
