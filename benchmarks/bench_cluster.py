@@ -30,16 +30,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from cluster_helpers import JeansReference, sigma2_interpolator  # noqa: E402
 
 from mavispm.core.catalogue import write_catalogue  # noqa: E402
-from mavispm.simulate.cluster import (  # noqa: E402
+from mavispm.simulate.cluster.eddington import eddington_df  # noqa: E402
+from mavispm.simulate.cluster.field_sampler import SamplerResolution, build_field_sampler  # noqa: E402
+from mavispm.simulate.cluster.generator import (  # noqa: E402
     build_cluster_model,
     model_from_params,
     resolve_model_params,
     simulate_catalogue,
 )
-from mavispm.simulate.cluster_settings import ClusterSettings  # noqa: E402
-from mavispm.simulate.eddington import eddington_df  # noqa: E402
-from mavispm.simulate.field_sampler import SamplerResolution, build_field_sampler  # noqa: E402
-from mavispm.simulate.projection import arcsec_to_pc  # noqa: E402
+from mavispm.simulate.cluster.projection import arcsec_to_pc  # noqa: E402
+from mavispm.simulate.cluster.settings import ClusterSettings  # noqa: E402
 
 
 def _timed(fn, *args, repeat=1, **kw):

@@ -47,10 +47,10 @@ from measure_helpers import (  # noqa: E402
     write_frames,
 )
 
-from mavispm.measure.batched_fit import FitOptions, fit_stars  # noqa: E402
-from mavispm.measure.crlb import crlb  # noqa: E402
-from mavispm.measure.epsf import EPSFOptions, build_field_epsf  # noqa: E402
-from mavispm.measure.photutils_engine import PhotutilsOptions, fit_stars_photutils  # noqa: E402
+from mavispm.measure.stars.batched_fit import FitOptions, fit_stars  # noqa: E402
+from mavispm.measure.stars.crlb import crlb  # noqa: E402
+from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf  # noqa: E402
+from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils  # noqa: E402
 
 PSF = SynthPSF(1.2, gradient=0.2)
 DET = Detector(saturation=1e9)
@@ -230,8 +230,8 @@ def stage_section(args) -> int:
     """Section 5: the whole stage, timings and normalised residuals per magnitude bin."""
     import tempfile
 
-    from mavispm.measure.measure_frame import measure_frame, read_frame
-    from mavispm.measure.photometry_cli import validate_settings
+    from mavispm.measure.stars.cli import validate_settings
+    from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 
     print("\n## 5. whole stage: times and normalised residuals (Fisher errors -> reported)")
     runs = []

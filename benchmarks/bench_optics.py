@@ -23,18 +23,18 @@ import time
 
 import numpy as np
 
-from mavispm.simulate.ao_psd import AOSettings
-from mavispm.simulate.atmosphere import AtmosphereSettings
-from mavispm.simulate.distortion import Distortion, DistortionSettings
-from mavispm.simulate.psf_grid import (
+from mavispm.simulate.optics.ao_psd import AOSettings
+from mavispm.simulate.optics.atmosphere import AtmosphereSettings
+from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
+from mavispm.simulate.optics.psf_grid import (
     PSFSettings,
     compute_fourier_grid,
     compute_grid,
     residual_psd_model,
 )
-from mavispm.simulate.psf_metrics import fwhm
-from mavispm.simulate.pupil import PupilSettings
-from mavispm.simulate.tiptilt import TipTiltField, TipTiltSettings, field_average_sigma
+from mavispm.simulate.optics.psf_metrics import fwhm
+from mavispm.simulate.optics.pupil import PupilSettings
+from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings, field_average_sigma
 
 ATM, PUPIL, AO = AtmosphereSettings(), PupilSettings(), AOSettings()
 POS = np.array([[0.0, 0.0], [-15.0, -15.0]])

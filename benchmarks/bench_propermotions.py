@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from propermotions_helpers import distortion_transform, make_cluster, observe  # noqa: E402
 
-from mavispm.measure.pm_pipeline import derive_proper_motions  # noqa: E402
-from mavispm.measure.pm_settings import validate_settings  # noqa: E402
+from mavispm.measure.propermotions.pipeline import derive_proper_motions  # noqa: E402
+from mavispm.measure.propermotions.settings import validate_settings  # noqa: E402
 
 
 def _best_time(func, repeat=3):

@@ -18,7 +18,7 @@ Run ``python benchmarks/bench_render.py [--quick]`` from the repository root (wi
 The optics are the analytic test doubles of ``tests/render_helpers.py`` (11 x 11
 obscured-Airy grid over 30", 255 px at 1.5 mas, elongating with field radius,
 tip-tilt + 4.6 mas blur, polynomial distortion, 20 % halo out to 20"), or the real
-``mavispm.simulate.optics`` defaults with ``--real-optics``.
+``mavispm.simulate.optics.model`` defaults with ``--real-optics``.
 """
 
 from __future__ import annotations
@@ -47,9 +47,9 @@ from render_helpers import (  # noqa: E402
     airy_profile,
 )
 
-from mavispm.simulate.frame import make_renderer, render_frame  # noqa: E402
-from mavispm.simulate.render import RenderParams, StarRenderer  # noqa: E402
-from mavispm.simulate.scene import scene_from_mapping  # noqa: E402
+from mavispm.simulate.render.frame import make_renderer, render_frame  # noqa: E402
+from mavispm.simulate.render.scene import scene_from_mapping  # noqa: E402
+from mavispm.simulate.render.stamps import RenderParams, StarRenderer  # noqa: E402
 
 
 def fake_optics():
@@ -64,7 +64,7 @@ def fake_optics():
 
 
 def real_optics():
-    from mavispm.simulate import optics
+    from mavispm.simulate.optics import model as optics
 
     return optics.build_optics(optics.validate_settings({}))
 
@@ -168,7 +168,7 @@ def knob_table(optics, quick: bool):
 
 def halo_table(optics, quick: bool):
     """Seeing-field error against the halo down-sampling (reference: detector pixels)."""
-    from mavispm.simulate.seeing_halo import halo_field
+    from mavispm.simulate.render.halo_convolution import halo_field
 
     if optics.halo is None:
         return
@@ -284,7 +284,7 @@ def mavisim_comparison(optics, quick: bool):
     x_pix = x * 1000 / scale + (npix - 1) / 2
     y_pix = y * 1000 / scale + (npix - 1) / 2
     cov = u.Quantity(optics.kernel_covariance(x, y), u.mas**2).value
-    from mavispm.simulate.photometry import star_electrons
+    from mavispm.simulate.render.zero_point import star_electrons
 
     flux = star_electrons(t["mag"], scene.photometry, 30 * u.s).value
     sub = slice(0, n_ref)
@@ -325,7 +325,7 @@ def mavisim_comparison(optics, quick: bool):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller runs (development)")
-    ap.add_argument("--real-optics", action="store_true", help="use mavispm.simulate.optics")
+    ap.add_argument("--real-optics", action="store_true", help="use mavispm.simulate.optics.model")
     ap.add_argument(
         "--only", choices=["knobs", "halo", "scaling", "mavisim"], help="run one section"
     )

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.integrate import IntegrationWarning, quad
 from scipy.interpolate import CubicSpline
 
-from mavispm.simulate.profiles import G_PC
+from mavispm.simulate.cluster.profiles import G_PC
 
 
 def _quad(fn, a, b, **kw):

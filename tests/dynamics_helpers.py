@@ -275,7 +275,7 @@ GENERATOR_FIELD = {"radius": 17.0, "n_circle": 2000, "err_lo": 0.020, "err_hi": 
 
 @functools.lru_cache(maxsize=4)
 def _generator_setup(bh_mass):
-    from mavispm.simulate.cluster import (
+    from mavispm.simulate.cluster.generator import (
         ClusterSettings,
         build_cluster_model,
         n_stars_for_circle,
@@ -308,7 +308,7 @@ def generator_stars(seed, bh_mass):
     import astropy.units as u
 
     from mavispm.dynamics.likelihood import StarSample
-    from mavispm.simulate.cluster import simulate_catalogue
+    from mavispm.simulate.cluster.generator import simulate_catalogue
 
     settings, model = _generator_setup(float(bh_mass))
     epochs, attrs = simulate_catalogue(settings, seed, model)

@@ -184,8 +184,8 @@ def grid_positions(shape, spacing, margin, rng, jitter=0.5):
 
 def true_epsf(psf: SynthPSF, shape, grid=1, size=25, oversampling=4):
     """The exact ePSF of ``psf``: constant (grid=1, at the centre) or gridded."""
-    from mavispm.measure.epsf import node_positions
-    from mavispm.measure.variable_psf import constant_epsf, gridded_epsf, sample_epsf
+    from mavispm.measure.stars.epsf import node_positions
+    from mavispm.measure.stars.variable_psf import constant_epsf, gridded_epsf, sample_epsf
 
     if grid == 1:
         ny, nx = shape

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mavispm.simulate.optics import validate_settings
+from mavispm.simulate.optics.model import validate_settings
 
 
 def small_table(**psf) -> dict:

@@ -17,7 +17,7 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.products import write_product
-from mavispm.measure.pm_inputs import EpochCatalogue
+from mavispm.measure.propermotions.inputs import EpochCatalogue
 
 
 @dataclass

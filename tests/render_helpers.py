@@ -1,7 +1,7 @@
 """Test doubles for the optics contract and an independent brute-force renderer.
 
 The doubles implement the protocol the renderer consumes from
-``mavispm.simulate.optics`` (``psf_grid``, ``halo``, ``tiptilt``, ``blur_sigma``,
+``mavispm.simulate.optics.model`` (``psf_grid``, ``halo``, ``tiptilt``, ``blur_sigma``,
 ``kernel_covariance``, ``distortion``) with analytic PSFs, so tests can compare
 against closed forms and a direct real-space evaluation.
 """

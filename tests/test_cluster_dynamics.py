@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from cluster_helpers import JeansReference, binned_dispersion_chi2, sigma2_interpolator
 
-from mavispm.simulate.cluster import build_cluster_model, sample_stars
-from mavispm.simulate.cluster_settings import ClusterSettings
-from mavispm.simulate.field_sampler import arc_measure
-from mavispm.simulate.projection import arcsec_to_pc
+from mavispm.simulate.cluster.field_sampler import arc_measure
+from mavispm.simulate.cluster.generator import build_cluster_model, sample_stars
+from mavispm.simulate.cluster.projection import arcsec_to_pc
+from mavispm.simulate.cluster.settings import ClusterSettings
 
 N_STARS = 100_000
 N_BINS = 20

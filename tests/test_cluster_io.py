@@ -9,9 +9,9 @@ from hypothesis import strategies as st
 
 from mavispm.core.catalogue import read_catalogue
 from mavispm.core.errors import ConfigError, InputError
-from mavispm.simulate.cluster import sample_stars
-from mavispm.simulate.cluster_cli import run_stage, validate_settings
-from mavispm.simulate.cluster_settings import ClusterSettings
+from mavispm.simulate.cluster.cli import run_stage, validate_settings
+from mavispm.simulate.cluster.generator import sample_stars
+from mavispm.simulate.cluster.settings import ClusterSettings
 from mavispm.workflows.cli import main
 
 

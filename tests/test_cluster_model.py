@@ -5,9 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mavispm.simulate.eddington import NoIsotropicDFError, eddington_df
-from mavispm.simulate.field_sampler import build_field_sampler
-from mavispm.simulate.profiles import (
+from mavispm.simulate.cluster.eddington import NoIsotropicDFError, eddington_df
+from mavispm.simulate.cluster.field_sampler import build_field_sampler
+from mavispm.simulate.cluster.profiles import (
     G_PC,
     TracerProfile,
     build_mass_model,

@@ -4,15 +4,19 @@ import astropy.units as u
 import numpy as np
 import pytest
 
-from mavispm.simulate import population as pop
-from mavispm.simulate.cluster import build_cluster_model, n_stars_for_circle, simulate_catalogue
-from mavispm.simulate.cluster_settings import ClusterSettings
-from mavispm.simulate.projection import (
+from mavispm.simulate.cluster import population as pop
+from mavispm.simulate.cluster.generator import (
+    build_cluster_model,
+    n_stars_for_circle,
+    simulate_catalogue,
+)
+from mavispm.simulate.cluster.projection import (
     pm_to_velocity,
     propagate,
     sky_to_field,
     velocity_to_pm,
 )
+from mavispm.simulate.cluster.settings import ClusterSettings
 
 
 def test_broken_power_law_sample_matches_analytic_fractions():

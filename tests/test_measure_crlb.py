@@ -15,8 +15,8 @@ from measure_helpers import (
     true_epsf,
 )
 
-from mavispm.measure.batched_fit import FLAG_NOT_CONVERGED, FitOptions, fit_stars
-from mavispm.measure.crlb import crlb
+from mavispm.measure.stars.batched_fit import FLAG_NOT_CONVERGED, FitOptions, fit_stars
+from mavispm.measure.stars.crlb import crlb
 
 SHAPE = (300, 300)
 BINS = [(16, 17), (17, 18), (18, 19), (19, 20), (20, 22), (22, 24)]

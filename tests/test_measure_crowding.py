@@ -15,8 +15,8 @@ from measure_helpers import (
     true_epsf,
 )
 
-from mavispm.measure.batched_fit import crowding_flags, fit_stars
-from mavispm.measure.crlb import crlb
+from mavispm.measure.stars.batched_fit import crowding_flags, fit_stars
+from mavispm.measure.stars.crlb import crlb
 
 SHAPE = (300, 300)
 PSF = SynthPSF(1.0)

@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from measure_helpers import Detector, SynthPSF, mag_to_flux, noisy_frame, render_image, true_epsf
 
-from mavispm.measure.batched_fit import (
+from mavispm.measure.stars.batched_fit import (
     FLAG_EDGE,
     FLAG_FAILED,
     FLAG_SATURATED,

@@ -13,8 +13,8 @@ from measure_helpers import (
     true_epsf,
 )
 
-from mavispm.measure.batched_fit import FLAG_FAILED, fit_stars
-from mavispm.measure.photutils_engine import PhotutilsOptions, fit_stars_photutils
+from mavispm.measure.stars.batched_fit import FLAG_FAILED, fit_stars
+from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
 
 
 def test_engines_agree():

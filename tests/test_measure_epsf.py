@@ -15,9 +15,9 @@ from measure_helpers import (
 )
 
 from mavispm.core.errors import InputError
-from mavispm.measure.batched_fit import fit_stars
-from mavispm.measure.epsf import EPSFOptions, build_epsf, build_field_epsf, select_psf_stars
-from mavispm.measure.variable_psf import (
+from mavispm.measure.stars.batched_fit import fit_stars
+from mavispm.measure.stars.epsf import EPSFOptions, build_epsf, build_field_epsf, select_psf_stars
+from mavispm.measure.stars.variable_psf import (
     StampGeometry,
     gridded_epsf,
     polynomial_epsf,

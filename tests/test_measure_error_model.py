@@ -17,17 +17,17 @@ from measure_helpers import (
 
 from mavispm.core.errors import ConfigError
 from mavispm.core.products import read_product
-from mavispm.measure.batched_fit import FitOptions, fit_stars
-from mavispm.measure.epsf import AUTO_OVERSAMPLING_X4, resolve_oversampling
-from mavispm.measure.error_model import (
+from mavispm.measure.stars.batched_fit import FitOptions, fit_stars
+from mavispm.measure.stars.cli import run_stage, validate_settings
+from mavispm.measure.stars.epsf import AUTO_OVERSAMPLING_X4, resolve_oversampling
+from mavispm.measure.stars.error_model import (
     ErrorModel,
     epsf_difference_shifts,
     estimate_error_model,
     flux_trend,
 )
-from mavispm.measure.measure_frame import MEASURED_SPEC
-from mavispm.measure.photometry_cli import run_stage, validate_settings
-from mavispm.measure.variable_psf import constant_epsf, sample_epsf
+from mavispm.measure.stars.measure_frame import MEASURED_SPEC
+from mavispm.measure.stars.variable_psf import constant_epsf, sample_epsf
 
 SHAPE = (300, 300)
 #: few PSF stars per node and a x4 ePSF: the bright stars are limited by the ePSF

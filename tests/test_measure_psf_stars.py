@@ -16,11 +16,11 @@ from optics_helpers import small_table
 from render_helpers import epoch_table
 
 from mavispm.core.catalogue import write_catalogue
-from mavispm.measure.epsf import background_gradient
-from mavispm.measure.measure_frame import Frame, box_flux, measure_frame, read_frame
-from mavispm.measure.photometry_cli import validate_settings
+from mavispm.measure.stars.cli import validate_settings
+from mavispm.measure.stars.epsf import background_gradient
+from mavispm.measure.stars.measure_frame import Frame, box_flux, measure_frame, read_frame
 
-render_cli = pytest.importorskip("mavispm.simulate.render_cli")
+render_cli = pytest.importorskip("mavispm.simulate.render.cli")
 
 
 def _frame(image, sky):
@@ -104,8 +104,8 @@ def test_sky_plane_removes_a_tilted_background():
     leaves the tilt in the position, the sky plane does not."""
     from measure_helpers import SynthPSF, render_image
 
-    from mavispm.measure.batched_fit import FitOptions, fit_stars
-    from mavispm.measure.variable_psf import constant_epsf, sample_epsf
+    from mavispm.measure.stars.batched_fit import FitOptions, fit_stars
+    from mavispm.measure.stars.variable_psf import constant_epsf, sample_epsf
 
     psf = SynthPSF(1.2)
     epsf = constant_epsf(sample_epsf(psf.prf_at(0, 0, (1, 1)), 21, 4), 4)

@@ -12,10 +12,10 @@ from render_helpers import epoch_table
 
 from mavispm.core.catalogue import write_catalogue
 from mavispm.core.products import read_product
-from mavispm.measure.measure_frame import MEASURED_SPEC
-from mavispm.measure.photometry_cli import run_stage
+from mavispm.measure.stars.cli import run_stage
+from mavispm.measure.stars.measure_frame import MEASURED_SPEC
 
-render_cli = pytest.importorskip("mavispm.simulate.render_cli")
+render_cli = pytest.importorskip("mavispm.simulate.render.cli")
 
 
 @pytest.fixture(scope="module")

@@ -10,9 +10,9 @@ from measure_helpers import SynthPSF, write_frames
 
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import read_product
-from mavispm.measure.measure_frame import MEASURED_SPEC
-from mavispm.measure.photometry_cli import run_stage, validate_settings, write_report
-from mavispm.measure.truth_match import match_to_truth
+from mavispm.measure.stars.cli import run_stage, validate_settings, write_report
+from mavispm.measure.stars.measure_frame import MEASURED_SPEC
+from mavispm.measure.stars.truth_match import match_to_truth
 from mavispm.workflows.cli import main
 
 SHAPE = (200, 200)

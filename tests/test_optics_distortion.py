@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mavispm.core.errors import InputError
-from mavispm.simulate.distortion import Distortion, DistortionSettings, read_distortion_map
+from mavispm.simulate.optics.distortion import Distortion, DistortionSettings, read_distortion_map
 
 
 def _disk(n=121, r=15.0):

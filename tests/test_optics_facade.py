@@ -9,8 +9,8 @@ from optics_helpers import small_settings, small_table
 
 from mavispm.core.errors import ConfigError
 from mavispm.core.products import open_product
-from mavispm.simulate import optics_cli
-from mavispm.simulate.optics import build_optics, validate_settings
+from mavispm.simulate.optics import cli as optics_cli
+from mavispm.simulate.optics.model import build_optics, validate_settings
 from mavispm.workflows.cli import main
 
 
@@ -34,7 +34,7 @@ def test_unknown_and_bad_keys_named():
 
 def test_settings_round_trip():
     from mavispm.core.config import to_mapping
-    from mavispm.simulate.optics import OpticsSettings
+    from mavispm.simulate.optics.model import OpticsSettings
 
     table = {
         "tiptilt": {"asterism": "custom", "ngs": [[10, 0, 15], [20, 90, 17]]},

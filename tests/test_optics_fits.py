@@ -7,7 +7,7 @@ import pytest
 from astropy.io import fits
 
 from mavispm.core.errors import InputError
-from mavispm.simulate.psf_fits import read_mavisim_psfs
+from mavispm.simulate.optics.psf_fits import read_mavisim_psfs
 
 
 def gaussian(n, sigma_pix, dx=0.0):

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from scipy.special import j1
 
-from mavispm.simulate.atmosphere import (
+from mavispm.simulate.optics.atmosphere import (
     MAS_PER_RAD,
     AtmosphereSettings,
     fried_parameter,
     von_karman_psd,
 )
-from mavispm.simulate.halo import HaloSettings, build_halo, ramp
-from mavispm.simulate.pupil import PupilSettings
-from mavispm.simulate.tiptilt import tilt_covariance_function
+from mavispm.simulate.optics.pupil import PupilSettings
+from mavispm.simulate.optics.seeing_halo import HaloSettings, build_halo, ramp
+from mavispm.simulate.optics.tiptilt import tilt_covariance_function
 
 
 def test_zero_residual_halo_profile_is_obscured_airy():

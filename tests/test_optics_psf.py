@@ -11,20 +11,20 @@ from hypothesis import strategies as st
 from optics_helpers import small_settings
 from scipy.special import j1
 
-from mavispm.simulate import psf_grid
-from mavispm.simulate.ao_psd import AOSettings, fitting_psd
-from mavispm.simulate.atmosphere import MAS_PER_RAD, AtmosphereSettings, fried_parameter
-from mavispm.simulate.fourier_psf import (
+from mavispm.simulate.optics import psf_grid
+from mavispm.simulate.optics.ao_psd import AOSettings, fitting_psd
+from mavispm.simulate.optics.atmosphere import MAS_PER_RAD, AtmosphereSettings, fried_parameter
+from mavispm.simulate.optics.fourier_psf import (
     fourier_sampling,
     psf_from_otf,
     strehl_ratio,
     structure_function,
     telescope_otf,
 )
-from mavispm.simulate.optics import build_optics
-from mavispm.simulate.psf_grid import PSFGrid, PSFSettings, compute_fourier_grid
-from mavispm.simulate.psf_metrics import fwhm
-from mavispm.simulate.pupil import PupilSettings
+from mavispm.simulate.optics.model import build_optics
+from mavispm.simulate.optics.psf_grid import PSFGrid, PSFSettings, compute_fourier_grid
+from mavispm.simulate.optics.psf_metrics import fwhm
+from mavispm.simulate.optics.pupil import PupilSettings
 
 
 def airy_obscured(theta_rad, lam, diameter, eps):

@@ -7,10 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mavispm.simulate.atmosphere import AtmosphereSettings
-from mavispm.simulate.blur import BlurSettings, blur_sigma
-from mavispm.simulate.pupil import PupilSettings
-from mavispm.simulate.tiptilt import (
+from mavispm.simulate.optics.atmosphere import AtmosphereSettings
+from mavispm.simulate.optics.blur import BlurSettings, blur_sigma
+from mavispm.simulate.optics.pupil import PupilSettings
+from mavispm.simulate.optics.tiptilt import (
     TipTiltField,
     TipTiltSettings,
     field_average_sigma,

@@ -7,10 +7,10 @@ import pytest
 from propermotions_helpers import distortion_transform, make_cluster, observe
 from scipy import stats
 
-from mavispm.measure.alignment import TransformModel, fit_transform
-from mavispm.measure.pm_pipeline import PMFlag, derive_proper_motions
-from mavispm.measure.pm_settings import validate_settings
-from mavispm.measure.propermotions import fit_linear_motion
+from mavispm.measure.propermotions.alignment import TransformModel, fit_transform
+from mavispm.measure.propermotions.motion_fit import fit_linear_motion
+from mavispm.measure.propermotions.pipeline import PMFlag, derive_proper_motions
+from mavispm.measure.propermotions.settings import validate_settings
 
 
 def _normalised(stars):

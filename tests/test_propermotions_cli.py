@@ -13,8 +13,8 @@ from propermotions_helpers import distortion_transform, make_cluster, observe, w
 from mavispm.core.catalogue import write_catalogue
 from mavispm.core.errors import InputError
 from mavispm.core.products import read_product
-from mavispm.measure import propermotions_cli
-from mavispm.measure.pm_report import load_accuracy, paper_statistic
+from mavispm.measure.propermotions import cli as propermotions_cli
+from mavispm.measure.propermotions.report import load_accuracy, paper_statistic
 from mavispm.workflows.cli import main
 
 FORMATS_COLUMNS = [
@@ -173,7 +173,7 @@ def _no_truth_report(tmp_path, paths):
 
 
 def test_accuracy_attrs_against_injected_residuals():
-    from mavispm.measure.propermotions_cli import accuracy_attrs
+    from mavispm.measure.propermotions.cli import accuracy_attrs
 
     rng = np.random.default_rng(11)
     n, sigma = 40000, 0.03  # mas/yr per axis

@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 from propermotions_helpers import make_cluster, observe, write_measured
 
 from mavispm.core.errors import ConfigError, InputError, MavispmError
-from mavispm.measure.pm_inputs import EpochCatalogue, read_measured
-from mavispm.measure.pm_pipeline import PMFlag, derive_proper_motions
-from mavispm.measure.pm_settings import validate_settings
-from mavispm.measure.propermotions import radial_tangential
+from mavispm.measure.propermotions.inputs import EpochCatalogue, read_measured
+from mavispm.measure.propermotions.motion_fit import radial_tangential
+from mavispm.measure.propermotions.pipeline import PMFlag, derive_proper_motions
+from mavispm.measure.propermotions.settings import validate_settings
 
 HYP = settings(max_examples=25, deadline=None)
 
@@ -161,7 +161,7 @@ def two_epochs(tmp_path):
 
 
 def test_units_are_converted_and_wrong_units_refused(two_epochs):
-    from mavispm.measure.propermotions_cli import run_stage
+    from mavispm.measure.propermotions.cli import run_stage
 
     obs, tmp = two_epochs
     a = write_measured(tmp / "a.h5", obs[0])
@@ -187,7 +187,7 @@ def test_units_are_converted_and_wrong_units_refused(two_epochs):
 
 
 def test_non_overlapping_fields_refused(two_epochs):
-    from mavispm.measure.propermotions_cli import run_stage
+    from mavispm.measure.propermotions.cli import run_stage
 
     obs, tmp = two_epochs
     far = obs[1]
@@ -199,7 +199,7 @@ def test_non_overlapping_fields_refused(two_epochs):
 
 
 def test_duplicate_epochs_refused(two_epochs):
-    from mavispm.measure.propermotions_cli import run_stage
+    from mavispm.measure.propermotions.cli import run_stage
 
     obs, tmp = two_epochs
     a = write_measured(tmp / "a.h5", obs[0])

@@ -4,8 +4,8 @@ import astropy.units as u
 import numpy as np
 import pytest
 
-from mavispm.simulate.detector import DetectorSettings, expose_stack
-from mavispm.simulate.photometry import (
+from mavispm.simulate.render.detector import DetectorSettings, expose_stack
+from mavispm.simulate.render.zero_point import (
     PhotometrySettings,
     collecting_area,
     sky_electrons_per_pixel,
@@ -90,7 +90,7 @@ def test_bad_detector_settings_rejected():
 
 @pytest.mark.parametrize("var_rn,limit", [(1080.0, 0.01), (9.0, 0.05), (1080.0, 0.02)])
 def test_exact_draw_window_is_where_skewness_reaches_the_limit(var_rn, limit):
-    from mavispm.simulate.detector import _skewed_window
+    from mavispm.simulate.render.detector import _skewed_window
 
     lo, hi = _skewed_window(var_rn, limit)
     lam = np.geomspace(1e-3, 1e7, 20001)
@@ -101,7 +101,7 @@ def test_exact_draw_window_is_where_skewness_reaches_the_limit(var_rn, limit):
 
 @pytest.mark.parametrize("lam,var_rn", [(400.0, 0.0), (2160.0, 1080.0), (25.0, 4.0)])
 def test_skew_corrected_draws_match_three_moments_of_poisson_plus_read_noise(lam, var_rn):
-    from mavispm.simulate.detector import normal_stack_draws, skewed_normal
+    from mavispm.simulate.render.detector import normal_stack_draws, skewed_normal
 
     n = 400_000
     z = np.random.default_rng(3).standard_normal(n, dtype=np.float32)

@@ -12,10 +12,10 @@ from render_helpers import PolynomialDistortion, RingHalo, epoch_table, make_opt
 from mavispm.core.catalogue import write_catalogue
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import read_product
-from mavispm.simulate import render_cli
-from mavispm.simulate.frame import make_renderer, render_frame
-from mavispm.simulate.photometry import star_electrons
-from mavispm.simulate.scene import scene_from_mapping
+from mavispm.simulate.render import cli as render_cli
+from mavispm.simulate.render.frame import make_renderer, render_frame
+from mavispm.simulate.render.scene import scene_from_mapping
+from mavispm.simulate.render.zero_point import star_electrons
 
 NOISELESS = {"noise": False, "nexp": 2, "detector": {"nx": 64, "ny": 64}}
 

@@ -1,4 +1,4 @@
-"""Frames rendered with the real optics model (mavispm.simulate.optics), small and fast."""
+"""Frames rendered with the real optics model (mavispm.simulate.optics.model), small and fast."""
 
 import astropy.units as u
 import numpy as np
@@ -9,8 +9,8 @@ from render_helpers import epoch_table
 from mavispm.core.catalogue import write_catalogue
 from mavispm.core.errors import ConfigError
 from mavispm.core.products import read_product
-from mavispm.simulate import render_cli
-from mavispm.simulate.frame import render_frame
+from mavispm.simulate.render import cli as render_cli
+from mavispm.simulate.render.frame import render_frame
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def test_documented_scene_example_is_valid():
 
 def test_run_stage_caches_stamp_plans_and_halo_next_to_the_psf_grid(tmp_path, cache):
     """A second epoch (as from another process) loads the plans and halo, same frame."""
-    from mavispm.simulate.frame import make_renderer
+    from mavispm.simulate.render.frame import make_renderer
 
     cat = tmp_path / "cat.h5"
     write_catalogue(cat, {"e0": epoch_table([0.0, 0.3], [0.1, -0.2], [19.0, 21.0])})

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from render_helpers import brute_force_stamp, make_optics
 
-from mavispm.simulate.render import RenderParams, StarRenderer
+from mavispm.simulate.render.stamps import RenderParams, StarRenderer
 
 SCALE = 7.5  # mas
 
@@ -136,7 +136,7 @@ def test_render_clips_stamps_at_edges_and_skips_outside(renderer):
 
 @pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
 def test_compiled_kernel_matches_numpy_reference(real, cplx):
-    from mavispm.simulate.stamp_kernels import mix_kernel_fold, mix_kernel_fold_numpy
+    from mavispm.simulate.render.stamp_kernels import mix_kernel_fold, mix_kernel_fold_numpy
 
     rng = np.random.default_rng(1)
     s, n, nodes, n_out = 7, 300, 9, 50
@@ -159,7 +159,7 @@ def test_compiled_kernel_matches_numpy_reference(real, cplx):
 
 
 def test_compiled_stamp_adder_clips_like_slicing():
-    from mavispm.simulate.stamp_kernels import add_stamps
+    from mavispm.simulate.render.stamp_kernels import add_stamps
 
     rng = np.random.default_rng(3)
     image = rng.random((20, 30))
@@ -178,7 +178,7 @@ def test_compiled_stamp_adder_clips_like_slicing():
 @pytest.mark.parametrize("n,m,ratio", [(427, 128, 4), (427, 16, 4), (21, 10, 4), (35, 24, 1)])
 def test_fft_node_transforms_equal_direct_dft(n, m, ratio):
     """Wrapping + FFT gives the exact DFT, also when the PSF is wider than the stamp."""
-    from mavispm.simulate.render import (
+    from mavispm.simulate.render.stamps import (
         _folding_frequencies,
         _node_transforms_dft,
         _node_transforms_fft,

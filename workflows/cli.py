@@ -21,11 +21,11 @@ from mavispm.core.errors import MavispmError
 #: (group, module) pairs. ``group`` is None for top-level commands, otherwise
 #: the name of the command group the module's parser is added under.
 COMMAND_MODULES: list[tuple[str | None, str]] = [
-    ("simulate", "mavispm.simulate.cluster_cli"),
-    ("simulate", "mavispm.simulate.optics_cli"),
-    ("simulate", "mavispm.simulate.render_cli"),
-    ("measure", "mavispm.measure.photometry_cli"),
-    ("measure", "mavispm.measure.propermotions_cli"),
+    ("simulate", "mavispm.simulate.cluster.cli"),
+    ("simulate", "mavispm.simulate.optics.cli"),
+    ("simulate", "mavispm.simulate.render.cli"),
+    ("measure", "mavispm.measure.stars.cli"),
+    ("measure", "mavispm.measure.propermotions.cli"),
     (None, "mavispm.dynamics.cli"),
     (None, "mavispm.workflows.runner_cli"),
 ]

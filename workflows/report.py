@@ -222,8 +222,8 @@ def _sigma_tt(frames_node, rundir: Path) -> float:
     if frames_node is None:
         return math.nan
     try:
-        from mavispm.simulate.optics import validate_settings
-        from mavispm.simulate.tiptilt import TipTiltField, field_average_sigma
+        from mavispm.simulate.optics.model import validate_settings
+        from mavispm.simulate.optics.tiptilt import TipTiltField, field_average_sigma
     except ImportError:
         return math.nan
     from mavispm.core.products import read_product

@@ -20,11 +20,11 @@ _THIS = "mavispm.workflows.stages"
 #: Stage -> (module of run_stage/validate_settings/write_report, code globs). The
 #: globs cover the stage's whole sub-package: conservative, since stages share helpers.
 STAGE_MODULES = {
-    "cluster": ("mavispm.simulate.cluster_cli", ("simulate/**/*.py",)),
-    "optics": ("mavispm.simulate.optics_cli", ("simulate/**/*.py",)),
-    "frames": ("mavispm.simulate.render_cli", ("simulate/**/*.py",)),
-    "stars": ("mavispm.measure.photometry_cli", ("measure/**/*.py",)),
-    "propermotions": ("mavispm.measure.propermotions_cli", ("measure/**/*.py",)),
+    "cluster": ("mavispm.simulate.cluster.cli", ("simulate/**/*.py",)),
+    "optics": ("mavispm.simulate.optics.cli", ("simulate/**/*.py",)),
+    "frames": ("mavispm.simulate.render.cli", ("simulate/**/*.py",)),
+    "stars": ("mavispm.measure.stars.cli", ("measure/**/*.py",)),
+    "propermotions": ("mavispm.measure.propermotions.cli", ("measure/**/*.py",)),
     "dynamics": ("mavispm.dynamics.cli", ("dynamics/**/*.py",)),
 }
 

@@ -1,0 +1,1 @@
+"""Proper motions: epoch matching, alignment, motion fits and accuracy reports."""

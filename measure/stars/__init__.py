@@ -1,0 +1,1 @@
+"""Star measurement: ePSF building, detection, PSF fitting, errors and accuracy reports."""

@@ -1,0 +1,607 @@
+"""Batched forced-position PSF fitting of all stars at once (the default engine).
+
+Every star is fitted on a small square stamp for ``(x, y, flux, local sky)``
+with the field-variable ePSF. Neighbours are subtracted from the *current*
+model: a model image (sum of all stars' stamps) is kept up to date, and each
+star sees its data minus everyone else's model. Stars whose stamps overlap are
+put in different *colours* (greedy graph colouring) and the colours are
+updated in alternating passes (block Gauss-Seidel), so close pairs do not
+oscillate. Within a colour all stars take one damped Gauss-Newton
+(Levenberg-Marquardt) step together, vectorised with numpy in chunks.
+
+Weights come from the model, ``1 / (sky + model + RN^2)``, never from the noisy
+data (data weights bias faint fluxes low). Saturated, NaN and off-frame pixels
+get zero weight; the star is kept and flagged.
+
+Flag bits (see ``docs/formats.md``): 1 not converged, 2 saturated pixels masked,
+4 near edge, 8 crowded, 32 failed / zero flux.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
+
+from mavispm.core.errors import InputError
+from mavispm.measure.stars.crlb import fisher_matrix, jacobian, safe_inverse, sky_plane_basis
+from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
+
+FLAG_NOT_CONVERGED = 1
+FLAG_SATURATED = 2
+FLAG_EDGE = 4
+FLAG_CROWDED = 8
+FLAG_NO_MATCH = 16
+FLAG_FAILED = 32
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Knobs of the batched fitter.
+
+    Attributes
+    ----------
+    radius : int
+        Stamp half-width [pixel].
+    iterations : int
+        Maximum number of Gauss-Seidel sweeps.
+    tolerance : float
+        Convergence: every position step below this [pixel] ...
+    relative_tolerance : float
+        ... or below this fraction of the star's position uncertainty.
+    max_shift : float
+        Largest allowed distance from the starting position [pixel].
+    max_step : float
+        Largest position step per iteration [pixel] (trust region).
+    damping : float
+        Levenberg-Marquardt damping (fraction of the diagonal).
+    min_snr : float
+        Positions of stars with flux SNR below this are held fixed.
+    chunk : int
+        Stars evaluated at once (memory ~ chunk * S^2 * 16 * 8 bytes * mixing terms).
+    progress : bool
+        Show a tqdm progress bar over iterations.
+    blend_radius : float
+        Neighbours closer than this [pixel] are marginalised in the reported
+        errors (:func:`marginalise_neighbours`).
+    sky_gradient : bool
+        Fit each star's local sky as a plane (level and two slopes) instead of a
+        constant: the wings and halo of a much brighter star tens of pixels away
+        tilt the background of the stamp, which a constant sky leaves in the
+        positions. The slopes are marginalised in the reported errors.
+    """
+
+    radius: int = 5
+    iterations: int = 10
+    tolerance: float = 1e-4
+    relative_tolerance: float = 0.05
+    max_shift: float = 2.0
+    max_step: float = 0.5
+    damping: float = 1e-3
+    min_snr: float = 3.0
+    chunk: int = 512
+    progress: bool = False
+    blend_radius: float = 5.0
+    sky_gradient: bool = False
+
+
+@dataclass
+class FitResult:
+    """Per-star results of a fit (arrays of length N).
+
+    Attributes
+    ----------
+    x, y : ndarray
+        Fitted positions [pixel].
+    flux, sky : ndarray
+        Flux [electron] and local sky [electron/pixel].
+    x_err, y_err, flux_err, sky_err : ndarray
+        1-sigma uncertainties from the Fisher matrix at the solution (NaN for
+        failed stars).
+    chi2 : ndarray
+        Reduced chi^2 of the stamp with model weights.
+    flag : ndarray of int
+        Bitmask (see module docstring).
+    iterations : int
+        Sweeps performed.
+    model_image : ndarray or None
+        Sum of the fitted star models (no sky) [electron], frame shaped (None
+        when not asked for).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    flux: np.ndarray
+    sky: np.ndarray
+    x_err: np.ndarray
+    y_err: np.ndarray
+    flux_err: np.ndarray
+    sky_err: np.ndarray
+    chi2: np.ndarray
+    flag: np.ndarray
+    iterations: int
+    model_image: np.ndarray | None
+
+
+def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
+    """Greedy colouring so that stars closer than ``distance`` differ in colour.
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (N,)
+        Positions [pixel].
+    distance : float
+        Conflict distance [pixel] (stamps overlap below ``2 radius + 1``).
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        Colour of each star, 0 .. n_colours - 1.
+    """
+    n = len(x)
+    colour = np.zeros(n, dtype=np.intp)
+    if n < 2:
+        return colour
+    pairs = cKDTree(np.column_stack([x, y])).query_pairs(distance, output_type="ndarray")
+    if len(pairs) == 0:
+        return colour
+    neighbours: list[list[int]] = [[] for _ in range(n)]
+    for i, j in pairs:
+        neighbours[i].append(j)
+        neighbours[j].append(i)
+    colour[:] = -1
+    order = np.argsort([-len(nb) for nb in neighbours], kind="stable")
+    for i in order:
+        used = {colour[j] for j in neighbours[i]}
+        c = 0
+        while c in used:
+            c += 1
+        colour[i] = c
+    return colour
+
+
+def crowding_flags(
+    x: np.ndarray, y: np.ndarray, flux: np.ndarray, radius: float, ratio: float
+) -> np.ndarray:
+    """True for stars with a neighbour within ``radius`` at least ``ratio`` times as bright."""
+    n = len(x)
+    crowded = np.zeros(n, dtype=bool)
+    good = np.isfinite(x) & np.isfinite(y)
+    if n < 2 or good.sum() < 2:
+        return crowded
+    idx = np.flatnonzero(good)
+    pairs = cKDTree(np.column_stack([x[idx], y[idx]])).query_pairs(radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return crowded
+    i, j = idx[pairs[:, 0]], idx[pairs[:, 1]]
+    f = np.where(np.isfinite(flux), flux, 0.0)
+    crowded[i[f[j] >= ratio * f[i]]] = True
+    crowded[j[f[i] >= ratio * f[j]]] = True
+    return crowded
+
+
+def render_model(
+    shape: tuple[int, int],
+    psf: VariableEPSF,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    radius: int,
+    chunk: int = 512,
+) -> np.ndarray:
+    """Image [electron] of stars on stamps of half-width ``radius`` (no sky).
+
+    Parameters
+    ----------
+    shape : (ny, nx)
+    psf : VariableEPSF
+    x, y : ndarray
+        Positions [pixel] (non-finite entries are skipped).
+    flux : ndarray
+        Fluxes [electron].
+    radius : int
+        Stamp half-width [pixel].
+    chunk : int
+        Stars evaluated at once.
+    """
+    ny, nx = shape
+    out = np.zeros(ny * nx)
+    x, y, flux = (np.atleast_1d(np.asarray(a, float)) for a in (x, y, flux))
+    keep = np.flatnonzero(np.isfinite(x) & np.isfinite(y) & np.isfinite(flux))
+    for idx in _chunks(keep, chunk):
+        geom = StampGeometry(
+            np.rint(x[idx]).astype(np.intp), np.rint(y[idx]).astype(np.intp), radius
+        )
+        rows, cols = geom.rows(), geom.columns()
+        inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
+        flat = np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
+        val = flux[idx, None, None] * psf.evaluate(x[idx], y[idx], geom, derivatives=False)
+        out += np.bincount(flat[inside], weights=val[inside], minlength=ny * nx)
+    return out.reshape(shape)
+
+
+def _chunks(index: np.ndarray, size: int):
+    for start in range(0, len(index), size):
+        yield index[start : start + size]
+
+
+def fit_stars(
+    image: np.ndarray,
+    psf: VariableEPSF,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    *,
+    read_noise_var: float,
+    sky0: float,
+    flux0: np.ndarray | None = None,
+    bad: np.ndarray | None = None,
+    saturated: np.ndarray | None = None,
+    options: FitOptions | None = None,
+    return_model: bool = True,
+    uncertainties: bool = True,
+) -> FitResult:
+    """Fit positions, fluxes and local skies of all stars simultaneously.
+
+    Parameters
+    ----------
+    image : ndarray, shape (ny, nx)
+        The frame [electron].
+    psf : VariableEPSF
+        Field-variable ePSF.
+    x0, y0 : ndarray, shape (N,)
+        Starting (forced) positions [pixel].
+    read_noise_var : float
+        Read-noise variance per pixel of the frame [electron^2].
+    sky0 : float
+        Starting sky level [electron/pixel].
+    flux0 : ndarray, optional
+        Starting fluxes [electron]; by default a linear fit at fixed positions.
+    bad : ndarray of bool, optional
+        Pixels to ignore (NaN pixels are always ignored).
+    saturated : ndarray of bool, optional
+        Saturated pixels (ignored, and the star flagged 2).
+    options : FitOptions, optional
+    return_model : bool
+        Also return the frame-sized model image (the ePSF builder's many small
+        fits do not need it).
+    uncertainties : bool
+        Compute the Fisher errors and chi^2 at the solution (otherwise NaN, and
+        only non-positive fluxes count as failed).
+
+    Returns
+    -------
+    FitResult
+    """
+    opt = options or FitOptions()
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise InputError(f"image must be 2-D, got shape {image.shape}")
+    ny, nx = image.shape
+    x0 = np.atleast_1d(np.asarray(x0, dtype=float)).copy()
+    y0 = np.atleast_1d(np.asarray(y0, dtype=float)).copy()
+    if x0.shape != y0.shape or x0.ndim != 1:
+        raise InputError(f"x0 and y0 must be 1-D of equal length, got {x0.shape} and {y0.shape}")
+    n = len(x0)
+    for name, m in (("bad", bad), ("saturated", saturated)):
+        if m is not None and np.shape(m) != image.shape:
+            raise InputError(
+                f"{name} mask shape {np.shape(m)} differs from image shape {image.shape}"
+            )
+    flag = np.zeros(n, dtype=np.int64)
+    usable = np.isfinite(x0) & np.isfinite(y0)
+    usable &= (x0 > -0.5) & (x0 < nx - 0.5) & (y0 > -0.5) & (y0 < ny - 0.5)
+    flag[~usable] |= FLAG_FAILED | FLAG_EDGE
+    x = np.where(usable, x0, 0.0)
+    y = np.where(usable, y0, 0.0)
+    start_x, start_y = x.copy(), y.copy()
+
+    r = int(opt.radius)
+    geom = StampGeometry(np.rint(x).astype(np.intp), np.rint(y).astype(np.intp), r)
+    s = geom.size
+    rows, cols = geom.rows(), geom.columns()
+    inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
+    # work on the pixels the stamps touch only (compact index), never on full-frame
+    # arrays: the ePSF builder fits a few hundred stars of a 4k x 4k frame many times
+    frame_index = (
+        np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
+    ).reshape(n, -1)
+    pixels, flat = np.unique(frame_index, return_inverse=True)
+    flat = flat.reshape(n, -1)
+    values = np.asarray(image.reshape(-1)[pixels], dtype=float)
+    sat_pix = (
+        np.zeros(len(pixels), bool)
+        if saturated is None
+        else np.asarray(saturated, bool).reshape(-1)[pixels]
+    )
+    bad_pix = ~np.isfinite(values) | sat_pix
+    if bad is not None:
+        bad_pix |= np.asarray(bad, bool).reshape(-1)[pixels]
+    inside = inside.reshape(n, -1) & usable[:, None]
+    data = np.where(inside, np.nan_to_num(values[flat]), 0.0)
+    valid = inside & ~bad_pix[flat]
+    flag[np.any(~inside, axis=1) & usable] |= FLAG_EDGE
+    flag[np.any(inside & sat_pix[flat], axis=1)] |= FLAG_SATURATED
+    npix_valid = valid.sum(axis=1)
+    usable &= npix_valid > 4
+    flag[~usable] |= FLAG_FAILED
+
+    mix = psf.mixing(x, y)
+    sky = np.full(n, float(sky0))
+    # sky plane: slopes [electron / pixel^2] on the stamp offsets from its centre
+    npar = 6 if opt.sky_gradient else 4
+    slope = np.zeros((n, 2))
+    plane_basis = sky_plane_basis(s)
+    flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
+    own = np.zeros((n, s * s))  # each star's current contribution to the model image
+    model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
+    colour = colour_stars(x, y, 2 * r + 1.0)
+    groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
+    pairs = (
+        cKDTree(np.column_stack([x, y])).query_pairs(2 * r + 1.0, output_type="ndarray")
+        if n > 1
+        else np.zeros((0, 2), dtype=np.intp)
+    )
+    active = usable.copy()  # stars (re)fitted in the next sweep
+
+    def deposit(idx, new):
+        ins = inside[idx]
+        model[:] += np.bincount(
+            flat[idx][ins], weights=(new - own[idx])[ins], minlength=len(pixels)
+        )
+        own[idx] = new
+
+    def evaluate(idx):
+        sub = (mix[0][idx], mix[1][idx])
+        return psf.evaluate(x[idx], y[idx], StampGeometry(geom.cx[idx], geom.cy[idx], r), mix=sub)
+
+    def normal_equations(idx, fix_positions):
+        v, dvx, dvy = (a.reshape(len(idx), -1) for a in evaluate(idx))
+        neigh = model[flat[idx]] - own[idx]
+        mod_star = flux[idx, None] * v
+        background = sky[idx, None] + slope[idx] @ plane_basis
+        resid = data[idx] - neigh - mod_star - background
+        var = np.maximum(model[flat[idx]] - own[idx] + mod_star + background, 0.0)
+        w = valid[idx] / (var + read_noise_var)
+        jac = jacobian(
+            flux[idx],
+            v.reshape(-1, s, s),
+            dvx.reshape(-1, s, s),
+            dvy.reshape(-1, s, s),
+            sky_gradient=opt.sky_gradient,
+        )
+        if fix_positions is not None:
+            jac[fix_positions, :2] = 0.0
+        a = fisher_matrix(jac, w)
+        b = np.einsum("nkm,nm->nk", jac, w * resid)
+        return v, dvx, dvy, a, b, w, resid
+
+    # initial fluxes: linear fit at fixed positions (positions frozen)
+    sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
+    steps = np.zeros(n)
+    thresh = np.full(n, opt.tolerance)
+    done = 0
+    bar = tqdm(sweeps, desc="fit sweeps", disable=not opt.progress, leave=False)
+    for fixed in bar:
+        steps[:] = 0.0
+        for group in groups:
+            group = group[active[group]]
+            for idx in _chunks(group, opt.chunk):
+                freeze = np.ones(len(idx), bool) if fixed else None
+                v, dvx, dvy, a, b, w, _ = normal_equations(idx, freeze)
+                diag = np.einsum("nkk->nk", a)
+                a_d = a + opt.damping * diag[:, :, None] * np.eye(npar)
+                if fixed:
+                    a_d[:, :2, :2] = np.eye(2)
+                step = _solve(a_d, b)
+                if not fixed:
+                    cov, ok = safe_inverse(a)
+                    snr = flux[idx] / np.sqrt(np.abs(cov[:, 2, 2]))
+                    sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
+                    thresh[idx] = np.maximum(
+                        opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos)
+                    )
+                    lowsnr = ~ok | ~(snr > opt.min_snr)
+                    step[lowsnr, :2] = 0.0
+                    if np.any(lowsnr):
+                        a_l = a_d[lowsnr]
+                        a_l[:, :2, :] = 0.0
+                        a_l[:, :, :2] = 0.0
+                        a_l[:, 0, 0] = a_l[:, 1, 1] = 1.0
+                        b_l = b[lowsnr].copy()
+                        b_l[:, :2] = 0.0
+                        step[lowsnr] = _solve(a_l, b_l)
+                    length = np.hypot(step[:, 0], step[:, 1])
+                    shrink = np.minimum(1.0, opt.max_step / np.maximum(length, 1e-300))
+                    step[:, :2] *= shrink[:, None]
+                dx, dy = step[:, 0], step[:, 1]
+                x[idx] += dx
+                y[idx] += dy
+                flux[idx] += step[:, 2]
+                sky[idx] += step[:, 3]
+                if opt.sky_gradient:
+                    slope[idx] += step[:, 4:]
+                # keep within max_shift of the start
+                off_x, off_y = x[idx] - start_x[idx], y[idx] - start_y[idx]
+                dist = np.hypot(off_x, off_y)
+                pull = np.minimum(1.0, opt.max_shift / np.maximum(dist, 1e-300))
+                x[idx] = start_x[idx] + off_x * pull
+                y[idx] = start_y[idx] + off_y * pull
+                dx = dx - off_x * (1 - pull)
+                dy = dy - off_y * (1 - pull)
+                steps[idx] = np.hypot(dx, dy)
+                new = flux[idx, None] * (v + dvx * dx[:, None] + dvy * dy[:, None])
+                deposit(idx, new)
+        done += 0 if fixed else 1
+        # converged stars rest until they or an overlapping neighbour move again
+        moved = usable & (steps >= thresh)
+        active = moved.copy()
+        if len(pairs):
+            active[pairs[:, 0]] |= moved[pairs[:, 1]]
+            active[pairs[:, 1]] |= moved[pairs[:, 0]]
+        active &= usable
+        if fixed:
+            active = usable.copy()
+        if not fixed and not np.any(moved):
+            break
+    bar.close()
+
+    # final uncertainties from the (undamped) Fisher matrix at the solution
+    x_err = np.full(n, np.nan)
+    y_err = np.full(n, np.nan)
+    f_err = np.full(n, np.nan)
+    s_err = np.full(n, np.nan)
+    chi2 = np.full(n, np.nan)
+    all_idx = np.flatnonzero(usable)
+    if uncertainties or return_model:  # exact (not linearised) models at the solution
+        for idx in _chunks(all_idx, opt.chunk):
+            v, *_ = normal_equations(idx, None)
+            deposit(idx, flux[idx, None] * v)
+    fisher = np.zeros((n, 4, 4))
+    weight = np.zeros((n, s * s))
+    for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
+        _, _, _, a, _, w, resid = normal_equations(idx, None)
+        fisher[idx], weight[idx] = _marginalise_slopes(a), w
+        dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
+        chi2[idx] = np.sum(w * resid**2, axis=1) / dof
+    if uncertainties:
+        separation = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
+        close = pairs[(separation < opt.blend_radius) & usable[pairs].all(axis=1)]
+        fisher_eff = marginalise_neighbours(
+            psf, fisher, weight, x, y, flux, geom, mix, close, opt.chunk
+        )
+        cov, ok = safe_inverse(fisher_eff[all_idx])
+        plain, ok_plain = safe_inverse(fisher[all_idx])
+        # marginalising can only add variance; a degenerate joint fit (two stars at one
+        # position) or a breakdown of the independent-neighbour sum keeps the star's own
+        var, var_plain = np.einsum("nkk->nk", cov), np.einsum("nkk->nk", plain)
+        keep = ~ok | ~np.all(np.isfinite(var) & (var >= var_plain * (1 - 1e-9)), axis=1)
+        cov[keep] = plain[keep]
+        err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
+        x_err[all_idx], y_err[all_idx], f_err[all_idx], s_err[all_idx] = err.T
+        flag[all_idx[~ok_plain]] |= FLAG_FAILED
+    flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
+    failed = ~usable | ~(flux > 0)
+    if uncertainties:
+        failed |= ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
+    flag[failed] |= FLAG_FAILED
+    x_out = np.where(usable, x, x0)
+    y_out = np.where(usable, y, y0)
+    for arr in (x_err, y_err, f_err, s_err):
+        arr[failed] = np.nan
+    return FitResult(
+        x=x_out,
+        y=y_out,
+        flux=np.where(usable, flux, np.nan),
+        sky=np.where(usable, sky, np.nan),
+        x_err=x_err,
+        y_err=y_err,
+        flux_err=f_err,
+        sky_err=s_err,
+        chi2=chi2,
+        flag=flag,
+        iterations=done,
+        model_image=_frame_image(model, pixels, (ny, nx)) if return_model else None,
+    )
+
+
+def _marginalise_slopes(a: np.ndarray) -> np.ndarray:
+    """The (x, y, flux, sky) block of Fisher matrices with sky slopes (parameters
+    4, 5) marginalised (Schur complement); 4 x 4 matrices are returned as they are."""
+    if a.shape[1] == 4:
+        return a
+    inv, ok = safe_inverse(a[:, 4:, 4:])
+    cross = a[:, :4, 4:]
+    out = a[:, :4, :4] - np.einsum("nkl,nlm,npm->nkp", cross, np.nan_to_num(inv), cross)
+    out[~ok] = a[~ok, :4, :4]
+    return out
+
+
+def _frame_image(values: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Frame-shaped float32 image with ``values`` at the flat ``pixels``, zero elsewhere."""
+    out = np.zeros(shape[0] * shape[1], dtype=np.float32)
+    out[pixels] = values
+    return out.reshape(shape)
+
+
+def marginalise_neighbours(
+    psf: VariableEPSF,
+    fisher: np.ndarray,
+    weight: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    geom: StampGeometry,
+    mix: tuple[np.ndarray, np.ndarray],
+    pairs: np.ndarray,
+    chunk: int = 512,
+) -> np.ndarray:
+    """Fisher matrices of stars with their close neighbours' parameters marginalised.
+
+    A star fitted with its neighbours subtracted has the per-star Fisher matrix
+    ``A_ii``; but a close neighbour's position and flux are not known exactly,
+    and their errors covary with the star's (a faint star 2 px from a bright one
+    moves it). The joint-fit information of star i is the Schur complement
+    ``A_ii - sum_j A_ij A_jj^-1 A_ji`` with ``A_ij = J_i W_i J_j^T`` on star i's
+    stamp (``J_j`` the neighbour's model derivatives there, no sky term: each star
+    has its own local sky) and ``A_jj`` the neighbour's own Fisher matrix. Summing
+    over neighbours treats them as independent (adequate for pairs and sparse
+    groups).
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+    fisher : ndarray, shape (N, 4, 4)
+        Per-star Fisher matrices.
+    weight : ndarray, shape (N, S*S)
+        Pixel weights of each star's stamp [1/electron^2].
+    x, y, flux : ndarray, shape (N,)
+        Fitted positions [pixel] and fluxes [electron].
+    geom : StampGeometry
+        The stars' stamps.
+    mix : tuple
+        ``psf.mixing(x, y)`` at the stamps' stars.
+    pairs : ndarray of int, shape (P, 2)
+        Close pairs (each once).
+    chunk : int
+
+    Returns
+    -------
+    ndarray, shape (N, 4, 4)
+    """
+    out = fisher.copy()
+    if len(pairs) == 0:
+        return out
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    inv_other, ok_other = safe_inverse(fisher[both[:, 1]])
+    for start in range(0, len(both), chunk):
+        i, j = both[start : start + chunk, 0], both[start : start + chunk, 1]
+        stamps = StampGeometry(geom.cx[i], geom.cy[i], geom.radius)
+        own = psf.evaluate(x[i], y[i], stamps, mix=(mix[0][i], mix[1][i]))
+        other = psf.evaluate(x[j], y[j], stamps, mix=(mix[0][j], mix[1][j]))
+        jac_i = jacobian(flux[i], *own)
+        jac_j = jacobian(flux[j], *other)
+        jac_j[:, 3] = 0.0
+        cross = np.einsum("nkm,nlm,nm->nkl", jac_i, jac_j, weight[i])
+        inv = np.nan_to_num(inv_other[start : start + chunk])
+        term = np.einsum("nkl,nlm,npm->nkp", cross, inv, cross)
+        term[~ok_other[start : start + chunk]] = 0.0
+        np.add.at(out, i, -term)
+    return out
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve N small systems; zero step where singular or non-finite."""
+    out = np.zeros_like(b)
+    ok = np.all(np.isfinite(a), axis=(1, 2)) & np.all(np.isfinite(b), axis=1)
+    if np.any(ok):
+        try:
+            out[ok] = np.linalg.solve(a[ok], b[ok][:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            inv, good = safe_inverse(a[ok])
+            sol = np.einsum("nkl,nl->nk", np.nan_to_num(inv), b[ok])
+            sol[~good] = 0.0
+            out[ok] = sol
+    out[~np.isfinite(out)] = 0.0
+    return out

@@ -1,0 +1,141 @@
+"""The ``stars`` stage: ``mavispm measure stars frames.h5 -o measured.h5``.
+
+Stage interface (docs/stages.md): :func:`register`, :func:`validate_settings`,
+:func:`run_stage` and :func:`write_report`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tomllib
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from mavispm.core.config import from_mapping, to_mapping
+from mavispm.core.errors import ConfigError
+from mavispm.core.products import write_product
+from mavispm.measure.stars import accuracy_report
+from mavispm.measure.stars.measure_frame import measure_frame, read_frame
+from mavispm.measure.stars.settings import MeasureSettings
+
+MEASURED_KIND = "measured"
+
+#: Detector attributes of the frame copied to the measured product.
+_COPIED_ATTRS = (
+    "epoch",
+    "pixel_scale",
+    "gain",
+    "read_noise",
+    "saturation",
+    "sky",
+    "nexp",
+    "exptime",
+)
+
+
+def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
+    """Build :class:`MeasureSettings` from a mapping (a TOML table).
+
+    Raises
+    ------
+    ConfigError
+        Unknown keys, wrong types, bad units or impossible values, naming the key.
+    """
+    return from_mapping(MeasureSettings, settings, source=source)
+
+
+def run_stage(
+    frames, settings: Mapping | MeasureSettings | None, output, seed: int | None = None
+) -> Path:
+    """Measure every star of a ``frames`` product and write the ``measured`` product.
+
+    Parameters
+    ----------
+    frames : path
+        Input ``frames`` product.
+    settings : mapping or MeasureSettings
+        Stage settings (see :class:`MeasureSettings`).
+    output : path
+        Output ``measured`` product (written atomically).
+    seed : int, optional
+        Seed of the forced-position perturbation.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
+    frame = read_frame(frames, require_truth=not cfg.blind)
+    stars, attrs, psf = measure_frame(frame, cfg, seed)
+    copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
+    psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
+    return write_product(
+        output,
+        MEASURED_KIND,
+        tables={"stars": stars},
+        arrays={"epsf_basis": psf.basis},
+        attrs={**copied, **attrs, "frames": str(Path(frames)), "epsf": psf_meta},
+        config=to_mapping(cfg),
+        seed=seed,
+    )
+
+
+def write_report(measured_paths: Sequence, outdir) -> list[Path]:
+    """Accuracy report (ECSV, Markdown, PNG) of measured products; see
+    :func:`mavispm.measure.stars.accuracy_report.write_report`."""
+    return accuracy_report.write_report(measured_paths, outdir)
+
+
+def _load_config(path) -> dict:
+    if path is None:
+        return {}
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"cannot read settings ({exc})", source=path) from None
+    return dict(data.get("stars", data))
+
+
+def _handler(args: argparse.Namespace) -> int:
+    settings = _load_config(args.config)
+    if args.engine is not None:
+        settings["engine"] = args.engine
+    if args.blind:
+        settings["blind"] = True
+    if args.psf is not None:
+        settings["psf_variation"] = args.psf
+    if args.progress:
+        settings["progress"] = True
+    cfg = validate_settings(settings, source=args.config)
+    out = run_stage(args.frames, cfg, args.output, args.seed)
+    print(f"wrote {out}")
+    if args.report is not None:
+        for path in write_report([out], args.report):
+            print(f"wrote {path}")
+    return 0
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``stars`` sub-command."""
+    p = subparsers.add_parser(
+        "stars",
+        help="build the ePSF and fit every star of a frame (forced or blind)",
+        description="Measure star positions and fluxes in a frames product by ePSF fitting.",
+    )
+    p.add_argument("frames", help="input frames product (HDF5)")
+    p.add_argument("-o", "--output", required=True, help="output measured product (HDF5)")
+    p.add_argument("--engine", choices=("fast", "photutils"), default=None, help="fitting engine")
+    p.add_argument(
+        "--psf", choices=("constant", "grid", "polynomial"), default=None, help="ePSF variation"
+    )
+    p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
+    p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the position perturbation")
+    p.add_argument(
+        "--report", default=None, metavar="DIR", help="also write the accuracy report here"
+    )
+    p.add_argument("--progress", action="store_true", help="show progress bars")
+    p.set_defaults(func=_handler)
+    return p

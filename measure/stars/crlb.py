@@ -1,0 +1,150 @@
+"""Cramér-Rao lower bound on star positions and fluxes (per star Fisher matrix).
+
+For a star of flux ``F`` [electron] at ``(x0, y0)`` on a local sky ``s``
+[electron/pixel] with read-noise variance ``rn2`` [electron^2] per pixel, the
+pixel counts are (to an excellent approximation) Gaussian with mean
+``m_i = F P_i(x0, y0) + s`` and variance ``v_i = m_i + rn2`` (Poisson + read
+noise; the model, not the data, sets the variance). The Fisher matrix of the
+parameters ``theta = (x0, y0, F, s)`` is
+
+    I_kl = sum_i (d m_i / d theta_k)(d m_i / d theta_l) / v_i
+
+(the small information in the variance itself is neglected, as in every
+weighted-least-squares fitter), and the bound is ``sqrt(diag(I^-1))``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
+
+#: Parameter order of the Fisher matrices and covariances.
+PARAMETERS = ("x", "y", "flux", "sky")
+
+
+def sky_plane_basis(size: int) -> np.ndarray:
+    """Column and row offsets [pixel] of a ``size x size`` stamp from its centre, (2, size^2)."""
+    off = np.arange(size, dtype=float) - (size - 1) / 2
+    return np.stack([np.tile(off, size), np.repeat(off, size)])
+
+
+def jacobian(
+    flux: np.ndarray,
+    value: np.ndarray,
+    dvx: np.ndarray,
+    dvy: np.ndarray,
+    sky_gradient: bool = False,
+) -> np.ndarray:
+    """Model derivatives d m / d (x0, y0, F, s[, s_x, s_y]) on stamps.
+
+    Parameters
+    ----------
+    flux : ndarray, shape (N,)
+        Star fluxes [electron].
+    value, dvx, dvy : ndarray, shape (N, S, S)
+        Unit-flux ePSF on the stamps and its position derivatives [1/pixel].
+    sky_gradient : bool
+        Also the derivatives by the slopes of a sky plane (:func:`sky_plane_basis`).
+
+    Returns
+    -------
+    ndarray, shape (N, 4, S*S), or (N, 6, S*S) with ``sky_gradient``
+    """
+    n = value.shape[0]
+    f = flux[:, None, None]
+    jac = np.stack([f * dvx, f * dvy, value, np.ones_like(value)], axis=1).reshape(n, 4, -1)
+    if not sky_gradient:
+        return jac
+    tilt = np.broadcast_to(sky_plane_basis(value.shape[-1]), (n, 2, jac.shape[-1]))
+    return np.concatenate([jac, tilt], axis=1)
+
+
+def fisher_matrix(jac: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Fisher (normal) matrices ``J W J^T`` of N stars.
+
+    Parameters
+    ----------
+    jac : ndarray, shape (N, P, M)
+        Derivatives of the model on M pixels.
+    weight : ndarray, shape (N, M)
+        Inverse variances [1/electron^2], zero for masked pixels.
+
+    Returns
+    -------
+    ndarray, shape (N, P, P)
+    """
+    return np.einsum("nkm,nlm,nm->nkl", jac, jac, weight)
+
+
+def safe_inverse(matrix: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """Invert N small symmetric matrices, NaN where singular.
+
+    Parameters
+    ----------
+    matrix : ndarray, shape (N, P, P)
+    rcond : float
+        Matrices with a reciprocal condition number (after diagonal scaling)
+        below this are treated as singular.
+
+    Returns
+    -------
+    inverse : ndarray, shape (N, P, P)
+        NaN-filled for singular matrices.
+    ok : ndarray of bool, shape (N,)
+    """
+    diag = np.einsum("nkk->nk", matrix)
+    ok = np.all(np.isfinite(matrix), axis=(1, 2)) & np.all(diag > 0, axis=1)
+    scale = np.where(ok[:, None], 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
+    scaled = matrix * scale[:, :, None] * scale[:, None, :]
+    scaled[~ok] = np.eye(matrix.shape[1])
+    cond = np.linalg.cond(scaled)
+    ok &= np.isfinite(cond) & (cond < 1.0 / rcond)
+    scaled[~ok] = np.eye(matrix.shape[1])
+    inv = np.linalg.inv(scaled) * scale[:, :, None] * scale[:, None, :]
+    inv[~ok] = np.nan
+    return inv, ok
+
+
+def crlb(
+    psf: VariableEPSF,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    sky: np.ndarray | float,
+    read_noise_var: float,
+    radius: int = 5,
+) -> np.ndarray:
+    """Cramér-Rao bound of isolated stars fitted for x, y, flux and local sky.
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+        The true ePSF.
+    x, y : ndarray, shape (N,)
+        True positions [pixel].
+    flux : ndarray, shape (N,)
+        True fluxes [electron].
+    sky : float or ndarray
+        Sky level [electron/pixel].
+    read_noise_var : float
+        Read-noise variance per pixel of the (stacked) frame [electron^2].
+    radius : int
+        Stamp half-width [pixel], as used by the fitter.
+
+    Returns
+    -------
+    ndarray, shape (N, 4)
+        Bounds on (x [pixel], y [pixel], flux [electron], sky [electron]); NaN
+        where the Fisher matrix is singular (zero flux).
+    """
+    x = np.atleast_1d(np.asarray(x, dtype=float))
+    y = np.atleast_1d(np.asarray(y, dtype=float))
+    flux = np.broadcast_to(np.asarray(flux, dtype=float), x.shape)
+    sky = np.broadcast_to(np.asarray(sky, dtype=float), x.shape)
+    geom = StampGeometry(np.rint(x).astype(np.intp), np.rint(y).astype(np.intp), int(radius))
+    value, dvx, dvy = psf.evaluate(x, y, geom)
+    jac = jacobian(flux, value, dvx, dvy)
+    var = np.maximum(flux[:, None] * value.reshape(len(x), -1) + sky[:, None], 0.0) + read_noise_var
+    cov, _ = safe_inverse(fisher_matrix(jac, 1.0 / var))
+    return np.sqrt(np.einsum("nkk->nk", cov))

@@ -1,0 +1,631 @@
+"""Measure one frame: read it, build the ePSF, fit every star, match to the truth.
+
+This is the engine-independent pipeline behind ``mavispm measure stars``:
+
+1. read and check the ``frames`` product (:func:`read_frame`);
+2. starting positions: the truth list (forced photometry, optionally perturbed)
+   or detections (blind mode);
+3. ePSF from automatically chosen PSF stars, rebuilt ``neighbour_passes`` times
+   after subtracting the fitted neighbours;
+4. the final fit with the chosen engine;
+5. truth cross-match, flags and the per-star Cramér-Rao bound.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import astropy.units as u
+import numpy as np
+from astropy.table import QTable
+
+from mavispm.core.errors import InputError
+from mavispm.core.products import TableSpec, read_product, validate_table
+from mavispm.measure.stars.accuracy_report import truth_bin_counts
+from mavispm.measure.stars.batched_fit import (
+    FLAG_CROWDED,
+    FLAG_FAILED,
+    FLAG_NO_MATCH,
+    FitOptions,
+    FitResult,
+    crowding_flags,
+    fit_stars,
+)
+from mavispm.measure.stars.crlb import crlb
+from mavispm.measure.stars.detection import completeness, detect_sources
+from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf
+from mavispm.measure.stars.error_model import (
+    ErrorModel,
+    epsf_difference_shifts,
+    estimate_error_model,
+)
+from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
+from mavispm.measure.stars.settings import MeasureSettings
+from mavispm.measure.stars.truth_match import match_to_truth
+from mavispm.measure.stars.variable_psf import VariableEPSF
+
+#: Truth table of a frames product as this stage needs it.
+TRUTH_SPEC = TableSpec(
+    required={
+        "id": "",
+        "x_pix": "",
+        "y_pix": "",
+        "x": "arcsec",
+        "y": "arcsec",
+        "flux": "electron",
+        "mag": "mag",
+    },
+    optional={"x_cat": "arcsec", "y_cat": "arcsec"},
+)
+
+#: The measured ``stars`` table (docs/formats.md) plus this stage's optional columns.
+MEASURED_SPEC = TableSpec(
+    required={
+        "id": "",
+        "x_pix": "",
+        "y_pix": "",
+        "x": "arcsec",
+        "y": "arcsec",
+        "x_err": "arcsec",
+        "y_err": "arcsec",
+        "flux": "electron",
+        "flux_err": "electron",
+        "sky": "electron",
+        "chi2": "",
+        "flag": "",
+    },
+    optional={
+        "x_true": "arcsec",
+        "y_true": "arcsec",
+        "mag": "mag",
+        "match_dist": "arcsec",
+        "flux_true": "electron",
+        "crlb_x": "arcsec",
+        "crlb_y": "arcsec",
+        "x_err_fisher": "arcsec",
+        "y_err_fisher": "arcsec",
+        "flux_err_fisher": "electron",
+        "err_epsf": "arcsec",
+    },
+    allow_nan=(
+        "x_err",
+        "y_err",
+        "flux",
+        "flux_err",
+        "sky",
+        "chi2",
+        "x_true",
+        "y_true",
+        "mag",
+        "match_dist",
+        "flux_true",
+        "crlb_x",
+        "crlb_y",
+        "x_err_fisher",
+        "y_err_fisher",
+        "flux_err_fisher",
+        "err_epsf",
+    ),
+)
+
+_REQUIRED_ATTRS = {
+    "gain": "electron/adu",
+    "read_noise": "electron",
+    "sky": "electron",
+    "saturation": "adu",
+    "pixel_scale": "mas",
+    "epoch": "yr",
+}
+
+
+@dataclass
+class Frame:
+    """A frame in electrons with its detector description.
+
+    Attributes
+    ----------
+    path : Path
+    image : ndarray
+        Stacked frame [electron].
+    saturated, bad : ndarray of bool
+        Saturated pixels; all unusable pixels (saturated or non-finite).
+    sky : float
+        Sky [electron/pixel], whole stack.
+    read_noise_var : float
+        Read-noise variance of the stack per pixel [electron^2] (nexp RN^2).
+    pixel_scale : float
+        [arcsec/pixel].
+    truth : QTable or None
+    attrs : dict
+        The product's root attributes.
+    """
+
+    path: Path
+    image: np.ndarray
+    saturated: np.ndarray
+    bad: np.ndarray
+    sky: float
+    read_noise_var: float
+    pixel_scale: float
+    truth: QTable | None
+    attrs: dict
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape
+
+    def to_arcsec(self, xp, yp):
+        """Field-frame position [arcsec] of pixel coordinates."""
+        ny, nx = self.shape
+        return (np.asarray(xp) - (nx - 1) / 2) * self.pixel_scale, (
+            np.asarray(yp) - (ny - 1) / 2
+        ) * self.pixel_scale
+
+    def to_pixel(self, x, y):
+        """Pixel coordinates of field-frame positions [arcsec]."""
+        ny, nx = self.shape
+        return np.asarray(x) / self.pixel_scale + (nx - 1) / 2, np.asarray(y) / self.pixel_scale + (
+            ny - 1
+        ) / 2
+
+
+def _attr(attrs, key, unit, path):
+    if key not in attrs:
+        raise InputError(f"root attribute '{key}' [{unit}] missing", path=path)
+    value = attrs[key]
+    try:
+        return (
+            float(u.Quantity(value, unit).value)
+            if not isinstance(value, u.Quantity)
+            else float(value.to_value(unit))
+        )
+    except (TypeError, ValueError, u.UnitsError):
+        raise InputError(
+            f"root attribute '{key}' must be a number in {unit}, got {value!r}", path=path
+        ) from None
+
+
+def _plain_pixels(table: QTable) -> QTable:
+    for col in ("x_pix", "y_pix"):
+        if col in table.colnames and isinstance(table[col], u.Quantity):
+            table[col] = np.asarray(
+                table[col].to_value(u.pix) if table[col].unit == u.pix else table[col].value
+            )
+    return table
+
+
+def read_frame(path, require_truth: bool = True) -> Frame:
+    """Read and check a ``frames`` product.
+
+    Raises
+    ------
+    InputError
+        Missing image or attributes, a non-2-D image, a mask of another shape,
+        or (when ``require_truth``) a missing or malformed truth table.
+    """
+    path = Path(path)
+    prod = read_product(path, "frames")
+    if "image" not in prod.arrays:
+        raise InputError("array 'image' missing", path=path)
+    image = prod.arrays["image"]
+    image = np.asarray(image.to_value(u.adu) if isinstance(image, u.Quantity) else image, float)
+    if image.ndim != 2 or min(image.shape) < 3:
+        raise InputError(f"array 'image' must be a 2-D frame, got shape {image.shape}", path=path)
+    vals = {k: _attr(prod.attrs, k, unit, path) for k, unit in _REQUIRED_ATTRS.items()}
+    nexp = int(prod.attrs.get("nexp", 1))
+    if nexp < 1 or vals["gain"] <= 0:
+        raise InputError("attributes 'nexp' and 'gain' must be positive", path=path)
+    if "saturated" in prod.arrays:
+        saturated = np.asarray(prod.arrays["saturated"], bool)
+        if saturated.shape != image.shape:
+            raise InputError(
+                f"array 'saturated' has shape {saturated.shape}, image has {image.shape}", path=path
+            )
+    else:
+        saturated = image >= 0.999 * vals["saturation"] * nexp
+    truth = prod.tables.get("truth")
+    if truth is None:
+        if require_truth:
+            raise InputError(
+                "table 'truth' missing: forced photometry needs the input star list "
+                "(use blind mode to detect stars instead)",
+                path=path,
+            )
+    else:
+        truth = validate_table(_plain_pixels(truth), TRUTH_SPEC, path=path, table_name="truth")
+    image_e = image * vals["gain"]
+    return Frame(
+        path=path,
+        image=image_e,
+        saturated=saturated,
+        bad=saturated | ~np.isfinite(image_e),
+        sky=vals["sky"],
+        read_noise_var=vals["read_noise"] ** 2 * nexp,
+        pixel_scale=vals["pixel_scale"] / 1000.0,
+        truth=truth,
+        attrs=prod.attrs,
+    )
+
+
+#: Square ring [pixel, Chebyshev distance] whose median is a star's local background.
+LOCAL_SKY_RING = (6, 8)
+
+
+def box_flux(
+    frame: Frame,
+    x: np.ndarray,
+    y: np.ndarray,
+    half: int = 2,
+    ring: tuple[int, int] | None = LOCAL_SKY_RING,
+    chunk: int = 4096,
+) -> np.ndarray:
+    """Rough flux [electron] in a (2 half + 1)^2 box, minus the star's local background.
+
+    The background of each star is the median of the pixels at Chebyshev
+    distance ``ring[0]..ring[1]`` from it (the frame's sky where none is usable;
+    ``ring = None``: the frame's sky).
+    With the frame's global sky instead, the seeing halo and the wings of the
+    bright stars in a cluster centre (there ~7 % of the sky, plus the wing
+    plateau of every bright star) made faint stars look bright: on the NGC 3201
+    frames every star within ~5" of the centre passed the PSF-star SNR cut, the
+    central ePSF was built from m = 24-27 stars (box / true flux up to 14) and
+    its peak came out 40 % low, leaving the m < 21 stars there ~1 mas off.
+    """
+    ny, nx = frame.shape
+    x = np.rint(np.nan_to_num(np.asarray(x, float))).astype(int)
+    y = np.rint(np.nan_to_num(np.asarray(y, float))).astype(int)
+    out = np.zeros(len(x))
+    reach = half if ring is None else max(half, ring[1])
+    off = np.arange(-reach, reach + 1)
+    cheb = np.maximum(np.abs(off)[:, None], np.abs(off)[None, :])
+    in_box = cheb <= half
+    in_ring = None if ring is None else (cheb >= ring[0]) & (cheb <= ring[1])
+    for start in range(0, len(x), chunk):
+        sl = slice(start, start + chunk)
+        cx, cy = x[sl, None] + off, y[sl, None] + off
+        inside = ((cy >= 0) & (cy < ny))[:, :, None] & ((cx >= 0) & (cx < nx))[:, None, :]
+        rows, cols = np.clip(cy, 0, ny - 1)[:, :, None], np.clip(cx, 0, nx - 1)[:, None, :]
+        cut = frame.image[rows, cols]
+        good = inside & ~frame.bad[rows, cols] & np.isfinite(cut)
+        local = np.full(len(cut), frame.sky)
+        if in_ring is not None:
+            with warnings.catch_warnings():  # a ring without usable pixels: the frame's sky
+                warnings.simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(np.where(good & in_ring, cut, np.nan).reshape(len(cut), -1), 1)
+            local = np.where(np.isfinite(med), med, frame.sky)
+        out[sl] = np.sum(np.where(good & in_box, cut - local[:, None, None], 0.0), axis=(1, 2))
+    return out
+
+
+def epsf_options(settings: MeasureSettings) -> EPSFOptions:
+    """ePSF building options from the stage settings."""
+    return EPSFOptions(
+        variation=settings.psf_variation,
+        grid=settings.psf_grid,
+        poly_order=settings.psf_poly_order,
+        size=settings.epsf_size,
+        oversampling=settings.oversampling,
+        maxiters=settings.epsf_iterations,
+        builder=settings.epsf_builder,
+        stars_per_node=settings.psf_stars_per_node,
+        isolation=settings.psf_star_isolation,
+        min_snr=settings.psf_star_min_snr,
+        fit_radius=settings.stamp_radius,
+        max_gradient=settings.psf_star_max_gradient,
+    )
+
+
+def fit_options(settings: MeasureSettings) -> FitOptions:
+    """Batched-fitter options from the stage settings."""
+    return FitOptions(
+        radius=settings.stamp_radius,
+        iterations=settings.iterations,
+        tolerance=settings.tolerance,
+        max_shift=settings.max_shift,
+        min_snr=settings.min_snr,
+        chunk=settings.chunk,
+        progress=settings.progress,
+        sky_gradient=settings.sky_gradient,
+    )
+
+
+def run_engine(
+    frame: Frame,
+    psf: VariableEPSF,
+    x0,
+    y0,
+    settings: MeasureSettings,
+    engine=None,
+    return_model: bool = True,
+) -> FitResult:
+    """Fit all stars with the selected engine (``return_model``: the fast engine's
+    frame-sized model image, needed for neighbour subtraction only)."""
+    engine = engine or settings.engine
+    common = dict(
+        read_noise_var=frame.read_noise_var,
+        sky0=frame.sky,
+        bad=frame.bad,
+        saturated=frame.saturated,
+    )
+    if engine == "fast":
+        return fit_stars(
+            frame.image,
+            psf,
+            x0,
+            y0,
+            options=fit_options(settings),
+            return_model=return_model,
+            **common,
+        )
+    if engine == "photutils":
+        opt = PhotutilsOptions(
+            radius=settings.stamp_radius,
+            fitter=settings.photutils_fitter,
+            group_separation=settings.group_separation,
+            grid=max(settings.psf_grid, 3),
+        )
+        return fit_stars_photutils(frame.image, psf, x0, y0, options=opt, **common)
+    raise InputError(f"unknown engine '{engine}'; expected 'fast' or 'photutils'")
+
+
+@dataclass
+class FramePSF:
+    """The frame's ePSF and what the error model needs of its building.
+
+    Attributes
+    ----------
+    psf : VariableEPSF
+        The ePSF from all PSF stars.
+    n_psf_stars : int
+        PSF stars used.
+    halves : tuple of VariableEPSF or None
+        ePSFs from the two halves of every node's PSF stars (None when not asked
+        for, or with fewer than :data:`MIN_STARS_SPLIT` PSF stars per node).
+    """
+
+    psf: VariableEPSF
+    n_psf_stars: int
+    halves: tuple[VariableEPSF, VariableEPSF] | None = None
+
+
+#: PSF stars per node needed to build the two half-set ePSFs of the error model.
+MIN_STARS_SPLIT = 6
+
+
+def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
+    """ePSF from the frame, rebuilt after neighbour subtraction ``neighbour_passes`` times.
+
+    With ``settings.error_model == "epsf"`` the last build is repeated with each
+    half of the PSF stars (the ePSF model-error estimate).
+    """
+    opts = epsf_options(settings)
+    data = frame.image - frame.sky
+    noise = frame.sky + frame.read_noise_var
+    flux = box_flux(frame, x0, y0)
+    # as neighbours in the isolation test: not below the flux over the global sky
+    # (a faint star's local background is raised by the bright candidate next to it)
+    upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
+    build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
+    psf, used = build_field_epsf(options=opts, neighbour_flux=upper, **build)
+    opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
+    for _ in range(settings.neighbour_passes):
+        fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
+        fitted_flux = np.where(fit.flag & FLAG_FAILED, 0.0, np.nan_to_num(fit.flux))
+        build = dict(
+            build,
+            x=fit.x,
+            y=fit.y,
+            flux=fitted_flux,
+            neighbour_model=fit.model_image,
+            previous=psf,
+            model_radius=settings.stamp_radius,
+        )
+        psf, used = build_field_epsf(options=opts, **build)
+    halves = None
+    per_node = min(settings.psf_stars_per_node, len(used))
+    if settings.error_model == "epsf" and per_node >= MIN_STARS_SPLIT:
+        try:
+            halves = tuple(build_field_epsf(options=opts, half=h, **build)[0] for h in (0, 1))
+        except InputError:  # a half too poor for an ePSF: chi^2 terms only
+            halves = None
+    return FramePSF(psf, len(used), halves)
+
+
+def starting_positions(frame: Frame, settings: MeasureSettings, rng: np.random.Generator):
+    """Forced starting positions [pixel] from the truth list, optionally perturbed."""
+    truth = frame.truth
+    if settings.forced_positions == "catalogue":
+        if "x_cat" not in truth.colnames or "y_cat" not in truth.colnames:
+            raise InputError(
+                "forced_positions = 'catalogue' needs truth columns x_cat, y_cat", path=frame.path
+            )
+        x0, y0 = frame.to_pixel(
+            truth["x_cat"].to_value(u.arcsec), truth["y_cat"].to_value(u.arcsec)
+        )
+    else:
+        x0 = np.asarray(truth["x_pix"], float)
+        y0 = np.asarray(truth["y_pix"], float)
+    if settings.perturbation > 0:
+        x0 = x0 + rng.normal(0.0, settings.perturbation, len(x0))
+        y0 = y0 + rng.normal(0.0, settings.perturbation, len(y0))
+    return x0, y0
+
+
+def epsf_flux_fraction(fit: FitResult, flux_true: np.ndarray, usable: np.ndarray) -> float:
+    """Fraction of the true flux inside the ePSF's normalisation (its footprint).
+
+    A rendered star's light beyond the ePSF footprint (the seeing halo, far
+    wings) is not in the fitted flux; the Cramer-Rao bound of the fit must use
+    the flux the ePSF model describes. Estimated as the median of fitted / true
+    flux of the well-measured stars (flux SNR >= 20, no flags); 1 if none.
+    """
+    with np.errstate(all="ignore"):
+        snr = fit.flux / fit.flux_err
+        ratio = fit.flux / flux_true
+    good = usable & (fit.flag == 0) & np.isfinite(ratio) & (snr >= 20) & (flux_true > 0)
+    if not good.any():
+        return 1.0
+    return float(np.clip(np.median(ratio[good]), 1e-3, 2.0))
+
+
+def error_terms(
+    frame: Frame, frame_psf: FramePSF, fit: FitResult, settings: MeasureSettings
+) -> ErrorModel:
+    """Error-model terms of every fitted star (:mod:`mavispm.measure.stars.error_model`)."""
+    n = len(fit.x)
+    if settings.error_model == "fisher":
+        return ErrorModel.fisher_only(n)
+    usable = (fit.flag & FLAG_FAILED) == 0
+    shifts = None
+    if frame_psf.halves is not None:
+        sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
+        shifts = epsf_difference_shifts(
+            frame_psf.psf,
+            *frame_psf.halves,
+            np.where(usable, fit.x, np.nan),
+            fit.y,
+            fit.flux,
+            sky,
+            frame.read_noise_var,
+            settings.stamp_radius,
+            settings.chunk,
+            sky_gradient=settings.sky_gradient and settings.engine == "fast",
+        )
+    grid = 1 if settings.psf_variation == "constant" else settings.psf_grid
+    ny, nx = frame.shape
+    col = np.clip(np.nan_to_num(fit.x) * grid // nx, 0, grid - 1)
+    row = np.clip(np.nan_to_num(fit.y) * grid // ny, 0, grid - 1)
+    cells = (row * grid + col).astype(np.intp)
+    return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells)
+
+
+def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = None):
+    """Measure all stars of a frame.
+
+    Parameters
+    ----------
+    frame : Frame
+    settings : MeasureSettings
+    seed : int, optional
+        Seed of the forced-position perturbation.
+
+    Returns
+    -------
+    stars : QTable
+        The ``stars`` table of the measured product.
+    attrs : dict
+        Product attributes (engine, timing, ePSF description, blind-mode scores).
+    psf : VariableEPSF
+    """
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    truth = frame.truth
+    extra: dict = {}
+    if settings.blind:
+        noise = np.sqrt(frame.sky + frame.read_noise_var)
+        fwhm = settings.detection_fwhm or 2.5
+        x0, y0, _ = detect_sources(
+            frame.image, frame.sky, noise, fwhm, settings.detection_threshold, frame.bad
+        )
+        if len(x0) == 0:
+            raise InputError(
+                "blind mode: no sources detected (lower detection_threshold?)", path=frame.path
+            )
+        ids = -(np.arange(len(x0), dtype=np.int64) + 1)
+    else:
+        x0, y0 = starting_positions(frame, settings, rng)
+        ids = np.asarray(truth["id"], np.int64)
+    frame_psf = build_psf(frame, x0, y0, settings)
+    psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
+    t_psf = time.perf_counter()
+    fit = run_engine(frame, psf, x0, y0, settings, return_model=False)
+    t_fit = time.perf_counter()
+    errors = error_terms(frame, frame_psf, fit, settings)
+    t_err = time.perf_counter()
+    flag = fit.flag.copy()
+    flag[
+        crowding_flags(fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio)
+    ] |= FLAG_CROWDED
+    n = len(x0)
+    x_true = y_true = mag = flux_true = dist = crlb_x = crlb_y = np.full(n, np.nan)
+    if truth is not None:
+        tx, ty = np.asarray(truth["x_pix"], float), np.asarray(truth["y_pix"], float)
+        if settings.blind:
+            index, dist = match_to_truth(fit.x, fit.y, tx, ty, settings.match_radius)
+            ok = index >= 0
+            ids = np.where(ok, np.asarray(truth["id"], np.int64)[np.maximum(index, 0)], ids)
+            extra.update(completeness(fit.x, fit.y, tx, ty, settings.match_radius))
+        else:
+            index = np.arange(n)
+            dist = np.hypot(fit.x - tx, fit.y - ty)
+            ok = dist <= settings.match_radius
+        flag[~ok] |= FLAG_NO_MATCH
+        # forced mode knows each star's identity: keep its truth even when unmatched
+        known = index >= 0
+        sel = np.maximum(index, 0)
+        x_true = np.where(known, truth["x"].to_value(u.arcsec)[sel], np.nan)
+        y_true = np.where(known, truth["y"].to_value(u.arcsec)[sel], np.nan)
+        mag = np.where(known, truth["mag"].to_value(u.mag)[sel], np.nan)
+        flux_true = np.where(known, truth["flux"].to_value(u.electron)[sel], np.nan)
+        dist = np.where(known & np.isfinite(dist), dist, np.nan)
+        extra["truth_bin_counts"] = truth_bin_counts(truth["mag"].to_value(u.mag))
+        sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
+        fraction = epsf_flux_fraction(fit, flux_true, known & ok)
+        extra["epsf_flux_fraction"] = fraction
+        bound = crlb(
+            psf,
+            tx[sel],
+            ty[sel],
+            np.maximum(flux_true * fraction, 0.0),
+            sky,
+            frame.read_noise_var,
+            settings.stamp_radius,
+        )
+        crlb_x = np.where(known, bound[:, 0], np.nan)
+        crlb_y = np.where(known, bound[:, 1], np.nan)
+    scale = frame.pixel_scale
+    x_as, y_as = frame.to_arcsec(fit.x, fit.y)
+    stars = QTable()
+    stars["id"] = ids
+    stars["x_pix"] = fit.x
+    stars["y_pix"] = fit.y
+    stars["x"] = x_as * u.arcsec
+    stars["y"] = y_as * u.arcsec
+    stars["x_err"] = errors.total(fit.x_err, errors.position) * scale * u.arcsec
+    stars["y_err"] = errors.total(fit.y_err, errors.position) * scale * u.arcsec
+    stars["flux"] = fit.flux * u.electron
+    stars["flux_err"] = errors.total(fit.flux_err, errors.flux) * u.electron
+    stars["sky"] = fit.sky * u.electron
+    stars["chi2"] = fit.chi2
+    stars["flag"] = flag.astype(np.int64)
+    if truth is not None:
+        stars["x_true"] = x_true * u.arcsec
+        stars["y_true"] = y_true * u.arcsec
+        stars["mag"] = mag * u.mag
+        stars["match_dist"] = dist * scale * u.arcsec
+        stars["flux_true"] = flux_true * u.electron
+        stars["crlb_x"] = crlb_x * scale * u.arcsec
+        stars["crlb_y"] = crlb_y * scale * u.arcsec
+    stars["x_err_fisher"] = fit.x_err * scale * u.arcsec
+    stars["y_err_fisher"] = fit.y_err * scale * u.arcsec
+    stars["flux_err_fisher"] = fit.flux_err * u.electron
+    stars["err_epsf"] = errors.position * scale * u.arcsec
+    attrs = {
+        "engine": settings.engine,
+        "psf_variation": psf.kind,
+        "n_psf_stars": int(n_psf),
+        "time_epsf": (t_psf - t0) * u.s,
+        "time_fit": (t_fit - t_psf) * u.s,
+        "time_errors": (t_err - t_fit) * u.s,
+        "fit_iterations": int(fit.iterations),
+        "error_model": errors.kind,
+        "epsf_position_error": float(np.nanmedian(errors.position) * scale * 1000.0) * u.mas,
+        "blind": bool(settings.blind),
+        "truth_bin_counts": extra.pop("truth_bin_counts", None),
+        "epsf_flux_fraction": extra.pop("epsf_flux_fraction", None),
+        **{f"detect_{k}": v for k, v in extra.items()},
+    }
+    return stars, attrs, psf

@@ -1,0 +1,173 @@
+"""Settings of the ``stars`` stage (ePSF building and PSF fitting), one dataclass.
+
+All accuracy/speed knobs live here (GalSim GSParams style). Build it from a TOML
+table with :func:`mavispm.measure.stars.cli.validate_settings`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from mavispm.core.config import unit_field
+from mavispm.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """Settings of ``mavispm measure stars``.
+
+    Attributes
+    ----------
+    engine : {"fast", "photutils"}
+        "fast": the batched Gauss-Newton fitter; "photutils": PSFPhotometry.
+    psf_variation : {"constant", "grid", "polynomial"}
+        ePSF field variation model.
+    psf_grid : int
+        ePSF grid nodes per axis (also the sampling of a polynomial ePSF).
+    psf_poly_order : int
+        Order of the polynomial ePSF (3: DAOPhot's cubically variable PSF).
+    oversampling : int or "auto"
+        ePSF oversampling factor; "auto" (default): 4 with at least 200
+        usable PSF stars per ePSF node, else 2
+        (:func:`mavispm.measure.stars.epsf.resolve_oversampling`).
+    epsf_size : int
+        ePSF footprint [pixel] (odd).
+    epsf_iterations : int
+        ePSF builder iterations.
+    epsf_builder : {"fast", "photutils"}
+        Our vectorised residual-stacking builder or photutils' EPSFBuilder
+        (about 100x slower; cross-check).
+    psf_stars_per_node : int
+        Cap on the PSF stars per ePSF grid node (the brightest of its cell).
+    psf_star_isolation : float [pix]
+        Isolation radius of PSF stars.
+    psf_star_min_snr : float
+        Minimum flux SNR of PSF stars.
+    psf_star_max_gradient : float
+        Largest background gradient across a PSF star's cut-out (centre to edge,
+        relative to its flux; :func:`mavispm.measure.stars.epsf.background_gradient`):
+        stars in the wings of much brighter stars are not PSF stars. 0: no test.
+    neighbour_passes : int
+        Times the ePSF is rebuilt after subtracting fitted neighbours (0 = none).
+    error_model : {"epsf", "fisher"}
+        Reported errors: "epsf" (default) adds the ePSF model error measured
+        from two half-set ePSFs and inflates by the fit chi^2
+        (:mod:`mavispm.measure.stars.error_model`); "fisher": the Fisher (Cramér-Rao)
+        errors alone. The Fisher errors are always in ``x_err_fisher`` etc.
+    stamp_radius : int
+        Fit stamp half-width [pixel].
+    sky_gradient : bool
+        Fast engine: fit each star's local sky as a plane instead of a constant
+        (the wings of a much brighter star tilt the background of its stamp).
+    iterations : int
+        Maximum fitter sweeps.
+    tolerance : float [pix]
+        Convergence threshold on position steps.
+    max_shift : float [pix]
+        Largest allowed move from the forced position.
+    perturbation : float [pix]
+        Gaussian perturbation (sigma per axis) of the forced starting positions.
+    forced_positions : {"rendered", "catalogue"}
+        Start from the truth's rendered ``x_pix, y_pix`` or from its catalogue
+        ``x_cat, y_cat`` (before distortion).
+    match_radius : float [pix]
+        Truth cross-match distance cut.
+    crowding_radius : float [pix]
+        A neighbour closer than this ...
+    crowding_ratio : float
+        ... and at least this fraction as bright flags a star as crowded (8).
+    min_snr : float
+        Stars below this flux SNR have positions held fixed and are flagged 32.
+    chunk : int
+        Stars evaluated at once by the fast engine (memory knob).
+    photutils_fitter : {"levmar", "default"}
+        Fitter of the photutils engine.
+    group_separation : float [pix]
+        Grouping distance of the photutils engine.
+    blind : bool
+        Detect sources instead of using the truth list (forced positions).
+    detection_threshold : float
+        Detection threshold [background sigma] in blind mode.
+    detection_fwhm : float [pix]
+        Finder FWHM (blind mode); 0 uses 2.5 pixels.
+    progress : bool
+        Show progress bars.
+    """
+
+    engine: Literal["fast", "photutils"] = "fast"
+    psf_variation: Literal["constant", "grid", "polynomial"] = "grid"
+    psf_grid: int = 3
+    psf_poly_order: int = 2
+    oversampling: int | Literal["auto"] = "auto"
+    epsf_size: int = 25
+    epsf_iterations: int = 10
+    epsf_builder: Literal["fast", "photutils"] = "fast"
+    psf_stars_per_node: int = 150
+    psf_star_isolation: float = unit_field(12.0, "pix")
+    psf_star_min_snr: float = 100.0
+    psf_star_max_gradient: float = 0.01
+    neighbour_passes: int = 1
+    error_model: Literal["epsf", "fisher"] = "epsf"
+    stamp_radius: int = 5
+    sky_gradient: bool = True
+    iterations: int = 10
+    tolerance: float = unit_field(1e-4, "pix")
+    max_shift: float = unit_field(2.0, "pix")
+    perturbation: float = unit_field(0.0, "pix")
+    forced_positions: Literal["rendered", "catalogue"] = "rendered"
+    match_radius: float = unit_field(2.0, "pix")
+    crowding_radius: float = unit_field(10.0, "pix")
+    crowding_ratio: float = 0.1
+    min_snr: float = 3.0
+    chunk: int = 512
+    photutils_fitter: Literal["levmar", "default"] = "levmar"
+    group_separation: float = unit_field(8.0, "pix")
+    blind: bool = False
+    detection_threshold: float = 5.0
+    detection_fwhm: float = unit_field(0.0, "pix")
+    progress: bool = field(default=False)
+
+    def __post_init__(self):
+        positive_ints = {
+            "psf_grid": self.psf_grid,
+            "oversampling": 1 if self.oversampling == "auto" else self.oversampling,
+            "epsf_iterations": self.epsf_iterations,
+            "psf_stars_per_node": self.psf_stars_per_node,
+            "stamp_radius": self.stamp_radius,
+            "iterations": self.iterations,
+            "chunk": self.chunk,
+        }
+        for key, value in positive_ints.items():
+            if value < 1:
+                raise ConfigError(f"must be a positive integer, got {value}", key=key)
+        if self.epsf_size < 5 or self.epsf_size % 2 == 0:
+            raise ConfigError(f"must be an odd integer >= 5, got {self.epsf_size}", key="epsf_size")
+        if not 0 <= self.psf_poly_order <= 5:
+            raise ConfigError(f"must be 0..5, got {self.psf_poly_order}", key="psf_poly_order")
+        if self.neighbour_passes < 0:
+            raise ConfigError("must be >= 0", key="neighbour_passes")
+        nterms = (self.psf_poly_order + 1) * (self.psf_poly_order + 2) // 2
+        if self.psf_variation == "polynomial" and self.psf_grid**2 < nterms:
+            raise ConfigError(
+                f"a polynomial ePSF of order {self.psf_poly_order} needs psf_grid**2 >= {nterms}",
+                key="psf_grid",
+            )
+        for key in (
+            "match_radius",
+            "crowding_radius",
+            "max_shift",
+            "tolerance",
+            "group_separation",
+        ):
+            if not getattr(self, key) > 0:
+                raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=key)
+        for key in (
+            "perturbation",
+            "detection_fwhm",
+            "crowding_ratio",
+            "min_snr",
+            "psf_star_max_gradient",
+        ):
+            if not getattr(self, key) >= 0:
+                raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=key)

@@ -1,0 +1,1 @@
+"""Cluster catalogues and epochs: mass models, distribution functions, populations, external input."""

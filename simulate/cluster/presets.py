@@ -1,0 +1,80 @@
+"""Cluster presets: observed structural parameters of real clusters.
+
+A preset gives the defaults of :class:`~mavispm.simulate.cluster.settings.ClusterSettings`
+that describe a cluster (distance, mass, radii, extinction, sky position).
+Radii are the observed ones (Harris 1996, 2010 edition); the model scale radius
+is derived so that the model's projected half-mass radius equals the observed
+half-light radius (stars trace mass).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ClusterPreset:
+    """Observed parameters of a cluster.
+
+    Attributes
+    ----------
+    name : str
+    distance : float
+        Heliocentric distance [kpc].
+    stellar_mass : float
+        Total stellar mass [solMass].
+    core_radius, half_light_radius : float
+        Observed core and half-light radii [arcmin].
+    tracer : str
+        Default tracer profile ("king" or "plummer").
+    king_w0 : float
+        King W0 reproducing the ratio of half-light to core radius.
+    extinction_v : float
+        A_V = 3.1 E(B-V) [mag].
+    ra_center, dec_center : float
+        Cluster centre [deg].
+    """
+
+    name: str
+    distance: float
+    stellar_mass: float
+    core_radius: float
+    half_light_radius: float
+    tracer: str
+    king_w0: float
+    extinction_v: float
+    ra_center: float
+    dec_center: float
+
+
+#: NGC 3201 (Harris 2010: d = 4.6 kpc (Baumgardt), r_c = 1.30', r_h = 3.10', E(B-V) = 0.24;
+#: mass 1.6e5 solMass,
+#: Baumgardt & Hilker 2018). W0 = 6.3 gives r_h / r_c = 2.38 and c = log(r_t/r_0) ~ 1.33.
+NGC3201 = ClusterPreset(
+    name="ngc3201",
+    distance=4.6,
+    stellar_mass=1.6e5,
+    core_radius=1.30,
+    half_light_radius=3.10,
+    tracer="king",
+    king_w0=6.3,
+    extinction_v=0.74,
+    ra_center=154.40342,
+    dec_center=-46.41247,
+)
+
+PRESETS = {p.name: p for p in (NGC3201,)}
+
+
+def get_preset(name: str) -> ClusterPreset:
+    """Look up a preset by (case-insensitive) name.
+
+    Raises
+    ------
+    ValueError
+        Naming the known presets.
+    """
+    try:
+        return PRESETS[name.lower()]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; known presets: {sorted(PRESETS)}") from None

@@ -1,0 +1,119 @@
+"""Settings of the ``simulate cluster`` stage (one frozen dataclass, TOML table ``[cluster]``).
+
+Every key is documented in ``docs/cluster.md``. Values left ``None`` take the
+preset's value (or an automatic one, as noted per key).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Literal
+
+from mavispm.core.config import unit_field
+from mavispm.simulate.cluster.field_sampler import SamplerResolution
+from mavispm.simulate.cluster.population import MassFunction
+
+PM_CONVENTIONS = ("mas_per_yr", "arcsec_per_baseline")
+
+
+@dataclass(frozen=True)
+class ExternalInput:
+    """An external star list to use instead of the equilibrium model.
+
+    Parameters
+    ----------
+    path : str or None
+        File to read (None: simulate the model).
+    format : {"auto", "csv", "ecsv", "fits", "hdf5", "mavisim"}
+        File format; "auto" guesses from the extension (.csv, .ecsv, .fits/.fit,
+        .h5/.hdf5); MAVISIM source lists must be named explicitly.
+    pm_convention : {"", "mas_per_yr", "arcsec_per_baseline"}
+        Meaning of MAVISIM ``PM_X``/``PM_Y`` (required for ``format="mavisim"``):
+        proper motions in mas/yr, or displacements in arcsec over ``pm_baseline``
+        (the published MAVISIM examples use 10-year displacements).
+    pm_baseline : float
+        Baseline of ``arcsec_per_baseline`` displacements [yr].
+    column_units : dict of str to str
+        Units for columns the file stores without units (CSV), e.g. ``{x = "pc"}``.
+    columns : dict of str to str
+        Renames applied first, file column -> mavispm column (``{X = "x"}``).
+    hdf5_path : str or None
+        Table path inside an HDF5 file (astropy ``Table.read(path=...)``).
+    flux_zeropoint : float or None
+        For MAVISIM lists without a magnitude column: ``mag = zp - 2.5 log10(Flux)``.
+    recenter : bool
+        Subtract the mass-weighted mean position and velocity of 3-D snapshots.
+    """
+
+    path: str | None = None
+    format: Literal["auto", "csv", "ecsv", "fits", "hdf5", "mavisim"] = "auto"
+    pm_convention: Literal["", "mas_per_yr", "arcsec_per_baseline"] = ""
+    pm_baseline: float = unit_field(10.0, "yr")
+    column_units: dict = field(default_factory=dict)
+    columns: dict = field(default_factory=dict)
+    hdf5_path: str | None = None
+    flux_zeropoint: float | None = None
+    recenter: bool = False
+
+
+@dataclass(frozen=True)
+class ClusterSettings:
+    """Settings of the cluster catalogue stage (see ``docs/cluster.md``)."""
+
+    preset: str = "ngc3201"
+    imbh_mass: float = unit_field(0.0, "solMass")
+    n_stars: int = 3500
+    field_size: float = unit_field(30.0, "arcsec")
+    margin: float = unit_field(1.0, "arcsec")
+    epochs: list[float] = field(default_factory=lambda: [0.0, 10.0])
+    reference_epoch: float = unit_field(0.0, "yr")
+    tracer: Literal["plummer", "king"] | None = None
+    king_w0: float | None = None
+    stellar_mass: float | None = unit_field(None, "solMass")
+    half_light_radius: float | None = unit_field(None, "arcmin")
+    scale_radius: float | None = unit_field(None, "pc")
+    cusp_gamma: float | None = None
+    cusp_radius: float | None = unit_field(None, "pc")
+    distance: float | None = unit_field(None, "kpc")
+    extinction_v: float | None = unit_field(None, "mag")
+    ra_center: float | None = unit_field(None, "deg")
+    dec_center: float | None = unit_field(None, "deg")
+    offset_x: float = unit_field(0.0, "arcsec")
+    offset_y: float = unit_field(0.0, "arcsec")
+    rotation: float = unit_field(0.0, "deg")
+    pm_sys_x: float = unit_field(0.0, "mas/yr")
+    pm_sys_y: float = unit_field(0.0, "mas/yr")
+    include_remnants: bool = True
+    mass_min: float = unit_field(MassFunction.mass_min, "solMass")
+    mass_break: float = unit_field(MassFunction.mass_break, "solMass")
+    mass_max: float = unit_field(MassFunction.mass_max, "solMass")
+    alpha_low: float = MassFunction.alpha_low
+    alpha_high: float = MassFunction.alpha_high
+    resolution: SamplerResolution = field(default_factory=SamplerResolution)
+    external: ExternalInput = field(default_factory=ExternalInput)
+
+    def __post_init__(self):
+        checks = [
+            (self.imbh_mass >= 0, "imbh_mass", "must be >= 0 solMass"),
+            (self.n_stars >= 0, "n_stars", "must be >= 0"),
+            (self.field_size > 0, "field_size", "must be > 0 arcsec"),
+            (self.margin >= 0, "margin", "must be >= 0 arcsec"),
+            (len(self.epochs) >= 1, "epochs", "needs at least one epoch"),
+            (len(set(self.epochs)) == len(self.epochs), "epochs", "must not repeat"),
+            (
+                self.cusp_gamma is None or 0 <= self.cusp_gamma < 2.5,
+                "cusp_gamma",
+                "must be in [0, 2.5)",
+            ),
+            (self.distance is None or self.distance > 0, "distance", "must be > 0 kpc"),
+            (self.stellar_mass is None or self.stellar_mass > 0, "stellar_mass", "must be > 0"),
+            (self.king_w0 is None or 0.1 <= self.king_w0 <= 20, "king_w0", "must be in [0.1, 20]"),
+        ]
+        for ok, key, what in checks:
+            if not ok:
+                raise ValueError(f"'{key}' {what}")
+
+    def replace(self, **changes) -> ClusterSettings:
+        """Copy with some values changed."""
+        return dataclasses.replace(self, **changes)

@@ -1,0 +1,364 @@
+"""Residual-phase power spectral density of the MAVIS MCAO correction.
+
+Fourier-domain model (Rigaut et al. 1998; Jolissaint 2010; Neichel et al.
+2008): the residual phase spectrum is the sum of
+
+* fitting error: the full turbulence spectrum outside the DM control region
+  ``|fx|, |fy| < fc = n_act / (2 D)``;
+* WFS aliasing: high frequencies folded into the control region by the
+  Shack-Hartmann sampling (pitch d = D / n_act);
+* WFS noise: white slope noise propagated through the reconstructor, the
+  tomography and the closed loop;
+* servo lag and LGS tomography, jointly: per spatial frequency an MMSE
+  tomographic reconstruction from the LGS directions, projected on the DMs
+  optimised over a set of fitting directions, with each layer's correction
+  filtered by the closed-loop transfer function at its temporal frequency
+  ``f . v``. The error for a science direction alpha is
+  ``e_l = B_l(alpha) - h_l (A(alpha) P W M)_l``.
+
+Frequencies in m^-1, PSDs in rad^2 m^2 at the science wavelength.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mavispm.core.config import unit_field
+from mavispm.simulate.optics.atmosphere import ARCSEC_PER_RAD, Layers, von_karman_psd
+
+
+@dataclass(frozen=True)
+class AOSettings:
+    """The MCAO system and which residual terms to include (``[scene.optics.ao]``).
+
+    Attributes
+    ----------
+    n_actuators : int
+        Actuators (and WFS sub-apertures) across the pupil diameter.
+    dm_heights : tuple of float
+        Conjugation altitudes of the deformable mirrors (m).
+    dm_pitches : tuple of float
+        Actuator pitch of each DM projected on the pupil (m); a DM corrects
+        only ``|fx|, |fy| < 1 / (2 pitch)``. The WFS sampling and the overall
+        control region follow ``n_actuators``.
+    n_lgs : int
+        Number of laser guide stars, evenly spaced on a circle.
+    lgs_radius : float
+        Radius of the LGS constellation (arcsec).
+    lgs_height : float
+        Sodium-layer altitude (m); only used to reject impossible DM heights
+        (the LGS cone effect is not modelled: the LGS are treated as at infinity).
+    lgs_slope_noise : float
+        RMS noise on one sub-aperture's wavefront difference (nm of OPD per frame).
+    loop_frequency : float
+        HO loop rate (Hz).
+    loop_gain : float
+        Integrator gain.
+    loop_delay : float
+        Pure loop delay (frames), WFS read-out plus computation.
+    fitting_field : float
+        Diameter of the circular field the DM correction is optimised over (arcsec).
+    n_fitting : int
+        Fitting directions per side of the square grid sampling that circle.
+    fitting, aliasing, noise, servo_lag, tomography : bool
+        Switches of the residual terms. With ``tomography`` off the correction
+        is perfect in every direction apart from the other terms.
+    """
+
+    n_actuators: int = 40
+    dm_heights: tuple[float, ...] = field(default=(0.0, 6000.0, 13500.0))
+    dm_pitches: tuple[float, ...] = field(default=(0.2, 0.25, 0.35))
+    n_lgs: int = 8
+    lgs_radius: float = unit_field(17.5, "arcsec", "LGS constellation radius")
+    lgs_height: float = unit_field(90000.0, "m", "sodium layer altitude")
+    lgs_slope_noise: float = unit_field(27.0, "nm", "sub-aperture wavefront-difference noise")
+    loop_frequency: float = unit_field(1000.0, "Hz", "HO loop rate")
+    loop_gain: float = 0.5
+    loop_delay: float = 2.0
+    fitting_field: float = unit_field(30.0, "arcsec", "DM optimisation field width")
+    n_fitting: int = 5
+    fitting: bool = True
+    aliasing: bool = True
+    noise: bool = True
+    servo_lag: bool = True
+    tomography: bool = True
+
+    def __post_init__(self):
+        if self.n_actuators < 2:
+            raise ValueError(f"n_actuators must be >= 2, got {self.n_actuators}")
+        if len(self.dm_heights) < 1 or any(h < 0 for h in self.dm_heights):
+            raise ValueError("dm_heights must list >= 1 altitude >= 0 m")
+        if len(self.dm_pitches) != len(self.dm_heights) or any(p <= 0 for p in self.dm_pitches):
+            raise ValueError("dm_pitches must give one pitch > 0 m per DM height")
+        if any(h >= self.lgs_height for h in self.dm_heights):
+            raise ValueError("every DM must be conjugated below the LGS altitude")
+        if self.n_lgs < 1:
+            raise ValueError(f"n_lgs must be >= 1, got {self.n_lgs}")
+        if not 0 < self.loop_gain < 1.5:
+            raise ValueError(f"loop_gain must be in (0, 1.5), got {self.loop_gain}")
+        if self.loop_delay < 0 or self.loop_frequency <= 0:
+            raise ValueError("loop_delay must be >= 0 frames and loop_frequency > 0 Hz")
+        if self.lgs_slope_noise < 0:
+            raise ValueError("lgs_slope_noise must be >= 0 nm")
+        if self.n_fitting < 1:
+            raise ValueError("n_fitting must be >= 1")
+
+    def pitch(self, diameter: float) -> float:
+        """Actuator / sub-aperture pitch d = D / n_act (m)."""
+        return diameter / self.n_actuators
+
+    def control_frequency(self, diameter: float) -> float:
+        """Cut-off spatial frequency fc = 1 / (2 d) (m^-1)."""
+        return 1.0 / (2.0 * self.pitch(diameter))
+
+
+def lgs_directions(settings: AOSettings) -> np.ndarray:
+    """LGS directions (rad), shape (n_lgs, 2), evenly spaced on the circle."""
+    ang = 2 * np.pi * np.arange(settings.n_lgs) / settings.n_lgs
+    r = settings.lgs_radius / ARCSEC_PER_RAD
+    return np.stack([r * np.cos(ang), r * np.sin(ang)], axis=-1)
+
+
+def fitting_directions(settings: AOSettings) -> np.ndarray:
+    """DM optimisation directions (rad), shape (K, 2): a square grid cut to the circle."""
+    half = settings.fitting_field / 2 / ARCSEC_PER_RAD
+    g = np.linspace(-half, half, settings.n_fitting) if settings.n_fitting > 1 else np.zeros(1)
+    gx, gy = np.meshgrid(g, g)
+    keep = np.hypot(gx, gy) <= half * (1 + 1e-9)  # the circular science field
+    return np.stack([gx[keep], gy[keep]], axis=-1)
+
+
+def control_mask(fx: np.ndarray, fy: np.ndarray, fc: float) -> np.ndarray:
+    """True inside the square DM control region ``|fx|, |fy| < fc``."""
+    return (np.abs(fx) < fc) & (np.abs(fy) < fc)
+
+
+def fitting_psd(fx, fy, fc: float, r0: float, outer_scale: float) -> np.ndarray:
+    """Fitting-error PSD: the turbulence spectrum outside the control region."""
+    w = von_karman_psd(fx**2 + fy**2, r0, outer_scale)
+    return np.where(control_mask(fx, fy, fc), 0.0, w)
+
+
+def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """num / den with 1 where both vanish (the limit used for the m = 0 terms)."""
+    out = np.ones_like(num)
+    ok = den != 0
+    out[ok] = num[ok] / den[ok]
+    return out
+
+
+def aliasing_psd(
+    fx, fy, pitch: float, r0: float, outer_scale: float, n_fold: int = 2
+) -> np.ndarray:
+    """Shack-Hartmann aliasing PSD inside the control region.
+
+    A least-squares reconstructor from sub-aperture-averaged slopes folds the
+    turbulence at ``f' = f - (m, n) / d`` into ``f`` with transfer
+    ``(fx^2 fy / f'y + fy^2 fx / f'x) / |f|^2`` (Rigaut et al. 1998).
+
+    Parameters
+    ----------
+    fx, fy : ndarray
+        Spatial frequencies inside the control region (m^-1).
+    pitch : float
+        Sub-aperture size d (m).
+    n_fold : int
+        Folded orders summed in each direction (|m|, |n| <= n_fold).
+    """
+    f2 = fx**2 + fy**2
+    safe = np.where(f2 > 0, f2, 1.0)
+    out = np.zeros_like(fx, dtype=float)
+    for m in range(-n_fold, n_fold + 1):
+        for n in range(-n_fold, n_fold + 1):
+            if m == 0 and n == 0:
+                continue
+            fpx = fx - m / pitch
+            fpy = fy - n / pitch
+            rx = _ratio(np.asarray(fx, float), fpx) if m else np.ones_like(fx, float)
+            ry = _ratio(np.asarray(fy, float), fpy) if n else np.ones_like(fy, float)
+            transfer = (fx**2 * ry + fy**2 * rx) / safe
+            out += von_karman_psd(fpx**2 + fpy**2, r0, outer_scale) * transfer**2
+    return np.where(f2 > 0, out, 0.0)
+
+
+def noise_psd(fx, fy, pitch: float, sigma_rad: float) -> np.ndarray:
+    """Single-WFS noise PSD (rad^2 m^2) of a least-squares SH reconstruction.
+
+    ``sigma_rad`` is the RMS noise of one sub-aperture's phase difference (rad
+    at the science wavelength); the white slope noise has density
+    ``sigma^2 d^2`` and is divided by ``|Gx|^2 + |Gy|^2`` with
+    ``Gx = 2 i sin(pi d fx) sinc(d fy)``.
+    """
+    gx2 = (2 * np.sin(np.pi * pitch * fx) * np.sinc(pitch * fy)) ** 2
+    gy2 = (2 * np.sin(np.pi * pitch * fy) * np.sinc(pitch * fx)) ** 2
+    g2 = gx2 + gy2
+    return np.where(g2 > 0, sigma_rad**2 * pitch**2 / np.where(g2 > 0, g2, 1.0), 0.0)
+
+
+def closed_loop_transfer(nu: np.ndarray, settings: AOSettings) -> np.ndarray:
+    """Closed-loop transfer H = OL / (1 + OL) of the integrator at temporal frequency ``nu`` (Hz).
+
+    ``OL(z) = g z^-delay / (1 - z^-1)``, ``z = exp(2 pi i nu / f_loop)``.
+    H -> 1 at nu -> 0 (perfect tracking of slow turbulence).
+    """
+    nu = np.asarray(nu, float)
+    zinv = np.exp(-2j * np.pi * nu / settings.loop_frequency)
+    num = settings.loop_gain * zinv**settings.loop_delay
+    den = 1.0 - zinv
+    small = np.abs(den) < 1e-12
+    h = np.where(small, 1.0 + 0j, num / np.where(small, 1.0, den + num))
+    return h
+
+
+def noise_gain(settings: AOSettings, n: int = 4096) -> float:
+    """Closed-loop noise gain: mean of |H|^2 over (0, f_loop/2) (white noise)."""
+    nu = (np.arange(n) + 0.5) / n * settings.loop_frequency / 2
+    return float(np.mean(np.abs(closed_loop_transfer(nu, settings)) ** 2))
+
+
+@dataclass
+class TomographicOperator:
+    """Per-frequency MCAO correction operators on the control-region frequencies.
+
+    Attributes
+    ----------
+    fx, fy : ndarray, shape (F,)
+        Frequencies (m^-1), zero frequency excluded.
+    turbulence : ndarray, shape (F, L)
+        Layer phase PSDs c_l W(f) (rad^2 m^2).
+    correction : ndarray, shape (F, D, L)
+        P W M: DM commands per unit layer phase.
+    command_noise : ndarray, shape (F, D, G)
+        P W: DM commands per unit WFS phase (noise propagation).
+    noise : ndarray, shape (F,)
+        Single-WFS noise PSD after the loop noise gain (rad^2 m^2); 0 if off.
+    temporal : ndarray, shape (F, L), complex
+        Closed-loop transfer h_l at nu = f . v_l (1 when servo lag is off).
+    dm_heights, layer_heights : ndarray
+    """
+
+    fx: np.ndarray
+    fy: np.ndarray
+    turbulence: np.ndarray
+    correction: np.ndarray
+    command_noise: np.ndarray
+    noise: np.ndarray
+    temporal: np.ndarray
+    dm_heights: np.ndarray
+    layer_heights: np.ndarray
+    dm_mask: np.ndarray | None = None
+
+
+def _dm_mask(fx, fy, settings: AOSettings) -> np.ndarray:
+    """(F, D) 1 where each DM can correct the frequency, else 0."""
+    fc = 1.0 / (2.0 * np.asarray(settings.dm_pitches, float))
+    return ((np.abs(fx)[:, None] < fc) & (np.abs(fy)[:, None] < fc)).astype(float)
+
+
+def _phasor(fx, fy, heights, directions):
+    """exp(2 pi i h f . theta): shape (F, K, H) for K directions and H heights."""
+    proj = fx[:, None] * directions[None, :, 0] + fy[:, None] * directions[None, :, 1]
+    return np.exp(2j * np.pi * proj[:, :, None] * heights[None, None, :])
+
+
+def tomographic_operator(
+    fx: np.ndarray,
+    fy: np.ndarray,
+    settings: AOSettings,
+    atmosphere: Layers,
+    r0: float,
+    outer_scale: float,
+    noise_psd_single: np.ndarray,
+) -> TomographicOperator:
+    """Build the MMSE tomography + DM projection for the given frequencies.
+
+    Parameters
+    ----------
+    fx, fy : ndarray, shape (F,)
+        Control-region frequencies, none equal to (0, 0) (m^-1).
+    noise_psd_single : ndarray, shape (F,)
+        Noise PSD of one WFS (rad^2 m^2) before the loop gain; zeros when noise is off.
+    """
+    h_l = atmosphere.heights
+    h_d = np.asarray(settings.dm_heights, float)
+    w = von_karman_psd(fx**2 + fy**2, r0, outer_scale)
+    turb = w[:, None] * atmosphere.weights[None, :]
+    nu = (
+        fx[:, None] * atmosphere.velocities[None, :, 0]
+        + fy[:, None] * atmosphere.velocities[None, :, 1]
+    )
+    temporal = (
+        closed_loop_transfer(nu, settings) if settings.servo_lag else np.ones_like(nu, complex)
+    )
+    ngain = noise_gain(settings)
+    noise = noise_psd_single * ngain if settings.noise else np.zeros_like(fx)
+    if not settings.tomography:
+        noise = noise / settings.n_lgs  # the LGS average their independent noise
+        empty = np.zeros((fx.size, 0, 0), complex)
+        return TomographicOperator(fx, fy, turb, empty, empty, noise, temporal, h_d, h_l)
+    # LGS measurement M: (F, G, L); MMSE reconstructor W = C M^H (M C M^H + Cn)^-1
+    m = _phasor(fx, fy, h_l, lgs_directions(settings))
+    n_g = m.shape[1]
+    mc = m * turb[:, None, :]
+    cmm = np.einsum("fgl,fkl->fgk", mc, m.conj())
+    # regularise with the noise (or a tiny fraction of the signal when noise is off)
+    reg = np.maximum(noise_psd_single, 1e-6 * turb.sum(axis=1))
+    cmm += reg[:, None, None] * np.eye(n_g)[None]
+    # W^H = solve(cmm, M C)  (cmm is Hermitian)
+    wh = np.linalg.solve(cmm, mc)  # (F, G, L)
+    recon = np.conj(np.swapaxes(wh, 1, 2))  # (F, L, G)
+    # DM projection over fitting directions: P = (sum A^H A)^-1 sum A^H B
+    fit = fitting_directions(settings)
+    dm_mask = _dm_mask(fx, fy, settings)
+    a = _phasor(fx, fy, h_d, fit) * dm_mask[:, None, :]  # (F, K, D)
+    b = _phasor(fx, fy, h_l, fit)  # (F, K, L)
+    aa = np.einsum("fkd,fke->fde", a.conj(), a)
+    aa += 1e-3 * fit.shape[0] * np.eye(h_d.size)[None]
+    ab = np.einsum("fkd,fkl->fdl", a.conj(), b)
+    proj = np.linalg.solve(aa, ab)  # (F, D, L)
+    command_noise = np.einsum("fdl,flg->fdg", proj, recon)
+    correction = np.einsum("fdg,fgl->fdl", command_noise, m)
+    return TomographicOperator(
+        fx, fy, turb, correction, command_noise, noise, temporal, h_d, h_l, dm_mask
+    )
+
+
+def correction_residual_psd(
+    op: TomographicOperator, directions: np.ndarray, split: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Servo-lag + tomography + noise PSD for science directions.
+
+    Parameters
+    ----------
+    op : TomographicOperator
+    directions : ndarray, shape (K, 2)
+        Science directions (rad).
+    split : bool
+        Return the (servo-lag + tomography, noise) parts separately.
+
+    Returns
+    -------
+    ndarray, shape (K, F)
+        Residual PSD (rad^2 m^2) on the operator's frequencies (or a pair).
+    """
+    out = np.empty((directions.shape[0], op.fx.size))
+    out_noise = np.empty_like(out)
+    for k, theta in enumerate(directions):
+        proj = op.fx * theta[0] + op.fy * theta[1]
+        b = np.exp(2j * np.pi * proj[:, None] * op.layer_heights[None, :])  # (F, L)
+        if op.correction.shape[1] == 0:
+            err = b * (1.0 - op.temporal)
+            noise = op.noise
+        else:
+            a = np.exp(2j * np.pi * proj[:, None] * op.dm_heights[None, :]) * op.dm_mask
+            applied = np.einsum("fd,fdl->fl", a, op.correction)
+            err = b - op.temporal * applied
+            gn = np.einsum("fd,fdg->fg", a, op.command_noise)
+            noise = op.noise * np.sum(np.abs(gn) ** 2, axis=1)
+        out[k] = np.sum(np.abs(err) ** 2 * op.turbulence, axis=1)
+        out_noise[k] = noise
+    if split:
+        return out, out_noise
+    return out + out_noise

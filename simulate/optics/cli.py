@@ -1,0 +1,116 @@
+"""``mavispm simulate optics``: build/cache the PSF grid and draw the optics plots.
+
+Stage interface (docs/stages.md): ``register(subparsers)``,
+``validate_settings(settings, source=None)`` and ``run_stage(settings, output) -> Path``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+
+from mavispm.core.config import to_mapping
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.simulate.optics.model import Optics, OpticsSettings, build_optics
+from mavispm.simulate.optics.model import validate_settings as _validate
+from mavispm.simulate.optics.psf_grid import read_grid, write_grid
+
+
+def validate_settings(settings: Mapping | OpticsSettings | None, source=None) -> OpticsSettings:
+    """The :class:`OpticsSettings` of a ``[scene.optics]`` table (raises ConfigError)."""
+    if isinstance(settings, OpticsSettings):
+        return settings
+    return _validate(settings, source=source)
+
+
+def run_stage(
+    settings: Mapping | OpticsSettings | None,
+    output: str | Path,
+    cache_dir: Path | None = None,
+    progress: bool = True,
+) -> Path:
+    """Build (or fetch from the cache) the PSF grid and write it as a ``psfgrid`` product.
+
+    Parameters
+    ----------
+    settings : mapping or OpticsSettings
+        The ``[scene.optics]`` table.
+    output : path
+        The HDF5 product to write (atomically).
+    cache_dir : Path, optional
+        PSF-grid cache folder.
+
+    Returns
+    -------
+    Path
+        ``output``.
+    """
+    return _build_and_write(validate_settings(settings), output, cache_dir, progress)[0]
+
+
+def _build_and_write(
+    s: OpticsSettings, output: str | Path, cache_dir: Path | None, progress: bool
+) -> tuple[Path, Optics]:
+    """Build the optics and write the grid product; returns (path, optics)."""
+    optics = build_optics(s, cache_dir=cache_dir, progress=progress)
+    output = Path(output)
+    if optics.cache_path is not None and optics.cache_path.exists():
+        result = read_grid(optics.cache_path)
+        key = optics.cache_path.stem.removeprefix("psfgrid-")
+    else:  # pragma: no cover - the cache always writes a file
+        raise InputError("PSF grid cache file missing after build", path=optics.cache_path)
+    write_grid(output, result, key, config=to_mapping(s))
+    return output, optics
+
+
+def load_scene_optics(path: str | Path) -> Mapping:
+    """The ``[scene.optics]`` table of a scene TOML file (empty when absent)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError("scene file does not exist", path=path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"invalid TOML ({exc})", source=str(path)) from None
+    scene = data.get("scene", data)
+    optics = scene.get("optics", {}) if isinstance(scene, Mapping) else {}
+    if not isinstance(optics, Mapping):
+        raise ConfigError("expected a table", key="scene.optics", source=str(path))
+    return optics
+
+
+def _handler(args: argparse.Namespace) -> int:
+    table = load_scene_optics(args.scene) if args.scene else {}
+    settings = validate_settings(table, source=str(args.scene) if args.scene else None)
+    cache = Path(args.cache_dir) if args.cache_dir else None
+    out, optics = _build_and_write(settings, args.output, cache, not args.quiet)
+    print(f"wrote {out}")
+    if args.plots:
+        from mavispm.simulate.optics.plots import draw_all
+
+        for p in draw_all(optics, Path(args.plots)):
+            print(f"wrote {p}")
+    return 0
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``optics`` sub-command."""
+    p = subparsers.add_parser(
+        "optics",
+        help="build/cache the field-variable PSF grid and draw the optics plots",
+        description="Build (or load from the cache) the MCAO PSF grid of a scene, write it "
+        "as a psfgrid HDF5 product, and optionally draw PSF thumbnails, the radial "
+        "profile, the tip-tilt ellipse map and the static distortion map.",
+    )
+    p.add_argument("--scene", help="scene TOML file ([scene.optics] table); defaults if omitted")
+    p.add_argument("-o", "--output", required=True, help="output psfgrid HDF5 file")
+    p.add_argument("--plots", help="folder for the PNG plots")
+    p.add_argument("--cache-dir", help="PSF grid cache folder (default $MAVISPM_CACHE)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_handler)
+    return p
+
+
+__all__ = ["register", "run_stage", "validate_settings", "load_scene_optics"]

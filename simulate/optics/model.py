@@ -1,0 +1,209 @@
+"""The optics facade: everything the renderer needs about the PSF and its blur terms.
+
+Build once per scene with :func:`build_optics` from the ``[scene.optics]``
+TOML table; every term is switchable in its sub-table:
+
+========== ===================================== ==========================
+sub-table  what                                  module
+========== ===================================== ==========================
+atmosphere seeing, Cn^2 layers, winds, L0         ``simulate.optics.atmosphere``
+pupil      VLT pupil, obscuration, spiders        ``simulate.optics.pupil``
+ao         MCAO system and PSD error terms        ``simulate.optics.ao_psd``
+psf        PSF grid mode, sampling, field         ``simulate.optics.psf_grid``
+halo       seeing-wing kernel                     ``simulate.optics.seeing_halo``
+tiptilt    NGS asterism TT residual kernels       ``simulate.optics.tiptilt``
+blur       charge diffusion and vibration         ``simulate.optics.blur``
+distortion static and dynamic distortion          ``simulate.optics.distortion``
+========== ===================================== ==========================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mavispm.core.array_cache import content_key, load_arrays, save_arrays
+from mavispm.core.config import from_mapping
+from mavispm.simulate.optics.ao_psd import AOSettings
+from mavispm.simulate.optics.atmosphere import (
+    MAS_PER_RAD,
+    AtmosphereSettings,
+    fried_parameter,
+    von_karman_psd,
+)
+from mavispm.simulate.optics.blur import BlurSettings, blur_sigma
+from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
+from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, PSFSettings, cached_grid
+from mavispm.simulate.optics.pupil import PupilSettings
+from mavispm.simulate.optics.seeing_halo import Halo, HaloSettings, build_halo
+from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings
+
+#: Version of the halo computation (part of its disk-cache key).
+HALO_CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class OpticsSettings:
+    """All optics settings (TOML table ``[scene.optics]``), one sub-table per term."""
+
+    atmosphere: AtmosphereSettings = field(default_factory=AtmosphereSettings)
+    pupil: PupilSettings = field(default_factory=PupilSettings)
+    ao: AOSettings = field(default_factory=AOSettings)
+    psf: PSFSettings = field(default_factory=PSFSettings)
+    halo: HaloSettings = field(default_factory=HaloSettings)
+    tiptilt: TipTiltSettings = field(default_factory=TipTiltSettings)
+    blur: BlurSettings = field(default_factory=BlurSettings)
+    distortion: DistortionSettings = field(default_factory=DistortionSettings)
+
+
+def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
+    """Build :class:`OpticsSettings` from the ``[scene.optics]`` table.
+
+    Raises
+    ------
+    ConfigError
+        Unknown keys, wrong types or units, impossible values (naming the key).
+    """
+    return from_mapping(OpticsSettings, mapping, prefix="scene.optics", source=source)
+
+
+@dataclass(frozen=True, eq=False)
+class Optics:
+    """The optics of one scene.
+
+    Attributes
+    ----------
+    settings : OpticsSettings
+    psf_grid : PSFGrid
+        Core PSF stamps (tapered by the halo ramp when the halo is on), each
+        summing to 1.
+    halo : Halo or None
+        Seeing-wing kernel; None when disabled.
+    tiptilt : TipTiltField
+        Atmospheric TT residual covariance (mas^2).
+    blur_sigma : float
+        Charge diffusion and vibration in quadrature (mas).
+    distortion : Distortion
+    cache_path : Path or None
+        The PSF-grid cache file used.
+    control_radius : float
+        AO control radius lambda n_act / (2 D) (mas).
+    """
+
+    settings: OpticsSettings
+    psf_grid: PSFGrid
+    halo: Halo | None
+    tiptilt: TipTiltField
+    blur_sigma: float
+    distortion: Distortion
+    cache_path: Path | None
+    control_radius: float
+
+    def kernel_covariance(self, x, y) -> np.ndarray:
+        """TT covariance plus isotropic blur, (N, 2, 2) in mas^2, at field positions (arcsec)."""
+        return self.tiptilt.covariance(x, y) + self.blur_sigma**2 * np.eye(2)
+
+
+def control_radius_mas(settings: OpticsSettings) -> float:
+    """AO control radius lambda n_act / (2 D) in mas at the PSF wavelength."""
+    lam = settings.psf.wavelength * 1e-9
+    return lam * settings.ao.n_actuators / (2 * settings.pupil.diameter) * MAS_PER_RAD
+
+
+def _fitting_profile(settings: OpticsSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Isotropic fitting-only PSD (for PSF databases without a computed PSD)."""
+    lam = settings.psf.wavelength * 1e-9
+    fc = settings.ao.control_frequency(settings.pupil.diameter)
+    f = np.linspace(0.0, 20 * fc, 4000)
+    r0 = fried_parameter(settings.atmosphere, lam)
+    psd = von_karman_psd(f**2, r0, settings.atmosphere.outer_scale) * (f >= fc)
+    return f, psd
+
+
+def make_halo(settings: OpticsSettings, result: GridResult) -> Halo:
+    """The halo for a computed grid (uses its on-axis PSD profile)."""
+    lam = settings.psf.wavelength * 1e-9
+    f, psd = result.psd_frequency, result.psd_profile
+    if f.size == 0:
+        f, psd = _fitting_profile(settings)
+    grid = result.grid
+    return build_halo(
+        settings.halo,
+        f,
+        psd,
+        lam,
+        settings.pupil.diameter,
+        settings.pupil.obscuration_ratio,
+        fried_parameter(settings.atmosphere, lam),
+        settings.atmosphere.outer_scale,
+        control_radius_mas(settings),
+        (grid.n - 1) / 2 * grid.pixel_scale,
+    )
+
+
+def cached_halo(settings: OpticsSettings, result: GridResult, grid_path: Path | None) -> Halo:
+    """:func:`make_halo`, kept next to the PSF-grid cache file ``grid_path`` (when given).
+
+    The halo profile is a pure function of the grid's parameters (its cache key,
+    part of the file name) and the halo settings; its Hankel transforms take ~2 s,
+    which every epoch of a scene would otherwise repeat.
+    """
+    if grid_path is None:
+        return make_halo(settings, result)
+    key = content_key(
+        HALO_CACHE_VERSION,
+        Path(grid_path).name,
+        dataclasses.asdict(settings.halo),
+        [result.grid.n, float(result.grid.pixel_scale)],
+    )
+    path = Path(grid_path).parent / f"halo-{key}.npz"
+    stored = load_arrays(path)
+    names = [f.name for f in dataclasses.fields(Halo)]
+    if stored is not None and set(stored) == set(names):
+        return Halo(*(stored[n] if stored[n].ndim else float(stored[n]) for n in names))
+    halo = make_halo(settings, result)
+    save_arrays(path, {n: np.asarray(getattr(halo, n)) for n in names})
+    return halo
+
+
+def taper_grid(grid: PSFGrid, halo: Halo) -> PSFGrid:
+    """Multiply every stamp by ``1 - ramp`` and renormalise to unit sum."""
+    cube = grid.cube * halo.core_taper(grid.n, grid.pixel_scale)
+    cube /= cube.sum(axis=(-2, -1), keepdims=True)
+    return dataclasses.replace(grid, cube=cube)
+
+
+def build_optics(
+    settings: OpticsSettings, cache_dir: Path | None = None, progress: bool = True
+) -> Optics:
+    """Build (or load from the cache) everything about the optics of a scene.
+
+    Parameters
+    ----------
+    settings : OpticsSettings
+    cache_dir : Path, optional
+        Where PSF grids are cached (default ``$MAVISPM_CACHE`` or ``~/.cache/mavispm``).
+    progress : bool
+        Show a progress bar while computing a grid.
+    """
+    s = settings
+    result, path = cached_grid(s.psf, s.pupil, s.atmosphere, s.ao, cache_dir, progress)
+    grid = result.grid
+    halo = None
+    if s.halo.enabled:
+        halo = cached_halo(s, result, path)
+        grid = taper_grid(grid, halo)
+    return Optics(
+        settings=s,
+        psf_grid=grid,
+        halo=halo,
+        tiptilt=TipTiltField(s.tiptilt, s.atmosphere, s.pupil),
+        blur_sigma=blur_sigma(s.blur),
+        distortion=Distortion(s.distortion),
+        cache_path=path,
+        control_radius=control_radius_mas(s),
+    )

@@ -1,0 +1,177 @@
+"""Paper-style optics plots (PNG, matplotlib Agg).
+
+* ``psf_grid.png``: log-intensity thumbnails of every grid PSF (fig:psfprofile style);
+* ``psf_profile.png``: radial slices at (-15", -15") and (-9", -9") over the
+  central PSF, with the control radius marked (fig:psfprofile);
+* ``tiptilt_map.png``: TT kernel ellipses every 3" with the NGS (fig:ttjitter);
+* ``distortion_map.png``: static distortion amplitude with the science field
+  and the x / y projections (fig:staticdistmap).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Circle, Ellipse  # noqa: E402
+
+from mavispm.core.atomic import atomic_path  # noqa: E402
+from mavispm.simulate.optics.distortion import SCIENCE_RADIUS  # noqa: E402
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_psf_grid(optics, path: Path, crop_arcsec: float = 0.4) -> Path:
+    """Mosaic of log-intensity thumbnails of the grid PSFs."""
+    g = optics.psf_grid
+    half = min(int(crop_arcsec * 500 / g.pixel_scale), (g.n - 1) // 2)
+    c = (g.n - 1) // 2
+    thumbs = g.cube[:, :, c - half : c + half + 1, c - half : c + half + 1]
+    ny, nx, m, _ = thumbs.shape
+    mosaic = np.log10(np.maximum(thumbs, 1e-7)).transpose(0, 2, 1, 3).reshape(ny * m, nx * m)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    dx = (g.nodes_x[1] - g.nodes_x[0]) if nx > 1 else 1.0
+    dy = (g.nodes_y[1] - g.nodes_y[0]) if ny > 1 else 1.0
+    extent = [
+        g.nodes_x[0] - dx / 2,
+        g.nodes_x[-1] + dx / 2,
+        g.nodes_y[0] - dy / 2,
+        g.nodes_y[-1] + dy / 2,
+    ]
+    im = ax.imshow(mosaic, origin="lower", extent=extent, cmap="inferno", vmin=-6)
+    fig.colorbar(im, ax=ax, label="log10 PSF (per pixel)")
+    ax.set_xlabel("x [arcsec]")
+    ax.set_ylabel("y [arcsec]")
+    ax.set_title(f'PSF grid, {g.wavelength:.0f} nm, thumbnails {2 * crop_arcsec:.1f}" wide')
+    return _save(fig, path)
+
+
+def _diagonal_slice(psf: np.ndarray, pixel_scale: float):
+    n = psf.shape[0]
+    c = (n - 1) // 2
+    k = np.arange(-c, c + 1)
+    r = k * pixel_scale * np.sqrt(2)
+    return r, psf[c + k, c + k]
+
+
+def plot_psf_profile(optics, path: Path, positions=((-15.0, -15.0), (-9.0, -9.0))) -> Path:
+    """Radial (diagonal) slices of off-axis PSFs over the central PSF."""
+    g = optics.psf_grid
+    centre = g.psf_at(0.0, 0.0)
+    fig, axes = plt.subplots(
+        len(positions),
+        2,
+        figsize=(10, 4 * len(positions)),
+        gridspec_kw={"width_ratios": [2.2, 1]},
+        squeeze=False,
+    )
+    rc = optics.control_radius
+    for row, (x, y) in enumerate(positions):
+        psf = g.psf_at(x, y)
+        ax = axes[row, 0]
+        r0, p0 = _diagonal_slice(centre, g.pixel_scale)
+        r1, p1 = _diagonal_slice(psf, g.pixel_scale)
+        ax.semilogy(r0, p0 / p0.max(), "r-", label='centre (0", 0")')
+        ax.semilogy(r1, p1 / p0.max(), "k--", label=f'({x:g}", {y:g}")')
+        for s in (-1, 1):
+            ax.axvline(s * rc, color="k", ls=":", lw=1)
+        ax.set_xlabel("distance along the diagonal [mas]")
+        ax.set_ylabel("PSF / central peak")
+        ax.set_ylim(1e-6, 1.5)
+        ax.legend(loc="upper right")
+        ax2 = axes[row, 1]
+        ext = (g.n - 1) / 2 * g.pixel_scale
+        ax2.imshow(
+            np.log10(np.maximum(psf, 1e-8)),
+            origin="lower",
+            cmap="inferno",
+            vmin=-7,
+            extent=[-ext, ext, -ext, ext],
+        )
+        ax2.plot([-ext, ext], [-ext, ext], "c-", lw=0.8)
+        ax2.set_xlabel("[mas]")
+        ax2.set_title(f'log PSF at ({x:g}", {y:g}")')
+    return _save(fig, path)
+
+
+def plot_tiptilt_map(optics, path: Path, half_width: float = 15.0, step: float = 3.0) -> Path:
+    """Tip-tilt kernel ellipses (1 sigma, magnified) on a grid, with the NGS."""
+    tt = optics.tiptilt
+    g = np.arange(-half_width, half_width + 1e-9, step)
+    gx, gy = np.meshgrid(g, g)
+    cov = tt.covariance(gx.ravel(), gy.ravel())
+    vals, vecs = np.linalg.eigh(cov)
+    sig = np.sqrt(np.clip(vals, 0, None))
+    scale = 0.45 * step / max(sig.max(), 1e-12)
+    fig, ax = plt.subplots(figsize=(7, 7))
+    for (x, y), s, v in zip(np.stack([gx.ravel(), gy.ravel()], -1), sig, vecs):
+        ang = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
+        ax.add_patch(
+            Ellipse(
+                (x, y), 2 * s[1] * scale, 2 * s[0] * scale, angle=ang, fc="none", ec="k", lw=0.8
+            )
+        )
+    ax.plot(tt.ngs_xy[:, 0], tt.ngs_xy[:, 1], "r*", ms=14, label="NGS")
+    for (x, y), m in zip(tt.ngs_xy, tt.ngs_mag):
+        ax.annotate(f"H={m:g}", (x, y), textcoords="offset points", xytext=(6, 6), color="r")
+    ax.axhline(0, color="0.7", lw=0.5)
+    ax.axvline(0, color="0.7", lw=0.5)
+    lim = max(half_width + step, np.abs(tt.ngs_xy).max() + step if tt.ngs_xy.size else 0)
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [arcsec]")
+    ax.set_ylabel("y [arcsec]")
+    mean = float(np.mean(sig[:, 1]))
+    ax.set_title(
+        f"TT residual kernels ({tt.settings.asterism}); mean semi-major "
+        f"sigma {mean:.2f} mas; ellipses x{scale * 1000:.0f} (mas->arcsec/1000)"
+    )
+    ax.legend(loc="lower right")
+    return _save(fig, path)
+
+
+def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 61) -> Path:
+    """Static distortion amplitude map and its x / y projections."""
+    g = np.linspace(-half_width, half_width, n)
+    gx, gy = np.meshgrid(g, g)
+    dx, dy = optics.distortion.static_displacement(gx, gy)  # mas
+    amp = np.hypot(dx, dy)
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8), layout="constrained")
+    im = axes[0].imshow(amp, origin="lower", extent=[g[0], g[-1], g[0], g[-1]], cmap="viridis")
+    fig.colorbar(im, ax=axes[0], label="|displacement| [mas]")
+    q = slice(None, None, 6)
+    axes[0].quiver(gx[q, q], gy[q, q], dx[q, q], dy[q, q], color="w")
+    axes[0].add_patch(Circle((0, 0), SCIENCE_RADIUS, fc="none", ec="r"))
+    axes[0].set_title("static distortion")
+    for ax, comp, name in ((axes[1], dx, "x"), (axes[2], dy, "y")):
+        im = ax.imshow(
+            comp * 1000, origin="lower", extent=[g[0], g[-1], g[0], g[-1]], cmap="RdBu_r"
+        )
+        fig.colorbar(im, ax=ax, label=f"d{name} x 1000 [mas]")
+        ax.set_title(f"{name} projection")
+    for ax in axes:
+        ax.set_xlabel("x [arcsec]")
+        ax.set_ylabel("y [arcsec]")
+    return _save(fig, path)
+
+
+def draw_all(optics, outdir: Path) -> list[Path]:
+    """Draw every optics plot into ``outdir``; returns the PNG paths."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    return [
+        plot_psf_grid(optics, outdir / "psf_grid.png"),
+        plot_psf_profile(optics, outdir / "psf_profile.png"),
+        plot_tiptilt_map(optics, outdir / "tiptilt_map.png"),
+        plot_distortion_map(optics, outdir / "distortion_map.png"),
+    ]

@@ -1,0 +1,539 @@
+"""Field grid of high-order PSFs: computation, bilinear interpolation and disk cache.
+
+The grid holds normalised PSF stamps at an oversampled pixel scale on a
+regular grid of field positions (default 11 x 11 over 30" x 30"). Modes:
+
+``fourier``      field-variable Fourier MCAO PSFs (the default);
+``static``       one Fourier PSF (at ``static_position``) used everywhere;
+``diffraction``  the diffraction-limited PSF of the pupil (no AO residual);
+``file``         PSFs read from a MAVISIM-format FITS database.
+
+Computed grids are cached on disk under a key hashed from every parameter
+that changes them, so a scene never recomputes an unchanged grid.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import astropy.units as u
+import numpy as np
+from tqdm.auto import tqdm
+
+from mavispm.core.config import unit_field
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.products import open_product, write_product
+from mavispm.simulate.optics import ao_psd
+from mavispm.simulate.optics.ao_psd import AOSettings
+from mavispm.simulate.optics.atmosphere import (
+    ARCSEC_PER_RAD,
+    AtmosphereSettings,
+    fried_parameter,
+    layers,
+    von_karman_variance_beyond,
+)
+from mavispm.simulate.optics.fourier_psf import (
+    fourier_sampling,
+    psf_from_otf,
+    strehl_ratio,
+    structure_function,
+    telescope_otf,
+)
+from mavispm.simulate.optics.pupil import PupilSettings
+
+#: bump when the algorithm changes so stale cache entries are not reused
+ALGORITHM_VERSION = 1
+
+
+@dataclass(frozen=True)
+class PSFSettings:
+    """High-order PSF grid (TOML table ``[scene.optics.psf]``).
+
+    Attributes
+    ----------
+    mode : {"fourier", "static", "diffraction", "file"}
+        How PSFs are made (see module docstring).
+    wavelength : float
+        Monochromatic wavelength (nm).
+    pixel_scale : float
+        PSF pixel (mas); at most Nyquist lambda / 2D. Default 7.5 / 4.
+    stamp_size : float
+        Width of the PSF stamps (arcsec); holds the control radius and first halo.
+    n_nodes : int
+        Grid nodes per axis.
+    field_size : float
+        Full width of the square field covered by the nodes (arcsec).
+    pupil_sampling : int
+        Pupil-plane samples across D (accuracy knob: sets the PSD extent).
+    psd_padding : float
+        PSD grid period in units of D (accuracy knob: low-frequency sampling).
+    static_position : tuple of float
+        Field position (arcsec) of the PSF used in ``static`` mode.
+    chunk : int
+        Directions whose PSDs are computed together (memory knob).
+    file : str or None
+        MAVISIM PSF FITS database for ``file`` mode.
+    file_pixel_scale : float or None
+        Pixel scale of that file (mas) when its headers do not give it.
+    """
+
+    mode: Literal["fourier", "static", "diffraction", "file"] = "fourier"
+    wavelength: float = unit_field(550.0, "nm", "monochromatic wavelength")
+    pixel_scale: float = unit_field(1.875, "mas", "PSF pixel scale")
+    stamp_size: float = unit_field(0.8, "arcsec", "PSF stamp width")
+    n_nodes: int = 11
+    field_size: float = unit_field(30.0, "arcsec", "field covered by the grid")
+    pupil_sampling: int = 128
+    psd_padding: float = 4.0
+    static_position: tuple[float, float] = (0.0, 0.0)
+    chunk: int = 8
+    file: str | None = None
+    file_pixel_scale: float | None = unit_field(None, "mas", "pixel scale of the PSF file")
+
+    def __post_init__(self):
+        if not 300 <= self.wavelength <= 3000:
+            raise ValueError(f"wavelength must be in [300, 3000] nm, got {self.wavelength}")
+        if not self.pixel_scale > 0:
+            raise ValueError(f"pixel_scale must be > 0 mas, got {self.pixel_scale}")
+        if not self.stamp_size * 1000 >= 5 * self.pixel_scale:
+            raise ValueError("stamp_size must hold at least 5 pixels")
+        if self.n_nodes < 1:
+            raise ValueError(f"n_nodes must be >= 1, got {self.n_nodes}")
+        if self.field_size < 0:
+            raise ValueError("field_size must be >= 0 arcsec")
+        if self.pupil_sampling < 16:
+            raise ValueError(f"pupil_sampling must be >= 16, got {self.pupil_sampling}")
+        if self.psd_padding < 2:
+            raise ValueError(f"psd_padding must be >= 2 (OTF wrap), got {self.psd_padding}")
+        if self.chunk < 1:
+            raise ValueError("chunk must be >= 1")
+        if self.mode == "file" and not self.file:
+            raise ValueError("psf.mode = 'file' needs psf.file (a MAVISIM PSF FITS database)")
+
+    def node_positions(self) -> np.ndarray:
+        """Node coordinates along one axis (arcsec)."""
+        if self.n_nodes == 1:
+            return np.zeros(1)
+        return np.linspace(-self.field_size / 2, self.field_size / 2, self.n_nodes)
+
+
+@dataclass(frozen=True, eq=False)
+class PSFGrid:
+    """A grid of normalised PSF stamps with bilinear interpolation.
+
+    Attributes
+    ----------
+    cube : ndarray, shape (ny, nx, n, n)
+        PSFs, each summing to 1, n odd, optical axis at pixel ((n-1)/2, (n-1)/2).
+    nodes_x, nodes_y : ndarray
+        Node positions (arcsec, field frame), increasing.
+    pixel_scale : float
+        Stamp pixel (mas).
+    wavelength : float
+        Wavelength (nm).
+    strehl : ndarray, shape (ny, nx)
+        Strehl ratio of each node PSF (NaN when unknown).
+    """
+
+    cube: np.ndarray
+    nodes_x: np.ndarray
+    nodes_y: np.ndarray
+    pixel_scale: float
+    wavelength: float
+    strehl: np.ndarray
+
+    @property
+    def is_static(self) -> bool:
+        """True for a single PSF used everywhere."""
+        return self.cube.shape[:2] == (1, 1)
+
+    @property
+    def n(self) -> int:
+        """Stamp size (pixels)."""
+        return self.cube.shape[-1]
+
+    def bilinear_weights(self, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Node indices and bilinear weights for field positions.
+
+        Parameters
+        ----------
+        x, y : array_like, shape (N,)
+            Field positions (arcsec); clipped to the grid edges.
+
+        Returns
+        -------
+        iy, ix : ndarray of int, shape (N, 4)
+        w : ndarray, shape (N, 4)
+            Non-negative, summing to 1; exact (a single weight 1) at nodes.
+        """
+        ix0, tx = _axis_weights(self.nodes_x, np.atleast_1d(np.asarray(x, float)))
+        iy0, ty = _axis_weights(self.nodes_y, np.atleast_1d(np.asarray(y, float)))
+        ix1 = np.minimum(ix0 + 1, self.nodes_x.size - 1)
+        iy1 = np.minimum(iy0 + 1, self.nodes_y.size - 1)
+        iy = np.stack([iy0, iy0, iy1, iy1], axis=-1)
+        ix = np.stack([ix0, ix1, ix0, ix1], axis=-1)
+        w = np.stack([(1 - ty) * (1 - tx), (1 - ty) * tx, ty * (1 - tx), ty * tx], axis=-1)
+        return iy, ix, w
+
+    def psf_at(self, x: float, y: float) -> np.ndarray:
+        """Bilinearly interpolated PSF (n, n) at field position (x, y) arcsec; sums to 1."""
+        iy, ix, w = self.bilinear_weights([x], [y])
+        psf = np.tensordot(w[0], self.cube[iy[0], ix[0]], axes=1)
+        return psf / psf.sum()
+
+
+def _axis_weights(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if not np.all(np.isfinite(x)):
+        raise ValueError("field positions must be finite")
+    if nodes.size == 1:
+        return np.zeros(x.shape, int), np.zeros(x.shape)
+    i0 = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, nodes.size - 2)
+    t = np.clip((x - nodes[i0]) / (nodes[i0 + 1] - nodes[i0]), 0.0, 1.0)
+    return i0, t
+
+
+@dataclass(frozen=True)
+class GridResult:
+    """A computed grid plus what the halo needs.
+
+    Attributes
+    ----------
+    grid : PSFGrid
+    psd_frequency : ndarray
+        Radial frequencies (m^-1) of the on-axis azimuthally averaged PSD.
+    psd_profile : ndarray
+        That PSD (rad^2 m^2); empty for ``file`` mode.
+    """
+
+    grid: PSFGrid
+    psd_frequency: np.ndarray
+    psd_profile: np.ndarray
+
+
+def grid_key(psf: PSFSettings, pupil, atmosphere, ao) -> str:
+    """Hash of every parameter that changes the grid (cache key)."""
+    payload = {
+        "version": ALGORITHM_VERSION,
+        "psf": {k: v for k, v in asdict(psf).items() if k != "chunk"},
+        "pupil": asdict(pupil),
+        "atmosphere": asdict(atmosphere),
+        "ao": asdict(ao),
+    }
+    if psf.mode == "file" and psf.file:
+        st = Path(psf.file).stat() if Path(psf.file).exists() else None
+        payload["file_stat"] = [st.st_size, st.st_mtime_ns] if st else None
+    text = json.dumps(payload, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def default_cache_dir() -> Path:
+    """$MAVISPM_CACHE or ~/.cache/mavispm."""
+    env = os.environ.get("MAVISPM_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "mavispm"
+
+
+def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuthal average of a centred 2-D PSD in rings of width df."""
+    r = np.hypot(fx, fy).ravel()
+    idx = np.floor(r / df + 0.5).astype(int)
+    n = idx.max() + 1
+    s = np.bincount(idx, weights=psd.ravel(), minlength=n)
+    c = np.bincount(idx, minlength=n)
+    ok = c > 0
+    return np.arange(n)[ok] * df, s[ok] / c[ok]
+
+
+@dataclass
+class ResidualPSDModel:
+    """The residual PSD of one configuration on the PSD grid.
+
+    The direction-independent parts (fitting, aliasing) are stored once; the
+    servo-lag, tomography and noise parts come per direction from the
+    tomographic operator on the control-region frequencies ``sel``.
+
+    Attributes
+    ----------
+    sampling : FourierSampling
+    fx, fy : ndarray
+        Centred frequency grid (m^-1).
+    fitting, aliasing : ndarray
+        Direction-independent PSDs (rad^2 m^2).
+    sel : ndarray of bool
+        Control-region frequencies except zero.
+    operator : TomographicOperator or None
+        None for a zero residual.
+    hf_variance : float
+        Fitting variance beyond the PSD grid (rad^2).
+    wavelength : float
+        (m)
+    """
+
+    sampling: object
+    fx: np.ndarray
+    fy: np.ndarray
+    fitting: np.ndarray
+    aliasing: np.ndarray
+    sel: np.ndarray
+    operator: object
+    hf_variance: float
+    wavelength: float
+
+    def psds(self, directions: np.ndarray, chunk: int):
+        """Yield the full PSD for each direction (rad), computing ``chunk`` at a time."""
+        base = self.fitting + self.aliasing
+        for start in range(0, directions.shape[0], chunk):
+            part = directions[start : start + chunk]
+            res = (
+                ao_psd.correction_residual_psd(self.operator, part)
+                if self.operator is not None
+                else None
+            )
+            for j in range(part.shape[0]):
+                psd = base.copy()
+                if res is not None:
+                    psd[self.sel] += res[j]
+                yield psd
+
+    def budget(self, position_arcsec=(0.0, 0.0)) -> dict[str, float]:
+        """RMS wavefront error (nm) of each term in one direction."""
+        df2 = self.sampling.df**2
+        to_nm = self.wavelength * 1e9 / (2 * np.pi)
+        out = {
+            "fitting": np.sqrt(self.fitting.sum() * df2 + self.hf_variance) * to_nm,
+            "aliasing": np.sqrt(self.aliasing.sum() * df2) * to_nm,
+            "servo_tomography": 0.0,
+            "noise": 0.0,
+        }
+        if self.operator is not None:
+            d = np.asarray([position_arcsec], float) / ARCSEC_PER_RAD
+            corr, noise = ao_psd.correction_residual_psd(self.operator, d, split=True)
+            out["servo_tomography"] = np.sqrt(corr.sum() * df2) * to_nm
+            out["noise"] = np.sqrt(noise.sum() * df2) * to_nm
+        out["total"] = float(np.sqrt(sum(v**2 for v in out.values())))
+        return {k: float(v) for k, v in out.items()}
+
+
+def residual_psd_model(
+    psf: PSFSettings,
+    pupil: PupilSettings,
+    atmosphere: AtmosphereSettings,
+    ao: AOSettings,
+    residual: bool = True,
+) -> ResidualPSDModel:
+    """Set up the PSD grid and the direction-independent terms.
+
+    Raises
+    ------
+    ConfigError
+        If the PSF pixel is coarser than Nyquist.
+    """
+    lam = psf.wavelength * 1e-9
+    try:
+        smp = fourier_sampling(
+            lam,
+            psf.pixel_scale,
+            pupil.diameter,
+            psf.pupil_sampling,
+            psf.psd_padding,
+            psf.stamp_size * 1000,
+        )
+    except ValueError as exc:
+        raise ConfigError(str(exc), key="scene.optics.psf.pixel_scale") from None
+    fx, fy = smp.frequencies()
+    r0 = fried_parameter(atmosphere, lam)
+    l0 = atmosphere.outer_scale
+    d = ao.pitch(pupil.diameter)
+    fc = ao.control_frequency(pupil.diameter)
+    fitting = np.zeros_like(fx)
+    aliasing = np.zeros_like(fx)
+    hf_var = 0.0
+    inside = ao_psd.control_mask(fx, fy, fc)
+    sel = inside & ((fx != 0) | (fy != 0))
+    op = None
+    if residual:
+        if ao.fitting:
+            fitting = ao_psd.fitting_psd(fx, fy, fc, r0, l0)
+            f_eq = smp.f_max * 2 / np.sqrt(np.pi)  # circle with the PSD grid's area
+            hf_var = von_karman_variance_beyond(f_eq, r0, l0)
+        if ao.aliasing:
+            # aliased high frequencies reach the DMs through the loop like noise
+            gain = ao_psd.noise_gain(ao)
+            aliasing[inside] = gain * ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0)
+        fxs, fys = fx[sel], fy[sel]
+        sigma_rad = 2 * np.pi * ao.lgs_slope_noise * 1e-9 / lam
+        noise = ao_psd.noise_psd(fxs, fys, d, sigma_rad) if ao.noise else np.zeros_like(fxs)
+        op = ao_psd.tomographic_operator(fxs, fys, ao, layers(atmosphere), r0, l0, noise)
+    return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam)
+
+
+def compute_fourier_grid(
+    psf: PSFSettings,
+    pupil: PupilSettings,
+    atmosphere: AtmosphereSettings,
+    ao: AOSettings,
+    positions: np.ndarray,
+    progress: bool = True,
+    residual: bool = True,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray], float]:
+    """Fourier MCAO PSFs at field positions.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (K, 2)
+        Field positions (arcsec).
+    residual : bool
+        False gives the diffraction-limited PSF (zero residual PSD).
+
+    Returns
+    -------
+    psfs : ndarray, shape (K, n, n)
+    strehl : ndarray, shape (K,)
+        Strehl ratio including the variance beyond the PSD grid.
+    profile : (f, psd)
+        Azimuthal average of the first direction's PSD.
+    hf_variance : float
+        Fitting variance beyond the PSD grid (rad^2).
+    """
+    model = residual_psd_model(psf, pupil, atmosphere, ao, residual)
+    smp = model.sampling
+    otf_tel = telescope_otf(pupil, smp)
+    k_dirs = positions.shape[0]
+    psfs = np.empty((k_dirs, smp.n_stamp, smp.n_stamp))
+    strehl = np.empty(k_dirs)
+    profile = (np.zeros(0), np.zeros(0))
+    dirs = np.asarray(positions, float) / ARCSEC_PER_RAD
+    bar = tqdm(total=k_dirs, desc="PSF grid", unit="psf", disable=not progress, leave=False)
+    for k, psd in enumerate(model.psds(dirs, psf.chunk)):
+        if k == 0:
+            profile = radial_average(model.fx, model.fy, psd, smp.df)
+        otf_ao = np.exp(-0.5 * structure_function(psd, smp.df))
+        psfs[k] = psf_from_otf(otf_tel * otf_ao, smp)
+        strehl[k] = strehl_ratio(otf_tel, otf_ao) * np.exp(-model.hf_variance)
+        bar.update(1)
+    bar.close()
+    return psfs, strehl, profile, model.hf_variance
+
+
+def compute_grid(
+    psf: PSFSettings,
+    pupil: PupilSettings,
+    atmosphere: AtmosphereSettings,
+    ao: AOSettings,
+    progress: bool = True,
+) -> GridResult:
+    """Compute the PSF grid for ``psf.mode`` (no cache)."""
+    if psf.mode == "file":
+        from mavispm.simulate.optics.psf_fits import read_mavisim_psfs
+
+        cube, nx, ny, lam = read_mavisim_psfs(
+            psf.file, psf.pixel_scale, psf.stamp_size * 1000, psf.file_pixel_scale
+        )
+        grid = PSFGrid(cube, nx, ny, psf.pixel_scale, lam, np.full(cube.shape[:2], np.nan))
+        return GridResult(grid, np.zeros(0), np.zeros(0))
+    if psf.mode == "fourier":
+        nodes = psf.node_positions()
+        gx, gy = np.meshgrid(nodes, nodes)
+        # the on-axis direction first, so the halo profile is on-axis
+        pos = np.concatenate([[[0.0, 0.0]], np.stack([gx.ravel(), gy.ravel()], -1)])
+        psfs, strehl, prof, _ = compute_fourier_grid(psf, pupil, atmosphere, ao, pos, progress)
+        n = nodes.size
+        cube = psfs[1:].reshape(n, n, *psfs.shape[1:])
+        grid = PSFGrid(
+            cube, nodes, nodes.copy(), psf.pixel_scale, psf.wavelength, strehl[1:].reshape(n, n)
+        )
+        return GridResult(grid, *prof)
+    pos = np.asarray([psf.static_position], float)
+    residual = psf.mode == "static"
+    psfs, strehl, prof, _ = compute_fourier_grid(
+        psf, pupil, atmosphere, ao, pos, progress, residual=residual
+    )
+    grid = PSFGrid(
+        psfs.reshape(1, 1, *psfs.shape[1:]),
+        np.array([psf.static_position[0]], float),
+        np.array([psf.static_position[1]], float),
+        psf.pixel_scale,
+        psf.wavelength,
+        strehl.reshape(1, 1),
+    )
+    return GridResult(grid, *prof)
+
+
+def write_grid(path: Path, result: GridResult, key: str, config: dict | None = None) -> Path:
+    """Write a grid as a ``psfgrid`` HDF5 product (see docs/optics.md)."""
+    g = result.grid
+    return write_product(
+        path,
+        "psfgrid",
+        arrays={
+            "cube": g.cube,
+            "nodes_x": g.nodes_x * u.arcsec,
+            "nodes_y": g.nodes_y * u.arcsec,
+            "strehl": g.strehl,
+            "psd_frequency": result.psd_frequency / u.m,
+            "psd_profile": result.psd_profile * u.m**2,
+        },
+        attrs={
+            "pixel_scale": g.pixel_scale * u.mas,
+            "wavelength": g.wavelength * u.nm,
+            "grid_key": key,
+            "static": bool(g.is_static),
+        },
+        config=config,
+    )
+
+
+def read_grid(path: Path) -> GridResult:
+    """Read a ``psfgrid`` product written by :func:`write_grid`."""
+    with open_product(path, "psfgrid") as f:
+        try:
+            cube = np.asarray(f["cube"], float)
+            nx = np.asarray(f["nodes_x"], float)
+            ny = np.asarray(f["nodes_y"], float)
+            strehl = np.asarray(f["strehl"], float)
+            pf = np.asarray(f["psd_frequency"], float)
+            pp = np.asarray(f["psd_profile"], float)
+            scale = float(f.attrs["pixel_scale"])
+            lam = float(f.attrs["wavelength"])
+        except KeyError as exc:
+            raise InputError(f"psfgrid product lacks {exc}", path=path) from None
+    if cube.ndim != 4 or cube.shape[:2] != (ny.size, nx.size) or cube.shape[2] % 2 == 0:
+        raise InputError(f"psfgrid cube has inconsistent shape {cube.shape}", path=path)
+    return GridResult(PSFGrid(cube, nx, ny, scale, lam, strehl), pf, pp)
+
+
+def cached_grid(
+    psf: PSFSettings,
+    pupil: PupilSettings,
+    atmosphere: AtmosphereSettings,
+    ao: AOSettings,
+    cache_dir: Path | None = None,
+    progress: bool = True,
+) -> tuple[GridResult, Path]:
+    """The grid for these settings, from the disk cache or computed and cached.
+
+    Returns
+    -------
+    (GridResult, path of the cache file)
+    """
+    key = grid_key(psf, pupil, atmosphere, ao)
+    cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    path = cache / f"psfgrid-{key}.h5"
+    if path.exists():
+        try:
+            return read_grid(path), path
+        except Exception:  # a corrupt cache entry is recomputed, never trusted
+            path.unlink(missing_ok=True)
+    result = compute_grid(psf, pupil, atmosphere, ao, progress)
+    config = {
+        "psf": asdict(psf),
+        "pupil": asdict(pupil),
+        "atmosphere": asdict(atmosphere),
+        "ao": asdict(ao),
+    }
+    write_grid(path, result, key, config)
+    return result, path

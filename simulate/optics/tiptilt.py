@@ -1,0 +1,271 @@
+"""Tip-tilt residual kernels from the NGS asterism (paper section 3.1.2).
+
+Per field position the atmospheric TT residual is a 2-D Gaussian with
+covariance ``C = s^2 (C_tomo + C_noise + sigma_ws^2 I)``:
+
+* ``C_tomo + C_noise``: MMSE estimate of the science-direction tilt from the
+  NGS tilts. Tilt covariances between directions follow from the layered von
+  Karman spectrum filtered by the G-tilt of the annular pupil,
+  ``K_ij(rho) = a(rho) delta_ij - b(rho) rho_i rho_j / rho^2`` with
+  ``a = pi int f^3 S (J0 + J2) df`` and ``b = 2 pi int f^3 S J2 df`` at the
+  separation ``rho = h_l |alpha - theta|`` of each layer, so the kernels are
+  elongated along the NGS-target axes (anisoplanatism).
+* NGS noise: photon and read noise of a centroid per loop frame from the H
+  magnitude, reduced by the closed-loop noise gain g / (2 - g).
+* ``sigma_ws``: residual windshake / telescope vibration of the TT loop.
+* ``s``: the scale factor (the x3 cases of the paper's simulation table).
+
+All outputs are in mas^2 (covariances) and arcsec (positions).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.special import j0, j1, jv
+
+from mavispm.core.config import unit_field
+from mavispm.simulate.optics.atmosphere import (
+    MAS_PER_RAD,
+    REFERENCE_WAVELENGTH,
+    AtmosphereSettings,
+    fried_parameter,
+    layers,
+    von_karman_psd,
+)
+from mavispm.simulate.optics.pupil import PupilSettings
+
+#: NGS constellations of the paper's table tab:ttjitter: (radius arcsec, angle deg, H mag)
+PRESETS: dict[str, tuple[tuple[float, float, float], ...]] = {
+    "good": ((10.0, 0.0, 15.0), (10.0, 120.0, 15.0), (10.0, 240.0, 15.0)),
+    "typical": ((30.0, 330.0, 16.0), (40.0, 90.0, 18.0), (10.0, 150.0, 18.0)),
+    "bad": ((40.0, 0.0, 18.0), (40.0, 120.0, 18.0), (40.0, 240.0, 18.0)),
+}
+
+
+@dataclass(frozen=True)
+class TipTiltSettings:
+    """NGS tip-tilt residual (TOML table ``[scene.optics.tiptilt]``).
+
+    Attributes
+    ----------
+    enabled : bool
+        Off gives zero covariance everywhere.
+    asterism : {"good", "typical", "bad", "custom"}
+        A preset of the paper's table, or ``custom`` to use ``ngs``.
+    ngs : tuple of (radius arcsec, angle deg, H mag)
+        Custom asterism, polar coordinates about the field centre.
+    scale_factor : float
+        Multiplies the residual sigma (covariance by its square).
+    windshake : float
+        Residual windshake / vibration of the TT loop, per axis (mas).
+    frame_rate : float
+        LO loop rate (Hz).
+    loop_gain : float
+        LO integrator gain; noise gain g / (2 - g).
+    zeropoint : float
+        Detected photons per second from an H = 0 star, whole pupil and
+        throughput included (ph/s).
+    spot_fwhm : float
+        Partially corrected NGS spot FWHM on the LO WFS (mas).
+    read_noise : float
+        Detector read noise (e- per pixel per frame).
+    n_pixels : int
+        Pixels in the centroiding window.
+    wfs_pixel : float
+        LO WFS pixel (mas).
+    """
+
+    enabled: bool = True
+    asterism: Literal["good", "typical", "bad", "custom"] = "typical"
+    ngs: tuple[tuple[float, float, float], ...] = field(default=())
+    scale_factor: float = 1.0
+    windshake: float = unit_field(0.0, "mas", "residual TT windshake per axis")
+    frame_rate: float = unit_field(500.0, "Hz", "LO loop rate")
+    loop_gain: float = 0.3
+    zeropoint: float = 4.0e10
+    spot_fwhm: float = unit_field(50.0, "mas", "NGS spot FWHM")
+    read_noise: float = 0.5
+    n_pixels: int = 16
+    wfs_pixel: float = unit_field(25.0, "mas", "LO WFS pixel")
+
+    def __post_init__(self):
+        if self.asterism == "custom" and not self.ngs:
+            raise ValueError("asterism = 'custom' needs at least one star in ngs")
+        for i, star in enumerate(self.ngs):
+            r, _, mag = star
+            if not (np.isfinite(r) and r >= 0 and np.isfinite(mag)):
+                raise ValueError(f"ngs[{i}] must be (radius >= 0 arcsec, angle deg, H mag)")
+        if self.scale_factor < 0:
+            raise ValueError("scale_factor must be >= 0")
+        if not 0 < self.loop_gain < 2:
+            raise ValueError("loop_gain must be in (0, 2)")
+        if self.frame_rate <= 0 or self.zeropoint <= 0 or self.spot_fwhm <= 0:
+            raise ValueError("frame_rate, zeropoint and spot_fwhm must be > 0")
+        if self.windshake < 0 or self.read_noise < 0 or self.n_pixels < 1:
+            raise ValueError("windshake, read_noise must be >= 0 and n_pixels >= 1")
+
+    def stars(self) -> tuple[tuple[float, float, float], ...]:
+        """The asterism in use: (radius arcsec, angle deg, H mag) per NGS."""
+        return self.ngs if self.asterism == "custom" else PRESETS[self.asterism]
+
+
+def ngs_positions(settings: TipTiltSettings) -> tuple[np.ndarray, np.ndarray]:
+    """NGS Cartesian positions (arcsec), shape (n, 2), and H magnitudes (n,)."""
+    s = np.asarray(settings.stars(), float).reshape(-1, 3)
+    ang = np.radians(s[:, 1])
+    return np.stack([s[:, 0] * np.cos(ang), s[:, 0] * np.sin(ang)], -1), s[:, 2]
+
+
+def ngs_noise_variance(settings: TipTiltSettings, magnitudes: np.ndarray) -> np.ndarray:
+    """Closed-loop centroid noise variance per axis (mas^2) for NGS of H ``magnitudes``."""
+    photons = (
+        settings.zeropoint * 10 ** (-0.4 * np.asarray(magnitudes, float)) / settings.frame_rate
+    )
+    photons = np.maximum(photons, 1e-30)
+    sigma_spot = settings.spot_fwhm / (2 * np.sqrt(2 * np.log(2)))
+    photon_term = sigma_spot**2 / photons
+    read_term = settings.n_pixels * (settings.read_noise * settings.wfs_pixel) ** 2 / photons**2
+    gain = settings.loop_gain / (2 - settings.loop_gain)
+    return gain * (photon_term + read_term)
+
+
+@dataclass(frozen=True, eq=False)
+class TiltCovariance:
+    """Layer-summed tilt covariance function of angular separation.
+
+    Attributes
+    ----------
+    rho : ndarray
+        Tabulated layer-plane separations (m).
+    a, b : ndarray
+        ``K_ij(rho) = a delta_ij - b rho_i rho_j / rho^2`` for one unit-weight layer (rad^2).
+    heights, weights : ndarray
+        Layer distances (m) and Cn^2 fractions.
+    """
+
+    rho: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    heights: np.ndarray
+    weights: np.ndarray
+
+    def __call__(self, delta: np.ndarray) -> np.ndarray:
+        """Covariance blocks (..., 2, 2) in rad^2 for angular separations ``delta`` (..., 2) rad."""
+        delta = np.asarray(delta, float)
+        sep = np.hypot(delta[..., 0], delta[..., 1])
+        safe = np.where(sep > 0, sep, 1.0)
+        ux, uy = delta[..., 0] / safe, delta[..., 1] / safe
+        outer = np.stack([np.stack([ux * ux, ux * uy], -1), np.stack([ux * uy, uy * uy], -1)], -2)
+        out = np.zeros(delta.shape[:-1] + (2, 2))
+        eye = np.eye(2)
+        for h, w in zip(self.heights, self.weights):
+            rho = h * sep
+            a = np.interp(rho, self.rho, self.a)
+            b = np.interp(rho, self.rho, self.b)
+            out += w * (a[..., None, None] * eye - b[..., None, None] * outer)
+        return out
+
+
+@functools.lru_cache(maxsize=16)
+def tilt_covariance_function(
+    atmosphere: AtmosphereSettings, pupil: PupilSettings, max_separation: float
+) -> TiltCovariance:
+    """Tabulate the G-tilt covariance of the layered atmosphere.
+
+    Parameters
+    ----------
+    max_separation : float
+        Largest angular separation needed (rad).
+    """
+    lay = layers(atmosphere)
+    r0 = fried_parameter(atmosphere, REFERENCE_WAVELENGTH)
+    opd2 = (REFERENCE_WAVELENGTH / (2 * np.pi)) ** 2  # rad^2 -> m^2 of OPD
+    f = np.geomspace(1e-4, 50.0, 1500)
+    x = np.pi * pupil.diameter * f
+    eps = pupil.obscuration_ratio
+    jinc = 2 * j1(x) / x
+    jinc_small = 2 * j1(eps * x) / (eps * x) if eps > 0 else np.zeros_like(x)
+    filt = (jinc - eps**2 * jinc_small) / (1 - eps**2)
+    s = (2 * np.pi) ** 2 * filt**2 * von_karman_psd(f**2, r0, atmosphere.outer_scale) * opd2
+    w = f**3 * s * np.gradient(f)
+    rho_max = max(float(lay.heights.max()) * max_separation * 1.05, 1e-3)
+    rho = np.linspace(0.0, rho_max, 400)
+    arg = 2 * np.pi * rho[:, None] * f[None, :]
+    j2 = jv(2, arg)
+    a = np.pi * ((j0(arg) + j2) @ w)
+    b = 2 * np.pi * (j2 @ w)
+    return TiltCovariance(rho, a, b, lay.heights, lay.weights)
+
+
+class TipTiltField:
+    """Field-dependent TT residual covariance for one asterism.
+
+    Parameters
+    ----------
+    settings : TipTiltSettings
+    atmosphere : AtmosphereSettings
+    pupil : PupilSettings
+    """
+
+    def __init__(
+        self, settings: TipTiltSettings, atmosphere: AtmosphereSettings, pupil: PupilSettings
+    ):
+        self.settings = settings
+        self.ngs_xy, self.ngs_mag = ngs_positions(settings)
+        if not settings.enabled:
+            return
+        theta = self.ngs_xy * 1000 / MAS_PER_RAD  # rad
+        reach = np.hypot(*theta.T).max() if theta.size else 0.0
+        # tabulate to a generous, rounded separation so asterisms share the table
+        needed = 2 * reach + 60.0 / 206265.0
+        step = 100.0 / 206265.0
+        self._cov = tilt_covariance_function(atmosphere, pupil, step * np.ceil(needed / step))
+        n = theta.shape[0]
+        self._theta = theta
+        css = np.zeros((2 * n, 2 * n))
+        for i in range(n):
+            for j in range(n):
+                css[2 * i : 2 * i + 2, 2 * j : 2 * j + 2] = self._cov(theta[i] - theta[j])
+        noise = ngs_noise_variance(settings, self.ngs_mag) / MAS_PER_RAD**2
+        css += np.diag(np.repeat(noise, 2))
+        css += np.eye(2 * n) * 1e-12 * np.trace(css) / (2 * n)
+        self._css_inv = np.linalg.inv(css)
+        self._c0 = self._cov(np.zeros(2))
+
+    def covariance(self, x, y) -> np.ndarray:
+        """TT residual covariance (N, 2, 2) in mas^2 at field positions (arcsec).
+
+        Symmetric positive semi-definite; zeros when disabled.
+        """
+        x = np.atleast_1d(np.asarray(x, float))
+        y = np.atleast_1d(np.asarray(y, float))
+        if x.shape != y.shape or x.ndim != 1:
+            raise ValueError("x and y must be 1-D arrays of equal length (arcsec)")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+            raise ValueError("field positions must be finite")
+        if not self.settings.enabled:
+            return np.zeros((x.size, 2, 2))
+        alpha = np.stack([x, y], -1) * 1000 / MAS_PER_RAD
+        delta = alpha[:, None, :] - self._theta[None, :, :]  # (N, n, 2)
+        blocks = self._cov(delta)  # (N, n, 2, 2): cov(alpha tilt, ngs tilt)
+        cas = np.concatenate(list(np.moveaxis(blocks, 1, 0)), axis=-1)  # (N, 2, 2n)
+        res = self._c0[None] - np.einsum("nij,jk,nlk->nil", cas, self._css_inv, cas)
+        res = 0.5 * (res + np.swapaxes(res, 1, 2)) * MAS_PER_RAD**2
+        res += np.eye(2) * self.settings.windshake**2
+        # clip tiny negative eigenvalues from round-off
+        vals, vecs = np.linalg.eigh(res)
+        vals = np.clip(vals, 0.0, None)
+        res = np.einsum("nij,nj,nkj->nik", vecs, vals, vecs)
+        return res * self.settings.scale_factor**2
+
+
+def field_average_sigma(field: TipTiltField, half_width: float = 15.0, n: int = 11) -> float:
+    """Mean semi-major sigma (mas) over an n x n grid of the field (the paper's sigma_TT_ave)."""
+    g = np.linspace(-half_width, half_width, n)
+    gx, gy = np.meshgrid(g, g)
+    cov = field.covariance(gx.ravel(), gy.ravel())
+    return float(np.mean(np.sqrt(np.linalg.eigvalsh(cov)[:, -1])))

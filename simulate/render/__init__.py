@@ -1,0 +1,1 @@
+"""Rendering: per-star stamps, seeing-halo convolution, sky, detector and stacked frames."""

@@ -1,0 +1,267 @@
+"""``mavispm simulate frames``: render catalogue epochs into stacked frames.
+
+Stage interface (``docs/stages.md``): :func:`register`, :func:`validate_settings`
+and :func:`run_stage`. The scene (TOML, keys in ``docs/render.md``) defines the
+exposure, detector, photometry, accuracy knobs and the optics settings, which are
+passed to ``mavispm.simulate.optics.model``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tomllib
+import zlib
+from collections.abc import Mapping
+from pathlib import Path
+
+import astropy.units as u
+import numpy as np
+
+from mavispm.core.catalogue import Catalogue, read_catalogue
+from mavispm.core.config import to_mapping
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.products import write_product
+from mavispm.simulate.render.fits_output import write_frame_fits
+from mavispm.simulate.render.frame import Frame, make_renderer, render_frame
+from mavispm.simulate.render.scene import SceneSettings, scene_from_mapping
+
+FRAMES_KIND = "frames"
+
+
+def _optics_module():
+    try:
+        from mavispm.simulate.optics import model as optics
+    except ModuleNotFoundError as exc:  # pragma: no cover - depends on the build
+        raise ConfigError(
+            f"the optics model (mavispm.simulate.optics.model) is not available: {exc}",
+            key="optics",
+        ) from None
+    return optics
+
+
+def validate_settings(scene_mapping: Mapping | None, source=None) -> SceneSettings:
+    """Check a scene mapping (a TOML document) and return :class:`SceneSettings`.
+
+    The ``optics`` sub-table is checked by ``mavispm.simulate.optics.model.validate_settings``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the key: unknown keys, wrong types, inconsistent units, bad values.
+    """
+    scene = scene_from_mapping(scene_mapping, source=source)
+    _optics_module().validate_settings(scene.optics, source=source)
+    return scene
+
+
+def build_scene_optics(scene: SceneSettings, cache_dir=None, progress: bool = False):
+    """The optics model of a scene (``mavispm.simulate.optics.model.build_optics``).
+
+    Parameters
+    ----------
+    scene : SceneSettings
+    cache_dir : path, optional
+        PSF-grid cache folder (default: the optics module's default).
+    progress : bool
+        Progress bar while a PSF grid is computed.
+    """
+    optics = _optics_module()
+    settings = optics.validate_settings(scene.optics)
+    return optics.build_optics(settings, cache_dir=cache_dir, progress=progress)
+
+
+def plan_cache_dir(optics, cache_dir=None) -> Path | None:
+    """Folder for the renderer's stamp-plan cache: ``cache_dir``, else the PSF-grid cache's.
+
+    None (in memory only) when neither is known, e.g. for optics built in memory.
+    """
+    if cache_dir is not None:
+        return Path(cache_dir)
+    grid_file = getattr(optics, "cache_path", None)
+    return Path(grid_file).parent if grid_file is not None else None
+
+
+def epoch_rng(seed: int | None, epoch: str) -> np.random.Generator:
+    """Noise generator of one epoch: independent per epoch name, reproducible per seed."""
+    seed = 0 if seed is None else int(seed)
+    return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(epoch.encode())]))
+
+
+def _load_catalogue(catalogue) -> Catalogue:
+    if isinstance(catalogue, Catalogue):
+        return catalogue
+    return read_catalogue(catalogue)
+
+
+def _select_epoch(cat: Catalogue, epoch: str):
+    if epoch not in cat.epochs:
+        raise InputError(
+            f"epoch '{epoch}' not in the catalogue; available: {list(cat.epochs)}", path=cat.path
+        )
+    table = cat.epochs[epoch]
+    return table, u.Quantity(table.meta["epoch"], u.yr)
+
+
+def write_frame(
+    frame: Frame, output, scene: SceneSettings, cat: Catalogue, seed, fits_path=None
+) -> Path:
+    """Write a rendered frame as the ``frames`` product (and optionally FITS), atomically."""
+    attrs = dict(frame.attrs)
+    for key in ("distance", "ra_center", "dec_center"):
+        if key in cat.attrs:
+            attrs[key] = cat.attrs[key]
+    scene_map = to_mapping(scene)
+    attrs["scene"] = scene_map
+    if fits_path is not None:
+        write_frame_fits(fits_path, frame.image, attrs, scene_map, frame.saturated)
+    arrays = {"image": u.Quantity(frame.image, u.adu, copy=False), "saturated": frame.saturated}
+    if scene.save_noiseless:
+        arrays["noiseless"] = u.Quantity(frame.noiseless.astype(np.float32), u.electron)
+    return write_product(
+        output,
+        FRAMES_KIND,
+        tables={"truth": frame.truth},
+        arrays=arrays,
+        attrs=attrs,
+        config={"scene": scene_map},
+        seed=seed,
+    )
+
+
+def run_stage(
+    catalogue,
+    epoch: str,
+    scene,
+    output,
+    seed,
+    fits_path=None,
+    *,
+    optics=None,
+    renderer=None,
+    progress: bool = False,
+    cache_dir=None,
+) -> Path:
+    """Render one epoch of a catalogue into a ``frames`` product.
+
+    Parameters
+    ----------
+    catalogue : path or Catalogue
+        The cluster catalogue product.
+    epoch : str
+        Epoch table name ("e0", ...).
+    scene : mapping or SceneSettings
+        Scene settings (TOML mapping).
+    output : path
+        The frames HDF5 product (written atomically).
+    seed : int
+        Noise seed; each epoch draws independent noise from (seed, epoch name).
+    fits_path : path, optional
+        Also write the image as FITS.
+    optics : object, optional
+        A prebuilt optics model (default: built from ``scene.optics``).
+    renderer : StarRenderer, optional
+        Reuse cached PSF transforms across epochs.
+    progress : bool
+        Progress bars.
+    cache_dir : path, optional
+        PSF-grid cache folder for the optics model; the stamp plans (PSF-node
+        transforms) and the halo profile are cached there too, so the other
+        epochs of the scene, rendered by other calls or processes, reuse them.
+        Default: the folder of the PSF-grid cache file the optics came from
+        (``optics.cache_path``), or no disk cache when the optics have none.
+
+    Returns
+    -------
+    pathlib.Path
+        ``output``.
+    """
+    cat = _load_catalogue(catalogue)
+    settings = scene_from_mapping(scene)
+    table, t = _select_epoch(cat, epoch)
+    if optics is None:
+        optics = build_scene_optics(settings, cache_dir, progress)
+    if renderer is None:
+        renderer = make_renderer(optics, settings, plan_cache_dir(optics, cache_dir))
+    frame = render_frame(
+        table, t, settings, optics, epoch_rng(seed, epoch), renderer=renderer, progress=progress
+    )
+    return write_frame(frame, output, settings, cat, seed, fits_path)
+
+
+def _read_scene(path) -> tuple[dict, str]:
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError("scene file does not exist", path=path) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    if set(data) == {"scene"} and isinstance(data["scene"], dict):
+        data = data["scene"]
+    return data, str(path)
+
+
+def _handle(args: argparse.Namespace) -> int:
+    mapping, source = _read_scene(args.scene) if args.scene else ({}, None)
+    scene = validate_settings(mapping, source=source)
+    cat = read_catalogue(args.catalogue)
+    names = list(cat.epochs)
+    many = args.epoch == "all"
+    if many:
+        todo = names
+    elif args.epoch is not None:
+        todo = [args.epoch]
+    elif len(names) == 1:
+        todo = names
+    else:
+        raise InputError(
+            f"the catalogue has epochs {names}; choose one with --epoch or use --epoch all",
+            path=args.catalogue,
+        )
+    optics = build_scene_optics(scene, args.cache_dir, args.progress)
+    renderer = make_renderer(optics, scene, plan_cache_dir(optics, args.cache_dir))
+    for name in todo:
+        out = Path(args.output) / f"frames_{name}.h5" if many else Path(args.output)
+        fits_path = None
+        if args.fits_dir:
+            fits_path = Path(args.fits_dir) / f"frames_{name}.fits"
+        elif args.fits and not many:
+            fits_path = Path(args.fits)
+        run_stage(
+            cat,
+            name,
+            scene,
+            out,
+            args.seed,
+            fits_path,
+            optics=optics,
+            renderer=renderer,
+            progress=args.progress,
+        )
+        print(f"wrote {out}" + (f" and {fits_path}" if fits_path else ""))
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add the ``frames`` sub-command (``mavispm simulate frames``)."""
+    p = subparsers.add_parser(
+        "frames",
+        help="render catalogue epochs into stacked MAVIS frames",
+        description="Render one epoch (or all) of a cluster catalogue into a stacked frame "
+        "(HDF5 'frames' product, optional FITS).",
+    )
+    p.add_argument("catalogue", help="cluster catalogue product (HDF5)")
+    p.add_argument("--scene", help="scene TOML (keys: docs/render.md); defaults if omitted")
+    p.add_argument(
+        "--epoch", help="epoch name (e0, e1, ...) or 'all' (then -o is a folder)", default=None
+    )
+    p.add_argument("-o", "--output", required=True, help="frames product (or folder for 'all')")
+    p.add_argument("--fits", help="also write the image as this FITS file")
+    p.add_argument("--fits-dir", help="write FITS copies into this folder (frames_<epoch>.fits)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument(
+        "--cache-dir", help="PSF-grid and stamp-plan cache folder (default: the optics default)"
+    )
+    p.add_argument("--progress", action="store_true", help="show progress bars")
+    p.set_defaults(func=_handle)

@@ -1,0 +1,709 @@
+"""The star renderer: field-variable PSF x tip-tilt Gaussian, pixel-integrated, on stamps.
+
+Each star's image is computed in the Fourier domain on a small periodic stamp of
+``M x M`` detector pixels (``M`` even, chosen per star from its flux and the PSF
+wing; see :func:`stamp_sizes`)::
+
+    G(u) = [sum_n w_n P_n(u)]                     bilinear mix of the PSF-grid nodes
+           * exp(-2 pi^2 u^T C u)                 tip-tilt + blur Gaussian, covariance C
+           * sinc(u s_x) sinc(v s_y)              the detector pixel (box of side s)
+           * exp(-2 pi i u . d)                   the exact sub-pixel position d
+
+``P_n`` is the Fourier transform of PSF-grid node ``n`` at the stamp's frequencies
+(an FFT of the finely sampled PSF wrapped onto the stamp period when that period
+is a whole number of PSF pixels, a matrix DFT otherwise; both exact for a
+band-limited PSF); it is computed once per node and stamp size and cached, and
+bilinear interpolation in the field commutes with the transform. The pixel values
+are the samples of the pixel-integrated image at the pixel centres; to get them
+without aliasing, ``G`` is evaluated up to ``oversampling / (2 s)`` and folded
+(summed over its aliases) onto the stamp's ``M x M`` frequencies before one
+inverse real FFT. With an even ``oversampling`` >= 2 this is exact for any
+optical PSF whose transfer function vanishes beyond ``1/s`` (MAVIS: D/lambda =
+0.07 cycles/mas < 1/7.5 mas); ``oversampling = 1`` ignores aliasing (faster,
+less accurate). Stars are batched by stamp size and transformed together.
+
+The light of a star that falls beyond its stamp wraps around inside it, so every
+stamp holds exactly the star's flux; the stamp is sized so that the wing at its
+edge is below ``stamp_threshold`` times the per-pixel noise.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import scipy.fft
+
+from mavispm.core.array_cache import content_key, load_arrays, save_arrays
+from mavispm.simulate.render.stamp_kernels import (
+    add_stamps,
+    binned_max,
+    mix_kernel_fold,
+    wrap_2d_into,
+)
+
+#: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
+FLOAT32_ROUNDOFF = 3e-8
+
+#: A stamp plan keeps spectrum samples this many decades below ``spectrum_floor``,
+#: for the lower floors of bright-star batches.
+PLAN_FLOOR_DECADES = 4
+
+#: Stamp centres round positions up from this far below a half pixel (see stamp_centre).
+STAMP_CENTRE_BIAS = 1e-7
+
+#: Version of the stamp-plan computation (part of the disk-cache key).
+PLAN_CACHE_VERSION = 2
+
+#: Even stamp sizes with prime factors 2, 3, 5, 7 (fast FFTs), about 15-25 % apart.
+STAMP_SIZES = (8, 12, 16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 112, 128, 160, 192, 224, 256)
+STAMP_SIZES += (320, 384, 448, 512)
+
+
+@dataclass(frozen=True)
+class RenderParams:
+    """Accuracy / speed knobs of the renderer in one place (TOML table ``[render]``).
+
+    In the spirit of GalSim's ``GSParams``: every trade of run time against error
+    is made here.
+
+    Attributes
+    ----------
+    oversampling : int
+        Frequency oversampling of the stamp spectra before folding (1 = no alias
+        correction, fastest; 2 = exact for MAVIS PSFs at 7.5 mas, default).
+    stamp_threshold : float
+        A star's stamp extends until its PSF wing falls below this fraction of the
+        per-pixel noise sigma of the stack (default 0.05).
+    min_stamp, max_stamp : int
+        Bounds on the stamp side in pixels (``max_stamp = 0``: from the PSF-grid
+        extent plus the tip-tilt kernel, beyond which the core PSF has no light).
+    halo : bool
+        Render the seeing halo (the light beyond the AO control radius) when the
+        optics provides one.
+    halo_downsample : int
+        The halo convolution runs on pixels this many times larger and is
+        interpolated back (0 = automatic: about 8 pixels per AO control radius).
+    psf_interpolation : {"bilinear", "nearest"}
+        How the PSF grid is interpolated to a star's position.
+    dtype : {"float32", "float64"}
+        Precision of the spectra and stamps (float32, the default, halves memory and
+        time at ~1e-6 relative error).
+    batch_size : int
+        Stars transformed together (memory ~ batch_size x stamp spectrum).
+    spectrum_floor : float
+        Spectrum samples where every PSF node's transfer function, times the
+        narrowest tip-tilt/blur kernel of the batch, is below this fraction of the
+        total are dropped (the OTF vanishes beyond D/lambda; default 1e-5).
+    threads : int
+        Threads for stamp batches, the noise draw and the halo FFT (0: all cores).
+        Results do not depend on it.
+    gaussian_skew_limit : float
+        Photon + read noise of the stack is drawn as a Gaussian with the exact mean
+        and variance where its skewness is below this value, and exactly
+        (Poisson + Gaussian) where it reaches ``poisson_skew_limit`` (0 = always
+        exact, slower).
+    poisson_skew_limit : float
+        Between ``gaussian_skew_limit`` and this skewness the stack noise is a
+        skew-corrected Gaussian (exact mean and variance, skewness to ``O(g**3)``,
+        see ``detector.skewed_normal``); from it up, exact Poisson + Gaussian. The
+        largest skewness of the default MAVIS stack (120 x 30 s, 3 e- read noise)
+        is 0.012, so the default 0.1 draws no Poisson variates there. With
+        ``gaussian_skew_limit = 0`` every pixel is drawn exactly.
+    """
+
+    oversampling: int = 2
+    stamp_threshold: float = 0.05
+    min_stamp: int = 16
+    max_stamp: int = 0
+    halo: bool = True
+    halo_downsample: int = 0
+    psf_interpolation: Literal["bilinear", "nearest"] = "bilinear"
+    dtype: Literal["float64", "float32"] = "float32"
+    batch_size: int = 512
+    spectrum_floor: float = 1e-5
+    gaussian_skew_limit: float = 0.01
+    poisson_skew_limit: float = 0.1
+    threads: int = 0
+
+    def __post_init__(self):
+        if self.oversampling < 1:
+            raise ValueError(f"render.oversampling must be >= 1, got {self.oversampling}")
+        if not self.stamp_threshold > 0:
+            raise ValueError(f"render.stamp_threshold must be > 0, got {self.stamp_threshold}")
+        if self.min_stamp < 2 or self.min_stamp % 2:
+            raise ValueError(f"render.min_stamp must be even and >= 2, got {self.min_stamp}")
+        if self.max_stamp and (self.max_stamp < self.min_stamp or self.max_stamp % 2):
+            raise ValueError("render.max_stamp must be 0 or an even number >= render.min_stamp")
+        if self.halo_downsample < 0:
+            raise ValueError("render.halo_downsample must be >= 0")
+        if not 0 <= self.spectrum_floor < 1:
+            raise ValueError("render.spectrum_floor must be in [0, 1)")
+        if self.gaussian_skew_limit < 0:
+            raise ValueError("render.gaussian_skew_limit must be >= 0")
+        if self.poisson_skew_limit < 0:
+            raise ValueError("render.poisson_skew_limit must be >= 0")
+        if self.threads < 0:
+            raise ValueError("render.threads must be >= 0 (0: all cores)")
+        if self.batch_size < 1:
+            raise ValueError("render.batch_size must be >= 1")
+
+
+@dataclass
+class StampPlan:
+    """Everything about one stamp size that does not depend on the star (cached).
+
+    Attributes
+    ----------
+    m : int
+        Stamp side (pixels).
+    u, v : ndarray (nsup,)
+        Spatial frequencies (cycles/mas) of the retained spectrum samples: those
+        where some PSF node's transfer function exceeds the plan floor.
+    col, row : ndarray (nsup,) int
+        Their column/row in the separable frequency axes ``fx``/``fy``.
+    fx, fy : ndarray
+        Integer frequency axes (see :func:`_folding_frequencies`).
+    transforms : ndarray (n_nodes, nsup) complex
+        Node transforms times the pixel transfer function at the retained samples.
+    peak : ndarray (nsup,)
+        Largest node transfer-function modulus at each retained sample (relative to 1).
+    target : ndarray (nsup,) int
+        Index of each sample's alias among the stamp's flattened rfft2
+        frequencies ``(m, m//2+1)``: folding sums the samples onto it.
+    """
+
+    m: int
+    u: np.ndarray
+    v: np.ndarray
+    col: np.ndarray
+    row: np.ndarray
+    fx: np.ndarray
+    fy: np.ndarray
+    transforms: np.ndarray
+    peak: np.ndarray
+    target: np.ndarray
+
+
+def _stamp_size_at_least(n: int, floor: int) -> int:
+    """Smallest tabulated stamp size >= max(n, floor) (or the next even number)."""
+    n = max(int(np.ceil(n)), floor)
+    for size in STAMP_SIZES:
+        if size >= n:
+            return size
+    return n + (n % 2)
+
+
+def _folding_frequencies(m: int, k: int):
+    """Integer frequencies (units of 1/(m s)) evaluated for a stamp of side ``m``.
+
+    Returns
+    -------
+    fy : ndarray (k*m,)
+        Row frequencies in FFT order of a length ``k*m`` transform; folding is
+        ``reshape(k, m).sum(0)``.
+    fx : ndarray (k*(m//2+1),)
+        Column frequencies ``c + j m`` (fft order of length ``k*m``) for output rfft
+        columns ``c = 0..m/2``, laid out ``(k, m//2+1)``; folding sums over ``k``.
+    """
+    n = k * m
+    fy = np.fft.fftfreq(n, 1.0 / n)
+    cols = np.arange(m // 2 + 1)
+    idx = (cols[None, :] + m * np.arange(k)[:, None]).ravel()
+    fx = np.where(idx < n / 2, idx, idx - n).astype(float)
+    return fy, fx
+
+
+class StarRenderer:
+    """Renders point sources through a PSF grid onto a detector image.
+
+    Parameters
+    ----------
+    psf_grid : object
+        The optics PSF grid: ``cube`` (n_nodes_y, n_nodes_x, n, n) each summing to 1
+        with the optical axis at the central pixel, ``pixel_scale`` (mas per PSF pixel),
+        ``bilinear_weights(x, y) -> (iy, ix, w)`` for positions in arcsec.
+    pixel_scale : float
+        Detector pixel size, mas.
+    params : RenderParams
+    cache_dir : path, optional
+        Folder where the stamp plans (node transforms) are also kept on disk, keyed by
+        the PSF cube, the pixel scales and the knobs they depend on, so that other
+        processes rendering the same scene (e.g. the other epochs of a workflow)
+        load them instead of recomputing them. None: in memory only.
+
+    Notes
+    -----
+    Node transforms are cached per stamp size on the instance: reuse one renderer
+    for all epochs of a scene (or give every renderer the same ``cache_dir``).
+    """
+
+    def __init__(
+        self, psf_grid, pixel_scale: float, params: RenderParams | None = None, cache_dir=None
+    ):
+        self.psf_grid = psf_grid
+        self.pixel_scale = float(pixel_scale)
+        self.params = params or RenderParams()
+        cube = np.asarray(psf_grid.cube, dtype=np.float64)
+        if cube.ndim != 4 or cube.shape[2] != cube.shape[3] or cube.shape[2] % 2 == 0:
+            raise ValueError(
+                f"PSF grid cube must have shape (ny, nx, n, n) with n odd, got {cube.shape}"
+            )
+        self.n_nodes_y, self.n_nodes_x, n, _ = cube.shape
+        self._cube = cube.reshape(-1, n, n)
+        self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
+        self._plans: dict[int, StampPlan] = {}
+        self._envelope = _wing_envelope(self._cube, self.psf_pixel_scale, self.pixel_scale)
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self._cache_key = None
+        if self.cache_dir is not None:
+            p = self.params
+            self._cache_key = content_key(
+                PLAN_CACHE_VERSION,
+                [
+                    self.psf_pixel_scale,
+                    self.pixel_scale,
+                    p.oversampling,
+                    p.spectrum_floor,
+                    PLAN_FLOOR_DECADES,
+                ],
+                self._cube,
+            )
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def psf_extent_pixels(self) -> float:
+        """Side of the PSF-grid stamps in detector pixels."""
+        return self._cube.shape[-1] * self.psf_pixel_scale / self.pixel_scale
+
+    def max_stamp(self, max_sigma_mas: float = 0.0) -> int:
+        """Largest stamp side needed: the PSF extent plus the kernel, in pixels."""
+        if self.params.max_stamp:
+            return self.params.max_stamp
+        need = self.psf_extent_pixels + 2 * (5 * max_sigma_mas / self.pixel_scale + 1)
+        return _stamp_size_at_least(need, self.params.min_stamp)
+
+    def stamp_sizes(
+        self, flux, noise_sigma: float, sigma_mas, x_field=None, y_field=None
+    ) -> np.ndarray:
+        """Stamp side per star: where the wing falls below ``stamp_threshold * noise_sigma``.
+
+        Parameters
+        ----------
+        flux : ndarray (N,)
+            Star fluxes, in the units of ``noise_sigma``.
+        noise_sigma : float
+            Per-pixel noise sigma of the frame (same units); <= 0 gives maximal stamps.
+        sigma_mas : ndarray (N,)
+            Largest standard deviation of each star's kernel (mas).
+        x_field, y_field : ndarray (N,), optional
+            Field positions (arcsec): the wing envelope is then the largest of the
+            star's interpolation nodes, otherwise of all nodes.
+        """
+        flux = np.asarray(flux, dtype=float)
+        sigma_mas = np.broadcast_to(np.asarray(sigma_mas, dtype=float), flux.shape)
+        biggest = self.max_stamp(float(np.max(sigma_mas, initial=0.0)))
+        if noise_sigma <= 0:
+            return np.full(flux.shape, biggest, dtype=int)
+        radii, env_nodes = self._envelope
+        level = self.params.stamp_threshold * noise_sigma / np.maximum(flux, 1e-300)
+        # index of the first envelope radius at or below the level (env non-increasing)
+        if x_field is None or len(flux) == 0:
+            pos = np.searchsorted(-env_nodes.max(axis=0), -level, side="left")
+        else:
+            node, w = self._node_weights(x_field, y_field)
+            pos = np.zeros(len(flux), dtype=np.int64)
+            for k in range(node.shape[1]):
+                for n in np.unique(node[:, k]):
+                    sel = np.flatnonzero((node[:, k] == n) & (w[:, k] > 0))
+                    here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
+                    pos[sel] = np.maximum(pos[sel], here)
+        radius_pix = radii[np.minimum(pos, len(radii) - 1)]
+        half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
+        sizes = np.array(
+            [_stamp_size_at_least(2 * h, self.params.min_stamp) for h in half], dtype=int
+        )
+        return np.minimum(sizes, biggest)
+
+    # ------------------------------------------------------------- transforms
+    def plan(self, m: int) -> StampPlan:
+        """The cached :class:`StampPlan` of stamp side ``m`` (node transforms etc.).
+
+        The node transforms are the exact transforms of each PSF node at the
+        stamp's folding frequencies: FFTs of the node wrapped onto the stamp period
+        when that period is a whole number of PSF pixels (7.5 mas / 1.875 mas), a
+        direct (matrix) DFT for any other sampling; only samples where
+        some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
+        kept (the optical transfer function vanishes beyond D/lambda).
+        """
+        return self.plans([m])[m]
+
+    def plans(self, sizes) -> dict[int, StampPlan]:
+        """The :class:`StampPlan` of every stamp side in ``sizes``, computed together.
+
+        Plans missing from memory are loaded from ``cache_dir`` or computed; stamp
+        periods that divide one another (same odd factor, e.g. 128, 64, 32 pixels)
+        share one FFT per PSF node (see :func:`_node_transforms_fft`).
+        """
+        missing = sorted({int(m) for m in sizes} - set(self._plans))
+        todo = []
+        for m in missing:
+            stored = load_arrays(self._plan_path(m)) if self.cache_dir is not None else None
+            if stored is not None and set(stored) == {f.name for f in fields(StampPlan)}:
+                stored["m"] = int(stored["m"])
+                self._plans[m] = StampPlan(**stored)
+            else:
+                todo.append(m)
+        for plan in self._make_plans(todo):
+            self._plans[plan.m] = plan
+            if self.cache_dir is not None:
+                arrays = {f.name: np.asarray(getattr(plan, f.name)) for f in fields(plan)}
+                save_arrays(self._plan_path(plan.m), arrays)
+        return {int(m): self._plans[int(m)] for m in sizes}
+
+    def _plan_path(self, m: int) -> Path:
+        return self.cache_dir / f"stampplan-{self._cache_key}-m{m}.npz"
+
+    def _make_plans(self, sizes):
+        """Compute the plans of ``sizes`` (yields them one by one)."""
+        k = self.params.oversampling
+        s = self.pixel_scale
+        periodic = {}  # odd factor of the period -> [(m, period, fy, fx)]
+        for m in sizes:
+            fy, fx = _folding_frequencies(m, k)
+            period = m * s / self.psf_pixel_scale  # stamp period in PSF pixels
+            if abs(period - round(period)) < 1e-9 * period:
+                p = int(round(period))
+                periodic.setdefault(p // (p & -p), []).append((m, p, fy, fx))
+            else:
+                step = self.psf_pixel_scale / (m * s)
+                yield self._plan_from(m, fy, fx, _node_transforms_dft(self._cube, step, fy, fx))
+        for group in periodic.values():
+            requests = [(p, fy, fx) for _, p, fy, fx in group]
+            workers = self.params.threads or os.cpu_count() or 1
+            full = _node_transforms_fft(self._cube, requests, workers=workers)
+            for (m, _, fy, fx), transforms in zip(group, full):
+                yield self._plan_from(m, fy, fx, transforms)
+
+    def _plan_from(self, m: int, fy, fx, full) -> StampPlan:
+        """The plan of side ``m`` from the node transforms ``full`` (nodes, nfy, nfx)."""
+        s = self.pixel_scale
+        df = 1.0 / (m * s)  # cycles/mas per integer frequency
+        full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
+        peak = np.abs(full).max(axis=0)
+        peak /= peak.max()
+        # keep PLAN_FLOOR_DECADES below the floor: bright-star batches use lower floors
+        keep = peak > self.params.spectrum_floor * 10.0**-PLAN_FLOOR_DECADES
+        row, col = np.nonzero(keep)
+        mh = m // 2 + 1
+        target = (row % m) * mh + (col % mh)
+        return StampPlan(
+            m=m,
+            u=fx[col] * df,
+            v=fy[row] * df,
+            col=col,
+            row=row,
+            fx=fx,
+            fy=fy,
+            transforms=np.ascontiguousarray(full[:, row, col]),
+            peak=peak[row, col],
+            target=target.astype(np.int64),
+        )
+
+    def _node_weights(self, x, y):
+        iy, ix, w = self.psf_grid.bilinear_weights(x, y)
+        iy = np.asarray(iy, dtype=np.int64)
+        ix = np.asarray(ix, dtype=np.int64)
+        w = np.asarray(w, dtype=np.float64)
+        node = iy * self.n_nodes_x + ix
+        if self.params.psf_interpolation == "nearest":
+            best = np.argmax(w, axis=1)
+            rows = np.arange(len(w))
+            node = node[rows, best][:, None]
+            w = np.ones((len(w), 1))
+        return node, w
+
+    # ----------------------------------------------------------------- stamps
+    def render_stamps(
+        self, m: int, x_pix, y_pix, x_field, y_field, cov, flux, floor=None, dtype=None
+    ):
+        """Noise-free stamps of side ``m`` for a batch of stars.
+
+        Parameters
+        ----------
+        m : int
+            Stamp side (even).
+        x_pix, y_pix : ndarray (S,)
+            Exact star positions in detector pixels (0-based, centres at integers).
+        x_field, y_field : ndarray (S,)
+            Field positions (arcsec) used to interpolate the PSF grid.
+        cov : ndarray (S, 2, 2)
+            Kernel covariance (tip-tilt + blur), mas^2, [[xx, xy], [xy, yy]].
+        flux : ndarray (S,)
+            Star fluxes.
+        floor : float, optional
+            Spectrum floor (default ``params.spectrum_floor``).
+        dtype : {"float32", "float64"}, optional
+            Precision (default ``params.dtype``).
+
+        Returns
+        -------
+        stamps : ndarray (S, m, m)
+            Pixel values; ``stamps[i]`` covers rows ``y0[i]..y0[i]+m-1`` and
+            columns ``x0[i]..x0[i]+m-1``; each sums to ``flux[i]``.
+        x0, y0 : ndarray (S,) int
+            Detector pixel of each stamp's corner ``[0, 0]``.
+        """
+        s = self.pixel_scale
+        x_pix = np.asarray(x_pix, dtype=np.float64)
+        y_pix = np.asarray(y_pix, dtype=np.float64)
+        ixc = stamp_centre(x_pix)
+        iyc = stamp_centre(y_pix)
+        # offset of the star from stamp pixel 0, in mas (star sits at stamp index m/2)
+        dx = (x_pix - ixc) * s + m * s / 2
+        dy = (y_pix - iyc) * s + m * s / 2
+        plan = self.plan(m)
+        df = 1.0 / (m * s)
+        nst = len(x_pix)
+        floor = self.params.spectrum_floor if floor is None else floor
+        real = np.float32 if (dtype or self.params.dtype) == "float32" else np.float64
+        cplx = np.complex64 if real is np.float32 else np.complex128
+        cov = np.asarray(cov, dtype=np.float64)
+        # drop samples the batch's narrowest kernel suppresses below the floor
+        sig2_min = max(float(np.linalg.eigvalsh(cov)[:, 0].min(initial=np.inf)), 0.0)
+        damp = plan.peak * np.exp(-2.0 * np.pi**2 * sig2_min * (plan.u**2 + plan.v**2))
+        sel = np.flatnonzero(damp > floor)
+        u, v = plan.u[sel], plan.v[sel]
+        node, w = self._node_weights(x_field, y_field)
+        # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
+        coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
+        phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
+        phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
+        folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
+        mix_kernel_fold(
+            np.ascontiguousarray(plan.transforms[:, sel], dtype=cplx), node,
+            np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
+            u.astype(real), v.astype(real), phx, phy, plan.col[sel], plan.row[sel],
+            plan.target[sel], folded,
+        )  # fmt: skip
+        folded = folded.reshape(nst, m, m // 2 + 1)
+        stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
+        stamps *= np.asarray(flux, dtype=np.float64)[:, None, None].astype(stamps.dtype)
+        return stamps.astype(real, copy=False), ixc - m // 2, iyc - m // 2
+
+    def render(
+        self,
+        image,
+        x_pix,
+        y_pix,
+        x_field,
+        y_field,
+        cov,
+        flux,
+        sizes,
+        noise_sigma=None,
+        progress=False,
+    ):
+        """Add stars to ``image`` in place (noise-free), batched by stamp size.
+
+        Parameters
+        ----------
+        image : ndarray (ny, nx)
+            Accumulator; stamps are clipped at its edges.
+        x_pix, y_pix, x_field, y_field, cov, flux
+            As in :meth:`render_stamps`, for all stars.
+        sizes : ndarray (N,) int
+            Stamp side per star (see :meth:`stamp_sizes`); stars with size 0 or
+            zero flux, or whose stamp misses the image, are skipped.
+        noise_sigma : float, optional
+            Per-pixel noise (flux units). When given, batches of bright stars use a
+            spectrum floor and a precision whose errors stay below
+            ``stamp_threshold * noise_sigma`` (float64 where float32 round-off would not).
+        progress : bool
+            Show a tqdm progress bar.
+
+        Returns
+        -------
+        ndarray (N,) bool
+            Which stars were rendered (their stamp overlaps the image).
+        """
+        ny, nx = image.shape
+        sizes = np.asarray(sizes, dtype=np.int64)
+        x_pix = np.asarray(x_pix, dtype=np.float64)
+        y_pix = np.asarray(y_pix, dtype=np.float64)
+        flux = np.asarray(flux, dtype=np.float64)
+        x_field = np.asarray(x_field, dtype=np.float64)
+        y_field = np.asarray(y_field, dtype=np.float64)
+        cov = np.asarray(cov, dtype=np.float64)
+        half = sizes // 2
+        cx, cy = stamp_centre(x_pix), stamp_centre(y_pix)
+        overlaps = (cx + half > 0) & (cx - half < nx) & (cy + half > 0) & (cy - half < ny)
+        todo = overlaps & (sizes > 0) & (flux > 0)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=int(todo.sum()), desc="stars", unit="star", leave=False)
+        batch = self.params.batch_size
+        jobs = []
+        for m in np.unique(sizes[todo]):
+            idx = np.flatnonzero(todo & (sizes == m))
+            idx = idx[np.argsort(flux[idx], kind="stable")]
+            for a in range(0, len(idx), batch):
+                sel = idx[a : a + batch]  # similar fluxes (one floor/precision per batch),
+                # added in row order: neighbouring stamps share cached image rows
+                jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))]))
+
+        def work(job):
+            m, sel = job
+            floor, dtype = self._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            return self.render_stamps(
+                m,
+                x_pix[sel],
+                y_pix[sel],
+                x_field[sel],
+                y_field[sel],
+                cov[sel],
+                flux[sel],
+                floor=floor,
+                dtype=dtype,
+            )
+
+        self.plans({m for m, _ in jobs})  # build plans once, before the threads share them
+        threads = self.params.threads or os.cpu_count() or 1
+        with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
+            # at most 2 batches per thread in flight (bounded memory); stamps are added
+            # in job order, so the image does not depend on the number of threads
+            pending = deque()
+            for job in jobs:
+                pending.append((job, pool.submit(work, job)))
+                if len(pending) >= 2 * max(threads, 1):
+                    self._add_done(image, pending.popleft(), bar)
+            while pending:
+                self._add_done(image, pending.popleft(), bar)
+        if bar is not None:
+            bar.close()
+        return overlaps
+
+    @staticmethod
+    def _add_done(image, item, bar) -> None:
+        """Wait for one batch of stamps and add it to the image."""
+        (_, sel), future = item
+        stamps, x0, y0 = future.result()
+        add_stamps(image, stamps, x0, y0)
+        if bar is not None:
+            bar.update(len(sel))
+
+    def _batch_accuracy(self, flux_max: float, noise_sigma) -> tuple[float, str]:
+        """Spectrum floor and precision keeping a batch's errors below the threshold."""
+        floor, dtype = self.params.spectrum_floor, self.params.dtype
+        if noise_sigma is None or noise_sigma <= 0 or flux_max <= 0:
+            return floor, dtype
+        allowed = self.params.stamp_threshold * noise_sigma / flux_max
+        if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
+            dtype = "float64"
+        return min(floor, allowed), dtype
+
+
+def stamp_centre(pix) -> np.ndarray:
+    """The pixel a star's stamp is centred on: its position rounded, halves up.
+
+    A star exactly on a pixel boundary (``k + 0.5``) lands there only up to the
+    round-off of the frame-centre offset ``(n - 1) / 2``, which differs between
+    frame sizes; the boundary is therefore moved ``STAMP_CENTRE_BIAS`` pixels below
+    the half, so that such a star gets the same stamp, offset by the same whole
+    number of pixels, in every frame (the stamp is periodic: its centre pixel only
+    decides which copy of the wing is kept, not where the star is).
+    """
+    return np.floor(np.asarray(pix, dtype=np.float64) + (0.5 + STAMP_CENTRE_BIAS)).astype(np.int64)
+
+
+def _node_transforms_dft(cube, step: float, fy, fx) -> np.ndarray:
+    """Direct DFT of every PSF node at integer frequencies ``fy`` x ``fx``.
+
+    ``step`` is the frequency unit times the PSF pixel (cycles per PSF pixel);
+    the optical axis is the central PSF pixel. Returns (nodes, nfy, nfx) complex.
+    """
+    nodes, n, _ = cube.shape
+    offsets = np.arange(n) - (n - 1) / 2  # PSF pixels
+    arg_x = -2.0 * np.pi * step * np.outer(offsets, fx)  # (n, nfx)
+    # stage 1 over PSF columns: two real GEMMs for all nodes at once
+    flat = cube.reshape(nodes * n, n)
+    half = (flat @ np.cos(arg_x)) + 1j * (flat @ np.sin(arg_x))  # (nodes*n, nfx)
+    half = half.reshape(nodes, n, len(fx))
+    ey = np.exp(-2j * np.pi * step * np.outer(fy, offsets))  # (nfy, n)
+    return np.matmul(ey[None], half)
+
+
+def _node_transforms_fft(cube, requests, chunk: int = 8, workers: int = 1) -> list[np.ndarray]:
+    """Same as :func:`_node_transforms_dft` for stamp periods of whole PSF pixels.
+
+    ``requests`` is a list of ``(period, fy, fx)`` (period in PSF pixels) whose
+    periods all divide the largest, ``B``. The DFT at frequencies ``q / period`` of
+    a finely sampled PSF equals the FFT of that PSF wrapped (summed) onto ``period``
+    samples with the optical axis at 0, and also the FFT of it wrapped onto ``B``
+    samples taken at every ``B / period``-th frequency, so one FFT per node serves
+    every request; this is exact, not an approximation. Nodes are done a few at a
+    time. Returns one (nodes, len(fy), len(fx)) complex array per request.
+    """
+    nodes = cube.shape[0]
+    base = max(int(p) for p, _, _ in requests)
+    outs, picks = [], []
+    for period, fy, fx in requests:
+        if base % int(period):
+            raise ValueError(f"stamp period {period} does not divide {base}")
+        step = base // int(period)
+        iy = (np.asarray(fy, dtype=np.int64) % period) * step
+        ix = (np.asarray(fx, dtype=np.int64) % period) * step
+        # the nodes are real: rfft along x, negative frequencies by conjugate symmetry
+        picks.append((iy, np.minimum(ix, base - ix), ix > base - ix))
+        outs.append(np.empty((nodes, len(fy), len(fx)), dtype=np.complex128))
+    for a in range(0, nodes, chunk):
+        block = cube[a : a + chunk]
+        wrapped = np.zeros((len(block), base, base))
+        wrap_2d_into(block, base, wrapped)
+        spec = scipy.fft.rfft2(wrapped, workers=workers)  # (c, B, B // 2 + 1)
+        for out, (iy, ax, neg) in zip(outs, picks):
+            sel = spec[:, iy][:, :, ax]
+            # T(ky, -kx) = conj T(-ky, kx) for a real node
+            sel[..., neg] = spec[:, (base - iy) % base][:, :, ax[neg]].conj()
+            out[a : a + chunk] = sel
+    return outs
+
+
+def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
+    """Radial envelope of each PSF node in detector-pixel units.
+
+    Returns
+    -------
+    radii : ndarray (nr,)
+        Radii in detector pixels (0, 0.5, 1, ...).
+    env : ndarray (n_nodes, nr)
+        Upper bound of the fraction of a star's flux in one detector pixel at or
+        beyond each radius, per node, non-increasing in radius.
+    """
+    n = cube.shape[-1]
+    c = (n - 1) / 2
+    yy, xx = np.mgrid[0:n, 0:n]
+    r_pix = np.hypot(xx - c, yy - c).ravel() * psf_scale / pixel_scale
+    radii = np.arange(0.0, r_pix.max() + 1.0, 0.5)
+    # bin k holds the samples with radii[k] <= r < radii[k + 1]; the envelope at
+    # radii[k] is the largest bin maximum at or beyond k
+    bins = np.minimum(np.floor(r_pix / 0.5).astype(np.int64), len(radii) - 1)
+    bin_max = np.zeros((len(cube), len(radii)))
+    binned_max(cube.reshape(len(cube), -1), bins, len(radii), bin_max)
+    env = np.maximum.accumulate(bin_max[:, ::-1], axis=1)[:, ::-1]
+    # a detector pixel holds about (s/p)^2 PSF samples; clip so it never exceeds 1
+    return radii, np.minimum(env * (pixel_scale / psf_scale) ** 2, 1.0)
+
+
+def _value(q, unit: str) -> float:
+    """Float value of a Quantity in ``unit``, or the number itself."""
+    if hasattr(q, "to_value"):
+        return q.to_value(unit)
+    return q
