@@ -148,7 +148,9 @@ def knob_table(optics, quick: bool):
         ("oversampling=1", RenderParams(oversampling=1)),
         ("oversampling=4", RenderParams(oversampling=4)),
         ("dtype=float64", RenderParams(dtype="float64")),
+        ("stamp_threshold=0.2", RenderParams(stamp_threshold=0.2)),
         ("stamp_threshold=0.5", RenderParams(stamp_threshold=0.5)),
+        ("stamp_threshold=1", RenderParams(stamp_threshold=1.0)),
         ("stamp_threshold=0.005", RenderParams(stamp_threshold=0.005)),
         ("spectrum_floor=1e-3", RenderParams(spectrum_floor=1e-3)),
         ("spectrum_floor=1e-7", RenderParams(spectrum_floor=1e-7)),
@@ -403,6 +405,10 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     scene_file.write_text(_toml(scene_map))
     plan_cache = cache / "mavispm-cache"
     env = dict(os.environ)
+    # one BLAS thread for both: MAVISIM's einsum calls run on multi-threaded OpenBLAS,
+    # whose spinning threads about double its CPU time on 2 cores (measured)
+    for key in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env[key] = "1"
     env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p and p != str(ROOT / "tests"))
     here = Path(__file__).resolve().parent
     print(f"\n3. MAVISIM {MAVISIM_VERSION} (pip package, {py}) against `mavispm simulate frames`")
@@ -411,6 +417,8 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     print('   2x2, cropped to 30"), mavispm with every term on (PSF grid, TT + blur,')
     print(f"   distortion, halo, sky, photon + read noise, 120 x 30 s); warm caches; best of "
           f"{repeats} alternating runs")  # fmt: skip
+    print("   one BLAS thread (OPENBLAS_NUM_THREADS=1: MAVISIM's cheapest setting); mavispm")
+    print("   renders on all cores; CPU = user + sys of the process, all threads")
     print(f"   load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     rows = []
     for n in counts:
@@ -425,7 +433,7 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
         ours, theirs = [], []
         for _ in range(repeats):
             if run_mavisim:
-                theirs.append(whole_process(cmd_theirs))
+                theirs.append(whole_process(cmd_theirs, env))
             ours.append(whole_process(cmd_ours, env))
         # in-process: MAVISIM after its imports; mavispm render_frame with a warm renderer
         in_theirs = None
@@ -493,6 +501,11 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="smaller runs (development)")
     ap.add_argument("--real-optics", action="store_true", help="use mavispm.simulate.optics.model")
     ap.add_argument(
+        "--mavisim-psfs",
+        action="store_true",
+        help="use the optics of the MAVISIM comparison (its 256 px PSF database, every term on)",
+    )
+    ap.add_argument(
         "--only", choices=["knobs", "halo", "scaling", "mavisim"], help="run one section"
     )
     ap.add_argument("--stars", type=int, nargs="+", help="star counts of the MAVISIM comparison")
@@ -511,7 +524,15 @@ def main(argv=None):
     if args.only == "mavisim":
         mavisim_comparison(args.quick, args.stars, args.repeats, args.mavisim_max, args.cache)
         return
-    optics = real_optics() if args.real_optics else fake_optics()
+    if args.mavisim_psfs:
+        from mavispm.simulate.render import cli as render_cli
+
+        cache = args.cache or default_cache()
+        psfs = write_mavisim_psfs(cache / "mavisim_psfs_256_3.75mas.fits")
+        scene = scene_from_mapping(bench_scene(psfs))
+        optics = render_cli.build_scene_optics(scene, cache / "mavispm-cache")
+    else:
+        optics = real_optics() if args.real_optics else fake_optics()
     g = optics.psf_grid
     print(f"PSF grid {g.cube.shape} at {g.pixel_scale} mas; detector 7.5 mas")
     if args.only in (None, "knobs"):
