@@ -258,7 +258,6 @@ class StarRenderer:
         self._cube = cube.reshape(-1, n, n)
         self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
         self._plans: dict[int, StampPlan] = {}
-        self._envelope = _wing_envelope(self._cube, self.psf_pixel_scale, self.pixel_scale)
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._cache_key = None
         if self.cache_dir is not None:
@@ -274,6 +273,20 @@ class StarRenderer:
                 ],
                 self._cube,
             )
+        self._envelope = self._cached_envelope()
+
+    def _cached_envelope(self):
+        """:func:`_wing_envelope` of the cube, kept in ``cache_dir`` next to the stamp plans."""
+        path = None
+        if self.cache_dir is not None:
+            path = self.cache_dir / f"stampenv-{self._cache_key}.npz"
+            stored = load_arrays(path)
+            if stored is not None and set(stored) == {"radii", "env"}:
+                return np.asarray(stored["radii"]), np.asarray(stored["env"])
+        radii, env = _wing_envelope(self._cube, self.psf_pixel_scale, self.pixel_scale)
+        if path is not None:
+            save_arrays(path, {"radii": radii, "env": env})
+        return radii, env
 
     # ------------------------------------------------------------------ sizes
     @property
