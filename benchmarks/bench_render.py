@@ -1,4 +1,4 @@
-"""Benchmark the frame renderer: accuracy knobs, cost vs star count, MAVISIM 1.1 reference.
+"""Benchmark the frame renderer: accuracy knobs, cost vs star count, the published MAVISIM.
 
 Run ``python benchmarks/bench_render.py [--quick]`` from the repository root (with
 ``PYTHONPATH=.dev``). It prints
@@ -9,11 +9,16 @@ Run ``python benchmarks/bench_render.py [--quick]`` from the repository root (wi
 2. time and peak memory (tracemalloc) against the number of stars for a full
    4000 x 4000 frame with every term on (field-variable PSF, tip-tilt, distortion,
    halo, sky, photon + read noise, 120 x 30 s stack);
-3. the MAVISIM 1.1 approach re-implemented faithfully (per star: bilinear PSF on
-   its fine grid, FFT convolution with the sub-pixel-shifted tip-tilt Gaussian
-   sampled on the same grid, block-summed to detector pixels), noise-free, on the
-   same catalogue and PSF grid: time per star, extrapolated frame time, speed-up,
-   and the difference between the two renderings.
+3. the published MAVISIM 1.1.20 against ``mavispm simulate frames`` on the same
+   star list and the same PSF database (11 x 11 nodes, 256 px at 3.75 mas, written
+   in MAVISIM's FITS format from mavispm's default Fourier PSF grid and read by
+   both): CPU (user + sys) of the whole process and of the rendering alone, for
+   1e3 to 1e5 stars, and their ratios. MAVISIM is installed on demand into an
+   environment of its own (``python -m venv --system-site-packages``, then
+   ``pip install --no-deps mavisim==1.1.20``, plus tqdm / pydantic if missing) under
+   ``--cache`` (default ``$MAVISPM_BENCH_CACHE`` or ``~/.cache/mavispm-bench``);
+   ``benchmarks/mavisim_inprocess.py`` times its rendering inside that environment.
+   ``--mavisim-psfs`` runs sections 1-2 on the same optics.
 
 The optics are the analytic test doubles of ``tests/render_helpers.py`` (11 x 11
 obscured-Airy grid over 30", 255 px at 1.5 mas, elongating with field radius,
