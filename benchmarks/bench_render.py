@@ -444,9 +444,8 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
         # in-process: MAVISIM after its imports; mavispm render_frame with a warm renderer
         in_theirs = None
         if run_mavisim:
-            _, text = run_timed(
-                [str(py), str(here / "mavisim_inprocess.py"), str(field), str(psfs)]
-            )
+            drv = [str(py), str(here / "mavisim_inprocess.py"), str(field), str(psfs)]
+            _, text = run_timed(drv, env)
             in_theirs = json.loads(text.strip().splitlines()[-1])
         in_ours = inprocess_ours(cat, scene_map, plan_cache, timed=2 if n <= 20_000 else 1)
         rows.append((n, ours, theirs, in_ours, in_theirs))
