@@ -28,11 +28,12 @@ from tqdm.auto import tqdm
 from mavispm.core.config import unit_field
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import open_product, write_product
-from mavispm.simulate.optics import ao_psd
+from mavispm.simulate.optics import ao_psd, cone_effect
 from mavispm.simulate.optics.ao_psd import AOSettings
 from mavispm.simulate.optics.atmosphere import (
     ARCSEC_PER_RAD,
     AtmosphereSettings,
+    airmass,
     fried_parameter,
     layers,
     von_karman_variance_beyond,
@@ -47,7 +48,7 @@ from mavispm.simulate.optics.fourier_psf import (
 from mavispm.simulate.optics.pupil import PupilSettings
 
 #: bump when the algorithm changes so stale cache entries are not reused
-ALGORITHM_VERSION = 1
+ALGORITHM_VERSION = 2  # 2: LGS cone effect, weighted fitting directions, LGS position angle
 
 
 @dataclass(frozen=True)
@@ -248,6 +249,17 @@ def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(n)[ok] * df, s[ok] / c[ok]
 
 
+@dataclass(frozen=True)
+class ConeGeometry:
+    """What the cone effect needs: LGS directions (rad, (G, 2)), LGS range along the
+    line of sight (m), pupil diameter (m) and obstruction ratio."""
+
+    lgs_directions: np.ndarray
+    lgs_range: float
+    diameter: float
+    obscuration: float
+
+
 @dataclass
 class ResidualPSDModel:
     """The residual PSD of one configuration on the PSD grid.
@@ -271,6 +283,8 @@ class ResidualPSDModel:
         Fitting variance beyond the PSD grid (rad^2).
     wavelength : float
         (m)
+    cone : ConeGeometry or None
+        LGS geometry for the cone effect; None when it is off.
     """
 
     sampling: object
@@ -282,6 +296,20 @@ class ResidualPSDModel:
     operator: object
     hf_variance: float
     wavelength: float
+    cone: ConeGeometry | None = None
+
+    def cone_psd(self, direction: np.ndarray) -> np.ndarray:
+        """Cone-effect PSD on the control-region frequencies ``sel`` for one direction (rad)."""
+        if self.cone is None or self.operator is None:
+            return np.zeros(int(self.sel.sum()))
+        c = self.cone
+        gaps, area = cone_effect.footprint_coverage(
+            direction, c.lgs_directions, self.operator.layer_heights, c.lgs_range, c.diameter
+        )
+        f = np.hypot(self.operator.fx, self.operator.fy)
+        return cone_effect.cone_psd(
+            f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration
+        )
 
     def psds(self, directions: np.ndarray, chunk: int):
         """Yield the full PSD for each direction (rad), computing ``chunk`` at a time."""
@@ -296,7 +324,7 @@ class ResidualPSDModel:
             for j in range(part.shape[0]):
                 psd = base.copy()
                 if res is not None:
-                    psd[self.sel] += res[j]
+                    psd[self.sel] += res[j] + self.cone_psd(part[j])
                 yield psd
 
     def budget(self, position_arcsec=(0.0, 0.0)) -> dict[str, float]:
@@ -308,12 +336,14 @@ class ResidualPSDModel:
             "aliasing": np.sqrt(self.aliasing.sum() * df2) * to_nm,
             "servo_tomography": 0.0,
             "noise": 0.0,
+            "cone": 0.0,
         }
         if self.operator is not None:
             d = np.asarray([position_arcsec], float) / ARCSEC_PER_RAD
             corr, noise = ao_psd.correction_residual_psd(self.operator, d, split=True)
             out["servo_tomography"] = np.sqrt(corr.sum() * df2) * to_nm
             out["noise"] = np.sqrt(noise.sum() * df2) * to_nm
+            out["cone"] = np.sqrt(self.cone_psd(d[0]).sum() * df2) * to_nm
         out["total"] = float(np.sqrt(sum(v**2 for v in out.values())))
         return {k: float(v) for k, v in out.items()}
 
@@ -352,23 +382,34 @@ def residual_psd_model(
     fitting = np.zeros_like(fx)
     aliasing = np.zeros_like(fx)
     hf_var = 0.0
-    inside = ao_psd.control_mask(fx, fy, fc)
+    inside = ao_psd.control_mask(fx, fy, fc, ao.control_region)
     sel = inside & ((fx != 0) | (fy != 0))
     op = None
+    cone = None
     if residual:
         if ao.fitting:
-            fitting = ao_psd.fitting_psd(fx, fy, fc, r0, l0)
+            fitting = ao_psd.fitting_psd(fx, fy, fc, r0, l0, ao.control_region)
             f_eq = smp.f_max * 2 / np.sqrt(np.pi)  # circle with the PSD grid's area
             hf_var = von_karman_variance_beyond(f_eq, r0, l0)
         if ao.aliasing:
-            # aliased high frequencies reach the DMs through the loop like noise
-            gain = ao_psd.noise_gain(ao)
-            aliasing[inside] = gain * ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0)
+            # aliased high frequencies reach the DMs through the loop at their own
+            # temporal frequencies (frozen flow of each layer)
+            gain = ao_psd.aliasing_temporal_gain(ao, layers(atmosphere))
+            aliasing[inside] = ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0, temporal=gain)
         fxs, fys = fx[sel], fy[sel]
-        sigma_rad = 2 * np.pi * ao.lgs_slope_noise * 1e-9 / lam
+        r0_wfs = fried_parameter(atmosphere, ao.lgs_wavelength * 1e-9)
+        sigma_nm = ao_psd.shack_hartmann_noise(ao, d, r0_wfs)
+        sigma_rad = 2 * np.pi * sigma_nm * 1e-9 / lam
         noise = ao_psd.noise_psd(fxs, fys, d, sigma_rad) if ao.noise else np.zeros_like(fxs)
         op = ao_psd.tomographic_operator(fxs, fys, ao, layers(atmosphere), r0, l0, noise)
-    return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam)
+        if ao.cone_effect:
+            cone = ConeGeometry(
+                lgs_directions=ao_psd.lgs_directions(ao),
+                lgs_range=ao.lgs_height * airmass(atmosphere),
+                diameter=pupil.diameter,
+                obscuration=pupil.obscuration_ratio,
+            )
+    return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam, cone)
 
 
 def compute_fourier_grid(
