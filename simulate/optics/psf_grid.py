@@ -504,8 +504,19 @@ def compute_grid(
     return GridResult(grid, *prof)
 
 
-def write_grid(path: Path, result: GridResult, key: str, config: dict | None = None) -> Path:
-    """Write a grid as a ``psfgrid`` HDF5 product (see docs/optics.md)."""
+def write_grid(
+    path: Path,
+    result: GridResult,
+    key: str,
+    config: dict | None = None,
+    extra_arrays: dict | None = None,
+    extra_attrs: dict | None = None,
+) -> Path:
+    """Write a grid as a ``psfgrid`` HDF5 product (see docs/optics.md).
+
+    ``extra_arrays`` / ``extra_attrs`` add datasets and root attributes (quantities
+    allowed), e.g. the TT kernel map of :func:`mavispm.simulate.optics.cli.run_stage`.
+    """
     g = result.grid
     return write_product(
         path,
@@ -517,12 +528,14 @@ def write_grid(path: Path, result: GridResult, key: str, config: dict | None = N
             "strehl": g.strehl,
             "psd_frequency": result.psd_frequency / u.m,
             "psd_profile": result.psd_profile * u.m**2,
+            **(extra_arrays or {}),
         },
         attrs={
             "pixel_scale": g.pixel_scale * u.mas,
             "wavelength": g.wavelength * u.nm,
             "grid_key": key,
             "static": bool(g.is_static),
+            **(extra_attrs or {}),
         },
         config=config,
     )

@@ -269,3 +269,41 @@ def field_average_sigma(field: TipTiltField, half_width: float = 15.0, n: int = 
     gx, gy = np.meshgrid(g, g)
     cov = field.covariance(gx.ravel(), gy.ravel())
     return float(np.mean(np.sqrt(np.linalg.eigvalsh(cov)[:, -1])))
+
+
+@dataclass(frozen=True)
+class KernelMap:
+    """TT kernel shapes at field positions.
+
+    Attributes
+    ----------
+    sigma_major, sigma_minor : ndarray
+        1-sigma semi-axes of the Gaussian kernel (mas), major >= minor >= 0.
+    angle : ndarray
+        Position angle of the major axis (deg, from +x towards +y, in [0, 180)).
+    """
+
+    sigma_major: np.ndarray
+    sigma_minor: np.ndarray
+    angle: np.ndarray
+
+
+def kernel_map(field: TipTiltField, x, y) -> KernelMap:
+    """Semi-axes (mas) and major-axis angle (deg) of the TT kernels at positions (arcsec).
+
+    ``x`` and ``y`` may have any equal shape; the outputs have that shape.
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    if x.shape != y.shape:
+        raise ValueError("x and y must have the same shape (arcsec)")
+    cov = field.covariance(x.ravel(), y.ravel())
+    vals, vecs = np.linalg.eigh(cov)
+    vals = np.clip(vals, 0.0, None)
+    angle = np.degrees(np.arctan2(vecs[:, 1, 1], vecs[:, 0, 1])) % 180.0
+    angle = np.where(np.isclose(angle, 180.0), 0.0, angle)
+    return KernelMap(
+        np.sqrt(vals[:, 1]).reshape(x.shape),
+        np.sqrt(vals[:, 0]).reshape(x.shape),
+        angle.reshape(x.shape),
+    )
