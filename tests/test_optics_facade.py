@@ -158,7 +158,7 @@ def test_product_holds_tt_kernel_map(tmp_path):
 
 def test_file_mode_through_facade(tmp_path):
     hdus = [fits.PrimaryHDU()]
-    hdus[0].header["PIXSCALE"] = 1.0
+    hdus[0].header["PIXSCALE"] = (2.0, "[mas]")
     for y in (-10.0, 10.0):
         for x in (-10.0, 10.0):
             yy, xx = np.indices((65, 65)) - 32

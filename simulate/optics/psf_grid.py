@@ -81,6 +81,9 @@ class PSFSettings:
         MAVISIM PSF FITS database for ``file`` mode.
     file_pixel_scale : float or None
         Pixel scale of that file (mas) when its headers do not give it.
+    file_pixel_unit : {"mas", "arcsec", "deg"}
+        Unit of a header pixel scale (PIXSCALE / PIXSIZE) whose header does not
+        state one (PIXUNIT, CUNIT1 or the card comment).
     """
 
     mode: Literal["fourier", "static", "diffraction", "file"] = "fourier"
@@ -95,6 +98,7 @@ class PSFSettings:
     chunk: int = 8
     file: str | None = None
     file_pixel_scale: float | None = unit_field(None, "mas", "pixel scale of the PSF file")
+    file_pixel_unit: Literal["mas", "arcsec", "deg"] = "mas"
 
     def __post_init__(self):
         if not 300 <= self.wavelength <= 3000:
@@ -472,7 +476,12 @@ def compute_grid(
         from mavispm.simulate.optics.psf_fits import read_mavisim_psfs
 
         cube, nx, ny, lam = read_mavisim_psfs(
-            psf.file, psf.pixel_scale, psf.stamp_size * 1000, psf.file_pixel_scale
+            psf.file,
+            psf.pixel_scale,
+            psf.stamp_size * 1000,
+            psf.file_pixel_scale,
+            psf.file_pixel_unit,
+            pupil.diameter,
         )
         grid = PSFGrid(cube, nx, ny, psf.pixel_scale, lam, np.full(cube.shape[:2], np.nan))
         return GridResult(grid, np.zeros(0), np.zeros(0))
