@@ -263,6 +263,28 @@ class TipTiltField:
         return res * self.settings.scale_factor**2
 
 
+def atmospheric_cross_covariance(field: TipTiltField, xy1, xy2) -> np.ndarray:
+    """Covariance of the atmospheric TT residuals at two sets of field positions.
+
+    ``cov(r(a), r(b)) = K(a - b) - K(a, NGS) C_ss^-1 K(NGS, b)`` in mas^2, shape
+    (N, M, 2, 2), for positions ``xy1`` (N, 2) and ``xy2`` (M, 2) in arcsec. The
+    diagonal ``a = b`` is :meth:`TipTiltField.covariance` without windshake and
+    scale factor (the NGS noise enters through ``C_ss``). Zeros when disabled.
+    """
+    xy1 = np.atleast_2d(np.asarray(xy1, float))
+    xy2 = np.atleast_2d(np.asarray(xy2, float))
+    if not field.settings.enabled:
+        return np.zeros((xy1.shape[0], xy2.shape[0], 2, 2))
+    a = xy1 * 1000 / MAS_PER_RAD
+    b = xy2 * 1000 / MAS_PER_RAD
+    kab = field._cov(a[:, None, :] - b[None, :, :])  # (N, M, 2, 2)
+    ka = np.concatenate(list(np.moveaxis(field._cov(a[:, None, :] - field._theta[None]), 1, 0)), -1)
+    kb = np.concatenate(list(np.moveaxis(field._cov(b[:, None, :] - field._theta[None]), 1, 0)), -1)
+    # ka: (N, 2, 2n), kb: (M, 2, 2n)
+    proj = np.einsum("nij,jk,mlk->nmil", ka, field._css_inv, kb)
+    return (kab - proj) * MAS_PER_RAD**2
+
+
 def field_average_sigma(field: TipTiltField, half_width: float = 15.0, n: int = 11) -> float:
     """Mean semi-major sigma (mas) over an n x n grid of the field (the paper's sigma_TT_ave)."""
     g = np.linspace(-half_width, half_width, n)
