@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from astropy.io import fits
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mavispm.core.errors import InputError
 from mavispm.simulate.optics.psf_fits import read_mavisim_psfs
@@ -150,3 +152,23 @@ def test_resampled_flux_and_width_checked_pass_for_good_sampling(tmp_path):
     y, x = np.indices(psf.shape) - c
     sigma_mas = (4.0 + 1.5) * 3.75
     assert np.sqrt((psf * x**2).sum()) * 1.875 == pytest.approx(sigma_mas, rel=0.02)
+
+
+@settings(max_examples=15, deadline=None)
+@given(log_scale=st.floats(-4.0, 2.5))
+def test_hypothesis_any_pixel_scale_is_used_or_refused(tmp_path_factory, log_scale):
+    """Every header pixel scale either gives PSFs of the source's width or a reasoned refusal."""
+    scale = 10.0**log_scale
+    path = write_db(tmp_path_factory.mktemp("h") / "db.fits", [(0.0, 0.0)], n=48, scale=scale)
+    width = 2.3548 * 4.0 * scale  # source Gaussian sigma 4 px
+    try:
+        cube, *_ = read_mavisim_psfs(path, 2.0, 201.0)
+    except InputError as exc:
+        msg = str(exc)
+        assert "narrower than" in msg or "wider than" in msg or "resampling" in msg
+        assert width < 12.1 or width > 150.0
+        return
+    assert width >= 0.85 * 14.18 - 0.5
+    from mavispm.simulate.optics.psf_metrics import fwhm
+
+    assert fwhm(cube[0, 0], 2.0) == pytest.approx(width, rel=0.1, abs=2.0)

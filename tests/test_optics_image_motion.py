@@ -140,3 +140,19 @@ def test_settings_validated():
         validate_settings({"image_motion": {"tilt": "-1 mas"}})
     s = validate_settings({"image_motion": {"enabled": True, "correlation_time": "2 min"}})
     assert s.image_motion.correlation_time == pytest.approx(120.0)
+
+
+def test_single_exposure_and_disabled_edges():
+    m = _motion(tilt=2.0, plate_scale=1.0)
+    drawn = m.draw(1, 30.0)
+    mean, cov = drawn.stack_moments([5.0], [5.0])
+    np.testing.assert_allclose(cov, 0.0, atol=1e-12)  # one exposure: a pure shift
+    np.testing.assert_allclose(mean[0], drawn.displacements([5.0], [5.0])[0, 0], atol=1e-12)
+    off = build_image_motion(
+        ImageMotionSettings(),
+        TipTiltField(TipTiltSettings(), AtmosphereSettings(), PupilSettings()),
+        layers(AtmosphereSettings()),
+        8.0,
+    )
+    assert not off.enabled
+    np.testing.assert_allclose(off.budget_covariance, 0.0)
