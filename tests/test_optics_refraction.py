@@ -122,3 +122,39 @@ def test_finite_and_bounded(z, t, p, rh, teff):
     # never more than the whole band's dispersion
     spread = refraction(470.0, s) - refraction(700.0, s)
     assert abs(dy[0]) <= spread + 1e-12
+
+
+def test_frames_move_hot_and_cool_stars_apart():
+    """Rendered noise-free: each star's image centroid moves by its DAR shift (+x here)."""
+    from types import SimpleNamespace
+
+    import astropy.units as u
+    from render_helpers import epoch_table, make_optics
+
+    from mavispm.simulate.render.frame import render_frame
+    from mavispm.simulate.render.scene import scene_from_mapping
+
+    scene = scene_from_mapping(
+        {"noise": False, "nexp": 1, "detector": {"nx": 96, "ny": 64}, "render": {"halo": False}}
+    )
+    table = epoch_table([-0.15, 0.15], [0.0, 0.0], [16.0, 16.0])
+    table["teff"] = [3500.0, 20000.0] * u.K
+    refr = RefractionSettings(enabled=True, adc_residual=1.0, zenith_direction=0.0)
+
+    def centroids(optics):
+        frame = render_frame(table, 0 * u.yr, scene, optics, None)
+        img = frame.noiseless - frame.attrs["sky"].value
+        yy, xx = np.indices(img.shape)
+        out = []
+        for xp in frame.truth["x_pix"]:
+            box = np.abs(xx - xp) < 12
+            out.append(np.sum((img * xx)[box]) / np.sum(img[box]))
+        return np.array(out), frame
+
+    plain = make_optics("gaussian")
+    off, _ = centroids(plain)
+    plain.settings = SimpleNamespace(refraction=refr)
+    on, frame = centroids(plain)
+    expected = star_displacement([3500.0, 20000.0], refr)[0] * 1000 / 7.5  # pixels
+    assert on - off == pytest.approx(expected, abs=2e-3)
+    assert np.allclose(frame.truth["dar_x"].to_value(u.arcsec), expected * 7.5 / 1000)

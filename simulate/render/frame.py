@@ -14,6 +14,7 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.errors import InputError
+from mavispm.simulate.optics.refraction import star_displacement
 from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
 from mavispm.simulate.render.scene import SceneSettings
@@ -121,6 +122,9 @@ def render_frame(
         dx, dy = optics.distortion.displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value)
         x = x + _values(dx, u.arcsec)
         y = y + _values(dy, u.arcsec)
+    dar = _refraction_shift(stars, optics)
+    if dar is not None:
+        x, y = x + dar[0], y + dar[1]
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2
     y_pix = y * 1000.0 / s + (det.ny - 1) / 2
     sub_exposure = scene.exptime * u.s
@@ -172,6 +176,9 @@ def render_frame(
     truth["y_cat"] = y_cat[keep] * u.arcsec
     truth["flux"] = flux_sub[keep] * scene.nexp * u.electron
     truth["mag"] = mag[keep] * u.mag
+    if dar is not None:
+        truth["dar_x"] = dar[0][keep] * u.arcsec
+        truth["dar_y"] = dar[1][keep] * u.arcsec
     attrs = {
         "epoch": u.Quantity(epoch, u.yr),
         "pixel_scale": s * u.mas,
@@ -190,3 +197,19 @@ def render_frame(
         truth=truth,
         attrs=attrs,
     )
+
+
+def _refraction_shift(stars: QTable, optics) -> tuple[np.ndarray, np.ndarray] | None:
+    """Colour-dependent atmospheric refraction of each star [arcsec], or None when off.
+
+    Uses the epoch table's ``teff`` column [K] where present (else the settings'
+    ``default_teff``); see ``simulate/optics/refraction.py``.
+    """
+    refr = getattr(getattr(optics, "settings", None), "refraction", None)
+    if refr is None or not refr.enabled or len(stars) == 0:
+        return None
+    if "teff" in stars.colnames:
+        teff = _values(stars["teff"], u.K)
+    else:
+        teff = np.full(len(stars), np.nan)
+    return star_displacement(teff, refr)
