@@ -17,6 +17,7 @@ from mavispm.core.errors import InputError
 from mavispm.simulate.optics.refraction import star_displacement
 from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
+from mavispm.simulate.render.pixel_response import flat_field_residual
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
 from mavispm.simulate.render.zero_point import sky_electrons_per_pixel, star_electrons
@@ -56,7 +57,13 @@ def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
     ``cache_dir``: also keep its stamp plans (PSF-node transforms) in this folder
     (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
     """
-    return StarRenderer(optics.psf_grid, scene.detector.pixel_scale, scene.render, cache_dir)
+    return StarRenderer(
+        optics.psf_grid,
+        scene.detector.pixel_scale,
+        scene.render,
+        cache_dir,
+        intrapixel_amplitude=scene.detector.intrapixel_amplitude,
+    )
 
 
 def _values(q, unit) -> np.ndarray:
@@ -154,6 +161,9 @@ def render_frame(
         noise_sigma=noise,
         progress=progress,
     )
+    flat = flat_field_residual(image.shape, det.flat_residual, det.flat_seed)
+    if flat is not None:
+        image *= flat
     img_adu, saturated = expose_stack(
         image,
         scene.nexp,
