@@ -41,6 +41,7 @@ from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, PSFSettings, c
 from mavispm.simulate.optics.pupil import PupilSettings
 from mavispm.simulate.optics.refraction import RefractionSettings
 from mavispm.simulate.optics.seeing_halo import Halo, HaloSettings, build_halo
+from mavispm.simulate.optics.telescope import TelescopeSettings
 from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings
 
 #: Version of the halo computation (part of its disk-cache key).
@@ -60,6 +61,7 @@ class OpticsSettings:
     blur: BlurSettings = field(default_factory=BlurSettings)
     distortion: DistortionSettings = field(default_factory=DistortionSettings)
     refraction: RefractionSettings = field(default_factory=RefractionSettings)
+    telescope: TelescopeSettings = field(default_factory=TelescopeSettings)
 
 
 def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:

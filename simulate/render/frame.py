@@ -15,6 +15,7 @@ from astropy.table import QTable
 
 from mavispm.core.errors import InputError
 from mavispm.simulate.optics.refraction import star_displacement
+from mavispm.simulate.optics.telescope import telescope_displacement
 from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
 from mavispm.simulate.render.pixel_response import flat_field_residual
@@ -129,6 +130,10 @@ def render_frame(
         dx, dy = optics.distortion.displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value)
         x = x + _values(dx, u.arcsec)
         y = y + _values(dy, u.arcsec)
+    tel = getattr(getattr(optics, "settings", None), "telescope", None)
+    if tel is not None and tel.enabled and len(x):
+        tx, ty = telescope_displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value, tel)
+        x, y = x + tx, y + ty
     dar = _refraction_shift(stars, optics)
     if dar is not None:
         x, y = x + dar[0], y + dar[1]
