@@ -158,3 +158,16 @@ def test_frames_move_hot_and_cool_stars_apart():
     expected = star_displacement([3500.0, 20000.0], refr)[0] * 1000 / 7.5  # pixels
     assert on - off == pytest.approx(expected, abs=2e-3)
     assert np.allclose(frame.truth["dar_x"].to_value(u.arcsec), expected * 7.5 / 1000)
+
+
+def test_per_epoch_pointing_changes_the_colour_shift():
+    s = RefractionSettings(enabled=True, epochs=((0.0, 10.0, 90.0), (10.0, 45.0, 90.0)))
+    teff = [3500.0, 20000.0]
+    d0 = star_displacement(teff, s, 0.0)[1]
+    d10 = star_displacement(teff, s, 10.0)[1]
+    ratio = (d10[1] - d10[0]) / (d0[1] - d0[0])
+    assert ratio == pytest.approx(np.tan(np.radians(45)) / np.tan(np.radians(10)), rel=1e-9)
+    other = star_displacement(teff, s, 5.0)[1]  # not listed: the default 30 deg
+    assert np.allclose(other, star_displacement(teff, RefractionSettings(enabled=True))[1])
+    with pytest.raises(ConfigError, match="epochs"):
+        from_mapping(RefractionSettings, {"epochs": [[0, 80, 0]]}, prefix="scene.optics.refraction")

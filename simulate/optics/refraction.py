@@ -33,6 +33,7 @@ from mavispm.core.config import unit_field
 __all__ = [
     "RefractionSettings",
     "air_refractivity",
+    "at_epoch",
     "band_refraction",
     "refraction",
     "saturation_vapour_pressure",
@@ -87,6 +88,10 @@ class RefractionSettings:
         Edges of the top-hat band [nm].
     default_teff : float
         Effective temperature of stars without a ``teff`` column [K].
+    epochs : tuple of (float, float, float)
+        Per-epoch pointing ``(epoch [yr], zenith_angle [deg], zenith_direction [deg])``
+        overriding the two angles at that epoch (each epoch is taken at its own hour
+        angle, so the colour shifts differ between epochs and enter proper motions).
     """
 
     enabled: bool = False
@@ -101,6 +106,7 @@ class RefractionSettings:
     band_min: float = unit_field(470.0, "nm", "top-hat band edge")
     band_max: float = unit_field(700.0, "nm", "top-hat band edge")
     default_teff: float = unit_field(5500.0, "K", "stars without teff")
+    epochs: tuple[tuple[float, float, float], ...] = ()
 
     def __post_init__(self):
         if not 0 <= self.zenith_angle <= 70:
@@ -121,6 +127,11 @@ class RefractionSettings:
             raise ValueError("band_min < band_max must lie within 300 to 2500 nm")
         if not 1000 <= self.default_teff <= 100000:
             raise ValueError("default_teff must be 1000 to 100000 K")
+        for row in self.epochs:
+            if len(row) != 3 or not 0 <= row[1] <= 70:
+                raise ValueError(
+                    "epochs rows must be [epoch yr, zenith_angle 0-70 deg, zenith_direction deg]"
+                )
         if self.band not in ("V", "tophat", "monochromatic"):
             raise ValueError(f"band must be 'V', 'tophat' or 'monochromatic', got {self.band!r}")
 
@@ -200,7 +211,19 @@ def band_refraction(teff, settings: RefractionSettings) -> tuple[np.ndarray, np.
     return mean, rms
 
 
-def star_displacement(teff, settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
+def at_epoch(settings: RefractionSettings, epoch: float | None) -> RefractionSettings:
+    """The settings with the pointing of ``epoch`` [yr] from ``settings.epochs``, if listed."""
+    import dataclasses
+
+    for t, z, direction in settings.epochs:
+        if epoch is not None and abs(t - epoch) < 1e-9:
+            return dataclasses.replace(settings, zenith_angle=z, zenith_direction=direction)
+    return settings
+
+
+def star_displacement(
+    teff, settings: RefractionSettings, epoch: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Colour-dependent DAR displacement of star images on the detector [arcsec].
 
     ``adc_residual * (R_band(teff) - R(reference_wavelength))`` along the zenith
@@ -211,6 +234,8 @@ def star_displacement(teff, settings: RefractionSettings) -> tuple[np.ndarray, n
     teff : float or array
         Effective temperatures [K] (NaN takes ``default_teff``).
     settings : RefractionSettings
+    epoch : float, optional
+        Epoch [yr], selecting a per-epoch pointing from ``settings.epochs``.
 
     Returns
     -------
@@ -220,6 +245,7 @@ def star_displacement(teff, settings: RefractionSettings) -> tuple[np.ndarray, n
     teff = np.atleast_1d(np.asarray(teff, float))
     if not settings.enabled:
         return np.zeros(teff.shape), np.zeros(teff.shape)
+    settings = at_epoch(settings, epoch)
     teff = np.where(np.isfinite(teff), teff, settings.default_teff)
     mean, _ = band_refraction(teff, settings)
     shift = settings.adc_residual * (mean - refraction(settings.reference_wavelength, settings))

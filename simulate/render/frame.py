@@ -134,7 +134,7 @@ def render_frame(
     if tel is not None and tel.enabled and len(x):
         tx, ty = telescope_displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value, tel)
         x, y = x + tx, y + ty
-    dar = _refraction_shift(stars, optics)
+    dar = _refraction_shift(stars, optics, u.Quantity(epoch, u.yr).value)
     if dar is not None:
         x, y = x + dar[0], y + dar[1]
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2
@@ -214,7 +214,7 @@ def render_frame(
     )
 
 
-def _refraction_shift(stars: QTable, optics) -> tuple[np.ndarray, np.ndarray] | None:
+def _refraction_shift(stars: QTable, optics, epoch: float) -> tuple[np.ndarray, np.ndarray] | None:
     """Colour-dependent atmospheric refraction of each star [arcsec], or None when off.
 
     Uses the epoch table's ``teff`` column [K] where present (else the settings'
@@ -227,4 +227,4 @@ def _refraction_shift(stars: QTable, optics) -> tuple[np.ndarray, np.ndarray] | 
         teff = _values(stars["teff"], u.K)
     else:
         teff = np.full(len(stars), np.nan)
-    return star_displacement(teff, refr)
+    return star_displacement(teff, refr, epoch)
