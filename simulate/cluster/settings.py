@@ -15,6 +15,8 @@ from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.population import MassFunction
 
 PM_CONVENTIONS = ("mas_per_yr", "arcsec_per_baseline")
+#: Largest mass-segregation exponent accepted (scale radius ~ mass^-segregation).
+MAX_SEGREGATION = 1.5
 
 
 @dataclass(frozen=True)
@@ -88,8 +90,15 @@ class ClusterSettings:
     mass_min: float = unit_field(MassFunction.mass_min, "solMass")
     mass_break: float = unit_field(MassFunction.mass_break, "solMass")
     mass_max: float = unit_field(MassFunction.mass_max, "solMass")
-    alpha_low: float = MassFunction.alpha_low
-    alpha_high: float = MassFunction.alpha_high
+    alpha_low: float | None = None
+    alpha_high: float | None = None
+    ns_retention: float | None = None
+    bh_retention: float | None = None
+    segregation: float | None = None
+    anisotropy_radius: float | None = unit_field(None, "arcsec")
+    bh_subsystem_mass: float = unit_field(0.0, "solMass")
+    bh_subsystem_radius: float | None = unit_field(None, "pc")
+    core_collapse: bool = False
     resolution: SamplerResolution = field(default_factory=SamplerResolution)
     external: ExternalInput = field(default_factory=ExternalInput)
 
@@ -109,6 +118,42 @@ class ClusterSettings:
             (self.distance is None or self.distance > 0, "distance", "must be > 0 kpc"),
             (self.stellar_mass is None or self.stellar_mass > 0, "stellar_mass", "must be > 0"),
             (self.king_w0 is None or 0.1 <= self.king_w0 <= 20, "king_w0", "must be in [0.1, 20]"),
+            (
+                self.segregation is None or 0 <= self.segregation <= MAX_SEGREGATION,
+                "segregation",
+                f"must be in [0, {MAX_SEGREGATION:g}] (0 = none, N-body-like ~0.4)",
+            ),
+            (
+                self.anisotropy_radius is None or self.anisotropy_radius > 0,
+                "anisotropy_radius",
+                "must be > 0 arcsec (omit it for isotropy)",
+            ),
+            (self.bh_subsystem_mass >= 0, "bh_subsystem_mass", "must be >= 0 solMass"),
+            (
+                self.bh_subsystem_radius is None or self.bh_subsystem_radius > 0,
+                "bh_subsystem_radius",
+                "must be > 0 pc",
+            ),
+            (
+                self.ns_retention is None or 0 <= self.ns_retention <= 1,
+                "ns_retention",
+                "must be in [0, 1]",
+            ),
+            (
+                self.bh_retention is None or 0 <= self.bh_retention <= 1,
+                "bh_retention",
+                "must be in [0, 1]",
+            ),
+            (
+                self.alpha_low is None or -1 <= self.alpha_low <= 4,
+                "alpha_low",
+                "must be in [-1, 4]",
+            ),
+            (
+                self.alpha_high is None or -1 <= self.alpha_high <= 4,
+                "alpha_high",
+                "must be in [-1, 4]",
+            ),
         ]
         for ok, key, what in checks:
             if not ok:
