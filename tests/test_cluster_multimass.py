@@ -17,8 +17,12 @@ from cluster_helpers import (
     pm2_interpolators,
     sky_components,
 )
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
 
 from mavispm.simulate.cluster import population as pop
+from mavispm.simulate.cluster.eddington import NoIsotropicDFError
 from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.generator import (
     build_cluster_model,
@@ -93,9 +97,7 @@ def test_every_group_matches_multimass_jeans(imbh, ra):
 def test_jeans_check_has_power_against_the_isotropic_model():
     """The OM sample is rejected by the isotropic reference of the same densities."""
     _, model, stars = _sampled(1500.0, RA_ARCSEC, 70_000)
-    iso = build_cluster_model(
-        ClusterSettings(preset="ngc3201-nbody", imbh_mass=1500.0, n_stars=10)
-    )
+    iso = build_cluster_model(ClusterSettings(preset="ngc3201-nbody", imbh_mass=1500.0, n_stars=10))
     sel = stars["group"] == 0
     sub = {k: v[sel] for k, v in stars.items()}
     R, v_rad, v_tan = sky_components(sub)
@@ -221,10 +223,6 @@ FAST = SamplerResolution(n_energy=300, n_rows=40, n_levels=129, n_los=128, n_spe
 
 
 # ---------------------------------------------------------------- stress and bad input
-from hypothesis import HealthCheck, given, settings as hsettings, strategies as st  # noqa: E402
-
-from mavispm.simulate.cluster.eddington import NoIsotropicDFError  # noqa: E402
-
 #: Words a refusal must contain: the setting to change.
 SETTING_NAMES = ("anisotropy_radius", "segregation", "cusp", "bh_subsystem", "IMBH")
 
