@@ -308,3 +308,37 @@ def test_toml_bad_retention_is_named(tmp_path, capsys, table, key):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and key in err and len(err.splitlines()) == 1, err
     assert not out.exists()
+
+
+# ---------------------------------------------------------------- external input
+def test_mavisim_tiny_fluxes_are_dark_and_imbh_recorded(tmp_path):
+    from mavispm.core.catalogue import read_catalogue
+    from mavispm.simulate.cluster.cli import run_stage
+
+    rows = ["Star RA Dec X Y Flux PM_X PM_Y Mass"]
+    for i, (flux, mass) in enumerate([(1.0e6, 0.8), (1.8e-4, 0.6), (2.0e-4, 1.35), (3e-4, 12.0)]):
+        rows.append(
+            f"{i + 1} 154.40 -46.41 {0.5 * i:.2f} {20.0 * (i == 3):.2f} {flux} 0.01 0.0 {mass}"
+        )
+    path = tmp_path / "mavisim_10yr.txt"
+    path.write_text("\n".join(rows) + "\n")
+    ext = {
+        "path": str(path),
+        "format": "mavisim",
+        "pm_convention": "arcsec_per_baseline",
+        "flux_zeropoint": 29.08,
+    }
+    out = run_stage({"external": ext, "imbh_mass": 1500.0}, tmp_path / "m.h5", 0)
+    cat = read_catalogue(out)
+    t = cat.epochs["e0"]
+    np.testing.assert_array_equal(np.asarray(t["luminous"]), [True, False, False, False])
+    np.testing.assert_array_equal(
+        np.asarray(t["kind"]), ["star", "white_dwarf", "neutron_star", "black_hole"]
+    )
+    assert t["mag"].value[0] == pytest.approx(29.08 - 15.0)
+    assert cat.attrs["imbh_mass"].value == 1500.0
+    # the 10" default margin of MAVISIM lists keeps the object 20" from the centre (5" outside the field)
+    assert len(t) == 4
+    # one later-epoch list gives both epochs: x(10 yr) = X + PM_X
+    e1 = cat.epochs["e1"]
+    np.testing.assert_allclose((e1["x"] - t["x"]).to_value("arcsec"), 0.01)

@@ -15,6 +15,10 @@ from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.population import MassFunction
 
 PM_CONVENTIONS = ("mas_per_yr", "arcsec_per_baseline")
+#: Default margin around the field [arcsec] for simulated clusters and for MAVISIM lists
+#: (MAVISIM's own buffer is 10.005").
+DEFAULT_MARGIN = 1.0
+MAVISIM_MARGIN = 10.0
 #: Largest mass-segregation exponent accepted (scale radius ~ mass^-segregation).
 MAX_SEGREGATION = 1.5
 
@@ -44,6 +48,9 @@ class ExternalInput:
         Table path inside an HDF5 file (astropy ``Table.read(path=...)``).
     flux_zeropoint : float or None
         For MAVISIM lists without a magnitude column: ``mag = zp - 2.5 log10(Flux)``.
+    dark_flux : float
+        MAVISIM ``Flux`` below which an object is dark (``luminous = False``; MAVISIM
+        lists give remnants tiny placeholder fluxes such as 1.8e-4) [photon/s].
     recenter : bool
         Subtract the mass-weighted mean position and velocity of 3-D snapshots.
     """
@@ -56,6 +63,7 @@ class ExternalInput:
     columns: dict = field(default_factory=dict)
     hdf5_path: str | None = None
     flux_zeropoint: float | None = None
+    dark_flux: float = 1.0
     recenter: bool = False
 
 
@@ -67,7 +75,7 @@ class ClusterSettings:
     imbh_mass: float = unit_field(0.0, "solMass")
     n_stars: int = 3500
     field_size: float = unit_field(30.0, "arcsec")
-    margin: float = unit_field(1.0, "arcsec")
+    margin: float | None = unit_field(None, "arcsec")
     epochs: list[float] = field(default_factory=lambda: [0.0, 10.0])
     reference_epoch: float = unit_field(0.0, "yr")
     tracer: Literal["plummer", "king"] | None = None
@@ -103,6 +111,9 @@ class ClusterSettings:
     external: ExternalInput = field(default_factory=ExternalInput)
 
     def __post_init__(self):
+        if self.margin is None:  # MAVISIM lists carry a 10" buffer whose light reaches the field
+            mavisim = bool(self.external.path) and self.external.format == "mavisim"
+            object.__setattr__(self, "margin", MAVISIM_MARGIN if mavisim else DEFAULT_MARGIN)
         checks = [
             (self.imbh_mass >= 0, "imbh_mass", "must be >= 0 solMass"),
             (self.n_stars >= 0, "n_stars", "must be >= 0"),
