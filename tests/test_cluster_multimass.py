@@ -280,7 +280,6 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
         (["--bh-subsystem-mass", "-5"], "bh_subsystem_mass"),
         (["--bh-subsystem-mass", "1e5"], "bh_subsystem_mass"),
         (["--anisotropy-radius", "60"], "anisotropy_radius"),  # inside the core: no OM DF
-        (["--preset", "ngc3201-nbody", "--segregation", "1.5", "--tracer", "king"], "segregation"),
     ],
 )
 def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key):
@@ -296,7 +295,17 @@ def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key
 
 @pytest.mark.parametrize(
     "table, key",
-    [({"ns_retention": 2.0}, "ns_retention"), ({"bh_retention": -0.1}, "bh_retention")],
+    [
+        ({"ns_retention": 2.0}, "ns_retention"),
+        ({"bh_retention": -0.1}, "bh_retention"),
+        ({"bh_subsystem_radius": -1.0}, "bh_subsystem_radius"),
+        # a compact, massive BH subsystem without IMBH: cored light stars have no DF
+        (
+            {"preset": '"ngc3201-nbody"', "bh_subsystem_mass": 5000.0, "bh_subsystem_radius": 0.3},
+            "bh_subsystem",
+        ),
+        ({"preset": '"ngc3201-nbody"', "tracer": '"king"', "segregation": 1.5}, "segregation"),
+    ],
 )
 def test_toml_bad_retention_is_named(tmp_path, capsys, table, key):
     from mavispm.workflows.cli import main
