@@ -12,6 +12,7 @@ import functools
 import numpy as np
 import pytest
 from cluster_helpers import (
+    JeansReference,
     MultiMassJeansReference,
     binned_dispersion_chi2,
     pm2_interpolators,
@@ -46,12 +47,23 @@ def _sampled(imbh: float, ra: float | None, n_stars: int, seed: int = 5):
     return settings, model, stars
 
 
+_TOTALS: dict = {}
+
+
 def _reference(model, group: int):
     comp = next(c for c in model.components if group in c.groups)
     ra = model.params["anisotropy_radius"]
+    key = id(model)
+    if key not in _TOTALS:  # M_tot(r) by quad, shared by the groups of one model
+        _TOTALS[key] = (
+            model,
+            JeansReference(
+                model.total_density, model.params["bh_mass"], comp.mass.r[0], comp.mass.r_max
+            ),
+        )
     return MultiMassJeansReference(
         comp.mass.density,
-        model.total_density,
+        _TOTALS[key][1],
         model.params["bh_mass"],
         comp.mass.r[0],
         comp.mass.r_max,
