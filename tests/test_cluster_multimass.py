@@ -38,9 +38,13 @@ RA_ARCSEC = 300.0
 
 
 @functools.lru_cache(maxsize=4)
-def _sampled(imbh: float, ra: float | None, n_stars: int, seed: int = 5):
+def _sampled(imbh: float, ra: float | None, n_stars: int, seed: int = 5, beta: float = 0.0):
     settings = ClusterSettings(
-        preset="ngc3201-nbody", imbh_mass=imbh, anisotropy_radius=ra, n_stars=n_stars
+        preset="ngc3201-nbody",
+        imbh_mass=imbh,
+        anisotropy_radius=ra,
+        n_stars=n_stars,
+        anisotropy_beta=beta,
     )
     model = build_cluster_model(settings)
     stars, _ = sample_stars(settings, seed, model)
@@ -68,6 +72,7 @@ def _reference(model, group: int):
         comp.mass.r[0],
         comp.mass.r_max,
         np.inf if ra is None else ra,
+        model.params["anisotropy_beta"],
     )
 
 
@@ -92,6 +97,39 @@ def test_group_pm_dispersions_match_multimass_jeans():
     for g in (0, len(kinds) - 1 - kinds[::-1].index("white_dwarf")):
         chi_rad, chi_tan = _check_group(model, stars, g)
         assert chi_rad < 2.2 and chi_tan < 2.2, (groups[g]["kind"], chi_rad, chi_tan)
+
+
+def test_constant_beta_group_pm_dispersions_match_jeans():
+    """Tangential constant-beta DF (Cuddeford), IMBH: the giant / turn-off group."""
+    _, model, stars = _sampled(1500.0, None, 40_000, 6, -0.3)
+    for g in (3,):
+        chi_rad, chi_tan = _check_group(model, stars, g)
+        assert chi_rad < 2.2 and chi_tan < 2.2, (g, chi_rad, chi_tan)
+
+
+@pytest.mark.parametrize("beta, extra", [(-0.3, {}), (0.3, {"core_collapse": True})])
+def test_constant_beta_profile_from_3d_velocities(beta, extra):
+    settings = ClusterSettings(
+        preset="ngc3201-nbody", anisotropy_beta=beta, n_stars=30_000, **extra
+    )
+    stars, _ = sample_stars(settings, 3)
+    pos = np.stack([stars["x"], stars["y"], stars["z"]])
+    vel = np.stack([stars["vx"], stars["vy"], stars["vz"]])
+    r = np.sqrt(np.sum(pos**2, axis=0))
+    v_r = np.sum(pos * vel, axis=0) / r
+    v_t2 = np.sum(vel**2, axis=0) - v_r**2
+    for idx in np.array_split(np.argsort(r), 6):
+        sr2, st2 = np.mean(v_r[idx] ** 2), np.mean(v_t2[idx]) / 2
+        e_sr = np.std(v_r[idx] ** 2) / np.sqrt(idx.size)
+        e_st = np.std(v_t2[idx] / 2) / np.sqrt(idx.size)
+        err = (st2 / sr2) * np.hypot(e_sr / sr2, e_st / st2)
+        assert abs(1 - st2 / sr2 - beta) < 4 * err
+
+
+def test_radial_constant_beta_needs_a_cusp():
+    """A cored model cannot be radially anisotropic at its centre (An & Evans 2006)."""
+    with pytest.raises(NoIsotropicDFError, match="anisotropy_beta"):
+        build_cluster_model(ClusterSettings(preset="ngc3201-nbody", anisotropy_beta=0.3))
 
 
 @pytest.mark.slow
@@ -248,7 +286,7 @@ SETTING_NAMES = ("anisotropy_radius", "segregation", "cusp", "bh_subsystem", "IM
     mass=st.floats(2e4, 1e6),
     ns=st.floats(0.0, 1.0),
     bh=st.floats(0.0, 1.0),
-    ra=st.one_of(st.none(), st.floats(20.0, 3000.0)),
+    ra=st.one_of(st.none(), st.floats(20.0, 3000.0), st.floats(-0.45, 0.45)),
     bhs=st.floats(0.0, 5000.0),
     imbh=st.sampled_from([0.0, 300.0, 3000.0, 30000.0]),
 )
@@ -258,7 +296,8 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
         stellar_mass=mass,
         ns_retention=ns,
         bh_retention=bh,
-        anisotropy_radius=ra,
+        anisotropy_radius=ra if ra is None or ra > 1 else None,
+        anisotropy_beta=ra if ra is not None and ra < 1 else 0.0,
         bh_subsystem_mass=bhs,
         imbh_mass=imbh,
         n_stars=300,
@@ -292,6 +331,8 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
         (["--bh-subsystem-mass", "-5"], "bh_subsystem_mass"),
         (["--bh-subsystem-mass", "1e5"], "bh_subsystem_mass"),
         (["--anisotropy-radius", "60"], "anisotropy_radius"),  # inside the core: no OM DF
+        (["--anisotropy-beta", "0.5"], "anisotropy_beta"),
+        (["--anisotropy-beta", "0.2", "--anisotropy-radius", "300"], "anisotropy_beta"),
     ],
 )
 def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key):

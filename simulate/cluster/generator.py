@@ -194,7 +194,8 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
         ``bh_subsystem_mass`` [solMass], ``core_collapse``, and ``groups``: one dict per
         mass group with ``kind``, ``lo``, ``hi`` (initial-mass range [solMass]; final
         masses for ``fixed_range`` groups), ``mass`` (total [solMass]), ``mean_mass``
-        [solMass], ``number``, ``scale_radius`` [pc] and ``king_w0``.
+        [solMass], ``number``, ``scale_radius`` [pc] and ``king_w0``; and
+        ``anisotropy_beta`` (constant anisotropy, 0 unless set).
 
     Raises
     ------
@@ -216,7 +217,7 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
             if bh > 0
             else (CORE_COLLAPSE_GAMMA if settings.core_collapse else 0.0)
         )
-    check_isotropic_df_exists(gamma, bh)
+    check_isotropic_df_exists(gamma, bh, settings.anisotropy_beta)
     unit_core, unit_half = projected_radii(TracerProfile(tracer_kind, 1.0, w0))
     if settings.scale_radius is not None:
         scale = float(settings.scale_radius)
@@ -263,6 +264,7 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
         "segregation": segregation,
         "reference_mass": m_ref,
         "anisotropy_radius": None if ra is None else float(arcsec_to_pc(ra, distance)),
+        "anisotropy_beta": float(settings.anisotropy_beta),
         "bh_subsystem_mass": float(settings.bh_subsystem_mass),
         "core_collapse": bool(settings.core_collapse),
         "groups": groups,
@@ -374,7 +376,12 @@ def model_from_params(params: dict, n_energy: int = 800) -> ClusterModel:
     components = []
     for model, member in zip(models, members):
         try:
-            df = eddington_df(model, n_energy=n_energy, anisotropy_radius=ra)
+            df = eddington_df(
+                model,
+                n_energy=n_energy,
+                anisotropy_radius=ra,
+                beta=params.get("anisotropy_beta", 0.0),
+            )
         except NoIsotropicDFError as exc:
             if len(models) == 1:
                 raise
@@ -759,6 +766,8 @@ def simulate_catalogue(settings: ClusterSettings, seed: int, model: ClusterModel
     tables = stars_to_epoch_tables(stars, settings, params["distance"])
     ra = params.get("anisotropy_radius")
     name = "isotropic" if ra is None else f"Osipkov-Merritt r_a={ra:.3g} pc"
+    if params.get("anisotropy_beta", 0):
+        name = f"constant beta={params['anisotropy_beta']:g}"
     name += f" {params['tracer']}"
     if params["tracer"] == "king":
         name += f" W0={params['king_w0']:g}"
