@@ -404,3 +404,22 @@ def test_mavisim_tiny_fluxes_are_dark_and_imbh_recorded(tmp_path):
     # one later-epoch list gives both epochs: x(10 yr) = X + PM_X
     e1 = cat.epochs["e1"]
     np.testing.assert_allclose((e1["x"] - t["x"]).to_value("arcsec"), 0.01)
+
+
+def test_cli_nbody_preset_writes_kinds_and_model(tmp_path, capsys):
+    import json
+
+    from mavispm.core.catalogue import read_catalogue
+    from mavispm.workflows.cli import main
+
+    out = tmp_path / "c.h5"
+    args = ["simulate", "cluster", "--preset", "ngc3201-nbody", "--imbh-mass", "1500"]
+    args += ["--anisotropy-radius", "300", "--bh-subsystem-mass", "500", "--n-stars", "400"]
+    assert main(args + ["-o", str(out)]) == 0
+    cat = read_catalogue(out)
+    kinds = set(np.asarray(cat.epochs["e0"]["kind"]).tolist())
+    assert {"star", "white_dwarf", "imbh"} <= kinds
+    params = cat.attrs["model_params"]
+    params = json.loads(params) if isinstance(params, str) else params
+    assert params["segregation"] == 0.4 and params["bh_subsystem_mass"] == 500.0
+    assert params["anisotropy_radius"] == pytest.approx(300 * 4.6 / 206.264806, rel=1e-6)
