@@ -352,6 +352,10 @@ def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key
         ({"ns_retention": 2.0}, "ns_retention"),
         ({"bh_retention": -0.1}, "bh_retention"),
         ({"bh_subsystem_radius": -1.0}, "bh_subsystem_radius"),
+        ({"external": "{dark_flux = -1.0}"}, "dark_flux"),
+        ({"anisotropy_beta": 0.7}, "anisotropy_beta"),
+        ({"alpha_low": 9.0}, "alpha_low"),
+        ({"core_collapse": '"yes"'}, "core_collapse"),
         # a compact, massive BH subsystem without IMBH: cored light stars have no DF
         (
             {"preset": '"ngc3201-nbody"', "bh_subsystem_mass": 5000.0, "bh_subsystem_radius": 0.3},

@@ -66,6 +66,10 @@ class ExternalInput:
     dark_flux: float = 1.0
     recenter: bool = False
 
+    def __post_init__(self):
+        if not self.dark_flux >= 0:
+            raise ValueError(f"'dark_flux' must be >= 0 photon/s, got {self.dark_flux}")
+
 
 @dataclass(frozen=True)
 class ClusterSettings:
