@@ -364,7 +364,7 @@ def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key
         ({"preset": '"ngc3201-nbody"', "tracer": '"king"', "segregation": 1.5}, "segregation"),
     ],
 )
-def test_toml_bad_retention_is_named(tmp_path, capsys, table, key):
+def test_toml_bad_new_settings_are_named(tmp_path, capsys, table, key):
     from mavispm.workflows.cli import main
 
     cfg = tmp_path / "s.toml"
