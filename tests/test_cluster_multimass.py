@@ -274,7 +274,14 @@ FAST = SamplerResolution(n_energy=300, n_rows=40, n_levels=129, n_los=128, n_spe
 
 # ---------------------------------------------------------------- stress and bad input
 #: Words a refusal must contain: the setting to change.
-SETTING_NAMES = ("anisotropy_radius", "segregation", "cusp", "bh_subsystem", "IMBH")
+SETTING_NAMES = (
+    "anisotropy_radius",
+    "anisotropy_beta",
+    "segregation",
+    "cusp",
+    "bh_subsystem",
+    "IMBH",
+)
 
 
 @hsettings(
