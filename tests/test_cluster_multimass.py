@@ -434,3 +434,36 @@ def test_cli_nbody_preset_writes_kinds_and_model(tmp_path, capsys):
     params = json.loads(params) if isinstance(params, str) else params
     assert params["segregation"] == 0.4 and params["bh_subsystem_mass"] == 500.0
     assert params["anisotropy_radius"] == pytest.approx(300 * 4.6 / 206.264806, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "beta, ra", [(0.0, np.inf), (-0.3, np.inf), (0.2, np.inf), (0.0, 3.0)], ids=str
+)
+def test_anisotropic_dfs_reproduce_the_density(beta, ra):
+    """Velocity-space quadrature of the tabulated DF gives back rho(r) (1 %).
+
+    Constant beta: ``rho = r^(-2 beta) C_beta int_0^Psi (Psi - E)^(1/2 - beta) g(E) dE``;
+    Osipkov-Merritt: ``rho = 4 pi sqrt(2) int_0^Psi f(Q) sqrt(Psi - Q) dQ / (1 + r^2/r_a^2)``.
+    """
+    from scipy.integrate import quad
+    from scipy.special import gamma as gamma_fn
+
+    from mavispm.simulate.cluster.eddington import eddington_df
+    from mavispm.simulate.cluster.profiles import TracerProfile, build_mass_model
+
+    tracer = TracerProfile("plummer", 2.0, cusp_gamma=1.55, cusp_radius=0.5)
+    model = build_mass_model(tracer, 1e5, 1000.0)
+    df = eddington_df(model, beta=beta, anisotropy_radius=ra)
+    c_beta = 2 ** (1.5 - beta) * np.pi**1.5 * gamma_fn(1 - beta) / gamma_fn(1.5 - beta)
+    for r in (0.01, 0.3, 3.0):
+        psi = float(model.relative_potential(r))
+        integral = quad(
+            lambda e, psi=psi: df(np.array([e]))[0] * (psi - e) ** (0.5 - beta),
+            0,
+            psi,
+            limit=400,
+        )[0]
+        rho = c_beta * integral * r ** (-2 * beta)
+        if np.isfinite(ra):
+            rho /= 1 + (r / ra) ** 2
+        assert rho == pytest.approx(float(model.density(r)), rel=0.01), r
