@@ -35,6 +35,7 @@ from mavispm.simulate.cluster.eddington import (
     check_isotropic_df_exists,
     eddington_df,
 )
+from mavispm.simulate.cluster.effective_temperature import effective_temperature
 from mavispm.simulate.cluster.field_sampler import (
     FieldSampler,
     SamplerResolution,
@@ -550,12 +551,15 @@ def sample_stars(settings: ClusterSettings, seed: int, model: ClusterModel | Non
                 mass = _group_masses(g, mf, rng_pop.random(n))
                 if luminous:
                     mag = pop.apparent_v(mass, distance, model.params["extinction_v"])
+                    teff = effective_temperature(mass)
                 else:
                     mag = np.full(n, pop.DARK_MAGNITUDE)
+                    teff = np.full(n, np.nan)
                 stars = sampler_of[i].sample(region, rng_pos.random((n, 4)), rng_vel.random((n, 3)))
                 stars.update(
                     mass=mass,
                     mag=mag,
+                    teff=teff,
                     luminous=np.full(n, luminous),
                     kind=np.full(n, g["kind"]),
                     group=np.full(n, i),
@@ -606,6 +610,7 @@ def _imbh_row(bh_mass: float) -> dict:
         **{k: zero for k in ("x", "y", "z", "r3d", "vx", "vy", "vz")},
         "mass": np.array([bh_mass]),
         "mag": np.array([pop.DARK_MAGNITUDE]),
+        "teff": np.array([np.nan]),
         "luminous": np.array([False]),
         "kind": np.array(["imbh"]),
         "group": np.array([-1]),
@@ -694,7 +699,7 @@ def stars_to_epoch_tables(stars: dict, settings: ClusterSettings, distance: floa
         (settings.pm_sys_x, settings.pm_sys_y),
     )
     truth = {}
-    for key, unit in (("mass", u.solMass), ("r3d", u.pc), ("z", u.pc)):
+    for key, unit in (("mass", u.solMass), ("r3d", u.pc), ("z", u.pc), ("teff", u.K)):
         if key in stars:
             truth[key] = np.asarray(stars[key], float) * unit
     if "vx" in stars:
