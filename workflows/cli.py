@@ -37,6 +37,7 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
 COMMANDS: dict[tuple[str | None, str], str] = {
     ("simulate", "cluster"): "mavispm.simulate.cluster.cli",
     ("simulate", "optics"): "mavispm.simulate.optics.cli",
+    ("simulate", "calibration"): "mavispm.simulate.optics.calibration_cli",
     ("simulate", "frames"): "mavispm.simulate.render.cli",
     ("measure", "stars"): "mavispm.measure.stars.cli",
     ("measure", "propermotions"): "mavispm.measure.propermotions.cli",
