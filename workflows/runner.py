@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mavispm.core.errors import MavispmError
+from mavispm.core.paths import check_name, contained
 from mavispm.workflows.cache import Store, canonical_json, exclusive_lock, node_keys
 from mavispm.workflows.config import Workflow, load_workflow
 from mavispm.workflows.executors import make_executor
@@ -252,13 +253,12 @@ def run_workflow(
             nodes, keys, store, registry, executor, force, progress
         )
     wall = time.perf_counter() - start
-    rundir = workdir / workflow.name
+    rundir = contained(workdir, check_name(workflow.name, "workflow.name"), "run directory")
     summary = _summary(
         workflow, nodes, keys, records, ran_keys, failures, executor.name, wall, workdir
     )
-    summary["stage_reports"] = {
-        s: registry[s].report for s in summary["stages"] if registry[s].report is not None
-    }
+    reports = {s: registry[s].report for s in summary["stages"] if registry[s].report is not None}
+    summary["stage_reports"] = sorted(reports)  # names only: a run directory never names code
     _materialize(rundir, summary, nodes, keys, store, workflow)
     if failures:
         lines = "; ".join(failures.values())
@@ -269,7 +269,7 @@ def run_workflow(
     if workflow.outputs.report:
         from mavispm.workflows.report import write_report
 
-        write_report(rundir)
+        write_report(rundir, reports=reports)
     ran = [n["id"] for n in summary["nodes"] if n["status"] == "ran"]
     cached = [n["id"] for n in summary["nodes"] if n["status"] == "cached"]
     return RunResult(rundir=rundir, summary=summary, ran=ran, cached=cached)
@@ -494,8 +494,8 @@ def _materialize_locked(
         if rec is None:
             continue
         for name, rel in rec["products"].items():
-            target = rundir / entry["products"][name]
-            target = new / target.relative_to(rundir / "products")
+            target = contained(rundir, entry["products"][name], "product")
+            target = contained(new, target.relative_to(rundir / "products"), "product")
             target.parent.mkdir(parents=True, exist_ok=True)
             _link(final / rel, target, workflow.outputs.link)
     old = rundir / "products.old"

@@ -1,0 +1,172 @@
+"""Reliability and security findings of issue 18, one test (or more) per finding.
+
+Each test fails on the code before the fix: it reproduces the reported attack or
+failure and checks the promised behaviour (docs/workflows.md, "Reliability").
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+from workflows_helpers import TINY_WORKFLOW, stand_in_registry, write_workflow
+
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.workflows.cli import main
+from mavispm.workflows.config import load_workflow
+from mavispm.workflows.runner import run_workflow
+
+
+def _run(wf, workdir, **kw):
+    kw.setdefault("scheduler", "serial")
+    return run_workflow(wf, workdir=workdir, registry=stand_in_registry(), progress=False, **kw)
+
+
+def _one_line_error(capsys, *names: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mavispm: error:"), err
+    assert "\n" not in err and "Traceback" not in err, err
+    for name in names:
+        assert name in err, (name, err)
+    return err
+
+
+@pytest.fixture
+def stand_ins(tmp_path, monkeypatch):
+    """The CLI runs the stand-in stages (logging to calls.log)."""
+    from mavispm.workflows import stages
+
+    monkeypatch.setenv("WF_TEST_LOG", str(tmp_path / "calls.log"))
+    monkeypatch.setattr(stages, "default_registry", stand_in_registry)
+
+
+def minimal_summary(**extra) -> dict:
+    """The smallest summary.json that ``mavispm report`` accepts."""
+    return {
+        "workflow": "crafted",
+        "nodes": [],
+        "stages": {},
+        "outputs": {"tables": []},
+        **extra,
+    }
+
+
+def _crafted_rundir(tmp_path, summary) -> os.PathLike:
+    rundir = tmp_path / "run"
+    rundir.mkdir()
+    (rundir / "summary.json").write_text(json.dumps(summary))
+    return rundir
+
+
+# ------------------------------------------------ 1. a run directory is data, never code
+
+
+@pytest.mark.parametrize("form", ["mapping", "list"])
+def test_report_never_imports_code_named_in_a_run_directory(tmp_path, capsys, monkeypatch, form):
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil_module_rel18.py"
+    evil.write_text(
+        f"from pathlib import Path\nPath({str(marker)!r}).write_text('ran')\n"
+        "def write_report(paths, outdir):\n    return []\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    ref = "evil_module_rel18:write_report"
+    reports = {"stars": ref} if form == "mapping" else [ref]
+    node = {
+        "id": "stars/main/e0",
+        "stage": "stars",
+        "status": "ran",
+        "products": {"main": "products/stars/main/e0/measured.h5"},
+        "labels": {"scene": "main", "epoch": "e0"},
+    }
+    rundir = _crafted_rundir(tmp_path, minimal_summary(nodes=[node], stage_reports=reports))
+    assert main(["report", str(rundir)]) == 2
+    _one_line_error(capsys, "summary.json", "stage_reports" if form == "mapping" else ref)
+    assert not marker.exists()
+    assert not (rundir / "report.md").exists()
+
+
+def test_report_accepts_registered_stage_names_and_old_run_directories(tmp_path):
+    from mavispm.workflows.report import stage_report_functions, stage_report_names
+
+    trusted = stage_report_functions()
+    assert stage_report_names({"stage_reports": ["stars"]}) == ["stars"]
+    # summary.json of earlier versions: the registered function of each stage is accepted
+    assert stage_report_names({"stage_reports": {"stars": trusted["stars"]}}) == ["stars"]
+    with pytest.raises(InputError, match="unknown stage report 'nope'"):
+        stage_report_names({"stage_reports": ["nope"]})
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        [],
+        {"workflow": "x"},
+        {"workflow": "x", "nodes": [1], "stages": {}},
+        {"workflow": "x", "nodes": [], "stages": {"cluster": {"tasks": "many"}}},
+        minimal_summary(outputs={"tables": ["os.system"]}),
+    ],
+)
+def test_malformed_summary_is_a_one_line_error(tmp_path, capsys, bad):
+    rundir = _crafted_rundir(tmp_path, bad)
+    assert main(["report", str(rundir)]) == 2
+    _one_line_error(capsys, "summary.json")
+    assert not (rundir / "report.md").exists()
+
+
+def test_report_refuses_product_paths_and_labels_leading_outside(tmp_path, capsys):
+    outside = {
+        "id": "stars/x",
+        "stage": "stars",
+        "status": "ran",
+        "products": {"main": "../../etc/passwd"},
+        "labels": {},
+    }
+    rundir = _crafted_rundir(tmp_path, minimal_summary(nodes=[outside]))
+    assert main(["report", str(rundir)]) == 2
+    _one_line_error(capsys, "leads outside")
+    (rundir / "summary.json").unlink()
+    label = {**outside, "products": {"main": "products/m.h5"}, "labels": {"scene": "../../x"}}
+    (rundir / "summary.json").write_text(json.dumps(minimal_summary(nodes=[label])))
+    assert main(["report", str(rundir)]) == 2
+    _one_line_error(capsys, "labels.scene")
+
+
+# ------------------------------------------------ 2. no writes outside the work directory
+
+
+@pytest.mark.parametrize(
+    ("edit", "key"),
+    [
+        (('name = "tiny"', 'name = "../victim"'), "workflow.name"),
+        (('name = "tiny"', 'name = "store"'), "workflow.name"),
+        (('name = "tiny"', 'name = ".."'), "workflow.name"),
+        (('name = "tiny"', 'name = "/tmp/abs"'), "workflow.name"),
+        (("[scene]\n", '[scenes."../esc"]\n[scene]\n'), "scenes.../esc"),
+        (("[cluster]\n", '[studies."a/../../b".cluster]\n[cluster]\n'), "studies.a/../../b"),
+        (("times = [0, 5]", 'times = [0, 5]\nnames = ["e0", "../e1"]'), "epochs.names[1]"),
+    ],
+)
+def test_names_that_would_escape_are_refused_before_any_work(tmp_path, edit, key):
+    text = TINY_WORKFLOW.replace(*edit)
+    assert text != TINY_WORKFLOW
+    wf = write_workflow(tmp_path, text)
+    with pytest.raises(ConfigError, match="key '" + key.replace(".", r"\.").replace("[", r"\[")):
+        load_workflow(wf, stand_in_registry())
+
+
+def test_workflow_name_cannot_delete_a_products_folder_outside(tmp_path, capsys, stand_ins):
+    victim = tmp_path / "victim" / "products"
+    victim.mkdir(parents=True)
+    (victim / "precious.txt").write_text("keep")
+    wf = write_workflow(tmp_path, TINY_WORKFLOW.replace('name = "tiny"', 'name = "../victim"'))
+    assert main(["run", str(wf), "--workdir", str(tmp_path / "w"), "--quiet"]) == 2
+    _one_line_error(capsys, "workflow.name", "../victim")
+    assert (victim / "precious.txt").read_text() == "keep"
+    assert not (tmp_path / "w").exists()
+
+
+def test_unnamed_workflow_takes_a_safe_folder_name_from_its_file(tmp_path):
+    wf = write_workflow(tmp_path, TINY_WORKFLOW.replace('name = "tiny"\n', ""), "my study.toml")
+    assert load_workflow(wf, stand_in_registry()).name == "my_study"
