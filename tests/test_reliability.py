@@ -170,3 +170,108 @@ def test_workflow_name_cannot_delete_a_products_folder_outside(tmp_path, capsys,
 def test_unnamed_workflow_takes_a_safe_folder_name_from_its_file(tmp_path):
     wf = write_workflow(tmp_path, TINY_WORKFLOW.replace('name = "tiny"\n', ""), "my study.toml")
     assert load_workflow(wf, stand_in_registry()).name == "my_study"
+
+
+# ------------------------------------------------ 3./4. emcee chains: keyed, resumed exactly
+
+
+class _Interrupt(Exception):
+    pass
+
+
+def _gauss_space():
+    from mavispm.dynamics.parameters import Parameter, ParameterSpace
+
+    return ParameterSpace([Parameter("a", lo=-10, hi=10), Parameter("b", lo=-10, hi=10)])
+
+
+def _gauss(mean: float, stop_after: int | None = None):
+    calls = [0]
+
+    def loglike(v):
+        calls[0] += 1
+        if stop_after is not None and calls[0] > stop_after:
+            raise _Interrupt  # a kill in the middle of a block of steps
+        return -0.5 * ((v[0] - mean) ** 2 + (v[1] / 2) ** 2)
+
+    return loglike
+
+
+_EMCEE = {"seed": 4, "walkers": 6, "max_steps": 600, "tau_factor": 10, "check_every": 40}
+
+
+def _emcee(loglike, backend=None, key="k", **kw):
+    from mavispm.dynamics.sampling import run_emcee
+
+    return run_emcee(
+        loglike,
+        _gauss_space(),
+        backend_path=backend,
+        backend_key=key,
+        progress=False,
+        **{**_EMCEE, **kw},
+    )
+
+
+def _same_chain(a, b):
+    import numpy as np
+
+    np.testing.assert_array_equal(a.samples, b.samples)
+    np.testing.assert_array_equal(a.tau, b.tau)
+    assert (a.steps, a.converged) == (b.steps, b.converged)
+
+
+def test_killed_emcee_fit_resumes_to_the_uninterrupted_result(tmp_path):
+    import h5py
+
+    clean = _emcee(_gauss(1.0))
+    assert clean.converged and 80 < clean.steps < _EMCEE["max_steps"]
+    backend = tmp_path / "fit.h5.emcee.h5"
+    with pytest.raises(_Interrupt):
+        _emcee(_gauss(1.0, stop_after=700), backend)
+    with h5py.File(backend, "r") as f:
+        stopped = int(f["mcmc"].attrs["iteration"])
+    assert 0 < stopped < clean.steps and stopped % _EMCEE["check_every"] != 0  # mid-block
+    resumed = _emcee(_gauss(1.0), backend)
+    assert resumed.resumed_at == stopped
+    _same_chain(resumed, clean)
+    # a finished chain, run again: the same product, no step added, tau not NaN
+    again = _emcee(_gauss(1.0), backend)
+    assert again.resumed_at == clean.steps
+    _same_chain(again, clean)
+
+
+def test_emcee_backend_of_other_data_is_never_continued(tmp_path):
+    backend = tmp_path / "fit.h5.emcee.h5"
+    first = _emcee(_gauss(1.0), backend, key="data-A")
+    other = _emcee(_gauss(3.0), backend, key="data-B")
+    assert other.resumed_at == 0
+    _same_chain(other, _emcee(_gauss(3.0), key="data-B"))
+    assert abs(float(other.samples[:, 0].mean()) - 3.0) < 0.3
+    assert abs(float(first.samples[:, 0].mean()) - 1.0) < 0.3
+    # a damaged backend file (killed while writing its header) starts again
+    backend.write_bytes(b"\x89HDF\r\n\x1a\n garbage")
+    _same_chain(_emcee(_gauss(3.0), backend, key="data-B"), other)
+
+
+def test_dynamics_backend_key_follows_the_data_and_settings():
+    import numpy as np
+
+    from mavispm.dynamics.fit import backend_key
+    from mavispm.dynamics.likelihood import StarSample
+    from mavispm.dynamics.settings import validate_settings
+
+    rng = np.random.default_rng(0)
+    cols = {c: rng.uniform(0.1, 1, 50) for c in ("R", "v_r", "v_t", "e_r", "e_t")}
+    stars = StarSample(**cols, field_radius=2.0)
+    s = validate_settings({})
+    key = backend_key(stars, s, 4.7, True, 1)
+    assert key == backend_key(StarSample(**cols, field_radius=2.0), s, 4.7, True, 1)
+    moved = {**cols, "v_r": cols["v_r"].copy()}
+    moved["v_r"][7] += 1e-9
+    assert key != backend_key(StarSample(**moved, field_radius=2.0), s, 4.7, True, 1)
+    assert key != backend_key(stars, validate_settings({"walkers": 40}), 4.7, True, 1)
+    assert key != backend_key(stars, s, 4.7, True, 2)
+    assert key != backend_key(stars, s, 4.7, False, 1)
+    # the progress bar does not change the chain
+    assert key == backend_key(stars, validate_settings({"progress": False}), 4.7, True, 1)
