@@ -257,9 +257,9 @@ def test_emcee_backend_of_other_data_is_never_continued(tmp_path):
 def test_dynamics_backend_key_follows_the_data_and_settings():
     import numpy as np
 
+    from mavispm.dynamics.cli import validate_settings
     from mavispm.dynamics.fit import backend_key
     from mavispm.dynamics.likelihood import StarSample
-    from mavispm.dynamics.settings import validate_settings
 
     rng = np.random.default_rng(0)
     cols = {c: rng.uniform(0.1, 1, 50) for c in ("R", "v_r", "v_t", "e_r", "e_t")}
