@@ -275,3 +275,23 @@ def test_dynamics_backend_key_follows_the_data_and_settings():
     assert key != backend_key(stars, s, 4.7, False, 1)
     # the progress bar does not change the chain
     assert key == backend_key(stars, validate_settings({"progress": False}), 4.7, True, 1)
+
+
+def test_a_task_whose_attempt_died_is_reported_in_the_run_record(tmp_path, monkeypatch):
+    """A killed attempt (as a lost dask worker leaves it) shows in summary.json and the report."""
+    from workflows_helpers import run_in_subprocess
+
+    log = tmp_path / "calls.log"
+    monkeypatch.setenv("WF_TEST_LOG", str(log))
+    wf = write_workflow(tmp_path, TINY_WORKFLOW.replace("report = false", "report = true"))
+    code, err = run_in_subprocess(wf, tmp_path / "w", {"WF_TEST_KILL": "stars"})
+    assert code == -9, err
+    resumed = _run(wf, tmp_path / "w")
+    assert resumed.summary["interrupted_tasks"] == ["stars/main/e0"]
+    node = next(n for n in resumed.summary["nodes"] if n["id"] == "stars/main/e0")
+    assert node["interrupted_attempts"] == 1
+    assert (
+        "1 task(s) were redone after an attempt died" in (resumed.rundir / "report.md").read_text()
+    )
+    again = _run(wf, tmp_path / "w")  # all cached now: nothing to report
+    assert again.summary["interrupted_tasks"] == []

@@ -674,10 +674,11 @@ def write_report(rundir: str | os.PathLike, reports: Mapping[str, str] | None = 
         f"finished {summary.get('created', '-')}, "
         f"wall time {_fmt_number(summary.get('wall_s'), '.1f')} s.\n"
     )
-    lost = summary.get("lost_workers")
+    lost = summary.get("interrupted_tasks")
     if isinstance(lost, list) and lost:
         parts.append(
-            f"**{len(lost)} task(s) were retried after losing their worker**: "
+            f"**{len(lost)} task(s) were redone after an attempt died** (a killed run or a "
+            "lost dask worker; products are the same as an uninterrupted run's): "
             + ", ".join(str(x) for x in lost)
             + "\n"
         )

@@ -114,14 +114,17 @@ def _run_in(outdir: Path, task: Task) -> dict:
     }
     start = time.perf_counter()
     lock = _EXCLUSIVE_LOCK if task.stage.exclusive else contextlib.nullcontext()
+    interrupted = _begin_attempt(outdir)
     try:
         run = resolve(task.stage.run)
         with lock:
             products = run(inputs, dict(task.settings), dict(task.params), task.seed, outdir)
         rel = _relative_products(products, outdir, task)
+        (outdir / RUNNING).unlink(missing_ok=True)
         summarize = resolve(task.stage.summarize)
         metrics = summarize({k: outdir / v for k, v in rel.items()}) if summarize else {}
     except Exception as exc:
+        (outdir / RUNNING).unlink(missing_ok=True)  # a failure, reported below; not a loss
         (outdir / "error.txt").write_text(traceback.format_exc())
         if isinstance(exc, MavispmError):
             raise TaskError(f"{task.node_id}: {exc}") from None
@@ -139,7 +142,25 @@ def _run_in(outdir: Path, task: Task) -> dict:
         "settings": task.settings,
         "params": task.params,
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "interrupted_attempts": interrupted,
     }
+
+
+#: Marker of a task attempt in progress in its partial folder. Found at the start
+#: of an attempt, it means an earlier attempt died without finishing or failing:
+#: a killed run, or a lost dask worker whose task the scheduler retried.
+RUNNING = ".running"
+
+
+def _begin_attempt(outdir: Path) -> int:
+    """Mark an attempt as running; return how many earlier attempts died in this folder."""
+    marker = outdir / RUNNING
+    try:
+        died = int(marker.read_text() or 0)
+    except (OSError, ValueError):
+        died = 0
+    marker.write_text(str(died + 1))
+    return died
 
 
 def _relative_products(products, outdir: Path, task: Task) -> dict[str, str]:
@@ -436,6 +457,8 @@ def _summary(
         }
         if k in failures:
             entry["error"] = failures[k]
+        if status == "ran" and rec is not None and rec.get("interrupted_attempts"):
+            entry["interrupted_attempts"] = rec["interrupted_attempts"]
         out_nodes.append(entry)
         st = stages.setdefault(
             node.stage, {"tasks": 0, "ran": 0, "cached": 0, "failed": 0, "wall_s": 0.0}
@@ -464,6 +487,8 @@ def _summary(
         "studies": sorted({v.study for v in workflow.variants if v.study}),
         "stages": stages,
         "nodes": out_nodes,
+        # tasks redone after an attempt died (a killed run or a lost dask worker)
+        "interrupted_tasks": sorted({n["id"] for n in out_nodes if n.get("interrupted_attempts")}),
     }
 
 

@@ -118,6 +118,9 @@ def _run(args: argparse.Namespace) -> int:
     print(f"run directory: {result.rundir}")
     for name, st in stages.items():
         print(f"  {name:>13}: {st['ran']} ran, {st['cached']} cached, {st['wall_s']:.1f} s")
+    lost = result.summary.get("interrupted_tasks") or []
+    if lost:
+        print(f"  {len(lost)} task(s) redone after an attempt died (killed run or lost worker)")
     print(
         f"  total wall time {result.summary['wall_s']:.1f} s; report: {result.rundir / 'report.md'}"
     )
