@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 
 import pytest
 from workflows_helpers import TINY_WORKFLOW, stand_in_registry, write_workflow
@@ -295,3 +296,49 @@ def test_a_task_whose_attempt_died_is_reported_in_the_run_record(tmp_path, monke
     )
     again = _run(wf, tmp_path / "w")  # all cached now: nothing to report
     assert again.summary["interrupted_tasks"] == []
+
+
+# ------------------------------------------------ 9. run directories never alias the store writably
+
+
+def test_cached_products_are_read_only_and_tampering_is_detected(tmp_path, monkeypatch):
+    import h5py
+    from workflows_helpers import fingerprints
+
+    monkeypatch.setenv("WF_TEST_LOG", str(tmp_path / "calls.log"))
+    wf = write_workflow(tmp_path)
+    first = _run(wf, tmp_path / "w")
+    clean = fingerprints(first.rundir)
+    product = first.product("cluster")
+    assert product.stat().st_mode & 0o222 == 0  # no write bit, run dir link and store alike
+    if os.geteuid() != 0:
+        with pytest.raises(PermissionError):
+            open(product, "r+b")
+    # a user allowed to write read-only files (root) edits the catalogue through the run dir
+    os.chmod(product, 0o644)
+    with h5py.File(product, "r+") as f:
+        name = next(k for k in f if isinstance(f[k], h5py.Group))
+        f[name].attrs["tampered"] = 1
+    with pytest.warns(UserWarning, match="was changed after it was made"):
+        second = _run(wf, tmp_path / "w")
+    assert "cluster" in second.ran  # the edited product is not reused as cached
+    assert fingerprints(second.rundir) == clean
+
+
+@pytest.mark.parametrize("mask", [0o022, 0o002])
+def test_products_and_run_files_respect_the_umask(tmp_path, monkeypatch, mask):
+    from mavispm.core.atomic import atomic_path
+
+    old = os.umask(mask)
+    try:
+        with atomic_path(tmp_path / "x.txt") as tmp:
+            tmp.write_text("x")
+        assert stat.S_IMODE((tmp_path / "x.txt").stat().st_mode) == 0o666 & ~mask
+        monkeypatch.setenv("WF_TEST_LOG", str(tmp_path / "calls.log"))
+        result = _run(write_workflow(tmp_path), tmp_path / "w")
+    finally:
+        os.umask(old)
+    readable = 0o444 & ~mask
+    assert stat.S_IMODE((result.rundir / "summary.json").stat().st_mode) == 0o666 & ~mask
+    for path in (result.rundir / "products").rglob("*.h5"):  # read-only store files
+        assert stat.S_IMODE(path.stat().st_mode) == readable, path

@@ -544,6 +544,14 @@ def canonical_json_pretty(obj) -> str:
 
 
 def _link(src: Path, dst: Path, mode: str) -> None:
+    """Make a store product appear in a run directory.
+
+    ``hardlink`` and ``symlink`` share the store's read-only file (an edit through
+    the run directory is refused, or detected by the store's digest check);
+    ``copy`` (also the fall-back across file systems) makes a private writable copy.
+    """
+    from mavispm.core.atomic import current_umask
+
     if mode == "symlink":
         os.symlink(src, dst)
         return
@@ -553,4 +561,5 @@ def _link(src: Path, dst: Path, mode: str) -> None:
             return
         except OSError:
             pass  # another file system: fall back to a copy
-    shutil.copy2(src, dst)
+    shutil.copyfile(src, dst)
+    os.chmod(dst, 0o666 & ~current_umask())
