@@ -342,3 +342,60 @@ def test_products_and_run_files_respect_the_umask(tmp_path, monkeypatch, mask):
     assert stat.S_IMODE((result.rundir / "summary.json").stat().st_mode) == 0o666 & ~mask
     for path in (result.rundir / "products").rglob("*.h5"):  # read-only store files
         assert stat.S_IMODE(path.stat().st_mode) == readable, path
+
+
+# ------------------------------------------------ 10. `mavispm cache`
+
+
+def _aged(path, days: float, size: int):
+    import time
+
+    path.write_bytes(b"\0" * size)
+    t = time.time() - days * 86400
+    os.utime(path, (t, t))
+    return path
+
+
+def test_cache_command_shows_usage_and_cleans_by_age_then_size(tmp_path, capsys):
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    old = _aged(cache / "psfgrid-aaa.h5", 40, 3000)
+    mid = _aged(cache / "halo-bbb.npz", 5, 2000)
+    new = _aged(cache / "stampplan-ccc-m9.npz", 1, 1000)
+    mine = _aged(cache / "notes.txt", 400, 10)  # not a cache file: never removed
+    assert main(["cache", "--dir", str(cache)]) == 0
+    assert "6.0 kB in 3 entries" in capsys.readouterr().out
+    assert all(p.exists() for p in (old, mid, new, mine))  # showing removes nothing
+    assert main(["cache", "--dir", str(cache), "--older-than", "30d", "--dry-run"]) == 0
+    assert old.exists()
+    assert main(["cache", "--dir", str(cache), "--older-than", "30d"]) == 0
+    assert not old.exists() and mid.exists() and new.exists()
+    assert main(["cache", "--dir", str(cache), "--max-size", "1.5kB"]) == 0
+    assert not mid.exists() and new.exists() and mine.exists()  # least recently used first
+    assert "freed 2.0 kB (1 entries); 1.0 kB left" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "option"),
+    [
+        (["--max-size", "lots"], "--max-size"),
+        (["--older-than=-3d"], "--older-than"),
+        (["--workdir", "."], "--workdir"),
+    ],
+)
+def test_cache_command_bad_options_are_one_line_errors(tmp_path, capsys, argv, option):
+    assert main(["cache", "--dir", str(tmp_path), *argv]) == 2
+    _one_line_error(capsys, option)
+
+
+def test_cache_command_cleans_a_work_directory_store(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("WF_TEST_LOG", str(tmp_path / "calls.log"))
+    wf = write_workflow(tmp_path)
+    _run(wf, tmp_path / "w")
+    argv = ["cache", "--dir", str(tmp_path / "none"), "--workdir", str(tmp_path / "w")]
+    assert main(argv) == 0
+    assert "product store" in capsys.readouterr().out
+    assert main([*argv, "--max-size", "0"]) == 0
+    assert not any((tmp_path / "w" / "store").glob("*/*"))
+    again = _run(wf, tmp_path / "w")  # everything is simply recomputed
+    assert len(again.ran) == len(again.summary["nodes"])
