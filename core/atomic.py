@@ -15,6 +15,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from mavispm.core.errors import InputError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
@@ -31,14 +33,28 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         A fresh temporary file name in the same folder (same file system, so
         the final ``os.replace`` is atomic). The caller writes to it.
 
+    Raises
+    ------
+    InputError
+        When ``path`` is a folder or its folder cannot be created or written.
+
     Notes
     -----
     On any exception the temporary file is removed and the target is left
     untouched.
     """
     final = Path(path)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    if final.is_dir():
+        raise InputError("is a folder; expected the name of an output file", path=final)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+    except OSError as exc:
+        raise InputError(
+            f"cannot write here ({exc.strerror}: '{exc.filename or final.parent}'); expected "
+            "an output file name in a writable folder",
+            path=final,
+        ) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:

@@ -15,8 +15,9 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.catalogue import read_catalogue
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import InputError
+from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import TableSpec, read_product, write_product
 from mavispm.dynamics.fit import compare, fit_model
 from mavispm.dynamics.likelihood import StarSample
@@ -263,8 +264,15 @@ def _handler(args) -> int:
     if args.config is not None:
         import tomllib
 
-        with open(args.config, "rb") as fh:
-            settings = tomllib.load(fh).get("dynamics", {})
+        try:
+            with open(args.config, "rb") as fh:
+                settings = tomllib.load(fh).get("dynamics", {})
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(
+                f"cannot read settings ({exc}); expected a TOML file with a [dynamics] table",
+                key="--config",
+                source=args.config,
+            ) from None
     settings = validate_settings(settings, source=args.config)
     if args.fast:
         settings = settings.fast()
@@ -310,7 +318,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--truth", default=None, help="truth catalogue with the IMBH")
     p.add_argument("--truth-no-imbh", default=None, help="truth catalogue without IMBH")
     p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
     p.set_defaults(func=_handler)

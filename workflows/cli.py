@@ -94,7 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except MavispmError as exc:
-        print(f"mavispm: error: {exc}", file=sys.stderr)
+        # one line, whatever a library put into the message (HDF5 errors hold newlines)
+        print(f"mavispm: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("mavispm: interrupted", file=sys.stderr)

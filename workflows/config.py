@@ -240,7 +240,7 @@ def read_toml(path: Path) -> dict:
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"invalid TOML: {exc}", source=str(path)) from None
     except OSError as exc:
         raise ConfigError(f"cannot read workflow file ({exc.strerror})", source=str(path)) from None

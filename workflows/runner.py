@@ -30,7 +30,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mavispm.core.errors import MavispmError
+from mavispm.core.errors import ConfigError, MavispmError
 from mavispm.core.paths import check_name, contained
 from mavispm.workflows.cache import Store, canonical_json, exclusive_lock, node_keys
 from mavispm.workflows.config import Workflow, load_workflow
@@ -260,7 +260,11 @@ def run_workflow(
         registry = default_registry()
     if not isinstance(workflow, Workflow):
         workflow = load_workflow(workflow, registry)
-    workdir = Path(workdir or DEFAULT_WORKDIR).resolve()
+    workdir = check_workdir(workdir)
+    if workers is not None and (not isinstance(workers, int) or workers < 0):
+        raise ConfigError(
+            f"expected an integer >= 0 (0 = all CPUs), got {workers!r}", key="--workers"
+        )
     nodes = expand(workflow)
     keys = node_keys(nodes, registry)
     store = Store(workdir / "store")
@@ -296,6 +300,28 @@ def run_workflow(
     return RunResult(rundir=rundir, summary=summary, ran=ran, cached=cached)
 
 
+def check_workdir(workdir) -> Path:
+    """The work directory as an absolute path; it must be a folder (or not exist yet).
+
+    Raises
+    ------
+    ConfigError
+        When it (or a folder above it) is a file, or a store inside it is a file.
+    """
+    path = Path(workdir or DEFAULT_WORKDIR).resolve()
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise ConfigError(
+                    f"'{p}' is a file; expected a work directory (a folder, created if missing)",
+                    key="--workdir",
+                )
+            break
+    if (path / "store").exists() and not (path / "store").is_dir():
+        raise ConfigError(f"'{path / 'store'}' is not a folder", key="--workdir")
+    return path
+
+
 def plan_workflow(
     workflow: Workflow | str | os.PathLike,
     workdir: str | os.PathLike | None = None,
@@ -317,7 +343,7 @@ def plan_workflow(
         registry = default_registry()
     if not isinstance(workflow, Workflow):
         workflow = load_workflow(workflow, registry)
-    store = Store(Path(workdir or DEFAULT_WORKDIR).resolve() / "store")
+    store = Store(check_workdir(workdir) / "store")
     nodes = expand(workflow)
     keys = node_keys(nodes, registry)
     plan, seen = [], set()

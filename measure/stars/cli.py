@@ -12,6 +12,7 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError
 from mavispm.core.products import write_product
@@ -93,8 +94,8 @@ def _load_config(path) -> dict:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"cannot read settings ({exc})", source=path) from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read settings ({exc})", key="--config", source=path) from None
     return dict(data.get("stars", data))
 
 
@@ -132,7 +133,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
     p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the position perturbation")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the position perturbation"
+    )
     p.add_argument(
         "--report", default=None, metavar="DIR", help="also write the accuracy report here"
     )

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from mavispm.core.catalogue import write_catalogue
+from mavispm.core.cliargs import non_negative_int, positive_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.simulate.cluster.eddington import NoIsotropicDFError, check_isotropic_df_exists
@@ -127,7 +128,7 @@ def _handler(args: argparse.Namespace) -> int:
         try:
             with open(args.config, "rb") as fh:
                 data = tomllib.load(fh)
-        except (OSError, tomllib.TOMLDecodeError) as exc:
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise InputError(f"cannot read TOML settings ({exc})", path=args.config) from None
         settings.update(data.get("cluster", data))
     for opt, key in _OPTION_KEYS.items():
@@ -161,11 +162,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         "MAVISIM source list, and write a catalogue product with one table per epoch.",
     )
     p.add_argument("-o", "--output", required=True, help="output catalogue (HDF5)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     p.add_argument("--config", help="TOML file with a [cluster] table (options override it)")
     p.add_argument("--preset", help="cluster preset (default ngc3201)")
     p.add_argument("--imbh-mass", type=float, help="IMBH mass in solMass (0 = none)")
-    p.add_argument("--n-stars", type=int, help="luminous stars in the field (default 3500)")
+    p.add_argument(
+        "--n-stars", type=positive_int, help="luminous stars in the field (default 3500)"
+    )
     p.add_argument("--field-size", type=float, help="field side in arcsec (default 30)")
     p.add_argument("--margin", type=float, help="margin around the field in arcsec (default 1)")
     p.add_argument("--epochs", type=_epochs, help="comma-separated epochs in yr (default 0,10)")

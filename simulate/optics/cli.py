@@ -72,7 +72,7 @@ def load_scene_optics(path: str | Path) -> Mapping:
         raise InputError("scene file does not exist", path=path)
     try:
         data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"invalid TOML ({exc})", source=str(path)) from None
     scene = data.get("scene", data)
     optics = scene.get("optics", {}) if isinstance(scene, Mapping) else {}

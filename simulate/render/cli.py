@@ -18,6 +18,7 @@ import astropy.units as u
 import numpy as np
 
 from mavispm.core.catalogue import Catalogue, read_catalogue
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import write_product
@@ -195,8 +196,8 @@ def _read_scene(path) -> tuple[dict, str]:
             data = tomllib.load(fh)
     except FileNotFoundError:
         raise InputError("scene file does not exist", path=path) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not a readable TOML scene file ({exc})", path=path) from None
     if set(data) == {"scene"} and isinstance(data["scene"], dict):
         data = data["scene"]
     return data, str(path)
@@ -259,7 +260,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="frames product (or folder for 'all')")
     p.add_argument("--fits", help="also write the image as this FITS file")
     p.add_argument("--fits-dir", help="write FITS copies into this folder (frames_<epoch>.fits)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed (default 0)")
     p.add_argument(
         "--cache-dir", help="PSF-grid and stamp-plan cache folder (default: the optics default)"
     )
