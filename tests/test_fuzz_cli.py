@@ -50,7 +50,7 @@ def inputs(tmp_path_factory) -> Path:
     (root / "truncated.h5").write_bytes(data[: len(data) // 2])
     shutil.copy(cat, root / "nan.h5")
     with h5py.File(root / "nan.h5", "r+") as f:
-        for name, obj in _datasets(f):
+        for _name, obj in _datasets(f):
             if obj.dtype.kind == "f" and obj.size:
                 values = obj[()]
                 values.flat[0] = np.nan
