@@ -399,3 +399,61 @@ def test_cache_command_cleans_a_work_directory_store(tmp_path, monkeypatch, caps
     assert not any((tmp_path / "w" / "store").glob("*/*"))
     again = _run(wf, tmp_path / "w")  # everything is simply recomputed
     assert len(again.ran) == len(again.summary["nodes"])
+
+
+# ------------------------------------------------ 5. size limits at validation, before allocation
+
+
+@pytest.mark.parametrize(
+    ("table", "key"),
+    [
+        ("[scene.detector]\nnx = 1000000\nny = 1000000\n", "detector.nx"),
+        ("[scene.optics.psf]\nn_nodes = 1000000\n", "n_nodes"),
+        ("[scene.optics.psf]\npupil_sampling = 1000000\n", "pupil_sampling"),
+    ],
+)
+def test_huge_scenes_are_refused_at_validation_with_the_memory_estimate(
+    tmp_path, capsys, monkeypatch, table, key
+):
+    import tracemalloc
+
+    monkeypatch.delenv("MAVISPM_MAX_MEMORY", raising=False)
+    scene = tmp_path / "scene.toml"
+    scene.write_text(table)
+    out = tmp_path / "psf.h5"
+    if key == "detector.nx":  # the detector is the frames stage's: check its validator
+        import tomllib
+
+        from mavispm.simulate.render.cli import validate_settings
+
+        with pytest.raises(ConfigError, match=r"detector\.nx.*TiB.*MAVISPM_MAX_MEMORY"):
+            validate_settings(tomllib.loads(table)["scene"])
+        monkeypatch.setenv("MAVISPM_MAX_MEMORY", "inf")  # the explicit override
+        assert validate_settings(tomllib.loads(table)["scene"]).detector.nx == 1000000
+        return
+    import mavispm.simulate.optics.fourier_psf  # noqa: F401 - imported before tracing
+    from mavispm.workflows.cli import build_parser
+
+    build_parser()
+    tracemalloc.start()
+    code = main(["simulate", "optics", "--scene", str(scene), "-o", str(out)])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert code == 2
+    _one_line_error(capsys, key, "iB of memory", "MAVISPM_MAX_MEMORY")
+    assert peak < 200e6 and not out.exists()  # refused before any allocation
+
+
+def test_huge_catalogue_is_refused_before_allocation_unless_allowed(tmp_path, capsys, monkeypatch):
+    from mavispm.simulate.cluster.cli import validate_settings
+
+    monkeypatch.delenv("MAVISPM_MAX_MEMORY", raising=False)
+    out = tmp_path / "cat.h5"
+    assert main(["simulate", "cluster", "--n-stars", "1000000000", "-o", str(out)]) == 2
+    _one_line_error(capsys, "n_stars", "GiB of memory")
+    assert not out.exists()
+    monkeypatch.setenv("MAVISPM_MAX_MEMORY", "10 TB")
+    assert validate_settings({"n_stars": 1_000_000_000}).n_stars == 1_000_000_000
+    monkeypatch.setenv("MAVISPM_MAX_MEMORY", "lots")
+    with pytest.raises(ConfigError, match="MAVISPM_MAX_MEMORY"):
+        validate_settings({"n_stars": 10})

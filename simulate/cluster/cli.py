@@ -26,6 +26,10 @@ from mavispm.simulate.cluster.generator import (
 from mavispm.simulate.cluster.presets import get_preset
 from mavispm.simulate.cluster.settings import ClusterSettings
 
+#: Memory per star and epoch while a catalogue is drawn and written (about 20
+#: float64 columns, with the sampler's temporaries).
+BYTES_PER_STAR_EPOCH = 160
+
 
 def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
     """Build :class:`ClusterSettings` from a mapping (TOML table ``[cluster]``).
@@ -37,6 +41,14 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
         or a cored tracer around an IMBH.
     """
     obj = from_mapping(ClusterSettings, settings, source=source)
+    from mavispm.core.limits import check_memory
+
+    check_memory(
+        float(obj.n_stars) * BYTES_PER_STAR_EPOCH * (len(obj.epochs) + 2),
+        f"a catalogue of {obj.n_stars} stars at {len(obj.epochs)} epochs",
+        "n_stars",
+        source,
+    )
     try:
         get_preset(obj.preset)
     except ValueError as exc:

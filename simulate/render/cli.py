@@ -52,7 +52,21 @@ def validate_settings(scene_mapping: Mapping | None, source=None) -> SceneSettin
     """
     scene = scene_from_mapping(scene_mapping, source=source)
     _optics_module().validate_settings(scene.optics, source=source)
+    from mavispm.core.limits import check_memory
+
+    det = scene.detector
+    check_memory(
+        float(det.nx) * float(det.ny) * BYTES_PER_PIXEL,
+        f"a {det.nx} x {det.ny} pixel detector",
+        "detector.nx",
+        source,
+    )
     return scene
+
+
+#: Memory per detector pixel while a frame is made: about six float64 images
+#: (mean, stack, noiseless, variance, mask, output).
+BYTES_PER_PIXEL = 48
 
 
 def build_scene_optics(scene: SceneSettings, cache_dir=None, progress: bool = False):
