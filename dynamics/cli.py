@@ -155,6 +155,10 @@ def _posterior_table(fit) -> QTable:
     return t
 
 
+#: Fewest usable stars a dynamical fit accepts (below, the "mass" is the prior's).
+MIN_FIT_STARS = 10
+
+
 def run_stage(
     propermotions, settings, output, seed, plots_dir=None, truth=None, truth_no_imbh=None
 ):
@@ -182,6 +186,12 @@ def run_stage(
         settings = validate_settings(settings)
     output = Path(output)
     stars, distance = load_stars(propermotions, settings)
+    if stars.R.size < MIN_FIT_STARS:
+        raise InputError(
+            f"only {stars.R.size} usable stars (finite, unflagged proper motions in the field); "
+            f"a dynamical fit needs at least {MIN_FIT_STARS}",
+            path=propermotions,
+        )
     pm = u.mas / u.yr
     profile = dispersion_profile(
         stars.R * u.arcsec,

@@ -457,3 +457,135 @@ def test_huge_catalogue_is_refused_before_allocation_unless_allowed(tmp_path, ca
     monkeypatch.setenv("MAVISPM_MAX_MEMORY", "lots")
     with pytest.raises(ConfigError, match="MAVISPM_MAX_MEMORY"):
         validate_settings({"n_stars": 10})
+
+
+# ------------------------------------------------ 6./8. extreme inputs and vague errors
+
+
+@pytest.fixture(scope="module")
+def small_catalogue(tmp_path_factory):
+    from mavispm.simulate.cluster.cli import run_stage
+
+    root = tmp_path_factory.mktemp("cat")
+    return run_stage({"n_stars": 30, "epochs": [0.0]}, root / "catalogue.h5", seed=2)
+
+
+def _edited_catalogue(src, dst, column, func):
+    import shutil
+
+    import h5py
+
+    shutil.copy(src, dst)
+    os.chmod(dst, 0o644)
+    with h5py.File(dst, "r+") as f:
+        hits = []
+        f.visititems(
+            lambda n, o: (
+                hits.append(o) if isinstance(o, h5py.Dataset) and n.endswith(column) else None
+            )
+        )
+        assert hits, column
+        for ds in hits:
+            ds[...] = func(ds[()])
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("column", "func", "words"),
+    [
+        ("mag", lambda m: m.__setitem__(0, -30.0) or m, ("mag", "electrons")),
+        ("x", lambda x: x + 3600.0, ("stars falls on the", "detector")),
+    ],
+    ids=["V=-30", "outside"],
+)
+def test_catalogues_that_cannot_make_a_frame_are_refused(
+    small_catalogue, tmp_path, capsys, column, func, words
+):
+    bad = _edited_catalogue(small_catalogue, tmp_path / "bad_cat.h5", column, func)
+    out = tmp_path / "frames.h5"
+    assert main(["simulate", "frames", str(bad), "--epoch", "e0", "-o", str(out)]) == 2
+    _one_line_error(capsys, "bad_cat.h5", *words)
+    assert not out.exists()
+
+
+def test_imbh_heavier_than_its_cluster_is_refused_naming_the_flag(tmp_path, capsys):
+    out = tmp_path / "c.h5"
+    assert main(["simulate", "cluster", "--imbh-mass", "1e9", "-o", str(out)]) == 2
+    err = _one_line_error(capsys, "--imbh-mass", "stellar mass")
+    assert "key 'imbh_mass'" not in err and not out.exists()
+
+
+def test_errors_name_the_flag_the_user_typed(tmp_path, capsys):
+    star_list = tmp_path / "stars.csv"
+    star_list.write_text("x,y,mag\n0,0,20\n")
+    out = tmp_path / "c.h5"
+    argv = ["simulate", "cluster", "--input", str(star_list), "--input-format", "mavisim"]
+    assert main([*argv, "-o", str(out)]) == 2
+    err = _one_line_error(capsys, "--pm-convention")
+    assert "external.pm_convention" not in err
+
+
+def test_typo_in_a_scene_file_is_refused_by_simulate_optics(tmp_path, capsys):
+    scene = tmp_path / "scene.toml"
+    scene.write_text("[opticz.psf]\nn_nodes = 3\n")
+    out = tmp_path / "psf.h5"
+    assert main(["simulate", "optics", "--scene", str(scene), "-o", str(out)]) == 2
+    _one_line_error(capsys, "opticz", "did you mean 'optics'")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        ("nan", ("NaN",)),
+        ("zero", ("constant",)),
+        ("saturated", ("saturated",)),
+        ("exptime", ("exptime",)),
+    ],
+)
+def test_unmeasurable_frames_name_file_and_cause(tmp_path, edit, words):
+    import numpy as np
+
+    from mavispm.measure.stars.measure_frame import _check_usable_image
+
+    rng = np.random.default_rng(0)
+    image = rng.normal(100, 5, (40, 40))
+    saturated = np.zeros(image.shape, bool)
+    attrs = {"exptime": 30.0}
+    if edit == "nan":
+        image[:30] = np.nan
+    elif edit == "zero":
+        image[:] = 0.0
+    elif edit == "saturated":
+        saturated[:] = True
+    else:
+        attrs["exptime"] = -30.0
+    _check_usable_image(rng.normal(100, 5, (40, 40)), np.zeros((40, 40), bool), {}, "ok.h5")
+    with pytest.raises(InputError, match="frames.h5") as exc:
+        _check_usable_image(image, saturated, attrs, tmp_path / "frames.h5")
+    for word in words:
+        assert word in str(exc.value)
+
+
+def test_imbh_fit_from_two_stars_is_refused(tmp_path, capsys):
+    import astropy.units as u
+    import numpy as np
+    from astropy.table import QTable
+
+    from mavispm.core.products import write_product
+
+    t = QTable()
+    t["id"] = np.arange(2)
+    # both inside the field radius min(max|x|, max|y|, max R) = 2 arcsec
+    t["x"], t["y"], t["R"] = [3.0, -3.0] * u.arcsec, [3.0, -3.0] * u.arcsec, [1.0, 2.0] * u.arcsec
+    for c in ("pm_r", "pm_t"):
+        t[c] = [0.1, -0.2] * u.mas / u.yr
+    for c in ("pm_r_err", "pm_t_err"):
+        t[c] = [0.05, 0.05] * u.mas / u.yr
+    pm = write_product(
+        tmp_path / "two.h5", "propermotions", tables={"stars": t}, attrs={"distance": 4.6 * u.kpc}
+    )
+    out = tmp_path / "fit.h5"
+    assert main(["dynamics", str(pm), "-o", str(out), "--fast"]) == 2
+    _one_line_error(capsys, "two.h5", "only 2 usable stars")
+    assert not out.exists()

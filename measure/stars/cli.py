@@ -14,7 +14,7 @@ from pathlib import Path
 
 from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import ConfigError
+from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
@@ -68,7 +68,12 @@ def run_stage(
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
     frame = read_frame(frames, require_truth=not cfg.blind)
-    stars, attrs, psf = measure_frame(frame, cfg, seed)
+    try:
+        stars, attrs, psf = measure_frame(frame, cfg, seed)
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), path=frames) from None  # name the frame measured
     copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
     psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
     return write_product(

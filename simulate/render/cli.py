@@ -193,6 +193,15 @@ def run_stage(
     cat = _load_catalogue(catalogue)
     settings = scene_from_mapping(scene)
     table, t = _select_epoch(cat, epoch)
+    from mavispm.simulate.render.frame import check_drawable
+
+    try:
+        check_drawable(table, settings)
+    except InputError as exc:
+        path = getattr(cat, "path", None) or (
+            catalogue if isinstance(catalogue, (str, Path)) else None
+        )
+        raise InputError(f"epoch '{epoch}': {exc}", path=path) from None
     if optics is None:
         optics = build_scene_optics(settings, cache_dir, progress)
     if renderer is None:
