@@ -95,6 +95,14 @@ def load_stars(path, settings: DynamicsSettings):
         e_t=np.hypot(scale * cols["pm_t_err"][ok], floor),
         field_radius=field,
     )
+    for name, err in (("pm_r_err", stars.e_r), ("pm_t_err", stars.e_t)):
+        if np.any(err == 0):
+            raise InputError(
+                f"{int(np.count_nonzero(err == 0))} stars with zero error; expected measured "
+                "uncertainties > 0 (or set dynamics.pm_error_floor)",
+                path=path,
+                column=name,
+            )
     return stars, float(distance)
 
 

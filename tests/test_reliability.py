@@ -589,3 +589,49 @@ def test_imbh_fit_from_two_stars_is_refused(tmp_path, capsys):
     assert main(["dynamics", str(pm), "-o", str(out), "--fast"]) == 2
     _one_line_error(capsys, "two.h5", "only 2 usable stars")
     assert not out.exists()
+
+
+def test_zero_proper_motion_errors_are_refused_unless_floored(tmp_path):
+    import astropy.units as u
+    import numpy as np
+    from astropy.table import QTable
+
+    from mavispm.core.products import write_product
+    from mavispm.dynamics.cli import load_stars, validate_settings
+
+    rng = np.random.default_rng(1)
+    n = 30
+    t = QTable()
+    t["id"] = np.arange(n)
+    x, y = rng.uniform(-10, 10, (2, n))
+    t["x"], t["y"], t["R"] = x * u.arcsec, y * u.arcsec, np.hypot(x, y) * u.arcsec
+    for c in ("pm_r", "pm_t"):
+        t[c] = rng.normal(0, 0.3, n) * u.mas / u.yr
+    t["pm_r_err"] = np.full(n, 0.05) * u.mas / u.yr
+    t["pm_t_err"] = np.zeros(n) * u.mas / u.yr
+    pm = write_product(
+        tmp_path / "zero_err.h5",
+        "propermotions",
+        tables={"stars": t},
+        attrs={"distance": 4.6 * u.kpc},
+    )
+    with pytest.raises(InputError, match=r"zero_err\.h5.*pm_t_err.*zero error"):
+        load_stars(pm, validate_settings({}))
+    stars, _ = load_stars(pm, validate_settings({"pm_error_floor": "0.02 mas/yr"}))
+    assert np.all(stars.e_t == pytest.approx(0.02))
+
+
+def test_two_stars_at_one_position_are_both_flagged_crowded():
+    import numpy as np
+
+    from mavispm.measure.stars.batched_fit import crowding_flags
+
+    # the fit shared the light of a coincident pair 1.6 : 0.4; neither position is usable
+    x = np.array([10.0, 10.2, 30.0])
+    y = np.array([10.0, 10.1, 30.0])
+    flux = np.array([1.6e4, 0.4e4, 1e4])
+    flags = crowding_flags(x, y, flux, radius=3.0, ratio=5.0)
+    assert flags.tolist() == [True, True, False]
+    # resolved pairs keep the flux-ratio rule: only the faint one is crowded
+    flags = crowding_flags(np.array([10.0, 12.5]), np.array([10.0, 10.0]), flux[:2], 3.0, 3.0)
+    assert flags.tolist() == [False, True]

@@ -29,6 +29,7 @@ from mavispm.measure.stars.batched_fit import (
     FLAG_CROWDED,
     FLAG_FAILED,
     FLAG_NO_MATCH,
+    UNRESOLVED_SEPARATION,
     FitOptions,
     FitResult,
     crowding_flags,
@@ -588,6 +589,8 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
     flag[
         crowding_flags(fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio)
     ] |= FLAG_CROWDED
+    # stars that start at (nearly) one position cannot be told apart by the fit either
+    flag[crowding_flags(x0, y0, np.ones(len(x0)), UNRESOLVED_SEPARATION, np.inf)] |= FLAG_CROWDED
     n = len(x0)
     x_true = y_true = mag = flux_true = dist = crlb_x = crlb_y = np.full(n, np.nan)
     if truth is not None:
