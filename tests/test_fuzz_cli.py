@@ -213,6 +213,7 @@ def test_output_at_a_folder_or_below_a_file(inputs, capsys, tmp_path, cmd):
         (["simulate", "cluster", "-o", "{OUT}", "--seed", "x"], "--seed"),
         (["simulate", "cluster", "-o", "{OUT}", "--n-stars", "0"], "--n-stars"),
         (["simulate", "cluster", "-o", "{OUT}", "--n-stars", "1e9"], "--n-stars"),
+        (["simulate", "cluster", "-o", "{OUT}", "--n-stars", "1000000000"], "--n-stars"),
         (["simulate", "cluster", "-o", "{OUT}", "--epochs", "a,b"], "--epochs"),
         (["simulate", "cluster", "-o", "{OUT}", "--tracer", "cube"], "--tracer"),
         (["simulate", "frames", "{CAT}", "-o", "{OUT}", "--seed", "-1"], "--seed"),
