@@ -268,7 +268,11 @@ def rendered(inputs):
     from mavispm.measure.stars.cli import run_stage as measure
     from mavispm.simulate.render.cli import run_stage as render
 
-    frames = render(inputs / "catalogue.h5", "e0", {}, inputs / "frames.h5", seed=1)
+    from mavispm.simulate.cluster.cli import run_stage as cluster
+
+    cat = cluster({"n_stars": 400, "epochs": [0.0]}, inputs / "dense.h5", seed=3)
+    scene = {"detector": {"nx": 1200, "ny": 1200}, "optics": {"psf": {"n_nodes": 3}}}
+    frames = render(cat, "e0", scene, inputs / "frames.h5", seed=1)
     measured = measure(frames, {}, inputs / "measured.h5", seed=1)
     return Path(frames), Path(measured)
 

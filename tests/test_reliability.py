@@ -450,7 +450,7 @@ def test_huge_catalogue_is_refused_before_allocation_unless_allowed(tmp_path, ca
     monkeypatch.delenv("MAVISPM_MAX_MEMORY", raising=False)
     out = tmp_path / "cat.h5"
     assert main(["simulate", "cluster", "--n-stars", "1000000000", "-o", str(out)]) == 2
-    _one_line_error(capsys, "n_stars", "GiB of memory")
+    _one_line_error(capsys, "--n-stars", "GiB of memory")
     assert not out.exists()
     monkeypatch.setenv("MAVISPM_MAX_MEMORY", "10 TB")
     assert validate_settings({"n_stars": 1_000_000_000}).n_stars == 1_000_000_000
