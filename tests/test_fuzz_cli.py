@@ -266,9 +266,8 @@ def test_report_of_hostile_run_directories(inputs, capsys, tmp_path, hostile):
 def rendered(inputs):
     """A small frames product and its measurement (slow: renders one frame)."""
     from mavispm.measure.stars.cli import run_stage as measure
-    from mavispm.simulate.render.cli import run_stage as render
-
     from mavispm.simulate.cluster.cli import run_stage as cluster
+    from mavispm.simulate.render.cli import run_stage as render
 
     cat = cluster({"n_stars": 400, "epochs": [0.0]}, inputs / "dense.h5", seed=3)
     scene = {"detector": {"nx": 1200, "ny": 1200}, "optics": {"psf": {"n_nodes": 3}}}
@@ -295,7 +294,7 @@ def test_hostile_images_are_refused_naming_the_file_and_cause(
     bad = _poison(frames, tmp_path / "bad_frames.h5", value)
     out = tmp_path / "m.h5"
     err = check_refused(capsys, ["measure", "stars", bad, "-o", out], "bad_frames.h5", [out])
-    assert any(w in err for w in ("NaN", "zero", "saturated", "no usable"))
+    assert any(w in err for w in ("NaN", "constant", "saturated")), err
 
 
 @pytest.mark.slow

@@ -635,3 +635,29 @@ def test_two_stars_at_one_position_are_both_flagged_crowded():
     # resolved pairs keep the flux-ratio rule: only the faint one is crowded
     flags = crowding_flags(np.array([10.0, 12.5]), np.array([10.0, 10.0]), flux[:2], 3.0, 3.0)
     assert flags.tolist() == [False, True]
+
+
+@pytest.mark.slow
+def test_lost_dask_worker_is_retried_and_reported(tmp_path, monkeypatch):
+    """A dask worker process killed mid-task: the scheduler retries, the run record says so."""
+    distributed = pytest.importorskip("distributed")
+    from workflows_helpers import fingerprints
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([here, os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("WF_TEST_KILL_ONCE", "stars")
+    wf = write_workflow(tmp_path)
+    with distributed.LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        protocol="tcp",
+        host="127.0.0.1",
+        dashboard_address=None,
+    ) as cluster:
+        result = _run(wf, tmp_path / "w", scheduler=cluster.scheduler_address)
+    assert result.summary["interrupted_tasks"], result.summary["interrupted_tasks"]
+    assert all(n.startswith("stars/") for n in result.summary["interrupted_tasks"])
+    monkeypatch.delenv("WF_TEST_KILL_ONCE")
+    clean = _run(wf, tmp_path / "clean")
+    assert fingerprints(result.rundir) == fingerprints(clean.rundir)
