@@ -233,6 +233,20 @@ def test_bad_option_values_are_usage_errors(inputs, capsys, out, argv, option):
     check_refused(capsys, argv, option, outputs=[out])
 
 
+@pytest.mark.parametrize("hostile", HOSTILE)
+def test_workflow_catalogue_path_to_hostile_files(inputs, capsys, tmp_path, hostile):
+    infile = hostile_file(inputs, hostile)
+    if hostile == "wrong_kind":
+        pytest.skip("a catalogue is the right kind here")
+    wf = tmp_path / "wf.toml"
+    wf.write_text(
+        f'[workflow]\nname = "w"\n[catalogue]\npath = "{infile}"\n[epochs]\ntimes = [0]\n'
+    )
+    workdir = tmp_path / "work"
+    check_refused(capsys, ["run", wf, "--workdir", workdir, "--dry-run"], infile.name)
+    assert not workdir.exists()
+
+
 def test_workdir_at_a_file(inputs, capsys, tmp_path):
     blocker = tmp_path / "not_a_dir"
     blocker.write_text("x")
