@@ -494,7 +494,7 @@ def _edited_catalogue(src, dst, column, func):
     ("column", "func", "words"),
     [
         ("mag", lambda m: m.__setitem__(0, -30.0) or m, ("mag", "electrons")),
-        ("x", lambda x: x + 3600.0, ("stars falls on the", "detector")),
+        ("x", lambda x: x + 3600.0, ("stars falls on or near the", "detector")),
     ],
     ids=["V=-30", "outside"],
 )

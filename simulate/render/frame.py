@@ -94,7 +94,8 @@ def check_drawable(stars, scene) -> None:
     ------
     InputError
         A star too bright for the noise model (``mag``), or no star on the
-        detector at all (``x``/``y``: an empty frame is not a simulation).
+        detector or within one detector size of it (``x``/``y``: an empty frame
+        is not a simulation).
     """
     if "luminous" in stars.colnames:
         stars = stars[np.asarray(stars["luminous"], dtype=bool)]
@@ -111,10 +112,13 @@ def check_drawable(stars, scene) -> None:
             "magnitudes of stars in a cluster field",
             column="mag",
         )
-    on = (x_pix > -0.5) & (x_pix < det.nx - 0.5) & (y_pix > -0.5) & (y_pix < det.ny - 0.5)
-    if len(mag) and not np.any(on):
+    # stars just off the edge light the frame with their wings: only a catalogue with
+    # no star within one detector size of it cannot put any light on it
+    m = max(det.nx, det.ny)
+    near = (x_pix > -m) & (x_pix < det.nx + m) & (y_pix > -m) & (y_pix < det.ny + m)
+    if len(mag) and not np.any(near):
         raise InputError(
-            f"none of the {len(mag)} stars falls on the {det.nx} x {det.ny} pixel detector "
+            f"none of the {len(mag)} stars falls on or near the {det.nx} x {det.ny} pixel detector "
             f"(star pixels x {np.min(x_pix):.0f}..{np.max(x_pix):.0f}, "
             f"y {np.min(y_pix):.0f}..{np.max(y_pix):.0f}); expected positions in arcsec "
             "from the field centre",
