@@ -70,7 +70,15 @@ class MeasureSettings:
         Gaussian perturbation (sigma per axis) of the forced starting positions.
     forced_positions : {"rendered", "catalogue"}
         Start from the truth's rendered ``x_pix, y_pix`` or from its catalogue
-        ``x_cat, y_cat`` (before distortion).
+        ``x_cat, y_cat`` (before distortion). Used by a first epoch, and by every
+        epoch when ``later_epochs = "truth"``.
+    later_epochs : {"measured", "truth"}
+        How an epoch after the first starts when the stage is given the earlier
+        epochs' measured products. "measured" (default, observer mode): from the
+        earlier epochs' measured positions moved into this frame by a transform
+        fitted on bright stars (:mod:`mavispm.measure.stars.start_list`); no truth
+        enters. "truth": from the true positions at this epoch (the paper's
+        truth-forced mode; the proper motion is already in the starting point).
     match_radius : float [pix]
         Truth cross-match distance cut.
     crowding_radius : float [pix]
@@ -116,6 +124,7 @@ class MeasureSettings:
     max_shift: float = unit_field(2.0, "pix")
     perturbation: float = unit_field(0.0, "pix")
     forced_positions: Literal["rendered", "catalogue"] = "rendered"
+    later_epochs: Literal["measured", "truth"] = "measured"
     match_radius: float = unit_field(2.0, "pix")
     crowding_radius: float = unit_field(10.0, "pix")
     crowding_ratio: float = 0.1
