@@ -13,7 +13,9 @@ DAOPhot's FIND + ALLSTAR loop, vectorised:
    (alpha N / c)^2) >= threshold``, with ``N`` the other stars' model light in
    the candidate's 3 x 3 core, ``c`` the ePSF's 3 x 3 core fraction and
    ``alpha(r)`` the fractional model error at distance ``r`` from a star,
-   measured on the bright stars' residuals (at least ``model_error``). PSF structure around a
+   measured on the bright stars' residuals (at least ``model_error``); beyond
+   the first radius where ``alpha`` exceeds 0.5 the model is neither subtracted
+   nor its error counted (a wrong wing does more harm than none). PSF structure around a
    bright star (rings, speckles, spikes beyond what the ePSF describes) gets at
    most ``alpha N`` of flux from the joint fit and is rejected; candidates that
    converge onto a brighter one (within ``merge_radius``) are merged.
@@ -191,13 +193,33 @@ def model_error_profile(
     return np.clip(np.nan_to_num(alpha, nan=floor), floor, 1.0)
 
 
-def error_psf(psf, alpha: np.ndarray) -> VariableEPSF:
-    """An ePSF whose light is ``alpha(r)`` times the |ePSF| (the model error of a star)."""
+#: Beyond the first radius where the model error exceeds this fraction of the model,
+#: the detector neither subtracts the model nor counts its error (it does more harm).
+MAX_USEFUL_ERROR = 0.5
+
+
+def useful_psfs(psf, alpha: np.ndarray) -> tuple[VariableEPSF, VariableEPSF]:
+    """The ePSF truncated where it stops being useful, and its model-error ePSF.
+
+    Returns
+    -------
+    model : VariableEPSF
+        The ePSF inside the first radius (>= 2 px) where ``alpha`` exceeds
+        :data:`MAX_USEFUL_ERROR`, zero outside.
+    error : VariableEPSF
+        ``alpha(r)`` times the |ePSF| inside that radius (the model error of a star).
+    """
     n = psf.basis.shape[-1]
     c = (n - 1) / 2
     r = np.hypot(*np.meshgrid(np.arange(n) - c, np.arange(n) - c)) / psf.oversampling
-    a = alpha[np.clip(r.astype(int), 0, len(alpha) - 1)]
-    return VariableEPSF(np.abs(psf.basis) * a, psf.oversampling, psf._mixing, kind=psf.kind)
+    k = np.clip(r.astype(int), 0, len(alpha) - 1)
+    bad = np.flatnonzero((alpha > MAX_USEFUL_ERROR) & (np.arange(len(alpha)) >= 2))
+    inside = r < (bad[0] if len(bad) else np.inf)
+    model = VariableEPSF(psf.basis * inside, psf.oversampling, psf._mixing, kind=psf.kind)
+    error = VariableEPSF(
+        np.abs(psf.basis) * alpha[k] * inside, psf.oversampling, psf._mixing, kind=psf.kind
+    )
+    return model, error
 
 
 def _core_sum(image: np.ndarray, x, y) -> np.ndarray:
@@ -209,12 +231,13 @@ def _core_sum(image: np.ndarray, x, y) -> np.ndarray:
     return box[cy, cx]
 
 
-def prune(fit, psf, err_psf, shape, options: DetectionOptions, sky0: float):
+def prune(fit, psf, err_psf, shape, options: DetectionOptions):
     """Candidates that survive the joint fit (see the module docstring).
 
-    A candidate's flux must be significant against its photon noise and against
-    the model error (``err_psf``, :func:`error_psf`) of its neighbours' light
-    in its 3 x 3 core, plus the light the neighbours' sky planes took up there.
+    ``psf`` is the ePSF the residuals are made with (:func:`useful_psfs`). A
+    candidate's flux must be significant against its photon noise and against
+    the model error (``err_psf``) of its neighbours' light
+    in its 3 x 3 core.
 
     Returns
     -------
@@ -233,7 +256,6 @@ def prune(fit, psf, err_psf, shape, options: DetectionOptions, sky0: float):
     core3 = float(sampled_epsf(psf, cx, cy, 1).sum())
     own = used * float(sampled_epsf(err_psf, cx, cy, 1).sum())
     neighbours = np.clip(_core_sum(error, fit.x, fit.y) - own, 0.0, None)
-    neighbours += 9 * np.abs(np.nan_to_num(fit.sky - sky0))
     with np.errstate(invalid="ignore", divide="ignore"):
         snr = flux / np.hypot(fit.flux_err, neighbours / core3)
     keep = ok & (snr >= options.threshold)
@@ -300,8 +322,8 @@ def detect_stars(frame, settings, build_psf, run_engine, options: DetectionOptio
                 resid, psf, fit.x, fit.y, flux, base_var, options.model_error
             )
             info["model_error_profile"] = [round(float(a), 4) for a in alpha]
-            err_psf = error_psf(psf, alpha)
-        keep, model, error = prune(fit, psf, err_psf, frame.shape, options, frame.sky)
+            model_psf, err_psf = useful_psfs(psf, alpha)
+        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options)
         x, y = fit.x[keep], fit.y[keep]
         info["n_pass"].append(int(len(x)))
         if p == options.passes - 1:
