@@ -158,18 +158,18 @@ def local_background_subtracted(residual: np.ndarray, box: int) -> np.ndarray:
     return residual - bg[: residual.shape[0], : residual.shape[1]]
 
 
-def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
-    """Significance divided by its own robust scatter in ``tile`` x ``tile`` tiles (at
-    least 1).
+def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
+    """Robust scatter of a significance map in ``tile`` x ``tile`` tiles (at least 1),
+    interpolated to every pixel.
 
     Light the model does not hold (the structured PSF halo of a cluster's stars
     beyond the ePSF footprint) makes the significance of empty places scatter
-    more than 1; each tile's robust sigma (1.4826 MAD, stars are a small
-    fraction of a tile's pixels) is that excess, interpolated between tiles.
+    more than 1; each tile's robust sigma (1.4826 MAD; stars are a small
+    fraction of a tile's pixels) is that excess.
     """
-    if tile < 4:
-        return snr
     ny, nx = snr.shape
+    if tile < 4:
+        return np.ones_like(snr)
     ty, tx = -(-ny // tile), -(-nx // tile)
     padded = np.full((ty * tile, tx * tile), np.nan)
     padded[:ny, :nx] = snr
@@ -180,7 +180,12 @@ def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
         mad = np.nanmedian(np.abs(blocks - med[:, :, None]), axis=2)
     scale = np.clip(np.nan_to_num(1.4826 * mad, nan=1.0), 1.0, None)
     full = ndimage.zoom(scale, (ny / ty, nx / tx), order=1, mode="nearest", grid_mode=True)
-    return snr / full[:ny, :nx]
+    return full[:ny, :nx]
+
+
+def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
+    """Significance divided by its :func:`noise_scale`."""
+    return snr / noise_scale(snr, tile)
 
 
 def model_error_profile(
@@ -263,13 +268,14 @@ def _core_sum(image: np.ndarray, x, y) -> np.ndarray:
     return box[cy, cx]
 
 
-def prune(fit, psf, err_psf, shape, options: DetectionOptions):
+def prune(fit, psf, err_psf, shape, options: DetectionOptions, scale=None):
     """Candidates that survive the joint fit (see the module docstring).
 
     ``psf`` is the ePSF the residuals are made with (:func:`useful_psfs`). A
     candidate's flux must be significant against its photon noise and against
-    the model error (``err_psf``) of its neighbours' light
-    in its 3 x 3 core.
+    the model error (``err_psf``) of its neighbours' light in its 3 x 3 core,
+    divided by the local excess scatter ``scale`` (:func:`noise_scale`) of the
+    significance map it was found in.
 
     Returns
     -------
@@ -290,6 +296,11 @@ def prune(fit, psf, err_psf, shape, options: DetectionOptions):
     neighbours = np.clip(_core_sum(error, fit.x, fit.y) - own, 0.0, None)
     with np.errstate(invalid="ignore", divide="ignore"):
         snr = flux / np.hypot(fit.flux_err, neighbours / core3)
+    if scale is not None:  # the local excess scatter of the significance (noise_scale)
+        ny, nx = shape
+        cx = np.clip(np.rint(np.nan_to_num(fit.x)).astype(int), 0, nx - 1)
+        cy = np.clip(np.rint(np.nan_to_num(fit.y)).astype(int), 0, ny - 1)
+        snr = snr / scale[cy, cx]
     keep = ok & (snr >= options.threshold)
     # merge candidates that converged onto a brighter one
     order = np.argsort(-flux)
@@ -338,7 +349,8 @@ def detect_stars(frame, settings, build_psf, run_engine, options: DetectionOptio
         base_var + np.clip(data, 0, None),
         _gaussian_kernel(options.fwhm),
     )
-    snr = locally_normalised(snr, options.noise_tile)
+    scale = noise_scale(snr, options.noise_tile)
+    snr = snr / scale
     box = max(3, options.first_box | 1)
     x, y, _ = peaks(snr, options.first_threshold, box, ~frame.bad)
     info = {"n_first": int(len(x)), "n_pass": []}
@@ -360,15 +372,16 @@ def detect_stars(frame, settings, build_psf, run_engine, options: DetectionOptio
             )
             info["model_error_profile"] = [round(float(a), 4) for a in alpha]
             model_psf, err_psf = useful_psfs(psf, alpha)
-        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options)
+        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options, scale)
         x, y = fit.x[keep], fit.y[keep]
         info["n_pass"].append(int(len(x)))
         if p == options.passes - 1:
             break
         var = base_var + np.clip(model, 0, None) + error**2
         resid = local_background_subtracted(data - model, options.background_box)
-        snr = locally_normalised(significance(resid, var, kernel), options.noise_tile)
-        new_x, new_y, _ = peaks(snr, options.threshold, 3, usable)
+        snr = significance(resid, var, kernel)
+        scale = noise_scale(snr, options.noise_tile)
+        new_x, new_y, _ = peaks(snr / scale, options.threshold, 3, usable)
         if len(new_x) and len(x):
             d, _ = cKDTree(np.column_stack([x, y])).query(np.column_stack([new_x, new_y]))
             far = d > options.merge_radius
