@@ -26,6 +26,8 @@ from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product, write_product
 
 CATALOGUE_KIND = "catalogue"
+#: Values of the optional catalogue column ``kind`` (what the object is).
+OBJECT_KINDS = ("star", "white_dwarf", "neutron_star", "black_hole", "imbh")
 
 #: Columns of every epoch table. Required columns are what the renderer needs;
 #: optional columns carry the dynamical truth.
@@ -46,8 +48,11 @@ CATALOGUE_SPEC = TableSpec(
         "vy": "km/s",
         "vz": "km/s",
         "luminous": "",  # bool; False for dark remnants (never rendered)
+        "teff": "K",  # effective temperature of luminous stars (NaN for dark objects)
     },
     id_column="id",
+    allow_nan=("teff",),
+    text={"kind": OBJECT_KINDS},  # star, white_dwarf, neutron_star, black_hole, imbh
 )
 
 
