@@ -419,3 +419,28 @@ def generator_recovery_trial(
         "cpu_s": time.process_time() - t0,
         "model": model,
     }
+
+
+def write_mock_catalogue(path, seed, distance=4.6, n_dark=50, **kwargs):
+    """Write a mock truth ``catalogue`` (one epoch) from :func:`mock_pm_stars`.
+
+    The true motions are ``pm_x_true, pm_y_true``; ``n_dark`` extra non-luminous
+    stars with absurd motions (100 mas/yr) must be ignored by truth-level fits.
+    """
+    import astropy.units as u
+    from astropy.table import QTable
+
+    from mavispm.core.catalogue import write_catalogue
+
+    d = mock_pm_stars(seed, distance=distance, **kwargs)
+    n = d["R"].size
+    t = QTable()
+    t["id"] = np.arange(n + n_dark, dtype=np.int64)
+    t["x"] = np.concatenate([d["x"], np.zeros(n_dark) + 1.0]) * u.arcsec
+    t["y"] = np.concatenate([d["y"], np.zeros(n_dark)]) * u.arcsec
+    t["pm_x"] = np.concatenate([d["pm_x_true"], np.full(n_dark, 100.0)]) * u.mas / u.yr
+    t["pm_y"] = np.concatenate([d["pm_y_true"], np.full(n_dark, 100.0)]) * u.mas / u.yr
+    t["mag"] = np.full(n + n_dark, 20.0) * u.mag
+    t["luminous"] = np.concatenate([np.ones(n, bool), np.zeros(n_dark, bool)])
+    t.meta["epoch"] = 0.0 * u.yr
+    return write_catalogue(path, {"e0": t}, attrs={"distance": distance * u.kpc}, seed=seed)

@@ -194,3 +194,34 @@ def test_pm_error_scale_and_floor(pm_file):
     np.testing.assert_array_equal(stars.v_r, base.v_r)
     with pytest.raises(ConfigError, match="pm_error"):
         validate_settings({"pm_error_scale": 0.0})
+
+
+def test_from_catalogue_fits_true_motions_of_luminous_stars(tmp_path, capsys):
+    """--from-catalogue: luminous stars inside the field, true motions, the given error."""
+    from dynamics_helpers import write_mock_catalogue
+
+    from mavispm.dynamics.cli import load_catalogue_stars
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    cat = write_mock_catalogue(tmp_path / "cat.h5", seed=3, n_field=300)
+    stars, dist = load_catalogue_stars(cat, DynamicsSettings(field_radius=15.0), pm_error=0.002)
+    assert dist == pytest.approx(4.6) and np.all(stars.R <= 15.0)
+    assert np.all(stars.e_r == 0.002) and np.all(np.abs(stars.v_r) < 50)  # dark stars dropped
+    d = __import__("dynamics_helpers").mock_pm_stars(3, n_field=300, distance=4.6)
+    assert stars.R.size == int(np.sum(d["R"] <= 15.0))
+    with pytest.raises(InputError, match="epoch"):
+        load_catalogue_stars(cat, DynamicsSettings(), epoch="e7")
+    with pytest.raises(InputError, match="pm-error"):
+        load_catalogue_stars(cat, DynamicsSettings(), pm_error=0.0)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        "[dynamics]\nwalkers = 10\nmax_steps = 30\ncheck_every = 30\nn_bootstrap = 2\n"
+        'cusp = false\ncentre_error = 0\nsystemic_error = 0\ndistance_error = 0\nmodels = ["none", "imbh"]\n'
+    )
+    out = tmp_path / "f.h5"
+    args = ["dynamics", "--from-catalogue", str(cat), "--pm-error", "0.002", "-o", str(out)]
+    assert main([*args, "--config", str(cfg), "--no-evidence"]) == 0
+    a = read_product(out, "dynamics", load_arrays=False).attrs
+    assert a["catalogue"] == str(cat) and a["pm_error"].to_value(u.mas / u.yr) == 0.002
+    assert main(["dynamics", "-o", str(tmp_path / "x.h5")]) == 2  # neither input
+    assert main(["dynamics", str(cat), "--epoch", "e0", "-o", str(tmp_path / "y.h5")]) == 2
