@@ -38,7 +38,7 @@ from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.anisotropy import osipkov_merritt
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
-from mavispm.dynamics.star_sums import star_sums
+from mavispm.dynamics.star_sums import star_sums, stars_about
 from mavispm.dynamics.tracers import make_tracer
 
 #: parsec per (arcsec * kpc)
@@ -179,8 +179,9 @@ class DiscreteLikelihood:
         self._v2 = np.ascontiguousarray(np.stack([stars.v_r**2, stars.v_t**2]), dtype=float)
         self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)
         if stars.x is not None:
-            R = np.maximum(np.hypot(stars.x, stars.y), 1e-12)
-            cx, sy = stars.x / R, stars.y / R
+            x, y = (np.ascontiguousarray(v, dtype=float) for v in (stars.x, stars.y))
+            R = np.maximum(np.hypot(x, y), 1e-12)
+            cx, sy = x / R, y / R
             self._pm_x = stars.v_r * cx - stars.v_t * sy
             self._pm_y = stars.v_r * sy + stars.v_t * cx
             self._cs = (cx, sy)
@@ -263,6 +264,25 @@ class DiscreteLikelihood:
         """ln R, v^2 and e^2 of the stars about the model centre and systemic motion."""
         if not self._moving:
             return self.lnR, self._v2, self._e2
+        get = self._value
+        return stars_about(
+            self.stars.x,
+            self.stars.y,
+            self._pm_x,
+            self._pm_y,
+            self._cs[0],
+            self._cs[1],
+            self._e2[0],
+            self._e2[1],
+            get(theta, "x0", 0.0),
+            get(theta, "y0", 0.0),
+            get(theta, "pm_x0", 0.0),
+            get(theta, "pm_y0", 0.0),
+            self.min_radius,
+        )
+
+    def _stars_about_numpy(self, theta):
+        """Reference implementation of :meth:`_stars_about` (numpy, for the tests)."""
         s = self.stars
         dx = s.x - self._value(theta, "x0", 0.0)
         dy = s.y - self._value(theta, "y0", 0.0)
@@ -311,27 +331,21 @@ class DiscreteLikelihood:
         total = float(np.exp(interpolate(ln_proj, i_in, w_in)[0])) * self._completeness(r_in)
         t, w = _GL16
         # Gauss-Legendre pieces in ln R, split at the completeness knots (kinks) and
-        # at R_field - offset (where the ring starts to leave the field)
+        # at R_field - offset (where the ring starts to leave the field); one pass
         cuts = [r_in, R_f - offset, R_f + offset]
         if self.completeness is not None:
             cuts += [r for r in self.completeness[0] if r_in < r < R_f + offset]
-        cuts = np.unique(cuts)
-        pieces = [
-            (np.log(lo), np.log(hi), lo >= R_f - offset - 1e-12)
-            for lo, hi in zip(cuts[:-1], cuts[1:])
-            if hi > lo
-        ]
-        for lo, hi, partial in pieces:
-            half = 0.5 * (hi - lo)
-            lnR = 0.5 * (hi + lo) + half * t
-            R = np.exp(lnR)
-            idx, wt = cubic_weights(lnX[0], self.step, lnX.size, lnR - ln_a)
-            sig = np.exp(interpolate(ln_sig, idx, wt))
-            f = sig * 2.0 * np.pi * (R / a) ** 2 * self._completeness(R)
-            if partial:
-                cosang = (R * R + offset * offset - R_f * R_f) / (2.0 * R * offset)
-                f = f * np.arccos(np.clip(cosang, -1.0, 1.0)) / np.pi
-            total += float(np.sum(f * w) * half)
+        ln_cuts = np.log(np.unique(cuts))
+        lo, hi = ln_cuts[:-1], ln_cuts[1:]
+        half = 0.5 * (hi - lo)
+        lnR = (0.5 * (hi + lo))[:, None] + half[:, None] * t[None, :]
+        R = np.exp(lnR).ravel()
+        idx, wt = cubic_weights(lnX[0], self.step, lnX.size, lnR.ravel() - ln_a)
+        f = np.exp(interpolate(ln_sig, idx, wt)) * (R / a) ** 2 * self._completeness(R)
+        if offset > 0:
+            cosang = (R * R + offset * offset - R_f * R_f) / (2.0 * R * offset)
+            f = f * np.arccos(np.clip(cosang, -1.0, 1.0)) / np.pi
+        total += 2.0 * np.pi * float(np.sum(f.reshape(lnR.shape) * w[None, :] * half[:, None]))
         return float(np.log(max(total, np.finfo(float).tiny)))
 
     def __call__(self, theta) -> float:

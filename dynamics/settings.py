@@ -82,8 +82,8 @@ class DynamicsSettings:
     completeness: tuple[float, ...] | None = None
     kinematic_evidence: bool = True
     ambiguous_ln_b: float = 1.0
-    grid_size: int = 48
-    projection_panels: int = 12
+    grid_size: int = 64
+    projection_panels: int = 16
     projection_nodes: int = 6
     truncation: float = 1.0e4
     bin_size: int = 300
