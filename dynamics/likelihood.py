@@ -23,7 +23,7 @@ Model parameters (physical): ``log_mass`` (log10 solMass), ``log_scale_radius``
 (log10 arcsec), optionally ``gamma`` (cusp or Dehnen slope) and ``log_cusp_radius``
 (log10 arcsec), ``bh_mass`` (solMass), ``dark_mass`` (solMass) with
 ``log_dark_radius`` (log10 arcsec), ``beta`` or ``log_anisotropy_radius`` (log10
-arcsec, Osipkov-Merritt), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
+arcsec, Osipkov-Merritt; neither: isotropic), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
 ``pm_y0`` (mas/yr).
 """
 
@@ -153,8 +153,10 @@ class DiscreteLikelihood:
         for req in ("log_mass", "log_scale_radius"):
             if req not in self._idx:
                 raise ValueError(f"parameter {req!r} is required")
-        if ("beta" in self._idx) == ("log_anisotropy_radius" in self._idx):
-            raise ValueError("exactly one of 'beta' and 'log_anisotropy_radius' is required")
+        if "beta" in self._idx and "log_anisotropy_radius" in self._idx:
+            raise ValueError(
+                "give 'beta' or 'log_anisotropy_radius', not both (neither: isotropic)"
+            )
         self._moving = any(n in self._idx for n in ("x0", "y0", "pm_x0", "pm_y0"))
         if self._moving and stars.x is None:
             raise InputError("fitting the centre or systemic motion needs star positions x, y")
@@ -211,6 +213,8 @@ class DiscreteLikelihood:
         """Anisotropy profile (radii in scale radii) of ``theta``."""
         if "beta" in self._idx:
             return constant_anisotropy(theta[self._idx["beta"]])
+        if "log_anisotropy_radius" not in self._idx:
+            return constant_anisotropy(0.0)
         ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
         return osipkov_merritt(10.0 ** theta[self._idx["log_anisotropy_radius"]] / np.exp(ln_a))
 

@@ -444,3 +444,156 @@ def write_mock_catalogue(path, seed, distance=4.6, n_dark=50, **kwargs):
     t["luminous"] = np.concatenate([np.ones(n, bool), np.zeros(n_dark, bool)])
     t.meta["epoch"] = 0.0 * u.yr
     return write_catalogue(path, {"e0": t}, attrs={"distance": distance * u.kpc}, seed=seed)
+
+
+#: Simulation-based calibration: priors the mocks are drawn from and the fit uses.
+SBC_PRIOR = {"log_mass": (4.5, 5.0), "log_scale_radius": (1.2, 1.6), "bh_mass": (0.0, 5000.0)}
+
+
+def sbc_trial(seed, n_stars=600, n_ranks=99, walkers=16, max_steps=3000):
+    """One SBC draw: parameters from the prior, an independent mock, an emcee fit, the rank.
+
+    The mock (:func:`mock_pm_stars`: Plummer sphere + point mass, isotropic, errors
+    20-100 microarcsec/yr, 17" field, 4.6 kpc) matches the fitted model (Plummer
+    tracer without cusp, isotropic, distance known, centre and motion fixed), so
+    the rank of the true M_bh among ``n_ranks`` posterior draws is uniform on
+    0..n_ranks if the posterior is calibrated (Talts et al. 2018).
+
+    Returns
+    -------
+    dict
+        ``seed, bh_true, rank, n_ranks, q2.5, q16, q50, q84, q97.5, converged, tau``.
+    """
+    from mavispm.dynamics.fit import make_likelihood
+    from mavispm.dynamics.likelihood import StarSample
+    from mavispm.dynamics.parameters import Parameter, ParameterSpace
+    from mavispm.dynamics.sampling import run_emcee
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    rng = np.random.default_rng([seed, 13])
+    truth = {k: rng.uniform(lo, hi) for k, (lo, hi) in SBC_PRIOR.items()}
+    d = mock_pm_stars(
+        seed,
+        n_field=n_stars,
+        mass=10 ** truth["log_mass"],
+        a_arcsec=10 ** truth["log_scale_radius"],
+        bh_mass=truth["bh_mass"],
+        distance=4.6,
+    )
+    stars = StarSample(d["R"], d["pm_r"], d["pm_t"], d["pm_r_err"], d["pm_t_err"], 17.0)
+    space = ParameterSpace([Parameter(k, lo=lo, hi=hi) for k, (lo, hi) in SBC_PRIOR.items()])
+    s = DynamicsSettings(cusp=False, distance_error=0.0, log_scale_radius_range=(1.0, 2.0))
+    like = make_likelihood(stars, space, s, 4.6)
+    chain = run_emcee(
+        like,
+        space,
+        seed,
+        walkers=walkers,
+        max_steps=max_steps,
+        tau_factor=30.0,
+        check_every=250,
+        progress=False,
+    )
+    bh = chain.samples[:, space.index("bh_mass")]
+    pick = np.linspace(0, bh.size - 1, n_ranks).astype(int)
+    q = np.percentile(bh, [2.5, 16, 50, 84, 97.5])
+    return {
+        "seed": seed,
+        "bh_true": truth["bh_mass"],
+        "rank": int(np.sum(bh[pick] < truth["bh_mass"])),
+        "n_ranks": n_ranks,
+        **{f"q{p:g}": float(v) for p, v in zip((2.5, 16, 50, 84, 97.5), q)},
+        "converged": bool(chain.converged),
+        "tau": float(np.max(chain.tau)),
+    }
+
+
+#: Null and IMBH cases of the validation matrix (issue 13) on the cluster generator's
+#: realistic ``ngc3201-nbody`` clusters: overrides of ClusterSettings.
+VALIDATION_CASES = {
+    "segregated": {},
+    "radial_anisotropy": {"anisotropy_radius": 300.0},
+    "bh_subsystem": {"bh_subsystem_mass": 1500.0},
+    "core_collapse": {"core_collapse": True},
+}
+
+
+def realistic_stars(seed, case="segregated", imbh_mass=0.0, radius=15.0, pm_error=0.015):
+    """Luminous stars inside ``radius`` of an ``ngc3201-nbody`` catalogue, true motions plus
+    Gaussian errors of ``pm_error`` mas/yr per component, with positions (for the centre fit)."""
+    import astropy.units as u
+
+    from mavispm.dynamics.likelihood import StarSample
+    from mavispm.simulate.cluster.generator import simulate_catalogue
+    from mavispm.simulate.cluster.settings import ClusterSettings
+
+    s = ClusterSettings(
+        preset="ngc3201-nbody",
+        imbh_mass=imbh_mass,
+        epochs=[0.0],
+        field_size=2.0 * radius + 2.0,
+        **VALIDATION_CASES[case],
+    )
+    epochs, attrs = simulate_catalogue(s, seed)
+    t = next(iter(epochs.values()))
+    x, y = t["x"].to_value(u.arcsec), t["y"].to_value(u.arcsec)
+    R = np.hypot(x, y)
+    keep = np.asarray(t["luminous"], bool) & (R < radius)
+    rng = np.random.default_rng([seed, 11])
+    n = int(keep.sum())
+    pm = np.stack([t["pm_x"].to_value(u.mas / u.yr)[keep], t["pm_y"].to_value(u.mas / u.yr)[keep]])
+    pm = pm + pm_error * rng.standard_normal((2, n))
+    R = np.maximum(R[keep], 1e-9)
+    cx, sy = x[keep] / R, y[keep] / R
+    err = np.full(n, pm_error)
+    stars = StarSample(
+        R,
+        pm[0] * cx + pm[1] * sy,
+        -pm[0] * sy + pm[1] * cx,
+        err,
+        err.copy(),
+        radius,
+        x=x[keep],
+        y=y[keep],
+    )
+    return stars, float(u.Quantity(attrs["distance"], u.kpc).value)
+
+
+def validation_trial(seed, case, imbh_mass, settings=None):
+    """Four-model comparison on one realistic cluster; the verdict numbers."""
+    import time
+
+    from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    t0 = time.process_time()
+    stars, dist = realistic_stars(seed, case, imbh_mass)
+    s = settings or DynamicsSettings(
+        progress=False,
+        walkers=32,
+        max_steps=4000,
+        tau_factor=20.0,
+        check_every=250,
+        nlive=100,
+        dlogz=0.5,
+        log_scale_radius_range=(1.0, 3.0),
+        log_scale_radius_prior=(1.892, 0.05),
+    )
+    fits = [fit_model(stars, s, dist, m, seed) for m in s.models]
+    c = compare(fits, s.bh_mass_max, s.ambiguous_ln_b)
+    bh = marginal_bh_samples(fits, seed)
+    q = np.percentile(bh, [2.5, 16, 50, 84, 97.5]) if bh.size else np.full(5, np.nan)
+    return {
+        "seed": seed,
+        "case": case,
+        "imbh_mass": imbh_mass,
+        "n_stars": int(stars.R.size),
+        "ln_b": c.ln_bayes_factor,
+        "ln_b_kin": c.ln_bayes_factor_kinematic,
+        "ln_b_dark": c.ln_b_dark_centre,
+        "ln_b_imbh_vs_ext": c.ln_b_imbh_vs_extended,
+        "verdict": c.verdict,
+        "converged": c.converged,
+        **{f"q{p:g}": float(v) for p, v in zip((2.5, 16, 50, 84, 97.5), q)},
+        "cpu_s": time.process_time() - t0,
+    }
