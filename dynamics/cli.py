@@ -17,9 +17,10 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.catalogue import read_catalogue
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import InputError
-from mavispm.core.products import TableSpec, read_product, write_product
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.products import TableSpec, read_product, validate_table, write_product
 from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
@@ -38,7 +39,8 @@ PM_SPEC = TableSpec(
         "pm_t_err": "mas/yr",
     },
     optional={"flag": "", "mag": "mag", "pm_x": "mas/yr", "pm_y": "mas/yr"},
-    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err"),
+    # mag is the truth magnitude (scoring only): NaN for a star without a truth match
+    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err", "mag", "pm_x", "pm_y"),
 )
 
 
@@ -59,8 +61,15 @@ def load_stars(path, settings: DynamicsSettings):
     InputError
         Missing columns or distance, negative errors, or no usable stars.
     """
-    prod = read_product(path, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
-    t = prod.tables["stars"]
+    prod = read_product(path, "propermotions", load_arrays=False)
+    t = prod.tables.get("stars")
+    if t is None:
+        raise InputError("table 'stars' missing", path=path)
+    if "flag" in t.colnames and not settings.use_flagged:
+        # flagged rows are not used: drop them before validating (they may carry
+        # NaN in columns the fit needs, e.g. a detection without a truth match)
+        t = t[np.asarray(t["flag"]).astype(np.int64) == 0]
+    t = validate_table(t, PM_SPEC, path=path, table_name="stars")
     distance = settings.distance
     if distance is None:
         if "distance" not in prod.attrs:
@@ -162,6 +171,14 @@ def load_catalogue_stars(path, settings: DynamicsSettings, epoch=None, pm_error:
         x=x[sel],
         y=y[sel],
     )
+    for name, err in (("pm_r_err", stars.e_r), ("pm_t_err", stars.e_t)):
+        if np.any(err == 0):
+            raise InputError(
+                f"{int(np.count_nonzero(err == 0))} stars with zero error; expected measured "
+                "uncertainties > 0 (or set dynamics.pm_error_floor)",
+                path=path,
+                column=name,
+            )
     return stars, float(distance)
 
 
@@ -222,6 +239,10 @@ def _posterior_table(fit) -> QTable:
     return t
 
 
+#: Fewest usable stars a dynamical fit accepts (below, the "mass" is the prior's).
+MIN_FIT_STARS = 10
+
+
 def run_stage(
     propermotions,
     settings,
@@ -269,6 +290,12 @@ def run_stage(
     else:
         stars, distance = load_stars(propermotions, settings)
         source = {"propermotions": str(propermotions)}
+    if stars.R.size < MIN_FIT_STARS:
+        raise InputError(
+            f"only {stars.R.size} usable stars (finite, unflagged proper motions in the field); "
+            f"a dynamical fit needs at least {MIN_FIT_STARS}",
+            path=from_catalogue if from_catalogue is not None else propermotions,
+        )
     pm = u.mas / u.yr
     profile = dispersion_profile(
         stars.R * u.arcsec,
@@ -357,8 +384,15 @@ def _handler(args) -> int:
     if args.config is not None:
         import tomllib
 
-        with open(args.config, "rb") as fh:
-            settings = tomllib.load(fh).get("dynamics", {})
+        try:
+            with open(args.config, "rb") as fh:
+                settings = tomllib.load(fh).get("dynamics", {})
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(
+                f"cannot read settings ({exc}); expected a TOML file with a [dynamics] table",
+                key="--config",
+                source=args.config,
+            ) from None
     settings = validate_settings(settings, source=args.config)
     if args.fast:
         settings = settings.fast()
@@ -425,7 +459,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--truth", default=None, help="truth catalogue with the IMBH")
     p.add_argument("--truth-no-imbh", default=None, help="truth catalogue without IMBH")
     p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
     p.set_defaults(func=_handler)

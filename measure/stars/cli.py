@@ -12,12 +12,14 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import ConfigError
+from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 from mavispm.measure.stars.settings import MeasureSettings
+from mavispm.measure.stars.start_list import read_earlier
 
 MEASURED_KIND = "measured"
 
@@ -46,7 +48,11 @@ def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
 
 
 def run_stage(
-    frames, settings: Mapping | MeasureSettings | None, output, seed: int | None = None
+    frames,
+    settings: Mapping | MeasureSettings | None,
+    output,
+    seed: int | None = None,
+    earlier: Sequence | None = None,
 ) -> Path:
     """Measure every star of a ``frames`` product and write the ``measured`` product.
 
@@ -60,14 +66,25 @@ def run_stage(
         Output ``measured`` product (written atomically).
     seed : int, optional
         Seed of the forced-position perturbation.
+    earlier : sequence of path, optional
+        ``measured`` products of earlier epochs. With ``later_epochs =
+        "measured"`` (the default, observer mode) the frame starts from their
+        measured positions instead of the truth (docs/measure.md).
 
     Returns
     -------
     pathlib.Path
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
-    frame = read_frame(frames, require_truth=not cfg.blind)
-    stars, attrs, psf = measure_frame(frame, cfg, seed)
+    previous = [read_earlier(p) for p in (earlier or ())]
+    carried = bool(previous) and cfg.later_epochs == "measured"
+    frame = read_frame(frames, require_truth=not (cfg.blind or carried))
+    try:
+        stars, attrs, psf = measure_frame(frame, cfg, seed, earlier=previous)
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), path=frames) from None  # name the frame measured
     copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
     psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
     return write_product(
@@ -93,8 +110,8 @@ def _load_config(path) -> dict:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"cannot read settings ({exc})", source=path) from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read settings ({exc})", key="--config", source=path) from None
     return dict(data.get("stars", data))
 
 
@@ -109,7 +126,7 @@ def _handler(args: argparse.Namespace) -> int:
     if args.progress:
         settings["progress"] = True
     cfg = validate_settings(settings, source=args.config)
-    out = run_stage(args.frames, cfg, args.output, args.seed)
+    out = run_stage(args.frames, cfg, args.output, args.seed, earlier=args.earlier)
     print(f"wrote {out}")
     if args.report is not None:
         for path in write_report([out], args.report):
@@ -131,8 +148,17 @@ def register(subparsers) -> argparse.ArgumentParser:
         "--psf", choices=("constant", "grid", "polynomial"), default=None, help="ePSF variation"
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
+    p.add_argument(
+        "--earlier",
+        nargs="+",
+        default=None,
+        metavar="MEASURED",
+        help="measured products of earlier epochs: start from their positions (observer mode)",
+    )
     p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the position perturbation")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the position perturbation"
+    )
     p.add_argument(
         "--report", default=None, metavar="DIR", help="also write the accuracy report here"
     )
