@@ -177,16 +177,7 @@ class DiscreteLikelihood:
         bh = self._value(theta, "bh_mass", 0.0)
         beta = theta[self.names.index("beta")]
         dist = self._value(theta, "distance", self.distance)
-        tracer = self._fixed_tracer
-        if self.cusp_link == "influence":
-            tracer = self._influence_cusp(theta, bh, 10.0**log_m)
-        elif "log_cusp_radius" in self.names:
-            x_c = 10.0 ** (theta[self.names.index("log_cusp_radius")]) / np.exp(ln_a)
-            g = theta[self.names.index("gamma")]
-            tracer = make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_c)
-        elif "gamma" in self.names:
-            tracer = make_tracer("dehnen", theta[self.names.index("gamma")])
-        mom = self.projector.moments(tracer, beta)
+        mom = self.projector.moments(self.tracer_at(theta), beta)
         a_pc = np.exp(ln_a) * dist * PC_PER_ARCSEC_KPC
         conv = (KMS_PER_MASYR_KPC * dist) ** 2
         scale = G_PC_KMS2_MSUN / a_pc / conv
@@ -204,6 +195,21 @@ class DiscreteLikelihood:
             np.log(np.maximum(mom.surface_density, tiny)),
             np.log(np.maximum(mom.projected_enclosed, tiny)),
         )
+
+    def tracer_at(self, theta):
+        """The dimensionless tracer (= cluster mass) profile for parameter vector ``theta``."""
+        tracer = self._fixed_tracer
+        if self.cusp_link == "influence":
+            mass = 10.0 ** theta[self.names.index("log_mass")]
+            tracer = self._influence_cusp(theta, self._value(theta, "bh_mass", 0.0), mass)
+        elif "log_cusp_radius" in self.names:
+            ln_a = np.log(10.0) * theta[self.names.index("log_scale_radius")]
+            x_c = 10.0 ** (theta[self.names.index("log_cusp_radius")]) / np.exp(ln_a)
+            g = theta[self.names.index("gamma")]
+            tracer = make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_c)
+        elif "gamma" in self.names:
+            tracer = make_tracer("dehnen", theta[self.names.index("gamma")])
+        return tracer
 
     def _influence_cusp(self, theta, bh_mass, mass):
         """Cusped tracer whose cusp radius is the BH influence radius (base without a BH).

@@ -1,0 +1,127 @@
+"""Helpers for the fast-star tests: generator catalogues with PM errors and no-IMBH fits.
+
+The catalogues come from the cluster generator (its own Eddington DF in the
+potential of cluster + IMBH), the errors are drawn here, and the no-IMBH mass
+models come from the dynamics stage's likelihood (MAP, or a short emcee run in
+the slow tests): nothing of the fast-star code is used to make the data.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import astropy.units as u
+import numpy as np
+
+#: ~2,000 luminous stars inside 17" of the NGC 3201 preset, PM errors 20-100 uas/yr.
+FIELD = {"radius": 17.0, "n_circle": 2000, "err_lo": 0.020, "err_hi": 0.100}
+
+
+@functools.lru_cache(maxsize=4)
+def generator_setup(bh_mass: float):
+    """Settings and prebuilt model of the NGC 3201 generator cluster (cached)."""
+    from mavispm.simulate.cluster.generator import (
+        ClusterSettings,
+        build_cluster_model,
+        n_stars_for_circle,
+    )
+
+    radius = FIELD["radius"]
+    s = ClusterSettings(
+        imbh_mass=bh_mass, epochs=[0.0], field_size=2.0 * radius, margin=0.0, include_remnants=False
+    )
+    model = build_cluster_model(s)
+    n = n_stars_for_circle(s, FIELD["n_circle"], radius, model)
+    return s.replace(n_stars=n), model
+
+
+def generator_catalogue(seed: int, bh_mass: float):
+    """Luminous stars inside 17": truth table rows, noisy PMs and the model.
+
+    Returns
+    -------
+    stars : PMStars
+        With ``pm_x_true, pm_y_true``; per-axis errors uniform in [20, 100] uas/yr.
+    truth : dict
+        ``r3d`` [pc], ``v3d`` [km/s] and ``psi`` [(km/s)^2] (the generator's
+        relative potential at r3d, escape to its outer edge) per star, and the
+        positions ``x, y`` [arcsec].
+    params : dict
+        The generator's model parameters.
+    """
+    from mavispm.dynamics.fast_stars import PMStars
+    from mavispm.simulate.cluster.generator import simulate_catalogue
+
+    settings, model = generator_setup(float(bh_mass))
+    epochs, attrs = simulate_catalogue(settings, seed, model)
+    t = next(iter(epochs.values()))
+    x, y = t["x"].to_value(u.arcsec), t["y"].to_value(u.arcsec)
+    R = np.hypot(x, y)
+    keep = np.asarray(t["luminous"], bool) & (R < FIELD["radius"])
+    rng = np.random.default_rng([seed, 7])
+    n = int(keep.sum())
+    err = rng.uniform(FIELD["err_lo"], FIELD["err_hi"], (2, n))
+    true = np.stack(
+        [t["pm_x"].to_value(u.mas / u.yr)[keep], t["pm_y"].to_value(u.mas / u.yr)[keep]]
+    )
+    pm = true + err * rng.standard_normal((2, n))
+    stars = PMStars(
+        id=np.asarray(t["id"])[keep],
+        R=R[keep],
+        pm_x=pm[0],
+        pm_y=pm[1],
+        pm_x_err=err[0],
+        pm_y_err=err[1],
+        pm_xy_corr=np.zeros(n),
+        pm_x_true=true[0],
+        pm_y_true=true[1],
+    )
+    r3d = t["r3d"].to_value(u.pc)[keep]
+    v3d = np.sqrt(sum(t[k].to_value(u.km / u.s)[keep] ** 2 for k in ("vx", "vy", "vz")))
+    truth = {
+        "r3d": r3d,
+        "v3d": v3d,
+        "psi": model.mass.relative_potential(r3d),
+        "x": x[keep],
+        "y": y[keep],
+    }
+    return stars, truth, dict(attrs["model_params"])
+
+
+def fit_settings():
+    """The NGC 3201 dynamics settings (King c = 1.33, cusp tied to the influence radius)."""
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    return DynamicsSettings(
+        tracer="king",
+        king_concentration=1.33,
+        cusp=True,
+        cusp_link="influence",
+        log_scale_radius_range=(1.0, 3.0),
+        log_scale_radius_prior=(np.log10(79.0), 0.05),
+        progress=False,
+    )
+
+
+def likelihoods(stars, x, y, distance, settings=None):
+    """IMBH and no-IMBH (space, likelihood) pairs for PM stars at positions x, y [arcsec]."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.likelihood import StarSample
+
+    s = settings or fit_settings()
+    R = np.maximum(np.hypot(x, y), 1e-9)
+    c, sn = x / R, y / R
+    ex, ey = stars.pm_x_err, stars.pm_y_err
+    sample = StarSample(
+        np.maximum(R, s.min_radius),
+        stars.pm_x * c + stars.pm_y * sn,
+        -stars.pm_x * sn + stars.pm_y * c,
+        np.sqrt((ex * c) ** 2 + (ey * sn) ** 2),
+        np.sqrt((ex * sn) ** 2 + (ey * c) ** 2),
+        FIELD["radius"],
+    )
+    out = []
+    for with_bh in (True, False):
+        sp = parameter_space(s, distance, with_bh)
+        out.append((sp, make_likelihood(sample, sp, s, distance)))
+    return out
