@@ -245,6 +245,13 @@ def run_stage(
     }
     for key, tab in truths.items():
         tables[f"profile_truth_{key}"] = tab
+    fast = None
+    if settings.fast_stars is not None:
+        from mavispm.dynamics.fast_stars import run_on_fits
+
+        fast = run_on_fits(propermotions, settings, fits, distance, stars.field_radius, seed)
+        tables["fast_stars"] = fast.table
+        attrs.update(fast.attrs)
     path = write_product(
         output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(settings), seed=seed
     )
@@ -255,6 +262,10 @@ def run_stage(
         profile_plot(profile, fits, truths, plots_dir / "dispersion_profile.png")
         corner_plot(fits[0], plots_dir / "corner_imbh.png")
         corner_plot(fits[1], plots_dir / "corner_no_imbh.png")
+        if fast is not None and fast.possible:
+            from mavispm.dynamics.plots import fast_star_plot
+
+            fast_star_plot(fast, plots_dir / "fast_stars.png")
     return path
 
 
@@ -270,6 +281,10 @@ def _handler(args) -> int:
         settings = settings.fast()
     if args.no_evidence:
         settings = dataclasses.replace(settings, evidence=False)
+    if args.fast_stars and settings.fast_stars is None:
+        from mavispm.dynamics.fast_stars import FastStarSettings
+
+        settings = dataclasses.replace(settings, fast_stars=FastStarSettings())
     out = run_stage(
         args.propermotions,
         settings,
@@ -313,5 +328,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
+    p.add_argument(
+        "--fast-stars",
+        action="store_true",
+        help="also run the fast-star test (stars above the no-IMBH escape velocity)",
+    )
     p.set_defaults(func=_handler)
     return p

@@ -61,7 +61,11 @@ class _PotentialTable:
     slope_in: float
 
     def __call__(self, x):
-        x = np.asarray(x, dtype=float)
+        shape = np.shape(x)
+        x = np.atleast_1d(np.asarray(x, dtype=float)).ravel()
+        return self._evaluate(x).reshape(shape)
+
+    def _evaluate(self, x):
         lnx = np.log(np.maximum(x, 1e-300))
         e = self.ln_edges
         idx, w = cubic_weights(e[0], e[1] - e[0], e.size, lnx)

@@ -768,3 +768,133 @@ def fast_star_test(
         "fast_all": fast,
     }
     return FastStarResult(True, table, attrs, curves, note)
+
+
+# ---------------------------------------------------------------- products and fits
+
+
+def _pm_xy_spec():
+    from mavispm.core.products import TableSpec
+
+    return TableSpec(
+        required={
+            "id": "",
+            "R": "arcsec",
+            "pm_x": "mas/yr",
+            "pm_y": "mas/yr",
+            "pm_x_err": "mas/yr",
+            "pm_y_err": "mas/yr",
+        },
+        optional={"pm_xy_corr": "", "flag": "", "pm_x_true": "mas/yr", "pm_y_true": "mas/yr"},
+        allow_nan=("pm_x", "pm_y", "pm_x_err", "pm_y_err", "pm_xy_corr", "pm_x_true", "pm_y_true"),
+    )
+
+
+def read_pm_stars(path, field_radius: float | None = None, use_flagged: bool = False):
+    """Stars of a propermotions product for the fast-star test, and the epoch baseline.
+
+    Flagged stars are dropped unless ``use_flagged``; stars beyond ``field_radius``
+    [arcsec] are dropped. NaN motions or errors are kept here (the test drops and
+    counts them).
+
+    Returns
+    -------
+    stars : PMStars
+    baseline : float or None
+        Span of the product's ``epochs`` [yr].
+
+    Raises
+    ------
+    InputError
+        Missing columns (named), negative errors.
+    """
+    from mavispm.core.products import read_product
+
+    prod = read_product(path, "propermotions", specs={"stars": _pm_xy_spec()}, load_arrays=False)
+    t = prod.tables["stars"]
+
+    def col(name, unit=None):
+        c = t[name]
+        return np.asarray(c.to_value(unit) if unit else c, dtype=float)
+
+    mas = u.mas / u.yr
+    for name in ("pm_x_err", "pm_y_err"):
+        if np.any(col(name, mas) < 0):
+            raise InputError("negative errors", path=path, column=name)
+    keep = np.ones(len(t), bool)
+    if "flag" in t.colnames and not use_flagged:
+        keep &= np.asarray(t["flag"]) == 0
+    R = col("R", u.arcsec)
+    if field_radius is not None:
+        keep &= R <= field_radius
+    has_truth = "pm_x_true" in t.colnames and "pm_y_true" in t.colnames
+    stars = PMStars(
+        id=np.asarray(t["id"])[keep],
+        R=R[keep],
+        pm_x=col("pm_x", mas)[keep],
+        pm_y=col("pm_y", mas)[keep],
+        pm_x_err=col("pm_x_err", mas)[keep],
+        pm_y_err=col("pm_y_err", mas)[keep],
+        pm_xy_corr=(col("pm_xy_corr") if "pm_xy_corr" in t.colnames else np.zeros(len(t)))[keep],
+        pm_x_true=col("pm_x_true", mas)[keep] if has_truth else None,
+        pm_y_true=col("pm_y_true", mas)[keep] if has_truth else None,
+    )
+    epochs = prod.attrs.get("epochs")
+    baseline = None
+    if epochs is not None:
+        ep = np.atleast_1d(
+            u.Quantity(epochs, u.yr).to_value(u.yr)
+            if hasattr(epochs, "unit")
+            else np.asarray(epochs, float)
+        )
+        if ep.size >= 2 and np.ptp(ep) > 0:
+            baseline = float(np.ptp(ep))
+    return stars, baseline
+
+
+def model_dispersion(likelihood, theta):
+    """``R [arcsec] -> 1-D PM dispersion [mas/yr]`` (rms of radial and tangential) of a model."""
+    theta = np.asarray(theta, dtype=float)
+
+    def dispersion(R):
+        R = np.maximum(np.asarray(R, dtype=float), 1e-3)
+        return np.sqrt(np.mean(likelihood.dispersion_at(theta, R) ** 2, axis=0))
+
+    return dispersion
+
+
+def run_on_fits(propermotions, settings, fits, distance, field_radius, seed=0) -> FastStarResult:
+    """The fast-star test of a dynamics run (the stage calls this with its two fits).
+
+    Parameters
+    ----------
+    propermotions : path
+        The propermotions product of the fit.
+    settings : DynamicsSettings
+        With ``fast_stars`` set (FastStarSettings).
+    fits : (ModelFit, ModelFit)
+        IMBH and no-IMBH fits (:func:`mavispm.dynamics.fit.fit_model`).
+    distance, field_radius : float
+        [kpc], [arcsec].
+    seed : int
+    """
+    from mavispm.dynamics.escape_velocity import posterior_mass_models
+
+    fs = settings.fast_stars or FastStarSettings()
+    imbh, no_imbh = fits
+    stars, baseline = read_pm_stars(propermotions, field_radius, settings.use_flagged)
+    models0 = posterior_mass_models(no_imbh.likelihood, no_imbh.chain.samples, fs.n_models, seed)
+    models1 = posterior_mass_models(imbh.likelihood, imbh.chain.samples, fs.n_models, seed)
+    return fast_star_test(
+        stars,
+        distance,
+        models0,
+        fs,
+        distance_error=settings.distance_error,
+        dispersion=model_dispersion(no_imbh.likelihood, no_imbh.chain.map_params),
+        imbh_models=models1,
+        imbh_dispersion=model_dispersion(imbh.likelihood, imbh.chain.map_params),
+        baseline=baseline,
+        field_radius=field_radius,
+        seed=seed,
+    )

@@ -10,6 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from mavispm.core.config import unit_field
+from mavispm.dynamics.fast_stars import FastStarSettings
 from mavispm.dynamics.tracers import TRACERS
 
 
@@ -34,6 +35,8 @@ class DynamicsSettings:
     ``projection_panels``, ``projection_nodes``, ``truncation`` (scale radii).
     Profile: ``bin_size``, ``n_bootstrap``. emcee: ``walkers``, ``max_steps``,
     ``tau_factor``, ``check_every``. Evidence: ``evidence``, ``nlive``, ``dlogz``.
+    Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
+    :class:`~mavispm.dynamics.fast_stars.FastStarSettings`; None = no test).
     """
 
     tracer: str = "plummer"
@@ -71,6 +74,7 @@ class DynamicsSettings:
     nlive: int = 250
     dlogz: float = 0.1
     progress: bool = True
+    fast_stars: FastStarSettings | None = None
 
     def __post_init__(self):
         if self.tracer not in TRACERS:

@@ -1,0 +1,275 @@
+"""The fast-star test: escape velocities, selection, false-star budget, lower mass limit."""
+
+import math
+
+import astropy.units as u
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import integrate
+
+from mavispm.core.errors import InputError
+from mavispm.dynamics.escape_velocity import (
+    PointMass,
+    ProfileComponent,
+    SphericalMassModel,
+    dimensionless_potential,
+    escape_velocity,
+    escape_velocity_quantile,
+)
+from mavispm.dynamics.fast_stars import (
+    FastStarSettings,
+    PMStars,
+    binary_kicks,
+    fast_star_test,
+    lower_mass_limit,
+    measure_tails,
+    p_value,
+    rice_sf,
+    threshold,
+    velocity_2d,
+)
+from mavispm.dynamics.tracers import Cusped, Dehnen, King, Plummer
+
+G = 4.300917270e-3  # pc (km/s)^2 / Msun, CODATA-derived (independent of the code's constant)
+KMS = 4.740470463533348
+
+
+# ----------------------------------------------------------------- escape velocity
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-6, 5), st.floats(1e3, 1e7), st.floats(0.05, 20), st.floats(0, 1e4))
+def test_plummer_plus_point_mass_escape_velocity_is_analytic(log_x, mass, a_pc, bh):
+    r = a_pc * 10.0**log_x
+    model = SphericalMassModel((ProfileComponent(Plummer(), mass, a_pc), PointMass(bh)))
+    expected = np.sqrt(2 * G * (mass / np.sqrt(r * r + a_pc * a_pc) + bh / r))
+    got = escape_velocity(model, r * u.pc)
+    assert got.unit == u.km / u.s
+    assert got.value == pytest.approx(expected, rel=1e-7)
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.5, 1.0, 1.5, 1.9])
+def test_dehnen_potential_is_analytic(gamma):
+    x = np.geomspace(1e-8, 1e5, 200)
+    exact = -(1.0 - (x / (1.0 + x)) ** (2.0 - gamma)) / (2.0 - gamma)
+    got = dimensionless_potential(Dehnen(gamma), x)
+    assert np.max(np.abs(got / exact - 1.0)) < 1e-6
+
+
+def _king_density_independent(x, xt):
+    """King (1962) density (unnormalised), written out again for the test."""
+    z2 = (1.0 + x * x) / (1.0 + xt * xt)
+    if z2 >= 1.0:
+        return 0.0
+    z = math.sqrt(z2)
+    return (math.acos(z) / z - math.sqrt(1.0 - z2)) / z2
+
+
+@pytest.mark.parametrize("c", [0.8, 1.33, 2.0])
+def test_king_potential_against_independent_quadrature(c):
+    xt = 10.0**c
+
+    def mass(r):
+        return integrate.quad(
+            lambda s: 4 * np.pi * s * s * _king_density_independent(s, xt), 0, r, limit=200
+        )[0]
+
+    total = mass(xt)
+    for x in (1e-3, 0.1, 0.7, 3.0, 0.5 * xt, 0.99 * xt, 2 * xt):
+        inner = mass(min(x, xt)) / x
+        outer = integrate.quad(
+            lambda s: 4 * np.pi * s * _king_density_independent(s, xt), min(x, xt), xt, limit=200
+        )[0]
+        phi = -(inner + outer) / total
+        assert dimensionless_potential(King(c), np.array([x]))[0] == pytest.approx(phi, rel=5e-6)
+
+
+def test_cusped_king_potential_against_quadrature():
+    prof = Cusped(King(1.33), 1.55, 0.2)
+    xt = 10.0**1.33
+
+    def rho(s):
+        return _king_density_independent(s, xt) * (1 + (0.2 / s) ** 2) ** (1.55 / 2)
+
+    total = integrate.quad(lambda s: 4 * np.pi * s * s * rho(s), 0, xt, limit=400, points=[0.2])[0]
+    for x in (1e-3, 0.05, 0.5, 5.0):
+        inner = integrate.quad(lambda s: 4 * np.pi * s * s * rho(s), 0, x, limit=400)[0] / x
+        outer = integrate.quad(lambda s: 4 * np.pi * s * rho(s), x, xt, limit=400)[0]
+        exact = -(inner + outer) / total
+        assert dimensionless_potential(prof, np.array([x]))[0] == pytest.approx(exact, rel=2e-4)
+
+
+def test_escape_velocity_quantile_takes_r_equal_R_and_the_high_quantile():
+    models = [SphericalMassModel((ProfileComponent(Plummer(), m, 1.0),)) for m in (1e4, 2e4, 4e4)]
+    R = np.array([0.0, 0.5, 2.0]) * u.pc
+    q = escape_velocity_quantile(models, R, 1.0)
+    expected = np.sqrt(2 * G * 4e4 / np.sqrt(R.value**2 + 1.0))
+    assert q.to_value(u.km / u.s) == pytest.approx(expected, rel=1e-7)
+    with pytest.raises(ValueError):
+        escape_velocity_quantile(models, R, 0.0)
+
+
+# ----------------------------------------------------------------- statistics
+
+
+def test_rice_sf_against_monte_carlo_and_far_tail():
+    rng = np.random.default_rng(1)
+    nu, sig, t = 5.0, 1.0, 7.0
+    draws = np.hypot(nu + sig * rng.standard_normal(400_000), sig * rng.standard_normal(400_000))
+    assert rice_sf(t, nu, sig) == pytest.approx(np.mean(draws > t), rel=0.03)
+    # far tail: ~ Gaussian one-sided tail of the excess (no underflow to 0)
+    assert 1e-17 < rice_sf(38.0, 30.0, 1.0) < 1e-14
+
+
+def test_threshold_inverts_the_p_value():
+    sigma = np.array([0.01, 0.05, 0.2])
+    v_esc = np.array([20.0, 20.0, 35.0])
+    d, w = np.array([4.4, 4.6, 4.8]), np.array([0.25, 0.5, 0.25])
+    t = threshold(sigma, v_esc, d, w, 1e-3)
+    assert p_value(t, sigma, v_esc, d, w) == pytest.approx(1e-3, rel=1e-4)
+
+
+def test_velocity_error_with_covariance_against_monte_carlo():
+    rng = np.random.default_rng(2)
+    ex, ey, rho = 0.05, 0.02, 0.6
+    s = PMStars(
+        np.array([1]), np.array([1.0]), np.array([0.6]), np.array([0.8]),
+        np.array([ex]), np.array([ey]), np.array([rho]),
+    )  # fmt: skip
+    v, v_err = velocity_2d(s, 5.0, 0.2)
+    cov = [[ex * ex, rho * ex * ey], [rho * ex * ey, ey * ey]]
+    pm = rng.multivariate_normal([0.6, 0.8], cov, 200_000)
+    d = 5.0 + 0.2 * rng.standard_normal(200_000)
+    vv = KMS * d * np.hypot(pm[:, 0], pm[:, 1])
+    assert v[0] == pytest.approx(KMS * 5.0, rel=1e-12)
+    assert v_err[0] == pytest.approx(np.std(vv), rel=0.02)
+
+
+def test_measured_tails_gaussian_and_student():
+    rng = np.random.default_rng(3)
+    g = measure_tails(rng.standard_normal(200_000) * 2.0, "truth")
+    assert g.robust_sigma == pytest.approx(2.0, rel=0.01) and math.isinf(g.dof)
+    t = measure_tails(rng.standard_t(3, 200_000), "truth")
+    assert 2.0 < t.dof < 4.5
+    assert measure_tails([1.0, 2.0], "truth").source == "none"
+
+
+def test_binary_kicks_bounded_by_orbital_speed():
+    rng = np.random.default_rng(4)
+    s = FastStarSettings()
+    kicks = binary_kicks(100_000, rng, 10.0, s)
+    # photocentre speed <= primary's orbital speed <= sqrt(G M_tot / a); M_tot <= 1.6, a >= ...
+    assert np.all(kicks >= 0) and np.all(np.isfinite(kicks))
+    assert np.max(kicks) < 30.0  # km/s: circular speed of 1.6 Msun at 0.01 AU ~ 377; chord/T
+    # wide binaries (P >> T) move their photocentre by ~ v_photo; short ones average out
+    assert np.median(kicks) < 0.5
+
+
+# ----------------------------------------------------------------- lower mass limit
+
+
+def test_lower_limit_single_star_keplerian():
+    """No stellar potential, tiny errors: M = R v^2 / (2 G) for r = R, v_3D = v_2D."""
+    R_arcsec, d = 0.5, 4.6
+    pm = np.array([[1.2, 0.5]])
+    cov = np.array([np.eye(2) * 1e-12])
+    lim, per = lower_mass_limit(np.array([R_arcsec]), pm, cov, np.zeros(1), d, 0.0, 0.95, 500)
+    r_pc = R_arcsec * d * 1e3 * np.pi / 648000
+    v = KMS * d * np.hypot(1.2, 0.5)
+    assert lim == pytest.approx(r_pc * v * v / (2 * G), rel=1e-5)
+    assert per[0] == pytest.approx(lim, rel=1e-9)
+    # the stellar escape velocity lowers it; a star below v_esc gives no limit
+    lim2, _ = lower_mass_limit(np.array([R_arcsec]), pm, cov, np.array([0.5 * v]), d, 0, 0.95, 500)
+    assert lim2 == pytest.approx(0.75 * lim, rel=1e-5)
+    lim3, _ = lower_mass_limit(np.array([R_arcsec]), pm, cov, np.array([2 * v]), d, 0, 0.95, 500)
+    assert lim3 == 0.0
+
+
+def test_lower_limit_combines_by_the_maximum():
+    R = np.array([0.3, 0.3])
+    pm = np.array([[1.0, 0.0], [2.0, 0.0]])
+    cov = np.array([np.eye(2) * 1e-12] * 2)
+    lim, per = lower_mass_limit(R, pm, cov, np.zeros(2), 4.6, 0.0, 0.95, 300)
+    assert lim == pytest.approx(per.max(), rel=1e-5) and per[1] == pytest.approx(
+        4 * per[0], rel=1e-5
+    )
+
+
+# ----------------------------------------------------------------- the test on toy data
+
+
+class _Flat:
+    """A mass model with a constant escape speed (for bad-input tests)."""
+
+    def __init__(self, v):
+        self.v = v
+
+    def escape_speed_at(self, R):
+        return np.full(np.shape(R), self.v)
+
+
+def _toy_stars(n, seed=0, sigma_kms=5.0, err=0.02, d=4.6):
+    rng = np.random.default_rng(seed)
+    pm = rng.standard_normal((2, n)) * sigma_kms / (KMS * d) + err * rng.standard_normal((2, n))
+    return PMStars(
+        np.arange(n), rng.uniform(0, 10, n), pm[0], pm[1],
+        np.full(n, err), np.full(n, err), np.zeros(n),
+    )  # fmt: skip
+
+
+def test_toy_cluster_without_and_with_a_fast_star():
+    stars = _toy_stars(500)
+    res = fast_star_test(stars, 4.6, [_Flat(25.0)], dispersion=lambda R: np.full(len(R), 0.23))
+    assert res.possible and res.attrs["fast_n_significant"] == 0
+    assert res.attrs["bh_mass_lower_limit"].to_value(u.Msun) == 0.0
+    assert 0 <= res.attrs["fast_expected_false_errors"] < 1e-3
+    # one star at 40 km/s, 0.5" from the centre
+    pm_x = stars.pm_x.copy()
+    pm_x[0], pm_y = 40.0 / (KMS * 4.6), stars.pm_y.copy()
+    pm_y[0] = 0.0
+    R = stars.R.copy()
+    R[0] = 0.5
+    fast = PMStars(stars.id, R, pm_x, pm_y, stars.pm_x_err, stars.pm_y_err, stars.pm_xy_corr)
+    res = fast_star_test(fast, 4.6, [_Flat(25.0)], dispersion=lambda R: np.full(len(R), 0.23))
+    assert res.attrs["fast_n_significant"] == 1 and res.table["id"][0] == 0
+    assert res.table["significance"][0] > 10
+    r_pc = 0.5 * 4.6 * 1e3 * np.pi / 648000
+    kepler = r_pc * (40.0**2 - 25.0**2) / (2 * G)
+    lim = res.attrs["bh_mass_lower_limit"].to_value(u.Msun)
+    assert 0.9 * kepler < lim < kepler * 1.01
+    assert res.attrs["fast_p_count_ge_no_imbh"] < 1e-3
+
+
+def test_field_stars_add_expected_false_fast_stars():
+    stars = _toy_stars(300)
+    s = FastStarSettings(field_density=0.1, field_pm_mean=(3.0, 0.0), field_pm_sigma=1.0)
+    res = fast_star_test(stars, 4.6, [_Flat(25.0)], s, field_radius=10.0)
+    # field stars at 3 mas/yr = 65 km/s relative: nearly all of the 31 in the area are "fast"
+    assert res.attrs["fast_expected_false_field"] == pytest.approx(0.1 * np.pi * 100, rel=0.05)
+
+
+def test_bad_input_no_errors_nan_single_star_no_distance():
+    stars = _toy_stars(50)
+    zero_err = PMStars(
+        stars.id, stars.R, stars.pm_x, stars.pm_y,
+        np.zeros(50), np.zeros(50), np.zeros(50),
+    )  # fmt: skip
+    res = fast_star_test(zero_err, 4.6, [_Flat(25.0)])
+    assert not res.possible and "no test possible" in res.note
+    assert res.attrs["fast_n_significant"] == 0 and len(res.table) == 0
+    nan = PMStars(
+        stars.id, stars.R, np.full(50, np.nan), stars.pm_y,
+        stars.pm_x_err, stars.pm_y_err, stars.pm_xy_corr,
+    )  # fmt: skip
+    res = fast_star_test(nan, 4.6, [_Flat(25.0)])
+    assert not res.possible and res.attrs["fast_n_dropped"] == 50
+    single = stars.select(np.arange(50) == 0)
+    assert not fast_star_test(single, 4.6, [_Flat(25.0)]).possible
+    with pytest.raises(InputError, match="distance"):
+        fast_star_test(stars, float("nan"), [_Flat(25.0)])
+    with pytest.raises(InputError, match="no-IMBH"):
+        fast_star_test(stars, 4.6, [])
+    with pytest.raises(ValueError, match="alpha"):
+        FastStarSettings(alpha=0.7)
