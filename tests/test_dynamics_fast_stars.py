@@ -242,6 +242,15 @@ def test_toy_cluster_without_and_with_a_fast_star():
     assert res.attrs["fast_p_count_ge_no_imbh"] < 1e-3
 
 
+def test_fast_star_plot(tmp_path):
+    from mavispm.dynamics.plots import fast_star_plot
+
+    stars = _toy_stars(200)
+    res = fast_star_test(stars, 4.6, [_Flat(25.0)], imbh_models=[_Flat(30.0)])
+    path = fast_star_plot(res, tmp_path / "fs.png")
+    assert path.stat().st_size > 10_000
+
+
 def test_field_stars_add_expected_false_fast_stars():
     stars = _toy_stars(300)
     s = FastStarSettings(field_density=0.1, field_pm_mean=(3.0, 0.0), field_pm_sigma=1.0)
@@ -273,3 +282,67 @@ def test_bad_input_no_errors_nan_single_star_no_distance():
         fast_star_test(stars, 4.6, [])
     with pytest.raises(ValueError, match="alpha"):
         FastStarSettings(alpha=0.7)
+
+
+# ----------------------------------------------------------------- in the dynamics stage
+
+
+@pytest.fixture(scope="module")
+def pm_file(tmp_path_factory):
+    from dynamics_helpers import write_mock_propermotions
+
+    path = tmp_path_factory.mktemp("fast") / "pm.h5"
+    # compact Plummer cluster with a 20,000 Msun IMBH. The mock's velocities are
+    # Gaussian (not a bound DF), so only the product's structure is checked here;
+    # the physics is tested on the cluster generator's catalogues.
+    return write_mock_propermotions(path, seed=3, n_field=500, mass=5e4, a_arcsec=25.0, bh_mass=2e4)
+
+
+def test_cli_fast_stars_flag_writes_table_and_plot(pm_file, tmp_path, capsys):
+    from mavispm.core.products import read_product
+    from mavispm.workflows.cli import main
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        "[dynamics]\nwalkers = 10\nmax_steps = 30\ncheck_every = 30\nn_bootstrap = 2\n"
+        'progress = false\nfield_radius = "17 arcsec"\n'
+        "[dynamics.fast_stars]\nn_models = 10\nn_monte_carlo = 500\n"
+    )
+    out = tmp_path / "f.h5"
+    args = ["dynamics", str(pm_file), "-o", str(out), "--config", str(cfg), "--no-evidence"]
+    assert main([*args, "--fast-stars"]) == 0
+    prod = read_product(out, "dynamics")
+    a, t = prod.attrs, prod.tables["fast_stars"]
+    assert a["fast_test_possible"] and a["fast_n_stars"] == 500 and a["fast_n_models"] == 10
+    assert set(t.colnames) >= {"id", "R", "v_2d", "v_2d_err", "v_esc", "significance", "fast"}
+    assert t["v_2d"].unit == u.km / u.s and t["R"].unit == u.arcsec
+    assert a["fast_n_significant"] == int(np.sum(t["fast"])) >= 1
+    assert np.all(t["v_2d"][t["fast"]] > t["v_esc"][t["fast"]])
+    assert a["bh_mass_lower_limit"].to_value(u.Msun) > 0
+
+
+def test_bad_fast_star_settings_are_one_line_errors(tmp_path, capsys):
+    from mavispm.core.errors import ConfigError
+    from mavispm.dynamics.cli import validate_settings
+
+    with pytest.raises(ConfigError, match="dynamics.fast_stars.alpah"):
+        validate_settings({"fast_stars": {"alpah": 0.01}})
+    with pytest.raises(ConfigError, match="alpha out of range"):
+        validate_settings({"fast_stars": {"alpha": 2.0}})
+    s = validate_settings({"fast_stars": {"baseline": "5 yr", "field_density": "0.01 arcsec-2"}})
+    assert s.fast_stars.baseline == 5.0 and s.fast_stars.field_density == 0.01
+
+
+def test_propermotions_without_errors_is_one_line_error(tmp_path):
+    from astropy.table import QTable
+
+    from mavispm.core.products import write_product
+    from mavispm.dynamics.fast_stars import read_pm_stars
+
+    t = QTable()
+    t["id"] = np.arange(3)
+    t["R"] = np.ones(3) * u.arcsec
+    t["pm_x"] = t["pm_y"] = np.zeros(3) * u.mas / u.yr
+    path = write_product(tmp_path / "pm.h5", "propermotions", tables={"stars": t})
+    with pytest.raises(InputError, match="pm_x_err"):
+        read_pm_stars(path)
