@@ -16,7 +16,7 @@ completeness does not depend on radius inside the field.
 Model parameters (physical): ``log_mass`` (log10 solMass), ``log_scale_radius``
 (log10 arcsec), ``bh_mass`` (solMass; IMBH model only), ``beta``, and
 optionally ``distance`` (kpc, Gaussian prior), ``gamma`` (Dehnen inner slope, or
-the cusp slope with ``log_cusp_radius``, log10 arcsec, for a cusped Plummer/King).
+the cusp slope with ``log_cusp_radius``, log10 arcsec, for a cusped Plummer/King62).
 """
 
 from __future__ import annotations
@@ -26,13 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavispm.core.errors import InputError
-from mavispm.dynamics.jeans import (
-    G_PC_KMS2_MSUN,
-    KMS_PER_MASYR_KPC,
-    JeansProjector,
-    cubic_weights,
-    interpolate,
-)
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
+from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
 from mavispm.dynamics.star_sums import star_sums
 from mavispm.dynamics.tracers import make_tracer
 
@@ -89,11 +84,11 @@ class DiscreteLikelihood:
     names : sequence of str
         Parameter order of the vectors passed to :meth:`__call__`.
     tracer : str
-        Tracer/mass profile name ("plummer", "dehnen", "king").
+        Tracer/mass profile name ("plummer", "dehnen", "king62").
     gamma, concentration : float
-        Fixed Dehnen slope / King concentration (``gamma`` may instead be a parameter).
+        Fixed Dehnen slope / King62 concentration (``gamma`` may instead be a parameter).
     cusp_link : {None, "free", "influence"}
-        Cusped Plummer/King tracer: ``"free"`` fits ``gamma`` and ``log_cusp_radius``;
+        Cusped Plummer/King62 tracer: ``"free"`` fits ``gamma`` and ``log_cusp_radius``;
         ``"influence"`` fits ``gamma`` with the cusp radius set to the BH influence
         radius (where the cored profile encloses ``2 M_bh``; no cusp without a BH).
     distance : float

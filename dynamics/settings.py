@@ -18,9 +18,9 @@ from mavispm.dynamics.tracers import TRACERS
 class DynamicsSettings:
     """All knobs of the dynamics fit.
 
-    Model: ``tracer`` ("plummer", "dehnen", "king"), ``dehnen_gamma`` (fixed
+    Model: ``tracer`` ("plummer", "dehnen", "king62"), ``dehnen_gamma`` (fixed
     inner slope) or ``fit_gamma`` with ``gamma_range``; ``king_concentration``;
-    ``cusp`` gives a Plummer/King an inner cusp ``(1 + (r_c/r)^2)^(gamma/2)`` with
+    ``cusp`` gives a Plummer/King62 an inner cusp ``(1 + (r_c/r)^2)^(gamma/2)`` with
     fitted ``gamma`` (``gamma_range``) and ``log_cusp_radius`` (``log_cusp_radius_range``,
     log10 arcsec), or with ``cusp_link = "influence"`` the cusp radius is the BH
     influence radius (no cusp without a BH).

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mavispm.dynamics.jeans import cubic_weights, interpolate
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
 
 
 def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):

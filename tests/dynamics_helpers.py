@@ -337,29 +337,29 @@ def generator_stars(seed, bh_mass):
 def generator_fit_settings(model="dehnen"):
     """Fit settings for generator catalogues.
 
-    The generator's King (W0 = 6.3, core 79") cluster is flat inside 17" without an
+    The generator's King62 (W0 = 6.3, core 79") cluster is flat inside 17" without an
     IMBH and has a gamma = 1.55 cusp inside the influence radius (39") with one;
     Plummer or fixed-slope profiles cannot follow both.
 
     Parameters
     ----------
     model : {"dehnen", "cusped_king", "king_influence"}
-        Dehnen tracer with free inner slope, or the generator's own family: a King
+        Dehnen tracer with free inner slope, or the generator's own family: a King62
         profile (c = 1.33, the preset's) with a fitted cusp slope and radius
         (``cusped_king``), or with the cusp radius tied to the BH influence radius
         (``king_influence``: no cusp without a BH). A suffix ``_rc`` adds a Gaussian
-        prior on the King core radius (the generator's 79" +- 12%), as a photometric
+        prior on the King62 core radius (the generator's 79" +- 12%), as a photometric
         surface-density profile would give.
     """
     from mavispm.dynamics.settings import DynamicsSettings
 
-    # the generator's King core radius (79", NGC 3201's photometric value) as known
+    # the generator's King62 core radius (79", NGC 3201's photometric value) as known
     # from the surface-brightness profile, 12% (0.05 dex) uncertainty
     prior = (np.log10(79.0), 0.05) if model.endswith("_rc") else None
     model = model.removesuffix("_rc")
     if model in ("cusped_king", "king_influence"):
         return DynamicsSettings(
-            tracer="king",
+            tracer="king62",
             king_concentration=1.33,
             cusp=True,
             cusp_link="influence" if model == "king_influence" else "free",

@@ -145,12 +145,12 @@ def test_fused_star_sums_match_numpy_reference(n, shift, err_scale, seed):
 
 
 def test_influence_linked_cusp():
-    """cusp_link = "influence": the cusp radius encloses 2 M_bh of the cored King profile,
-    the no-IMBH model is the plain King profile (no cusp parameters), and M_bh = 0 in the
+    """cusp_link = "influence": the cusp radius encloses 2 M_bh of the cored King62 profile,
+    the no-IMBH model is the plain King62 profile (no cusp parameters), and M_bh = 0 in the
     IMBH model gives the no-IMBH likelihood."""
     from mavispm.dynamics.fit import make_likelihood, parameter_space
     from mavispm.dynamics.settings import DynamicsSettings
-    from mavispm.dynamics.tracers import Cusped, King
+    from mavispm.dynamics.tracers import Cusped, King62
 
     s = DynamicsSettings(tracer="king", king_concentration=1.33, cusp=True, cusp_link="influence")
     sp1, sp0 = parameter_space(s, 4.6, True), parameter_space(s, 4.6, False)
@@ -161,7 +161,7 @@ def test_influence_linked_cusp():
     theta = np.array([5.2, 1.9, 3000.0, 0.1, 1.55])
     tracer = l1._influence_cusp(theta, 3000.0, 10**5.2)
     assert isinstance(tracer, Cusped) and tracer.gamma == 1.55
-    assert King(1.33).enclosed(tracer.cusp_radius) == pytest.approx(6000.0 / 10**5.2, rel=1e-4)
+    assert King62(1.33).enclosed(tracer.cusp_radius) == pytest.approx(6000.0 / 10**5.2, rel=1e-4)
     no_bh = theta.copy()
     no_bh[2] = 0.0
     assert l1(no_bh) == pytest.approx(l0(theta[[0, 1, 3]]), rel=1e-12)

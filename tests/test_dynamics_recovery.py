@@ -40,7 +40,7 @@ def test_map_without_imbh_finds_little_mass():
 
 
 def test_map_on_generator_catalogue_finds_imbh():
-    """Quick recovery check on a cluster-generator catalogue (King + cusp, 1500 Msun IMBH).
+    """Quick recovery check on a cluster-generator catalogue (King62 + cusp, 1500 Msun IMBH).
 
     ~2,000 stars inside 17", PM errors 20-100 microarcsec/yr, Dehnen tracer with
     free gamma: the best-fit M_bh is within 30% of the truth, the inner slope
