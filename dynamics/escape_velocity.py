@@ -42,7 +42,9 @@ from dataclasses import dataclass
 import astropy.units as u
 import numpy as np
 
-from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, cubic_weights, interpolate
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
+from mavispm.dynamics.jeans import G_PC_KMS2_MSUN
+from mavispm.dynamics.tracers import Plummer
 
 #: Potential grid: panels uniform in ln x from _X_IN to the profile's outer radius.
 _X_IN = 1e-7
@@ -212,7 +214,8 @@ def escape_velocity(model, r) -> u.Quantity:
 
     Parameters
     ----------
-    model : SphericalMassModel or any object with ``potential(r_pc)``
+    model : SphericalMassModel (``potential`` of radii in pc) or any object whose
+        ``potential`` takes a length Quantity (e.g. ``mass_models.MassModel``)
     r : Quantity
         3-D radii (length).
 
@@ -221,8 +224,13 @@ def escape_velocity(model, r) -> u.Quantity:
     Quantity
         km/s.
     """
-    r_pc = u.Quantity(r).to_value(u.pc)
-    return np.sqrt(np.maximum(-2.0 * np.asarray(model.potential(r_pc), float), 0.0)) * (u.km / u.s)
+    r = u.Quantity(r, u.pc)
+    if isinstance(model, SphericalMassModel):
+        phi = model.potential(r.to_value(u.pc))
+    else:
+        phi = model.potential(r)
+    phi = u.Quantity(phi, (u.km / u.s) ** 2).to_value((u.km / u.s) ** 2)
+    return np.sqrt(np.maximum(-2.0 * phi, 0.0)) * (u.km / u.s)
 
 
 def escape_velocity_samples(models, r_pc) -> np.ndarray:
@@ -280,13 +288,35 @@ class PosteriorMassModel:
         return self.model.escape_speed(r_pc)
 
 
+def escape_speed_at_projected(model, R_arcsec, distance: float):
+    """Escape speed [km/s] at ``r = R`` of any mass model, for projected radii in arcsec.
+
+    Parameters
+    ----------
+    model : PosteriorMassModel, or any object with ``potential(r)``
+        ``potential`` takes a length Quantity and returns ``(km/s)^2`` (a Quantity,
+        as :class:`mavispm.dynamics.mass_models.MassModel`, or floats).
+    R_arcsec : array_like
+    distance : float
+        [kpc], for models that do not carry their own.
+    """
+    if hasattr(model, "escape_speed_at"):
+        return np.asarray(model.escape_speed_at(R_arcsec), dtype=float)
+    from mavispm.dynamics.likelihood import PC_PER_ARCSEC_KPC
+
+    r = np.asarray(R_arcsec, dtype=float) * distance * PC_PER_ARCSEC_KPC * u.pc
+    return escape_velocity(model, r).to_value(u.km / u.s)
+
+
 def mass_model_from_sample(likelihood, theta) -> PosteriorMassModel:
     """The mass model of one parameter vector of a dynamics fit.
 
     The cluster component has the likelihood's tracer profile for ``theta``
     (mass follows light; cusp and Dehnen slope included), mass ``10**log_mass``
     and scale radius ``10**log_scale_radius`` arcsec at the sample's distance;
-    a ``bh_mass`` > 0 adds a central point mass.
+    a ``bh_mass`` > 0 adds a central point mass, a ``dark_mass`` > 0 a dark
+    Plummer sphere of scale ``10**log_dark_radius`` arcsec (the extended dark
+    component of the dynamics fit; same names as :mod:`mavispm.dynamics.mass_models`).
 
     Parameters
     ----------
@@ -307,6 +337,10 @@ def mass_model_from_sample(likelihood, theta) -> PosteriorMassModel:
     bh = float(theta[names.index("bh_mass")]) if "bh_mass" in names else 0.0
     if bh > 0:
         comps.append(PointMass(bh))
+    dark = float(theta[names.index("dark_mass")]) if "dark_mass" in names else 0.0
+    if dark > 0:  # extended dark Plummer sphere (log_dark_radius: log10 arcsec)
+        b_pc = 10.0 ** theta[names.index("log_dark_radius")] * dist * PC_PER_ARCSEC_KPC
+        comps.append(ProfileComponent(Plummer(), dark, b_pc))
     return PosteriorMassModel(SphericalMassModel(tuple(comps)), dist)
 
 

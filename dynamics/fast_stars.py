@@ -525,6 +525,13 @@ def _table(cols: dict) -> QTable:
     return t
 
 
+def _escape(models, R_arcsec, distance):
+    """Escape speeds [km/s] of every model at ``r = R``: shape (n_models, n_radii)."""
+    from mavispm.dynamics.escape_velocity import escape_speed_at_projected
+
+    return np.stack([escape_speed_at_projected(m, R_arcsec, distance) for m in models])
+
+
 def no_test(reason: str, settings: FastStarSettings, n_dropped: int = 0) -> FastStarResult:
     """An explicit "no test possible" result: no fast star, no limit, the reason."""
     empty = {k: np.zeros(0, dtype=np.int64 if k == "id" else float) for k in _TABLE_UNITS}
@@ -564,9 +571,11 @@ def fast_star_test(
         PMs relative to the cluster mean motion.
     distance : float
         [kpc] (> 0).
-    no_imbh_models : sequence of PosteriorMassModel
-        Posterior samples of the no-IMBH mass models (any object with
-        ``escape_speed_at(R_arcsec) -> km/s``).
+    no_imbh_models : sequence of mass models
+        Posterior samples of every mass model without a central point mass
+        (cluster alone; cluster + extended dark component): PosteriorMassModel, or
+        any object with ``potential(r)`` (length Quantity -> (km/s)^2, e.g.
+        :class:`mavispm.dynamics.mass_models.MassModel`).
     settings : FastStarSettings
     distance_error : float
         Gaussian distance prior sd [kpc] (``settings.distance_error`` wins if > 0).
@@ -623,7 +632,7 @@ def fast_star_test(
     d_nodes, d_w = distance_nodes(distance, d_err)
     kms = KMS_PER_MASYR_KPC * distance
     # escape velocity: r = R, high quantile over the posterior
-    esc = np.stack([m.escape_speed_at(stars.R) for m in no_imbh_models])
+    esc = _escape(no_imbh_models, stars.R, distance)
     v_esc = np.quantile(esc, s.escape_quantile, axis=0)
     mu = np.hypot(stars.pm_x, stars.pm_y)
     sigma = largest_error(stars)
@@ -660,9 +669,7 @@ def fast_star_test(
     # field stars: uniform density inside the field radius
     r_field = float(field_radius if field_radius is not None else stars.R.max())
     R_grid = np.linspace(0.0, r_field, 65)[1:] - 0.5 * r_field / 64
-    esc_grid = np.quantile(
-        np.stack([m.escape_speed_at(R_grid) for m in no_imbh_models]), s.escape_quantile, axis=0
-    )
+    esc_grid = np.quantile(_escape(no_imbh_models, R_grid, distance), s.escape_quantile, axis=0)
     sig_med = float(np.median(sigma))
     t_grid = threshold(np.full(R_grid.size, sig_med), esc_grid, d_nodes, d_w, s.alpha)
     if s.field_density > 0:
@@ -677,8 +684,8 @@ def fast_star_test(
     esc_imbh_grid = np.full(R_grid.size, np.nan)
     n_exp_imbh = math.nan
     if imbh_models:
-        v_esc_imbh = np.median(np.stack([m.escape_speed_at(stars.R) for m in imbh_models]), 0)
-        esc_imbh_grid = np.median(np.stack([m.escape_speed_at(R_grid) for m in imbh_models]), 0)
+        v_esc_imbh = np.median(_escape(imbh_models, stars.R, distance), 0)
+        esc_imbh_grid = np.median(_escape(imbh_models, R_grid, distance), 0)
         if imbh_dispersion is not None:
             s1 = np.asarray(imbh_dispersion(stars.R), float)
             p1 = expected_flags(t, sigma, s1, v_esc_imbh / kms, tails, k=k)
@@ -758,9 +765,7 @@ def fast_star_test(
     curves = {
         "R": R_grid,
         "v_esc_no_imbh": esc_grid,
-        "v_esc_no_imbh_median": np.median(
-            np.stack([m.escape_speed_at(R_grid) for m in no_imbh_models]), 0
-        ),
+        "v_esc_no_imbh_median": np.median(_escape(no_imbh_models, R_grid, distance), 0),
         "v_esc_imbh": esc_imbh_grid,
         "R_all": stars.R,
         "v_all": v,
@@ -872,8 +877,11 @@ def run_on_fits(propermotions, settings, fits, distance, field_radius, seed=0) -
         The propermotions product of the fit.
     settings : DynamicsSettings
         With ``fast_stars`` set (FastStarSettings).
-    fits : (ModelFit, ModelFit)
-        IMBH and no-IMBH fits (:func:`mavispm.dynamics.fit.fit_model`).
+    fits : sequence of ModelFit
+        The fits of the comparison (:func:`mavispm.dynamics.fit.fit_model`). Those
+        without a ``bh_mass`` parameter (the no-IMBH model, and a cluster + extended
+        dark component model when fitted) form the no-IMBH set; the first with one
+        is the IMBH model (escape curve, expected fast-star count).
     distance, field_radius : float
         [kpc], [arcsec].
     seed : int
@@ -881,10 +889,23 @@ def run_on_fits(propermotions, settings, fits, distance, field_radius, seed=0) -
     from mavispm.dynamics.escape_velocity import posterior_mass_models
 
     fs = settings.fast_stars or FastStarSettings()
-    imbh, no_imbh = fits
+    with_bh = [f for f in fits if "bh_mass" in f.space.names]
+    without = [f for f in fits if "bh_mass" not in f.space.names]
+    if not without:
+        raise InputError("fast-star test needs a fit without a central point mass")
     stars, baseline = read_pm_stars(propermotions, field_radius, settings.use_flagged)
-    models0 = posterior_mass_models(no_imbh.likelihood, no_imbh.chain.samples, fs.n_models, seed)
-    models1 = posterior_mass_models(imbh.likelihood, imbh.chain.samples, fs.n_models, seed)
+    # the no-IMBH set: every model without a point mass, n_models samples in all
+    per = max(1, fs.n_models // len(without))
+    models0 = [
+        m for f in without for m in posterior_mass_models(f.likelihood, f.chain.samples, per, seed)
+    ]
+    no_imbh = without[0]
+    imbh = with_bh[0] if with_bh else None
+    models1 = (
+        posterior_mass_models(imbh.likelihood, imbh.chain.samples, fs.n_models, seed)
+        if imbh is not None
+        else None
+    )
     return fast_star_test(
         stars,
         distance,
@@ -893,7 +914,9 @@ def run_on_fits(propermotions, settings, fits, distance, field_radius, seed=0) -
         distance_error=settings.distance_error,
         dispersion=model_dispersion(no_imbh.likelihood, no_imbh.chain.map_params),
         imbh_models=models1,
-        imbh_dispersion=model_dispersion(imbh.likelihood, imbh.chain.map_params),
+        imbh_dispersion=None
+        if imbh is None
+        else model_dispersion(imbh.likelihood, imbh.chain.map_params),
         baseline=baseline,
         field_radius=field_radius,
         seed=seed,

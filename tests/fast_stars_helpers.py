@@ -44,7 +44,8 @@ def generator_catalogue(seed: int, bh_mass: float):
         With ``pm_x_true, pm_y_true``; per-axis errors uniform in [20, 100] uas/yr.
     truth : dict
         ``r3d`` [pc], ``v3d`` [km/s] and ``psi`` [(km/s)^2] (the generator's
-        relative potential at r3d, escape to its outer edge) per star, and the
+        relative potential at r3d, escape to its outer edge), ``psi_stars`` (the
+        same without the IMBH: the stars' own potential) per star, and the
         positions ``x, y`` [arcsec].
     params : dict
         The generator's model parameters.
@@ -78,10 +79,14 @@ def generator_catalogue(seed: int, bh_mass: float):
     )
     r3d = t["r3d"].to_value(u.pc)[keep]
     v3d = np.sqrt(sum(t[k].to_value(u.km / u.s)[keep] ** 2 for k in ("vx", "vy", "vz")))
+    from mavispm.simulate.cluster.profiles import build_mass_model
+
+    stellar = build_mass_model(model.mass.tracer, model.mass.stellar_mass, 0.0)
     truth = {
         "r3d": r3d,
         "v3d": v3d,
         "psi": model.mass.relative_potential(r3d),
+        "psi_stars": stellar.relative_potential(r3d),
         "x": x[keep],
         "y": y[keep],
     }
@@ -93,7 +98,7 @@ def fit_settings():
     from mavispm.dynamics.settings import DynamicsSettings
 
     return DynamicsSettings(
-        tracer="king",
+        tracer="king62",
         king_concentration=1.33,
         cusp=True,
         cusp_link="influence",
@@ -125,3 +130,48 @@ def likelihoods(stars, x, y, distance, settings=None):
         sp = parameter_space(s, distance, with_bh)
         out.append((sp, make_likelihood(sample, sp, s, distance)))
     return out
+
+
+def map_trial(seed: int, bh_mass: float, alpha: float = 0.00135, imbh_model: bool = True):
+    """Fast-star test of one generator catalogue with the MAP models of both fits.
+
+    The MAP no-IMBH model stands in for the posterior (one model, so the escape
+    quantile is that model's value): less conservative than the stage's posterior
+    quantile, i.e. a stronger test of false detections and of the lower limit.
+    ``imbh_model`` also fits the IMBH model (its escape curve and expected count).
+
+    Returns
+    -------
+    dict
+        ``result`` (FastStarResult), ``truth``, ``stars``, ``fast`` (bool per
+        usable star, aligned with ``stars``), ``distance``.
+    """
+    from mavispm.dynamics.escape_velocity import mass_model_from_sample
+    from mavispm.dynamics.fast_stars import FastStarSettings, fast_star_test, model_dispersion
+    from mavispm.dynamics.sampling import find_map
+
+    stars, truth, params = generator_catalogue(seed, bh_mass)
+    d = params["distance"]
+    (sp1, l1), (sp0, l0) = likelihoods(stars, truth["x"], truth["y"], d)
+    th0 = sp0.from_scaled(find_map(l0, sp0))
+    imbh = {}
+    if imbh_model:
+        th1 = sp1.from_scaled(find_map(l1, sp1))
+        imbh = {
+            "imbh_models": [mass_model_from_sample(l1, th1)],
+            "imbh_dispersion": model_dispersion(l1, th1),
+        }
+    res = fast_star_test(
+        stars,
+        d,
+        [mass_model_from_sample(l0, th0)],
+        FastStarSettings(alpha=alpha, n_monte_carlo=2000),
+        dispersion=model_dispersion(l0, th0),
+        baseline=10.0,
+        field_radius=FIELD["radius"],
+        seed=seed,
+        **imbh,
+    )
+    fast_ids = set(np.asarray(res.table["id"])[np.asarray(res.table["fast"], bool)])
+    fast = np.array([i in fast_ids for i in stars.id])
+    return {"result": res, "truth": truth, "stars": stars, "fast": fast, "distance": d}

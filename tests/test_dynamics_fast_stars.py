@@ -30,7 +30,7 @@ from mavispm.dynamics.fast_stars import (
     threshold,
     velocity_2d,
 )
-from mavispm.dynamics.tracers import Cusped, Dehnen, King, Plummer
+from mavispm.dynamics.tracers import Cusped, Dehnen, King62, Plummer
 
 G = 4.300917270e-3  # pc (km/s)^2 / Msun, CODATA-derived (independent of the code's constant)
 KMS = 4.740470463533348
@@ -83,11 +83,11 @@ def test_king_potential_against_independent_quadrature(c):
             lambda s: 4 * np.pi * s * _king_density_independent(s, xt), min(x, xt), xt, limit=200
         )[0]
         phi = -(inner + outer) / total
-        assert dimensionless_potential(King(c), np.array([x]))[0] == pytest.approx(phi, rel=5e-6)
+        assert dimensionless_potential(King62(c), np.array([x]))[0] == pytest.approx(phi, rel=5e-6)
 
 
 def test_cusped_king_potential_against_quadrature():
-    prof = Cusped(King(1.33), 1.55, 0.2)
+    prof = Cusped(King62(1.33), 1.55, 0.2)
     xt = 10.0**1.33
 
     def rho(s):
@@ -346,3 +346,34 @@ def test_propermotions_without_errors_is_one_line_error(tmp_path):
     path = write_product(tmp_path / "pm.h5", "propermotions", tables={"stars": t})
     with pytest.raises(InputError, match="pm_x_err"):
         read_pm_stars(path)
+
+
+def test_escape_speed_agrees_with_the_dynamics_mass_models():
+    """The fast-star path and dynamics.mass_models (separate quadratures) agree."""
+    from mavispm.dynamics.escape_velocity import escape_speed_at_projected
+    from mavispm.dynamics.mass_models import mass_model
+
+    params = {"log_mass": 5.2, "log_scale_radius": 1.9, "dark_mass": 3000.0}
+    params["log_dark_radius"] = 0.5
+    theirs = mass_model(params, tracer="king62", concentration=1.33, distance=4.6)
+    mine = SphericalMassModel(
+        (
+            ProfileComponent(King62(1.33), 10**5.2, 10**1.9 * 4.6 * 1e3 * np.pi / 648000),
+            ProfileComponent(Plummer(), 3000.0, 10**0.5 * 4.6 * 1e3 * np.pi / 648000),
+        )
+    )
+    R = np.array([0.01, 0.3, 3.0, 30.0])
+    a = escape_speed_at_projected(theirs, R, 4.6)
+    b = escape_speed_at_projected(
+        type(
+            "M",
+            (),
+            {"escape_speed_at": lambda self, R: mine.escape_speed(R * 4.6 * 1e3 * np.pi / 648000)},
+        )(),
+        R,
+        4.6,
+    )
+    assert a == pytest.approx(b, rel=1e-5)
+    # a test run accepts those models directly
+    res = fast_star_test(_toy_stars(100), 4.6, [theirs])
+    assert res.possible and res.attrs["v_esc_center_no_imbh"].to_value(u.km / u.s) > 0

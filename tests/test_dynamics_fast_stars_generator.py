@@ -1,0 +1,71 @@
+"""The fast-star test on the cluster generator's catalogues (NGC 3201 preset).
+
+No IMBH: no significant fast star (false-positive rate at most the stated
+significance). With a 1500 Msun IMBH: the lower mass limit stays below the true
+mass (>= 95% of seeds) and every detected fast star is bound in the truth and
+needs the IMBH to be bound (faster than the stars' own escape speed at its true
+3-D radius). The fast tests use one seed each; ``-m slow`` runs 20 seeds each.
+"""
+
+import astropy.units as u
+import numpy as np
+import pytest
+from fast_stars_helpers import map_trial
+
+ALPHA = 0.00135
+BH = 1500.0
+
+
+def _check_no_imbh(seeds):
+    n_fast = n_stars = catalogues_with_fast = 0
+    for seed in seeds:
+        trial = map_trial(seed, 0.0, ALPHA, imbh_model=False)
+        res = trial["result"]
+        assert res.possible
+        n_fast += res.attrs["fast_n_significant"]
+        n_stars += res.attrs["fast_n_stars"]
+        catalogues_with_fast += res.attrs["fast_n_significant"] > 0
+        assert res.attrs["bh_mass_lower_limit"].to_value(u.Msun) == 0.0 or n_fast
+    # per star and per catalogue at or below the stated significance
+    assert n_fast / n_stars <= ALPHA
+    assert catalogues_with_fast <= max(ALPHA * len(seeds), 0)
+
+
+def _check_imbh(seeds):
+    below = detected = 0
+    rows = []
+    for seed in seeds:
+        trial = map_trial(seed, BH, ALPHA, imbh_model=False)
+        res, truth, fast = trial["result"], trial["truth"], trial["fast"]
+        lim = res.attrs["bh_mass_lower_limit"].to_value(u.Msun)
+        below += lim <= BH
+        detected += res.attrs["fast_n_significant"] > 0
+        # detected fast stars: bound in the truth, and only thanks to the IMBH
+        bound = truth["psi"][fast] - 0.5 * truth["v3d"][fast] ** 2 > 0
+        needs_bh = 0.5 * truth["v3d"][fast] ** 2 > truth["psi_stars"][fast]
+        assert bound.all()
+        assert needs_bh.all(), (seed, truth["v3d"][fast], np.sqrt(2 * truth["psi_stars"][fast]))
+        rows.append((seed, res.attrs["fast_n_significant"], lim))
+    assert below >= 0.95 * len(seeds), rows
+    return detected, rows
+
+
+def test_no_imbh_catalogue_has_no_fast_star():
+    _check_no_imbh([100])
+
+
+def test_imbh_catalogue_fast_stars_bound_and_limit_below_truth():
+    detected, rows = _check_imbh([100])
+    assert detected == 1, rows  # 3 fast stars in seed 100 (0.3-0.6" from the centre)
+
+
+@pytest.mark.slow
+def test_no_imbh_false_positive_rate_20_seeds():
+    _check_no_imbh(range(200, 220))
+
+
+@pytest.mark.slow
+def test_imbh_lower_limit_20_seeds():
+    detected, rows = _check_imbh(range(200, 220))
+    print("seed, n_fast, lower limit [Msun]:", rows)
+    assert detected >= 10, rows
