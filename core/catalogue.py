@@ -26,6 +26,8 @@ from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product, write_product
 
 CATALOGUE_KIND = "catalogue"
+#: Values of the optional catalogue column ``kind`` (what the object is).
+OBJECT_KINDS = ("star", "white_dwarf", "neutron_star", "black_hole", "imbh")
 
 #: Columns of every epoch table. Required columns are what the renderer needs;
 #: optional columns carry the dynamical truth.
@@ -48,6 +50,7 @@ CATALOGUE_SPEC = TableSpec(
         "luminous": "",  # bool; False for dark remnants (never rendered)
     },
     id_column="id",
+    text={"kind": OBJECT_KINDS},  # star, white_dwarf, neutron_star, black_hole, imbh
 )
 
 

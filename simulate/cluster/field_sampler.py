@@ -12,6 +12,11 @@ without generating the rest of the cluster:
    (quantile table in ``t = asinh(z / R)``, rows in ``ln R``);
 4. the speed from ``p(v | r) ~ v^2 f(Psi(r) - v^2/2)`` (quantile table of
    ``q = v / v_esc`` on rows in ``ln Psi``) and an isotropic direction.
+   For an Osipkov-Merritt DF ``f(Q)``, ``Q = Psi - (v_r^2 + w_t^2) / 2`` with
+   ``w_t = v_t sqrt(1 + r^2/r_a^2)``: the vector ``(v_r, w_t)`` is drawn exactly
+   as an isotropic velocity from ``f(Q)`` and the tangential part is divided
+   by ``sqrt(1 + r^2/r_a^2)`` (the Jacobian of this map is constant at fixed
+   r, so the density is ``rho_Q / (1 + r^2/r_a^2) = rho``).
 
 Every star is bound by construction (``q < 1``). All draws are inverse-CDF
 maps of uniform numbers, so two models fed the same uniforms give coupled
@@ -136,6 +141,8 @@ class FieldSampler:
     sigma_rows : tuple of ndarray
         ``(R, Sigma)`` surface density [pc, solMass/pc^2] on the table rows.
     model : MassModel
+    anisotropy_radius : float
+        Osipkov-Merritt radius [pc] of the DF (``inf``: isotropic).
     """
 
     half_size: float
@@ -147,6 +154,7 @@ class FieldSampler:
     speed_table: QuantileTable
     sigma_rows: tuple
     model: MassModel
+    anisotropy_radius: float = np.inf
 
     def sample(self, region: Region, u_pos: np.ndarray, u_vel: np.ndarray) -> dict:
         """Map uniforms to stars in ``region``.
@@ -182,16 +190,29 @@ class FieldSampler:
         cos_pol = 2.0 * u_vel[:, 1] - 1.0
         sin_pol = np.sqrt(np.maximum(1.0 - cos_pol**2, 0.0))
         phi = 2.0 * np.pi * u_vel[:, 2]
+        x, y = R * np.cos(theta), R * np.sin(theta)
+        v = np.stack([sin_pol * np.cos(phi), sin_pol * np.sin(phi), cos_pol]) * speed
+        if np.isfinite(self.anisotropy_radius):
+            v = _osipkov_merritt_velocity(v, np.stack([x, y, z]), self.anisotropy_radius)
         return {
-            "x": R * np.cos(theta),
-            "y": R * np.sin(theta),
+            "x": x,
+            "y": y,
             "z": z,
             "r3d": r3d,
-            "vx": speed * sin_pol * np.cos(phi),
-            "vy": speed * sin_pol * np.sin(phi),
-            "vz": speed * cos_pol,
+            "vx": v[0],
+            "vy": v[1],
+            "vz": v[2],
             "psi": psi,
         }
+
+
+def _osipkov_merritt_velocity(w: np.ndarray, pos: np.ndarray, ra: float) -> np.ndarray:
+    """Velocities from isotropic ``(v_r, w_t)`` draws: ``v_t = w_t / sqrt(1 + r^2/r_a^2)``."""
+    r = np.sqrt(np.sum(pos**2, axis=0))
+    rhat = pos / np.maximum(r, 1e-300)
+    v_r = np.sum(w * rhat, axis=0)
+    tangential = w - v_r * rhat
+    return v_r * rhat + tangential / np.sqrt(1.0 + (r / ra) ** 2)
 
 
 def _los_quantiles(model: MassModel, radii: np.ndarray, res: SamplerResolution, levels):
@@ -224,7 +245,8 @@ def build_field_sampler(
     ----------
     model : MassModel
     df : DistributionFunction
-        Isotropic DF of ``model`` (from :func:`~mavispm.simulate.cluster.eddington.eddington_df`).
+        DF of ``model`` (from :func:`~mavispm.simulate.cluster.eddington.eddington_df`),
+        isotropic or Osipkov-Merritt.
     half_size : float
         Half the side of the square field [pc].
     margin : float
@@ -266,5 +288,14 @@ def build_field_sampler(
     speed = _speed_quantiles(df, psi_rows, res, levels)
     speed_table = QuantileTable(np.log(psi_rows), np.nan_to_num(speed, nan=0.5))
     return FieldSampler(
-        half_size, outer, grid, cdfs, masses, los_table, speed_table, (rows, sigma), model
+        half_size,
+        outer,
+        grid,
+        cdfs,
+        masses,
+        los_table,
+        speed_table,
+        (rows, sigma),
+        model,
+        df.anisotropy_radius,
     )
