@@ -16,9 +16,19 @@ import numpy as np
 #: ~2,000 luminous stars inside 17" of the NGC 3201 preset, PM errors 20-100 uas/yr.
 FIELD = {"radius": 17.0, "n_circle": 2000, "err_lo": 0.020, "err_hi": 0.100}
 
+#: Cluster variants without an IMBH that mimic one: a 2000 Msun stellar-mass black-hole
+#: subsystem (default radius 0.4 a; the ngc3201-nbody preset, whose Plummer-shaped groups
+#: admit one), and Osipkov-Merritt radial anisotropy with the
+#: smallest anisotropy radius the generator accepts for NGC 3201 (~300").
+VARIANTS = {
+    "plain": {},
+    "bh_subsystem": {"preset": "ngc3201-nbody", "bh_subsystem_mass": 2000.0},
+    "radial": {"anisotropy_radius": 300.0},
+}
 
-@functools.lru_cache(maxsize=4)
-def generator_setup(bh_mass: float):
+
+@functools.lru_cache(maxsize=8)
+def generator_setup(bh_mass: float, variant: str = "plain"):
     """Settings and prebuilt model of the NGC 3201 generator cluster (cached)."""
     from mavispm.simulate.cluster.generator import (
         ClusterSettings,
@@ -28,14 +38,19 @@ def generator_setup(bh_mass: float):
 
     radius = FIELD["radius"]
     s = ClusterSettings(
-        imbh_mass=bh_mass, epochs=[0.0], field_size=2.0 * radius, margin=0.0, include_remnants=False
+        imbh_mass=bh_mass,
+        epochs=[0.0],
+        field_size=2.0 * radius,
+        margin=0.0,
+        include_remnants=False,
+        **VARIANTS[variant],
     )
     model = build_cluster_model(s)
     n = n_stars_for_circle(s, FIELD["n_circle"], radius, model)
     return s.replace(n_stars=n), model
 
 
-def generator_catalogue(seed: int, bh_mass: float):
+def generator_catalogue(seed: int, bh_mass: float, variant: str = "plain"):
     """Luminous stars inside 17": truth table rows, noisy PMs and the model.
 
     Returns
@@ -53,7 +68,7 @@ def generator_catalogue(seed: int, bh_mass: float):
     from mavispm.dynamics.fast_stars import PMStars
     from mavispm.simulate.cluster.generator import simulate_catalogue
 
-    settings, model = generator_setup(float(bh_mass))
+    settings, model = generator_setup(float(bh_mass), variant)
     epochs, attrs = simulate_catalogue(settings, seed, model)
     t = next(iter(epochs.values()))
     x, y = t["x"].to_value(u.arcsec), t["y"].to_value(u.arcsec)
@@ -132,7 +147,9 @@ def likelihoods(stars, x, y, distance, settings=None):
     return out
 
 
-def map_trial(seed: int, bh_mass: float, alpha: float = 0.00135, imbh_model: bool = True):
+def map_trial(
+    seed: int, bh_mass: float, alpha: float = 0.00135, imbh_model: bool = True, variant="plain"
+):
     """Fast-star test of one generator catalogue with the MAP models of both fits.
 
     The MAP no-IMBH model stands in for the posterior (one model, so the escape
@@ -150,7 +167,7 @@ def map_trial(seed: int, bh_mass: float, alpha: float = 0.00135, imbh_model: boo
     from mavispm.dynamics.fast_stars import FastStarSettings, fast_star_test, model_dispersion
     from mavispm.dynamics.sampling import find_map
 
-    stars, truth, params = generator_catalogue(seed, bh_mass)
+    stars, truth, params = generator_catalogue(seed, bh_mass, variant)
     d = params["distance"]
     (sp1, l1), (sp0, l0) = likelihoods(stars, truth["x"], truth["y"], d)
     th0 = sp0.from_scaled(find_map(l0, sp0))
