@@ -377,3 +377,39 @@ def test_escape_speed_agrees_with_the_dynamics_mass_models():
     # a test run accepts those models directly
     res = fast_star_test(_toy_stars(100), 4.6, [theirs])
     assert res.possible and res.attrs["v_esc_center_no_imbh"].to_value(u.km / u.s) > 0
+
+
+def test_fast_stars_report_recipe(tmp_path):
+    from mavispm.core.products import write_product
+    from mavispm.workflows.report import RECIPES
+
+    stars = _toy_stars(200)
+    pm_x = stars.pm_x.copy()
+    pm_x[0] = 40.0 / (KMS * 4.6)
+    fast = PMStars(stars.id, stars.R, pm_x, stars.pm_y, stars.pm_x_err, stars.pm_y_err,
+                   stars.pm_xy_corr)  # fmt: skip
+    nodes = []
+    for i, (data, mass) in enumerate(((stars, 0), (fast, 1500))):
+        res = fast_star_test(data, 4.6, [_Flat(25.0)])
+        write_product(
+            tmp_path / f"d{i}.h5",
+            "dynamics",
+            tables={"fast_stars": res.table},
+            attrs={**res.attrs, "ln_bayes_factor": 3.0 * i},
+        )
+        nodes.append(
+            {
+                "id": f"dynamics/{i}",
+                "stage": "dynamics",
+                "products": {"main": f"d{i}.h5"},
+                "labels": {"study": "s", "point": f"mass={mass}"},
+                "sweep": {"mass": mass, "baseline": [0, 10]},
+            }
+        )
+    out = tmp_path / "report"
+    out.mkdir()
+    text = RECIPES["fast_stars"]({"nodes": nodes}, tmp_path, out)
+    assert "Significant fast stars" in text and "| s mass=1500 | 200 | 1 |" in text
+    assert (out / "fast_stars_sweep.png").stat().st_size > 10_000
+    assert (out / "fast_stars.csv").read_text().count("\n") == 3
+    assert RECIPES["fast_stars"]({"nodes": []}, tmp_path, out).startswith("No dynamics")
