@@ -50,13 +50,14 @@ def generator_setup(bh_mass: float, variant: str = "plain"):
     return s.replace(n_stars=n), model
 
 
-def generator_catalogue(seed: int, bh_mass: float, variant: str = "plain"):
+def generator_catalogue(seed: int, bh_mass: float, variant: str = "plain", err_factor=1.0):
     """Luminous stars inside 17": truth table rows, noisy PMs and the model.
 
     Returns
     -------
     stars : PMStars
-        With ``pm_x_true, pm_y_true``; per-axis errors uniform in [20, 100] uas/yr.
+        With ``pm_x_true, pm_y_true``; per-axis errors uniform in [20, 100] uas/yr
+        times ``err_factor`` (10 yr / baseline for another baseline).
     truth : dict
         ``r3d`` [pc], ``v3d`` [km/s] and ``psi`` [(km/s)^2] (the generator's
         relative potential at r3d, escape to its outer edge), ``psi_stars`` (the
@@ -76,7 +77,7 @@ def generator_catalogue(seed: int, bh_mass: float, variant: str = "plain"):
     keep = np.asarray(t["luminous"], bool) & (R < FIELD["radius"])
     rng = np.random.default_rng([seed, 7])
     n = int(keep.sum())
-    err = rng.uniform(FIELD["err_lo"], FIELD["err_hi"], (2, n))
+    err = err_factor * rng.uniform(FIELD["err_lo"], FIELD["err_hi"], (2, n))
     true = np.stack(
         [t["pm_x"].to_value(u.mas / u.yr)[keep], t["pm_y"].to_value(u.mas / u.yr)[keep]]
     )
@@ -148,14 +149,20 @@ def likelihoods(stars, x, y, distance, settings=None):
 
 
 def map_trial(
-    seed: int, bh_mass: float, alpha: float = 0.00135, imbh_model: bool = True, variant="plain"
+    seed: int,
+    bh_mass: float,
+    alpha: float = 0.00135,
+    imbh_model: bool = True,
+    variant="plain",
+    baseline: float = 10.0,
 ):
     """Fast-star test of one generator catalogue with the MAP models of both fits.
 
     The MAP no-IMBH model stands in for the posterior (one model, so the escape
     quantile is that model's value): less conservative than the stage's posterior
     quantile, i.e. a stronger test of false detections and of the lower limit.
-    ``imbh_model`` also fits the IMBH model (its escape curve and expected count).
+    ``imbh_model`` also fits the IMBH model (its escape curve and expected count);
+    ``baseline`` [yr] scales the 10-yr PM errors by 10 / baseline.
 
     Returns
     -------
@@ -167,7 +174,7 @@ def map_trial(
     from mavispm.dynamics.fast_stars import FastStarSettings, fast_star_test, model_dispersion
     from mavispm.dynamics.sampling import find_map
 
-    stars, truth, params = generator_catalogue(seed, bh_mass, variant)
+    stars, truth, params = generator_catalogue(seed, bh_mass, variant, 10.0 / baseline)
     d = params["distance"]
     (sp1, l1), (sp0, l0) = likelihoods(stars, truth["x"], truth["y"], d)
     th0 = sp0.from_scaled(find_map(l0, sp0))
@@ -184,7 +191,7 @@ def map_trial(
         [mass_model_from_sample(l0, th0)],
         FastStarSettings(alpha=alpha, n_monte_carlo=2000),
         dispersion=model_dispersion(l0, th0),
-        baseline=10.0,
+        baseline=baseline,
         field_radius=FIELD["radius"],
         seed=seed,
         **imbh,
