@@ -653,17 +653,13 @@ def fast_star_test(
         p_tails = np.maximum(p_gauss, tails.sf((t - mu_esc) / sigma))
     n_err_gauss, n_err_tails = float(p_gauss.sum()), float(p_tails.sum())
     if baseline is not None and s.binary_fraction > 0:
+        # excess flag probability of a binary over a single star with the same true speed
         kicks = binary_kicks(len(stars) * k, rng, baseline, s).reshape(len(stars), k) / kms
-        base = s_loc if s_loc is not None else np.full(len(stars), 1e-9)
-        vmax = mu_esc if s_loc is not None else mu_esc
-        if s_loc is None:  # worst case: at the escape speed plus the kick
-            nu = mu_esc[:, None] + kicks
-            p_bin = rice_sf(t[:, None], nu, sigma[:, None]).mean(axis=1)
-            p_ref = p_gauss
-        else:
-            p_bin = expected_flags(t, sigma, base, vmax, None, kicks=kicks, k=k)
-            p_ref = p_gauss
-        n_binary = float(s.binary_fraction * np.maximum(p_bin - p_ref, 0.0).sum())
+        if s_loc is not None:
+            p_bin = expected_flags(t, sigma, s_loc, mu_esc, None, kicks=kicks, k=k)
+        else:  # worst case: at the escape speed, kick along the motion
+            p_bin = rice_sf(t[:, None], mu_esc[:, None] + kicks, sigma[:, None]).mean(axis=1)
+        n_binary = float(s.binary_fraction * np.maximum(p_bin - p_gauss, 0.0).sum())
     else:
         n_binary = 0.0 if s.binary_fraction == 0 else math.nan
     # field stars: uniform density inside the field radius

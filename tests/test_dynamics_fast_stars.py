@@ -156,15 +156,23 @@ def test_measured_tails_gaussian_and_student():
     assert measure_tails([1.0, 2.0], "truth").source == "none"
 
 
-def test_binary_kicks_bounded_by_orbital_speed():
+def test_binary_kicks_period_limits():
+    """After a full period the photocentre is back (no kick); after half a period it is
+    at the opposite side: kick = 4.74 x 2 alpha / T at most (face-on)."""
     rng = np.random.default_rng(4)
-    s = FastStarSettings()
-    kicks = binary_kicks(100_000, rng, 10.0, s)
-    # photocentre speed <= primary's orbital speed <= sqrt(G M_tot / a); M_tot <= 1.6, a >= ...
-    assert np.all(kicks >= 0) and np.all(np.isfinite(kicks))
-    assert np.max(kicks) < 30.0  # km/s: circular speed of 1.6 Msun at 0.01 AU ~ 377; chord/T
-    # wide binaries (P >> T) move their photocentre by ~ v_photo; short ones average out
-    assert np.median(kicks) < 0.5
+    T = 10.0
+    full = FastStarSettings(binary_log_period=(np.log10(T * 365.25), 1e-9))
+    assert np.max(binary_kicks(10_000, rng, T, full)) < 1e-6
+    half = FastStarSettings(binary_log_period=(np.log10(2 * T * 365.25), 1e-9))
+    kicks = binary_kicks(200_000, rng, T, half)
+    q = np.linspace(0.1, 1.0, 10_001)
+    a_au = (0.8 * (1 + q) * (2 * T) ** 2) ** (1 / 3)  # Kepler, AU / yr / Msun
+    alpha = a_au * np.abs(q / (1 + q) - q**3.5 / (1 + q**3.5))
+    bound = KMS * 2 * alpha.max() / T
+    assert kicks.max() <= bound * (1 + 1e-6) and kicks.max() > 0.95 * bound
+    # only binaries closer than the separation limit remain: chord <= 2 a
+    narrow = FastStarSettings(binary_max_separation=0.01)
+    assert np.max(binary_kicks(10_000, rng, T, narrow)) <= KMS * 2 * 0.01 / T
 
 
 # ----------------------------------------------------------------- lower mass limit
