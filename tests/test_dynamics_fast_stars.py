@@ -327,6 +327,20 @@ def test_cli_fast_stars_flag_writes_table_and_plot(pm_file, tmp_path, capsys):
     assert a["fast_n_significant"] == int(np.sum(t["fast"])) >= 1
     assert np.all(t["v_2d"][t["fast"]] > t["v_esc"][t["fast"]])
     assert a["bh_mass_lower_limit"].to_value(u.Msun) > 0
+    # rerun on the product without refitting, stricter significance, with the plot
+    fs = tmp_path / "fs.toml"
+    fs.write_text("[dynamics.fast_stars]\nalpha = 1e-12\nn_models = 10\n")
+    out2 = tmp_path / "g.h5"
+    rerun = ["fast-stars", str(out), "-o", str(out2), "--config", str(fs), "--plots", str(tmp_path)]
+    assert main(rerun) == 0
+    b = read_product(out2, "dynamics")
+    assert b.attrs["fast_alpha"] == 1e-12 and b.attrs["config"]["fast_stars"]["alpha"] == 1e-12
+    assert b.attrs["fast_n_significant"] <= a["fast_n_significant"]
+    assert set(b.tables) == set(prod.tables)
+    assert (tmp_path / "fast_stars.png").stat().st_size > 10_000
+    capsys.readouterr()
+    assert main(["fast-stars", str(tmp_path / "none.h5"), "-o", str(out2)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
 
 
 def test_bad_fast_star_settings_are_one_line_errors(tmp_path, capsys):

