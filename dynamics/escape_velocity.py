@@ -90,6 +90,24 @@ class _PotentialTable:
         return out
 
 
+#: Evaluators of the enclosed mass at the fixed table nodes, one per profile family.
+_FAMILY_EVALUATORS: dict = {}
+
+
+def _enclosed_at_nodes(profile, x, x_out):
+    """Mass fraction at the table nodes; profiles of one family (e.g. every cusp slope and
+    radius over one base) share a cached ``at_points`` evaluator (a few vector passes)."""
+    family = getattr(profile, "family", None)
+    if family is None or not hasattr(profile, "at_points"):
+        return np.asarray(profile.enclosed(x), dtype=float)
+    key = (family, x_out)
+    if key not in _FAMILY_EVALUATORS:
+        if len(_FAMILY_EVALUATORS) > 32:
+            _FAMILY_EVALUATORS.clear()
+        _FAMILY_EVALUATORS[key] = profile.at_points(x[:1], x)
+    return np.asarray(_FAMILY_EVALUATORS[key](profile)[1], dtype=float)
+
+
 @functools.lru_cache(maxsize=256)
 def potential_table(profile) -> _PotentialTable:
     """Cached dimensionless potential table of a unit-mass, unit-scale-radius profile.
@@ -107,7 +125,7 @@ def potential_table(profile) -> _PotentialTable:
     half = 0.5 * np.diff(edges)
     lnx = mid[:, None] + half[:, None] * nodes[None, :]
     x = np.exp(lnx)
-    m = np.asarray(profile.enclosed(x.ravel()), dtype=float).reshape(x.shape)
+    m = _enclosed_at_nodes(profile, x.ravel(), x_out).reshape(x.shape)
     panels = np.sum(m / x * half[:, None] * weights[None, :], axis=1)
     m_out = float(np.asarray(profile.enclosed(np.array([x_out])))[0])
     tail = m_out / x_out
@@ -332,7 +350,7 @@ def mass_model_from_sample(likelihood, theta) -> PosteriorMassModel:
     dist = float(theta[names.index("distance")]) if "distance" in names else likelihood.distance
     a_pc = 10.0 ** theta[names.index("log_scale_radius")] * dist * PC_PER_ARCSEC_KPC
     comps = [
-        ProfileComponent(likelihood.tracer_at(theta), 10.0 ** theta[names.index("log_mass")], a_pc)
+        ProfileComponent(likelihood.tracer_of(theta), 10.0 ** theta[names.index("log_mass")], a_pc)
     ]
     bh = float(theta[names.index("bh_mass")]) if "bh_mass" in names else 0.0
     if bh > 0:

@@ -137,6 +137,8 @@ class PMStars:
     pm_x_true, pm_y_true : ndarray or None
         True PMs (simulations; the analogue of artificial-star tests), used only to
         measure the error distribution (pulls).
+    x, y : ndarray or None
+        Positions about the field centre [arcsec] (to move to a fitted centre).
     """
 
     id: np.ndarray
@@ -148,6 +150,8 @@ class PMStars:
     pm_xy_corr: np.ndarray
     pm_x_true: np.ndarray | None = None
     pm_y_true: np.ndarray | None = None
+    x: np.ndarray | None = None
+    y: np.ndarray | None = None
 
     def __len__(self):
         return len(self.R)
@@ -780,6 +784,8 @@ def _pm_xy_spec():
     return TableSpec(
         required={
             "id": "",
+            "x": "arcsec",
+            "y": "arcsec",
             "R": "arcsec",
             "pm_x": "mas/yr",
             "pm_y": "mas/yr",
@@ -839,6 +845,8 @@ def read_pm_stars(path, field_radius: float | None = None, use_flagged: bool = F
         pm_xy_corr=(col("pm_xy_corr") if "pm_xy_corr" in t.colnames else np.zeros(len(t)))[keep],
         pm_x_true=col("pm_x_true", mas)[keep] if has_truth else None,
         pm_y_true=col("pm_y_true", mas)[keep] if has_truth else None,
+        x=col("x", u.arcsec)[keep],
+        y=col("y", u.arcsec)[keep],
     )
     epochs = prod.attrs.get("epochs")
     baseline = None
@@ -864,23 +872,90 @@ def model_dispersion(likelihood, theta):
     return dispersion
 
 
-def run_on_fits(propermotions, settings, fits, distance, field_radius, seed=0) -> FastStarResult:
-    """The fast-star test of a dynamics run (the stage calls this with its two fits).
+def stars_from_sample(sample) -> PMStars:
+    """PMStars from the dynamics stage's StarSample (radial/tangential frame, no truth).
+
+    The modulus of the motion and its errors are frame invariant; the sample's
+    radial/tangential errors are independent (no x/y correlation).
+    """
+    n = len(sample.R)
+    return PMStars(
+        id=np.arange(n),
+        R=np.asarray(sample.R, float),
+        pm_x=np.asarray(sample.v_r, float),
+        pm_y=np.asarray(sample.v_t, float),
+        pm_x_err=np.asarray(sample.e_r, float),
+        pm_y_err=np.asarray(sample.e_t, float),
+        pm_xy_corr=np.zeros(n),
+        x=None if sample.x is None else np.asarray(sample.x, float),
+        y=None if sample.y is None else np.asarray(sample.y, float),
+    )
+
+
+def about_fitted_centre(stars: PMStars, samples, names, n_sigma: float = 2.0):
+    """Stars about a fit's centre and systemic motion (posterior medians), conservatively.
+
+    ``x0, y0`` [arcsec] and ``pm_x0, pm_y0`` [mas/yr] are the fitted centre and mean
+    motion (when the fit has them). Motions become relative to the median systemic
+    motion, whose posterior sd is added to the PM errors; radii are measured from the
+    median centre and reduced by ``n_sigma`` times its larger posterior sd (clipped
+    at 0): a smaller radius means a higher escape velocity and a lower mass limit.
+
+    Returns
+    -------
+    PMStars
+    """
+    samples = np.asarray(samples, float)
+    names = list(names)
+
+    def stat(name):
+        if name not in names:
+            return 0.0, 0.0
+        col = samples[:, names.index(name)]
+        return float(np.median(col)), float(np.std(col))
+
+    (x0, sx), (y0, sy) = stat("x0"), stat("y0")
+    (px, spx), (py, spy) = stat("pm_x0"), stat("pm_y0")
+    fields = {k: getattr(stars, k) for k in stars.__dataclass_fields__}
+    if stars.x is not None and (x0 or y0 or sx or sy):
+        R = np.hypot(stars.x - x0, stars.y - y0)
+        fields.update(x=stars.x - x0, y=stars.y - y0, R=np.maximum(R - n_sigma * max(sx, sy), 0))
+    if px or py or spx or spy:
+        fields.update(
+            pm_x=stars.pm_x - px,
+            pm_y=stars.pm_y - py,
+            pm_x_err=np.hypot(stars.pm_x_err, spx),
+            pm_y_err=np.hypot(stars.pm_y_err, spy),
+        )
+        if stars.pm_x_true is not None:
+            fields.update(pm_x_true=stars.pm_x_true - px, pm_y_true=stars.pm_y_true - py)
+    return PMStars(**fields)
+
+
+def run_on_fits(
+    propermotions, settings, fits, distance, field_radius, seed=0, stars=None
+) -> FastStarResult:
+    """The fast-star test of a dynamics run (the stage calls this with its fits).
 
     Parameters
     ----------
-    propermotions : path
-        The propermotions product of the fit.
+    propermotions : path or None
+        The propermotions product of the fit (full PM covariance, truth pulls);
+        None: the fit's own star sample ``stars`` is used.
     settings : DynamicsSettings
         With ``fast_stars`` set (FastStarSettings).
     fits : sequence of ModelFit
         The fits of the comparison (:func:`mavispm.dynamics.fit.fit_model`). Those
-        without a ``bh_mass`` parameter (the no-IMBH model, and a cluster + extended
-        dark component model when fitted) form the no-IMBH set; the first with one
-        is the IMBH model (escape curve, expected fast-star count).
+        without a ``bh_mass`` parameter (``none``, and the cluster + extended dark
+        component model ``dark``) form the no-IMBH set; the first with one is the
+        IMBH model (escape curve, expected fast-star count). Stars are taken about
+        the no-IMBH fit's centre and systemic motion when fitted
+        (:func:`about_fitted_centre`).
     distance, field_radius : float
         [kpc], [arcsec].
     seed : int
+    stars : StarSample, optional
+        The fit's stars (used without a propermotions product).
     """
     from mavispm.dynamics.escape_velocity import posterior_mass_models
 
@@ -889,30 +964,35 @@ def run_on_fits(propermotions, settings, fits, distance, field_radius, seed=0) -
     without = [f for f in fits if "bh_mass" not in f.space.names]
     if not without:
         raise InputError("fast-star test needs a fit without a central point mass")
-    stars, baseline = read_pm_stars(propermotions, field_radius, settings.use_flagged)
+    baseline = None
+    if propermotions is not None:
+        pm, baseline = read_pm_stars(propermotions, field_radius, settings.use_flagged)
+    elif stars is not None:
+        pm = stars_from_sample(stars)
+    else:
+        raise InputError("fast-star test needs the proper motions (product or star sample)")
+    no_imbh = without[0]
+    pm = about_fitted_centre(pm, no_imbh.chain.samples, no_imbh.space.names)
     # the no-IMBH set: every model without a point mass, n_models samples in all
     per = max(1, fs.n_models // len(without))
     models0 = [
         m for f in without for m in posterior_mass_models(f.likelihood, f.chain.samples, per, seed)
     ]
-    no_imbh = without[0]
     imbh = with_bh[0] if with_bh else None
-    models1 = (
-        posterior_mass_models(imbh.likelihood, imbh.chain.samples, fs.n_models, seed)
-        if imbh is not None
-        else None
-    )
+    models1 = None
+    imbh_disp = None
+    if imbh is not None:
+        models1 = posterior_mass_models(imbh.likelihood, imbh.chain.samples, fs.n_models, seed)
+        imbh_disp = model_dispersion(imbh.likelihood, imbh.chain.map_params)
     return fast_star_test(
-        stars,
+        pm,
         distance,
         models0,
         fs,
-        distance_error=settings.distance_error,
+        distance_error=settings.distance_sd(distance),
         dispersion=model_dispersion(no_imbh.likelihood, no_imbh.chain.map_params),
         imbh_models=models1,
-        imbh_dispersion=None
-        if imbh is None
-        else model_dispersion(imbh.likelihood, imbh.chain.map_params),
+        imbh_dispersion=imbh_disp,
         baseline=baseline,
         field_radius=field_radius,
         seed=seed,

@@ -63,7 +63,9 @@ def stored_fits(product, settings, stars, distance):
             continue
         name = key.removeprefix("posterior_")
         names = [c for c in table.colnames if c != "log_like"]
-        space = parameter_space(settings, distance, "bh_mass" in names)
+        space = parameter_space(
+            settings, distance, name, positions=stars.x is not None and "x0" in names
+        )
         if set(space.names) != set(names):
             raise InputError(
                 f"posterior columns {names} do not match the settings' parameters "
@@ -109,7 +111,10 @@ def run(dynamics, output, settings_mapping=None, propermotions=None, plots_dir=N
         settings = dataclasses.replace(settings, fast_stars=FastStarSettings())
     pm_path = propermotions or prod.attrs.get("propermotions")
     if not pm_path:
-        raise InputError("no 'propermotions' attribute; pass --propermotions", path=dynamics)
+        raise InputError(
+            "no 'propermotions' attribute (a truth-level fit); pass --propermotions",
+            path=dynamics,
+        )
     if "distance" in prod.attrs and settings.distance is None:
         settings = dataclasses.replace(
             settings, distance=float(u.Quantity(prod.attrs["distance"], u.kpc).value)
@@ -119,7 +124,7 @@ def run(dynamics, output, settings_mapping=None, propermotions=None, plots_dir=N
         settings = dataclasses.replace(settings, field_radius=fr)
     stars, distance = load_stars(pm_path, settings)
     fits = stored_fits(prod, settings, stars, distance)
-    result = run_on_fits(pm_path, settings, fits, distance, stars.field_radius, seed)
+    result = run_on_fits(pm_path, settings, fits, distance, stars.field_radius, seed, stars=stars)
     tables = {k: v for k, v in prod.tables.items() if k != "fast_stars"}
     tables["fast_stars"] = result.table
     keep = {"format", "kind", "format_version", "mavispm_version", "created", "seed", "config"}

@@ -10,8 +10,20 @@ import numpy as np  # noqa: E402
 
 from mavispm.core.atomic import atomic_path  # noqa: E402
 
-_COLOURS = {"imbh": "tab:blue", "no_imbh": "tab:red"}
-_NAMES = {"imbh": "IMBH", "no_imbh": "no IMBH"}
+_COLOURS = {
+    "imbh": "tab:blue",
+    "no_imbh": "tab:red",
+    "none": "tab:red",
+    "dark": "tab:green",
+    "imbh_dark": "tab:purple",
+}
+_NAMES = {
+    "imbh": "IMBH",
+    "no_imbh": "no IMBH",
+    "none": "no dark centre",
+    "dark": "extended dark",
+    "imbh_dark": "IMBH + extended",
+}
 
 
 def model_band(fit, R, n_draws: int = 200, seed: int = 0):

@@ -135,8 +135,9 @@ class MultiMassJeansReference:
     ----------
     density : callable
         The group's density ``rho(r)`` [solMass/pc^3].
-    total_density : callable
-        Density of all groups (the potential's source) [solMass/pc^3].
+    total_density : callable or JeansReference
+        Density of all groups (the potential's source) [solMass/pc^3], or a
+        :class:`JeansReference` of it (to share its enclosed mass between groups).
     bh_mass : float
         Central point mass [solMass].
     r_min, r_max : float
@@ -146,7 +147,12 @@ class MultiMassJeansReference:
     """
 
     def __init__(self, density, total_density, bh_mass, r_min, r_max, anisotropy_radius=np.inf):
-        self.total = JeansReference(total_density, bh_mass, r_min, r_max)  # M_tot(r) only
+        # M_tot(r) only; a prebuilt JeansReference of the total density may be passed
+        self.total = (
+            total_density
+            if isinstance(total_density, JeansReference)
+            else JeansReference(total_density, bh_mass, r_min, r_max)
+        )
         self.rho = lambda r: float(density(np.asarray(r, float)))
         self.bh = bh_mass
         self.ra2 = anisotropy_radius**2

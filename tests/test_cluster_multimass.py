@@ -12,6 +12,7 @@ import functools
 import numpy as np
 import pytest
 from cluster_helpers import (
+    JeansReference,
     MultiMassJeansReference,
     binned_dispersion_chi2,
     pm2_interpolators,
@@ -46,12 +47,23 @@ def _sampled(imbh: float, ra: float | None, n_stars: int, seed: int = 5):
     return settings, model, stars
 
 
+_TOTALS: dict = {}
+
+
 def _reference(model, group: int):
     comp = next(c for c in model.components if group in c.groups)
     ra = model.params["anisotropy_radius"]
+    key = id(model)
+    if key not in _TOTALS:  # M_tot(r) by quad, shared by the groups of one model
+        _TOTALS[key] = (
+            model,
+            JeansReference(
+                model.total_density, model.params["bh_mass"], comp.mass.r[0], comp.mass.r_max
+            ),
+        )
     return MultiMassJeansReference(
         comp.mass.density,
-        model.total_density,
+        _TOTALS[key][1],
         model.params["bh_mass"],
         comp.mass.r[0],
         comp.mass.r_max,
@@ -280,7 +292,6 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
         (["--bh-subsystem-mass", "-5"], "bh_subsystem_mass"),
         (["--bh-subsystem-mass", "1e5"], "bh_subsystem_mass"),
         (["--anisotropy-radius", "60"], "anisotropy_radius"),  # inside the core: no OM DF
-        (["--preset", "ngc3201-nbody", "--segregation", "1.5", "--tracer", "king"], "segregation"),
     ],
 )
 def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key):
@@ -296,7 +307,17 @@ def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key
 
 @pytest.mark.parametrize(
     "table, key",
-    [({"ns_retention": 2.0}, "ns_retention"), ({"bh_retention": -0.1}, "bh_retention")],
+    [
+        ({"ns_retention": 2.0}, "ns_retention"),
+        ({"bh_retention": -0.1}, "bh_retention"),
+        ({"bh_subsystem_radius": -1.0}, "bh_subsystem_radius"),
+        # a compact, massive BH subsystem without IMBH: cored light stars have no DF
+        (
+            {"preset": '"ngc3201-nbody"', "bh_subsystem_mass": 5000.0, "bh_subsystem_radius": 0.3},
+            "bh_subsystem",
+        ),
+        ({"preset": '"ngc3201-nbody"', "tracer": '"king"', "segregation": 1.5}, "segregation"),
+    ],
 )
 def test_toml_bad_retention_is_named(tmp_path, capsys, table, key):
     from mavispm.workflows.cli import main

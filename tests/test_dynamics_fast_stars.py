@@ -313,7 +313,9 @@ def test_cli_fast_stars_flag_writes_table_and_plot(pm_file, tmp_path, capsys):
     cfg = tmp_path / "c.toml"
     cfg.write_text(
         "[dynamics]\nwalkers = 10\nmax_steps = 30\ncheck_every = 30\nn_bootstrap = 2\n"
-        'progress = false\nfield_radius = "17 arcsec"\n'
+        'progress = false\nfield_radius = "17 arcsec"\nmodels = ["none", "imbh"]\n'
+        "cusp = false\ncentre_error = 0\nsystemic_error = 0\ndistance_error = 0\n"
+        "kinematic_evidence = false\n"
         "[dynamics.fast_stars]\nn_models = 10\nn_monte_carlo = 500\n"
     )
     out = tmp_path / "f.h5"
@@ -363,7 +365,7 @@ def test_propermotions_without_errors_is_one_line_error(tmp_path):
 
     t = QTable()
     t["id"] = np.arange(3)
-    t["R"] = np.ones(3) * u.arcsec
+    t["x"] = t["y"] = t["R"] = np.ones(3) * u.arcsec
     t["pm_x"] = t["pm_y"] = np.zeros(3) * u.mas / u.yr
     path = write_product(tmp_path / "pm.h5", "propermotions", tables={"stars": t})
     with pytest.raises(InputError, match="pm_x_err"):

@@ -187,9 +187,10 @@ def eddington_df(
         raise NoIsotropicDFError(
             f"the {what} DF of this model is negative (f/f_max = {min_raw:.2e} at "
             f"E = {e_bad:.3g} (km/s)^2); the density cannot be supported by this DF in "
-            "this potential. Steepen or widen the cusp (cusp_gamma, cusp_radius), change the "
-            "IMBH mass, lower segregation, raise anisotropy_radius, or refine "
-            "resolution.n_energy if the model is nearly singular"
+            "this potential. Steepen or widen the cusp (cusp_gamma, cusp_radius), change "
+            "imbh_mass, lower segregation, raise anisotropy_radius, lower bh_subsystem_mass or "
+            "raise bh_subsystem_radius, or refine resolution.n_energy if the model is nearly "
+            "singular"
         )
     return DistributionFunction(energy, np.maximum(f, 0.0), min_raw, ra)
 

@@ -287,7 +287,9 @@ def _group_w0(kind: str, w0: float, scale: float, group_scale: float) -> float:
     if kind != "king" or group_scale == scale:
         return w0
     try:
-        return king_w0_for_truncation(king_solution(float(w0))[2] * scale / group_scale)
+        return king_w0_for_truncation(
+            king_solution(float(w0))[2] * scale / group_scale, guess=float(w0)
+        )
     except ValueError:
         raise ValueError(
             f"'segregation' too strong for a King model: a group with scale radius "

@@ -27,6 +27,7 @@ import astropy.units as u
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, solve_ivp
 from scipy.interpolate import CubicSpline
+from scipy.optimize import brentq
 from scipy.special import gammainc
 
 #: Newton's constant in pc (km/s)^2 / solMass.
@@ -170,8 +171,10 @@ class TracerProfile:
 
 
 @functools.lru_cache(maxsize=256)
-def king_w0_for_truncation(x_t: float) -> float:
+def king_w0_for_truncation(x_t: float, guess: float | None = None) -> float:
     """King W0 whose truncation radius is ``x_t`` King radii.
+
+    ``guess`` (a nearby W0) narrows the first bracket to ``guess +- 1.5``.
 
     Raises
     ------
@@ -185,15 +188,13 @@ def king_w0_for_truncation(x_t: float) -> float:
         raise ValueError(
             f"no King model (W0 in [0.1, 20]) has a truncation radius of {x_t:.3g} King radii"
         )
-    for _ in range(60):  # bisection on a smooth, monotonic function
-        mid = 0.5 * (lo + hi)
-        if np.log(king_solution(round(mid, 6))[2] / x_t) > 0:
-            hi = mid
-        else:
-            lo = mid
-        if hi - lo < 1e-3:
-            break
-    return round(0.5 * (lo + hi), 6)
+    if guess is not None:  # a narrow bracket first (most groups are close to the reference)
+        a, b = max(lo, guess - 1.5), min(hi, guess + 1.5)
+        if np.log(king_solution(a)[2] / x_t) <= 0 <= np.log(king_solution(b)[2] / x_t):
+            lo, hi = a, b
+    # ln x_t(W0) is smooth and monotonic: Brent's method needs a handful of King solutions
+    w0 = brentq(lambda w: np.log(king_solution(w)[2] / x_t), lo, hi, xtol=1e-4, rtol=1e-8)
+    return round(float(w0), 4)
 
 
 @functools.lru_cache(maxsize=512)
