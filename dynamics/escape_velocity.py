@@ -362,7 +362,9 @@ def mass_model_from_sample(likelihood, theta) -> PosteriorMassModel:
     return PosteriorMassModel(SphericalMassModel(tuple(comps)), dist)
 
 
-def posterior_mass_models(likelihood, samples, n_models: int = 100, seed: int = 0):
+def posterior_mass_models(
+    likelihood, samples, n_models: int = 100, seed: int = 0, drop_point_mass: bool = False
+):
     """Mass models of up to ``n_models`` posterior samples (drawn without replacement).
 
     Parameters
@@ -372,6 +374,8 @@ def posterior_mass_models(likelihood, samples, n_models: int = 100, seed: int = 
         Posterior samples in ``likelihood.names`` order.
     n_models : int
     seed : int
+    drop_point_mass : bool
+        Leave out the central point mass (the stellar and dark parts of an IMBH model).
 
     Returns
     -------
@@ -382,5 +386,8 @@ def posterior_mass_models(likelihood, samples, n_models: int = 100, seed: int = 
         raise ValueError("no posterior samples")
     rng = np.random.default_rng(seed)
     n = min(n_models, samples.shape[0])
-    rows = rng.choice(samples.shape[0], size=n, replace=False)
-    return [mass_model_from_sample(likelihood, samples[i]) for i in np.sort(rows)]
+    rows = np.sort(rng.choice(samples.shape[0], size=n, replace=False))
+    picked = samples[rows].copy()
+    if drop_point_mass and "bh_mass" in likelihood.names:
+        picked[:, likelihood.names.index("bh_mass")] = 0.0
+    return [mass_model_from_sample(likelihood, theta) for theta in picked]

@@ -28,8 +28,9 @@ the distance prior and the fitted no-IMBH models):
    PM distribution relative to the cluster.
 5. **Lower mass limit**: a star at projected radius ``R`` moving at ``v_2D`` is bound
    only if ``v^2 / 2 + Phi_*(r) - G M_bh / r < 0``; with ``r >= R``, ``v_3D >= v_2D``
-   and the deepest no-IMBH stellar potential (the ``escape_quantile`` model), the
-   minimal central mass is ``M_i = R (v_2D^2 - v_esc(R)^2) / (2 G)``. The full
+   and the deepest stellar potential (the ``escape_quantile`` over the no-IMBH
+   models and over the stellar parts of the IMBH models, whose cusp can be deeper),
+   the minimal central mass is ``M_i = R (v_2D^2 - v_esc(R)^2) / (2 G)``. The full
    no-IMBH potential is used (not just the enclosed mass ``M_*(<R)``: the mass
    outside ``R`` deepens the potential too), so the limit is lower, i.e. safer. As
    in Häberle et al. (2024) the stars are combined by requiring all of them to be
@@ -566,6 +567,7 @@ def fast_star_test(
     baseline: float | None = None,
     field_radius: float | None = None,
     seed: int = 0,
+    stellar_models=None,
 ) -> FastStarResult:
     """Run the fast-star test on measured proper motions.
 
@@ -594,6 +596,11 @@ def fast_star_test(
     field_radius : float, optional
         Radius [arcsec] of the area where field stars count (default: the largest R).
     seed : int
+    stellar_models : sequence of mass models, optional
+        Further potentials without a point mass for the lower limit: the stellar (and
+        dark) parts of the IMBH models, whose cusp can make the stars' potential deeper
+        than any no-IMBH model's. The limit subtracts the deepest (the
+        ``escape_quantile`` of each set, the larger of the two).
 
     Returns
     -------
@@ -697,12 +704,16 @@ def fast_star_test(
     cov[:, 0, 1] = cov[:, 1, 0] = stars.pm_xy_corr * stars.pm_x_err * stars.pm_y_err
     m_min = np.zeros(len(stars))
     limit = 0.0
+    v_esc_limit = v_esc
+    if stellar_models:
+        esc_st = np.quantile(_escape(stellar_models, stars.R, distance), s.escape_quantile, 0)
+        v_esc_limit = np.maximum(v_esc, esc_st)
     if fast.any():
         limit, per = lower_mass_limit(
             stars.R[fast],
             np.stack([stars.pm_x[fast], stars.pm_y[fast]], axis=1),
             cov[fast],
-            v_esc[fast],
+            v_esc_limit[fast],
             distance,
             d_err,
             s.confidence,
@@ -984,6 +995,13 @@ def run_on_fits(
     if imbh is not None:
         models1 = posterior_mass_models(imbh.likelihood, imbh.chain.samples, fs.n_models, seed)
         imbh_disp = model_dispersion(imbh.likelihood, imbh.chain.map_params)
+    # stellar (+ dark) parts of the IMBH models: their cusp may be deeper (lower limit)
+    per1 = max(1, fs.n_models // max(len(with_bh), 1))
+    stellar = [
+        m
+        for f in with_bh
+        for m in posterior_mass_models(f.likelihood, f.chain.samples, per1, seed, True)
+    ]
     return fast_star_test(
         pm,
         distance,
@@ -996,4 +1014,5 @@ def run_on_fits(
         baseline=baseline,
         field_radius=field_radius,
         seed=seed,
+        stellar_models=stellar or None,
     )

@@ -186,9 +186,12 @@ def map_trial(
     imbh = {}
     if imbh_model:
         th1 = sp1.from_scaled(find_map(l1, sp1))
+        stellar = th1.copy()
+        stellar[sp1.index("bh_mass")] = 0.0
         imbh = {
             "imbh_models": [mass_model_from_sample(l1, th1)],
             "imbh_dispersion": model_dispersion(l1, th1),
+            "stellar_models": [mass_model_from_sample(l1, stellar)],
         }
     res = fast_star_test(
         stars,
