@@ -48,8 +48,10 @@ CATALOGUE_SPEC = TableSpec(
         "vy": "km/s",
         "vz": "km/s",
         "luminous": "",  # bool; False for dark remnants (never rendered)
+        "teff": "K",  # effective temperature of luminous stars (NaN for dark objects)
     },
     id_column="id",
+    allow_nan=("teff",),
     text={"kind": OBJECT_KINDS},  # star, white_dwarf, neutron_star, black_hole, imbh
 )
 

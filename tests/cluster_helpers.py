@@ -144,9 +144,14 @@ class MultiMassJeansReference:
         Inner and outer radii [pc].
     anisotropy_radius : float
         OM radius [pc] (``inf``: isotropic).
+    beta : float
+        Constant anisotropy instead (needs ``anisotropy_radius = inf``):
+        ``r^(2 beta) rho sigma_r^2 = int_r^inf s^(2 beta) rho G M / s^2 ds``.
     """
 
-    def __init__(self, density, total_density, bh_mass, r_min, r_max, anisotropy_radius=np.inf):
+    def __init__(
+        self, density, total_density, bh_mass, r_min, r_max, anisotropy_radius=np.inf, beta=0.0
+    ):
         # M_tot(r) only; a prebuilt JeansReference of the total density may be passed
         self.total = (
             total_density
@@ -156,11 +161,12 @@ class MultiMassJeansReference:
         self.rho = lambda r: float(density(np.asarray(r, float)))
         self.bh = bh_mass
         self.ra2 = anisotropy_radius**2
+        self.beta0 = beta
         self.r_max = r_max
         r = np.geomspace(r_min, r_max, 240)
 
         def integrand(x):
-            w = 1.0 if not np.isfinite(self.ra2) else (x * x + self.ra2)
+            w = (x * x + self.ra2) if np.isfinite(self.ra2) else x ** (2 * beta)
             return w * self.rho(x) * G_PC * (self.total.mass(x) + self.bh) / x**2
 
         p = [0.0]
@@ -171,15 +177,19 @@ class MultiMassJeansReference:
         self._lnp = CubicSpline(np.log(r[:-1]), np.log(p[:-1]))
 
     def beta(self, r):
-        """Anisotropy ``r^2 / (r^2 + r_a^2)``."""
-        return 0.0 if not np.isfinite(self.ra2) else r * r / (r * r + self.ra2)
+        """Anisotropy ``r^2 / (r^2 + r_a^2)`` (or the constant ``beta``)."""
+        return self.beta0 if not np.isfinite(self.ra2) else r * r / (r * r + self.ra2)
 
     def rho_sigma_r2(self, r):
         """``rho sigma_r^2`` [solMass/pc^3 (km/s)^2]."""
         if r >= self._r[-2]:
             return 0.0
         value = float(np.exp(self._lnp(np.log(max(r, self._r[0])))))
-        return value if not np.isfinite(self.ra2) else value / (r * r + self.ra2)
+        return (
+            value * r ** (-2 * self.beta0)
+            if not np.isfinite(self.ra2)
+            else value / (r * r + self.ra2)
+        )
 
     def projected_pm2(self, R):
         """Sky-plane radial and tangential dispersions squared at ``R`` [(km/s)^2]."""

@@ -38,9 +38,13 @@ RA_ARCSEC = 300.0
 
 
 @functools.lru_cache(maxsize=4)
-def _sampled(imbh: float, ra: float | None, n_stars: int, seed: int = 5):
+def _sampled(imbh: float, ra: float | None, n_stars: int, seed: int = 5, beta: float = 0.0):
     settings = ClusterSettings(
-        preset="ngc3201-nbody", imbh_mass=imbh, anisotropy_radius=ra, n_stars=n_stars
+        preset="ngc3201-nbody",
+        imbh_mass=imbh,
+        anisotropy_radius=ra,
+        n_stars=n_stars,
+        anisotropy_beta=beta,
     )
     model = build_cluster_model(settings)
     stars, _ = sample_stars(settings, seed, model)
@@ -68,6 +72,7 @@ def _reference(model, group: int):
         comp.mass.r[0],
         comp.mass.r_max,
         np.inf if ra is None else ra,
+        model.params["anisotropy_beta"],
     )
 
 
@@ -92,6 +97,39 @@ def test_group_pm_dispersions_match_multimass_jeans():
     for g in (0, len(kinds) - 1 - kinds[::-1].index("white_dwarf")):
         chi_rad, chi_tan = _check_group(model, stars, g)
         assert chi_rad < 2.2 and chi_tan < 2.2, (groups[g]["kind"], chi_rad, chi_tan)
+
+
+def test_constant_beta_group_pm_dispersions_match_jeans():
+    """Tangential constant-beta DF (Cuddeford), IMBH: the giant / turn-off group."""
+    _, model, stars = _sampled(1500.0, None, 40_000, 6, -0.3)
+    for g in (3,):
+        chi_rad, chi_tan = _check_group(model, stars, g)
+        assert chi_rad < 2.2 and chi_tan < 2.2, (g, chi_rad, chi_tan)
+
+
+@pytest.mark.parametrize("beta, extra", [(-0.3, {}), (0.3, {"core_collapse": True})])
+def test_constant_beta_profile_from_3d_velocities(beta, extra):
+    settings = ClusterSettings(
+        preset="ngc3201-nbody", anisotropy_beta=beta, n_stars=30_000, **extra
+    )
+    stars, _ = sample_stars(settings, 3)
+    pos = np.stack([stars["x"], stars["y"], stars["z"]])
+    vel = np.stack([stars["vx"], stars["vy"], stars["vz"]])
+    r = np.sqrt(np.sum(pos**2, axis=0))
+    v_r = np.sum(pos * vel, axis=0) / r
+    v_t2 = np.sum(vel**2, axis=0) - v_r**2
+    for idx in np.array_split(np.argsort(r), 6):
+        sr2, st2 = np.mean(v_r[idx] ** 2), np.mean(v_t2[idx]) / 2
+        e_sr = np.std(v_r[idx] ** 2) / np.sqrt(idx.size)
+        e_st = np.std(v_t2[idx] / 2) / np.sqrt(idx.size)
+        err = (st2 / sr2) * np.hypot(e_sr / sr2, e_st / st2)
+        assert abs(1 - st2 / sr2 - beta) < 4 * err
+
+
+def test_radial_constant_beta_needs_a_cusp():
+    """A cored model cannot be radially anisotropic at its centre (An & Evans 2006)."""
+    with pytest.raises(NoIsotropicDFError, match="anisotropy_beta"):
+        build_cluster_model(ClusterSettings(preset="ngc3201-nbody", anisotropy_beta=0.3))
 
 
 @pytest.mark.slow
@@ -236,7 +274,14 @@ FAST = SamplerResolution(n_energy=300, n_rows=40, n_levels=129, n_los=128, n_spe
 
 # ---------------------------------------------------------------- stress and bad input
 #: Words a refusal must contain: the setting to change.
-SETTING_NAMES = ("anisotropy_radius", "segregation", "cusp", "bh_subsystem", "IMBH")
+SETTING_NAMES = (
+    "anisotropy_radius",
+    "anisotropy_beta",
+    "segregation",
+    "cusp",
+    "bh_subsystem",
+    "IMBH",
+)
 
 
 @hsettings(
@@ -248,7 +293,7 @@ SETTING_NAMES = ("anisotropy_radius", "segregation", "cusp", "bh_subsystem", "IM
     mass=st.floats(2e4, 1e6),
     ns=st.floats(0.0, 1.0),
     bh=st.floats(0.0, 1.0),
-    ra=st.one_of(st.none(), st.floats(20.0, 3000.0)),
+    ra=st.one_of(st.none(), st.floats(20.0, 3000.0), st.floats(-0.45, 0.45)),
     bhs=st.floats(0.0, 5000.0),
     imbh=st.sampled_from([0.0, 300.0, 3000.0, 30000.0]),
 )
@@ -258,7 +303,8 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
         stellar_mass=mass,
         ns_retention=ns,
         bh_retention=bh,
-        anisotropy_radius=ra,
+        anisotropy_radius=ra if ra is None or ra > 1 else None,
+        anisotropy_beta=ra if ra is not None and ra < 1 else 0.0,
         bh_subsystem_mass=bhs,
         imbh_mass=imbh,
         n_stars=300,
@@ -292,6 +338,8 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
         (["--bh-subsystem-mass", "-5"], "bh_subsystem_mass"),
         (["--bh-subsystem-mass", "1e5"], "bh_subsystem_mass"),
         (["--anisotropy-radius", "60"], "anisotropy_radius"),  # inside the core: no OM DF
+        (["--anisotropy-beta", "0.5"], "anisotropy_beta"),
+        (["--anisotropy-beta", "0.2", "--anisotropy-radius", "300"], "anisotropy_beta"),
     ],
 )
 def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key):
@@ -311,6 +359,10 @@ def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key
         ({"ns_retention": 2.0}, "ns_retention"),
         ({"bh_retention": -0.1}, "bh_retention"),
         ({"bh_subsystem_radius": -1.0}, "bh_subsystem_radius"),
+        ({"external": "{dark_flux = -1.0}"}, "dark_flux"),
+        ({"anisotropy_beta": 0.7}, "anisotropy_beta"),
+        ({"alpha_low": 9.0}, "alpha_low"),
+        ({"core_collapse": '"yes"'}, "core_collapse"),
         # a compact, massive BH subsystem without IMBH: cored light stars have no DF
         (
             {"preset": '"ngc3201-nbody"', "bh_subsystem_mass": 5000.0, "bh_subsystem_radius": 0.3},
@@ -319,7 +371,7 @@ def test_cli_bad_new_settings_one_line_and_no_output(tmp_path, capsys, args, key
         ({"preset": '"ngc3201-nbody"', "tracer": '"king"', "segregation": 1.5}, "segregation"),
     ],
 )
-def test_toml_bad_retention_is_named(tmp_path, capsys, table, key):
+def test_toml_bad_new_settings_are_named(tmp_path, capsys, table, key):
     from mavispm.workflows.cli import main
 
     cfg = tmp_path / "s.toml"
@@ -363,3 +415,55 @@ def test_mavisim_tiny_fluxes_are_dark_and_imbh_recorded(tmp_path):
     # one later-epoch list gives both epochs: x(10 yr) = X + PM_X
     e1 = cat.epochs["e1"]
     np.testing.assert_allclose((e1["x"] - t["x"]).to_value("arcsec"), 0.01)
+
+
+def test_cli_nbody_preset_writes_kinds_and_model(tmp_path, capsys):
+    import json
+
+    from mavispm.core.catalogue import read_catalogue
+    from mavispm.workflows.cli import main
+
+    out = tmp_path / "c.h5"
+    args = ["simulate", "cluster", "--preset", "ngc3201-nbody", "--imbh-mass", "1500"]
+    args += ["--anisotropy-radius", "300", "--bh-subsystem-mass", "500", "--n-stars", "400"]
+    assert main(args + ["-o", str(out)]) == 0
+    cat = read_catalogue(out)
+    kinds = set(np.asarray(cat.epochs["e0"]["kind"]).tolist())
+    assert {"star", "white_dwarf", "imbh"} <= kinds
+    params = cat.attrs["model_params"]
+    params = json.loads(params) if isinstance(params, str) else params
+    assert params["segregation"] == 0.4 and params["bh_subsystem_mass"] == 500.0
+    assert params["anisotropy_radius"] == pytest.approx(300 * 4.6 / 206.264806, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "beta, ra", [(0.0, np.inf), (-0.3, np.inf), (0.2, np.inf), (0.0, 3.0)], ids=str
+)
+def test_anisotropic_dfs_reproduce_the_density(beta, ra):
+    """Velocity-space quadrature of the tabulated DF gives back rho(r) (1 %).
+
+    Constant beta: ``rho = r^(-2 beta) C_beta int_0^Psi (Psi - E)^(1/2 - beta) g(E) dE``;
+    Osipkov-Merritt: ``rho = 4 pi sqrt(2) int_0^Psi f(Q) sqrt(Psi - Q) dQ / (1 + r^2/r_a^2)``.
+    """
+    from scipy.integrate import quad
+    from scipy.special import gamma as gamma_fn
+
+    from mavispm.simulate.cluster.eddington import eddington_df
+    from mavispm.simulate.cluster.profiles import TracerProfile, build_mass_model
+
+    tracer = TracerProfile("plummer", 2.0, cusp_gamma=1.55, cusp_radius=0.5)
+    model = build_mass_model(tracer, 1e5, 1000.0)
+    df = eddington_df(model, beta=beta, anisotropy_radius=ra)
+    c_beta = 2 ** (1.5 - beta) * np.pi**1.5 * gamma_fn(1 - beta) / gamma_fn(1.5 - beta)
+    for r in (0.01, 0.3, 3.0):
+        psi = float(model.relative_potential(r))
+        integral = quad(
+            lambda e, psi=psi: df(np.array([e]))[0] * (psi - e) ** (0.5 - beta),
+            0,
+            psi,
+            limit=400,
+        )[0]
+        rho = c_beta * integral * r ** (-2 * beta)
+        if np.isfinite(ra):
+            rho /= 1 + (r / ra) ** 2
+        assert rho == pytest.approx(float(model.density(r)), rel=0.01), r

@@ -42,7 +42,7 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
         raise ConfigError(str(exc), key="preset", source=source) from None
     if obj.cusp_gamma is not None:
         try:
-            check_isotropic_df_exists(obj.cusp_gamma, obj.imbh_mass)
+            check_isotropic_df_exists(obj.cusp_gamma, obj.imbh_mass, obj.anisotropy_beta)
         except NoIsotropicDFError as exc:
             raise ConfigError(str(exc), key="cusp_gamma", source=source) from None
     if obj.external.path and obj.external.format == "mavisim" and not obj.external.pm_convention:
@@ -119,6 +119,7 @@ _OPTION_KEYS = {
     "distance": "distance",
     "stellar_mass": "stellar_mass",
     "anisotropy_radius": "anisotropy_radius",
+    "anisotropy_beta": "anisotropy_beta",
     "bh_subsystem_mass": "bh_subsystem_mass",
     "segregation": "segregation",
     "core_collapse": "core_collapse",
@@ -186,6 +187,12 @@ def register(subparsers) -> argparse.ArgumentParser:
         type=float,
         metavar="ARCSEC",
         help="Osipkov-Merritt anisotropy radius in arcsec (omitted: isotropic)",
+    )
+    p.add_argument(
+        "--anisotropy-beta",
+        type=float,
+        metavar="BETA",
+        help="constant velocity anisotropy in (-0.5, 0.5) (Cuddeford DF; default 0)",
     )
     p.add_argument(
         "--bh-subsystem-mass",

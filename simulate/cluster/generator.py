@@ -35,6 +35,7 @@ from mavispm.simulate.cluster.eddington import (
     check_isotropic_df_exists,
     eddington_df,
 )
+from mavispm.simulate.cluster.effective_temperature import effective_temperature
 from mavispm.simulate.cluster.field_sampler import (
     FieldSampler,
     SamplerResolution,
@@ -194,7 +195,8 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
         ``bh_subsystem_mass`` [solMass], ``core_collapse``, and ``groups``: one dict per
         mass group with ``kind``, ``lo``, ``hi`` (initial-mass range [solMass]; final
         masses for ``fixed_range`` groups), ``mass`` (total [solMass]), ``mean_mass``
-        [solMass], ``number``, ``scale_radius`` [pc] and ``king_w0``.
+        [solMass], ``number``, ``scale_radius`` [pc] and ``king_w0``; and
+        ``anisotropy_beta`` (constant anisotropy, 0 unless set).
 
     Raises
     ------
@@ -216,7 +218,7 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
             if bh > 0
             else (CORE_COLLAPSE_GAMMA if settings.core_collapse else 0.0)
         )
-    check_isotropic_df_exists(gamma, bh)
+    check_isotropic_df_exists(gamma, bh, settings.anisotropy_beta)
     unit_core, unit_half = projected_radii(TracerProfile(tracer_kind, 1.0, w0))
     if settings.scale_radius is not None:
         scale = float(settings.scale_radius)
@@ -263,6 +265,7 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
         "segregation": segregation,
         "reference_mass": m_ref,
         "anisotropy_radius": None if ra is None else float(arcsec_to_pc(ra, distance)),
+        "anisotropy_beta": float(settings.anisotropy_beta),
         "bh_subsystem_mass": float(settings.bh_subsystem_mass),
         "core_collapse": bool(settings.core_collapse),
         "groups": groups,
@@ -374,7 +377,12 @@ def model_from_params(params: dict, n_energy: int = 800) -> ClusterModel:
     components = []
     for model, member in zip(models, members):
         try:
-            df = eddington_df(model, n_energy=n_energy, anisotropy_radius=ra)
+            df = eddington_df(
+                model,
+                n_energy=n_energy,
+                anisotropy_radius=ra,
+                beta=params.get("anisotropy_beta", 0.0),
+            )
         except NoIsotropicDFError as exc:
             if len(models) == 1:
                 raise
@@ -543,12 +551,15 @@ def sample_stars(settings: ClusterSettings, seed: int, model: ClusterModel | Non
                 mass = _group_masses(g, mf, rng_pop.random(n))
                 if luminous:
                     mag = pop.apparent_v(mass, distance, model.params["extinction_v"])
+                    teff = effective_temperature(mass)
                 else:
                     mag = np.full(n, pop.DARK_MAGNITUDE)
+                    teff = np.full(n, np.nan)
                 stars = sampler_of[i].sample(region, rng_pos.random((n, 4)), rng_vel.random((n, 3)))
                 stars.update(
                     mass=mass,
                     mag=mag,
+                    teff=teff,
                     luminous=np.full(n, luminous),
                     kind=np.full(n, g["kind"]),
                     group=np.full(n, i),
@@ -599,6 +610,7 @@ def _imbh_row(bh_mass: float) -> dict:
         **{k: zero for k in ("x", "y", "z", "r3d", "vx", "vy", "vz")},
         "mass": np.array([bh_mass]),
         "mag": np.array([pop.DARK_MAGNITUDE]),
+        "teff": np.array([np.nan]),
         "luminous": np.array([False]),
         "kind": np.array(["imbh"]),
         "group": np.array([-1]),
@@ -687,7 +699,7 @@ def stars_to_epoch_tables(stars: dict, settings: ClusterSettings, distance: floa
         (settings.pm_sys_x, settings.pm_sys_y),
     )
     truth = {}
-    for key, unit in (("mass", u.solMass), ("r3d", u.pc), ("z", u.pc)):
+    for key, unit in (("mass", u.solMass), ("r3d", u.pc), ("z", u.pc), ("teff", u.K)):
         if key in stars:
             truth[key] = np.asarray(stars[key], float) * unit
     if "vx" in stars:
@@ -759,6 +771,8 @@ def simulate_catalogue(settings: ClusterSettings, seed: int, model: ClusterModel
     tables = stars_to_epoch_tables(stars, settings, params["distance"])
     ra = params.get("anisotropy_radius")
     name = "isotropic" if ra is None else f"Osipkov-Merritt r_a={ra:.3g} pc"
+    if params.get("anisotropy_beta", 0):
+        name = f"constant beta={params['anisotropy_beta']:g}"
     name += f" {params['tracer']}"
     if params["tracer"] == "king":
         name += f" W0={params['king_w0']:g}"

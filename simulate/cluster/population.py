@@ -224,13 +224,6 @@ def apparent_v(mass: np.ndarray, distance_kpc: float, extinction_v: float) -> np
     return absolute_v(mass) + distance_modulus(distance_kpc) + extinction_v
 
 
-def remnant_ratio(mf: MassFunction) -> float:
-    """Number of dark remnants per luminous star for this mass function (all retained)."""
-    lum = mf.number_fraction(mf.mass_min, tip_mass())
-    dark = mf.number_fraction(tip_mass(), mf.mass_max)
-    return dark / lum if lum > 0 else 0.0
-
-
 #: Upper initial-mass edges [solMass] of the luminous-star groups (the last ends at the tip).
 STAR_GROUP_EDGES = (0.3, 0.5, 0.7)
 #: Initial mass [solMass] splitting the white dwarfs into two groups (final mass 0.6 solMass).

@@ -66,6 +66,10 @@ class ExternalInput:
     dark_flux: float = 1.0
     recenter: bool = False
 
+    def __post_init__(self):
+        if not self.dark_flux >= 0:
+            raise ValueError(f"'dark_flux' must be >= 0 photon/s, got {self.dark_flux}")
+
 
 @dataclass(frozen=True)
 class ClusterSettings:
@@ -104,6 +108,7 @@ class ClusterSettings:
     bh_retention: float | None = None
     segregation: float | None = None
     anisotropy_radius: float | None = unit_field(None, "arcsec")
+    anisotropy_beta: float = 0.0
     bh_subsystem_mass: float = unit_field(0.0, "solMass")
     bh_subsystem_radius: float | None = unit_field(None, "pc")
     core_collapse: bool = False
@@ -138,6 +143,16 @@ class ClusterSettings:
                 self.anisotropy_radius is None or self.anisotropy_radius > 0,
                 "anisotropy_radius",
                 "must be > 0 arcsec (omit it for isotropy)",
+            ),
+            (
+                -0.5 < self.anisotropy_beta < 0.5,
+                "anisotropy_beta",
+                "must be in (-0.5, 0.5) (0 = isotropic)",
+            ),
+            (
+                self.anisotropy_beta == 0 or self.anisotropy_radius is None,
+                "anisotropy_beta",
+                "cannot be combined with anisotropy_radius; give one of them",
             ),
             (self.bh_subsystem_mass >= 0, "bh_subsystem_mass", "must be >= 0 solMass"),
             (

@@ -14,8 +14,11 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.errors import InputError
+from mavispm.simulate.optics.refraction import star_displacement
+from mavispm.simulate.optics.telescope import telescope_displacement
 from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
+from mavispm.simulate.render.pixel_response import flat_field_residual
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
 from mavispm.simulate.render.zero_point import sky_electrons_per_pixel, star_electrons
@@ -55,7 +58,13 @@ def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
     ``cache_dir``: also keep its stamp plans (PSF-node transforms) in this folder
     (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
     """
-    return StarRenderer(optics.psf_grid, scene.detector.pixel_scale, scene.render, cache_dir)
+    return StarRenderer(
+        optics.psf_grid,
+        scene.detector.pixel_scale,
+        scene.render,
+        cache_dir,
+        intrapixel_amplitude=scene.detector.intrapixel_amplitude,
+    )
 
 
 def _values(q, unit) -> np.ndarray:
@@ -121,13 +130,33 @@ def render_frame(
         dx, dy = optics.distortion.displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value)
         x = x + _values(dx, u.arcsec)
         y = y + _values(dy, u.arcsec)
+    tel = getattr(getattr(optics, "settings", None), "telescope", None)
+    if tel is not None and tel.enabled and len(x):
+        tx, ty = telescope_displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value, tel)
+        x, y = x + tx, y + ty
+    dar = _refraction_shift(stars, optics, u.Quantity(epoch, u.yr).value)
+    if dar is not None:
+        x, y = x + dar[0], y + dar[1]
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2
     y_pix = y * 1000.0 / s + (det.ny - 1) / 2
+    # per-exposure image motion: each star is drawn at its mean displacement over the
+    # stack, blurred by the displacements' covariance (truth keeps the true position)
+    motion = getattr(optics, "image_motion", None)
+    motion_mean = motion_cov = None
+    if motion is not None and motion.enabled and len(x):
+        motion_mean, motion_cov = motion.stack(
+            x, y, scene.nexp, scene.exptime, u.Quantity(epoch, u.yr).value
+        )
     sub_exposure = scene.exptime * u.s
     flux_sub = star_electrons(mag, phot, sub_exposure).value
     halo = optics.halo if par.halo else None
     core_fraction = 1.0 - (halo.fraction if halo is not None else 0.0)
     cov = _values(optics.kernel_covariance(x, y), u.mas**2) if len(x) else np.zeros((0, 2, 2))
+    render_x_pix, render_y_pix = x_pix, y_pix
+    if motion_mean is not None:
+        cov = cov + motion_cov
+        render_x_pix = x_pix + motion_mean[:, 0] / s
+        render_y_pix = y_pix + motion_mean[:, 1] / s
     sigma_max = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0, None)) if len(x) else x
     noise = noise_sigma_per_subexposure(scene)
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max, x, y)
@@ -137,11 +166,13 @@ def render_frame(
     image = np.full((det.ny, det.nx), sky, dtype=np.float64)
     if halo is not None and len(x):
         b = par.halo_downsample or max(1, int(round(HALO_COARSE_PIXEL_MAS / s)))
-        halo_field(x_pix, y_pix, flux_sub, image.shape, halo, s, b, par.threads, out=image)
+        halo_field(
+            render_x_pix, render_y_pix, flux_sub, image.shape, halo, s, b, par.threads, out=image
+        )
     rendered = renderer.render(
         image,
-        x_pix,
-        y_pix,
+        render_x_pix,
+        render_y_pix,
         x,
         y,
         cov,
@@ -150,6 +181,9 @@ def render_frame(
         noise_sigma=noise,
         progress=progress,
     )
+    flat = flat_field_residual(image.shape, det.flat_residual, det.flat_seed)
+    if flat is not None:
+        image *= flat
     img_adu, saturated = expose_stack(
         image,
         scene.nexp,
@@ -172,6 +206,12 @@ def render_frame(
     truth["y_cat"] = y_cat[keep] * u.arcsec
     truth["flux"] = flux_sub[keep] * scene.nexp * u.electron
     truth["mag"] = mag[keep] * u.mag
+    if dar is not None:
+        truth["dar_x"] = dar[0][keep] * u.arcsec
+        truth["dar_y"] = dar[1][keep] * u.arcsec
+    if motion_mean is not None:  # the stack's mean image motion (an astrometric error)
+        truth["dx_motion"] = motion_mean[keep, 0] * u.mas
+        truth["dy_motion"] = motion_mean[keep, 1] * u.mas
     attrs = {
         "epoch": u.Quantity(epoch, u.yr),
         "pixel_scale": s * u.mas,
@@ -190,3 +230,19 @@ def render_frame(
         truth=truth,
         attrs=attrs,
     )
+
+
+def _refraction_shift(stars: QTable, optics, epoch: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Colour-dependent atmospheric refraction of each star [arcsec], or None when off.
+
+    Uses the epoch table's ``teff`` column [K] where present (else the settings'
+    ``default_teff``); see ``simulate/optics/refraction.py``.
+    """
+    refr = getattr(getattr(optics, "settings", None), "refraction", None)
+    if refr is None or not refr.enabled or len(stars) == 0:
+        return None
+    if "teff" in stars.colnames:
+        teff = _values(stars["teff"], u.K)
+    else:
+        teff = np.full(len(stars), np.nan)
+    return star_displacement(teff, refr, epoch)
