@@ -437,3 +437,30 @@ def test_fast_stars_report_recipe(tmp_path):
     assert (out / "fast_stars_sweep.png").stat().st_size > 10_000
     assert (out / "fast_stars.csv").read_text().count("\n") == 3
     assert RECIPES["fast_stars"]({"nodes": []}, tmp_path, out).startswith("No dynamics")
+
+
+def test_stars_about_the_fitted_centre_and_systemic_motion():
+    from mavispm.dynamics.fast_stars import about_fitted_centre, stars_from_sample
+    from mavispm.dynamics.likelihood import StarSample
+
+    x, y = np.array([1.0, 3.0, 0.0]), np.array([0.0, 0.0, 2.0])
+    sample = StarSample(np.hypot(x, y), np.array([0.1, 0.2, 0.3]), np.zeros(3),
+                        np.full(3, 0.01), np.full(3, 0.02), 5.0, x=x, y=y)  # fmt: skip
+    stars = stars_from_sample(sample)
+    assert stars.pm_x_err[0] == 0.01 and stars.pm_y_err[0] == 0.02
+    rng = np.random.default_rng(5)
+    names = ["log_mass", "x0", "y0", "pm_x0", "pm_y0"]
+    samples = np.column_stack(
+        [np.full(4000, 5.0), 1.0 + 0.1 * rng.standard_normal(4000), np.zeros(4000),
+         0.05 + 0.01 * rng.standard_normal(4000), np.zeros(4000)]
+    )  # fmt: skip
+    moved = about_fitted_centre(stars, samples, names)
+    sd = np.std(samples[:, 1])
+    x0 = np.median(samples[:, 1])
+    expected_R = np.maximum(np.hypot(x - x0, y) - 2 * sd, 0)
+    assert moved.R == pytest.approx(expected_R, abs=1e-12)
+    assert moved.pm_x == pytest.approx(stars.pm_x - np.median(samples[:, 3]))
+    assert moved.pm_x_err == pytest.approx(np.hypot(0.01, np.std(samples[:, 3])))
+    # nothing fitted: unchanged
+    same = about_fitted_centre(stars, samples[:, :1], names[:1])
+    assert np.array_equal(same.R, stars.R) and np.array_equal(same.pm_x, stars.pm_x)
