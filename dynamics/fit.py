@@ -171,27 +171,28 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
     name = _model_name(model)
     space = parameter_space(settings, distance, name, positions=stars.x is not None)
     like = make_likelihood(stars, space, settings, distance)
-    t0 = time.perf_counter()
-    chain = run_emcee(
-        like,
-        space,
-        seed,
-        walkers=settings.walkers,
-        max_steps=settings.max_steps,
-        tau_factor=settings.tau_factor,
-        check_every=settings.check_every,
-        backend_path=backend_path,
-        backend_name=name,
-        progress=settings.progress,
-    )
-    wall = {"emcee": time.perf_counter() - t0}
-    max_ll = chain.max_log_like
+    wall = {}
+    chain = None
+    if settings.posterior == "emcee":
+        t0 = time.perf_counter()
+        chain = run_emcee(
+            like,
+            space,
+            seed,
+            walkers=settings.walkers,
+            max_steps=settings.max_steps,
+            tau_factor=settings.tau_factor,
+            check_every=settings.check_every,
+            backend_path=backend_path,
+            backend_name=name,
+            progress=settings.progress,
+        )
+        wall["emcee"] = time.perf_counter() - t0
     evid = evid_kin = None
     if settings.evidence:
         t0 = time.perf_counter()
         evid = run_dynesty(like, space, seed + 1, nlive=settings.nlive, dlogz=settings.dlogz)
         wall["evidence"] = time.perf_counter() - t0
-        max_ll = max(max_ll, evid.max_log_like)
         if settings.kinematic_evidence and settings.star_counts:
             t0 = time.perf_counter()
             kin = make_likelihood(stars, space, settings, distance, star_counts=False)
@@ -199,6 +200,9 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
             wall["evidence_kinematic"] = time.perf_counter() - t0
         elif not settings.star_counts:
             evid_kin = evid
+    if chain is None:
+        chain = nested_chain(evid, space)
+    max_ll = chain.max_log_like if evid is None else max(chain.max_log_like, evid.max_log_like)
     return ModelFit(
         name=name,
         space=space,
@@ -209,6 +213,26 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
         evidence_kinematic=evid_kin,
         criteria={"max_log_like": max_ll, **information_criteria(max_ll, len(space), stars.R.size)},
         wall_s=wall,
+    )
+
+
+def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:
+    """A :class:`ChainResult` from nested-sampling posterior samples (``posterior = "nested"``).
+
+    The run stopped at its ``dlogz`` criterion, so it counts as converged; tau and
+    acceptance are NaN, the MAP is the highest-likelihood point.
+    """
+    ndim = len(space)
+    return ChainResult(
+        names=list(space.names),
+        samples=evid.samples,
+        log_like=np.full(evid.samples.shape[0], np.nan),
+        tau=np.full(ndim, np.nan),
+        steps=0,
+        converged=True,
+        map_params=evid.best,
+        max_log_like=evid.max_log_like,
+        acceptance=np.nan,
     )
 
 

@@ -45,8 +45,9 @@ class DynamicsSettings:
     completeness of the sample vs radius), ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
     ``projection_nodes``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
-    ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``. Evidence: ``evidence``,
-    ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``.
+    ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
+    "nested": the posterior from the nested-sampling run, no emcee). Evidence:
+    ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``.
     Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
     :class:`~mavispm.dynamics.fast_stars.FastStarSettings`; None = no test).
     """
@@ -95,6 +96,7 @@ class DynamicsSettings:
     max_steps: int = 20000
     tau_factor: float = 50.0
     check_every: int = 500
+    posterior: str = "emcee"
     evidence: bool = True
     nlive: int = 250
     dlogz: float = 0.1
@@ -109,6 +111,10 @@ class DynamicsSettings:
             )
         if self.tracer not in TRACERS:
             raise ValueError(f"tracer must be one of {sorted(TRACERS)}, got {self.tracer!r}")
+        if self.posterior not in ("emcee", "nested"):
+            raise ValueError(f"posterior must be 'emcee' or 'nested', got {self.posterior!r}")
+        if self.posterior == "nested" and not self.evidence:
+            raise ValueError("posterior = 'nested' needs evidence = true")
         if self.anisotropy not in ANISOTROPY:
             raise ValueError(f"anisotropy must be one of {ANISOTROPY}, got {self.anisotropy!r}")
         models = tuple(self.models)

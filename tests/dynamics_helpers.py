@@ -450,7 +450,7 @@ def write_mock_catalogue(path, seed, distance=4.6, n_dark=50, **kwargs):
 SBC_PRIOR = {"log_mass": (4.5, 5.0), "log_scale_radius": (1.2, 1.6), "bh_mass": (0.0, 5000.0)}
 
 
-def sbc_trial(seed, n_stars=600, n_ranks=99, walkers=16, max_steps=3000):
+def sbc_trial(seed, n_stars=600, n_ranks=99, walkers=16, max_steps=3000, sampler="emcee"):
     """One SBC draw: parameters from the prior, an independent mock, an emcee fit, the rank.
 
     The mock (:func:`mock_pm_stars`: Plummer sphere + point mass, isotropic, errors
@@ -484,16 +484,22 @@ def sbc_trial(seed, n_stars=600, n_ranks=99, walkers=16, max_steps=3000):
     space = ParameterSpace([Parameter(k, lo=lo, hi=hi) for k, (lo, hi) in SBC_PRIOR.items()])
     s = DynamicsSettings(cusp=False, distance_error=0.0, log_scale_radius_range=(1.0, 2.0))
     like = make_likelihood(stars, space, s, 4.6)
-    chain = run_emcee(
-        like,
-        space,
-        seed,
-        walkers=walkers,
-        max_steps=max_steps,
-        tau_factor=30.0,
-        check_every=250,
-        progress=False,
-    )
+    if sampler == "nested":
+        from mavispm.dynamics.evidence import run_dynesty
+        from mavispm.dynamics.fit import nested_chain
+
+        chain = nested_chain(run_dynesty(like, space, seed, nlive=200, dlogz=0.1), space)
+    else:
+        chain = run_emcee(
+            like,
+            space,
+            seed,
+            walkers=walkers,
+            max_steps=max_steps,
+            tau_factor=30.0,
+            check_every=250,
+            progress=False,
+        )
     bh = chain.samples[:, space.index("bh_mass")]
     pick = np.linspace(0, bh.size - 1, n_ranks).astype(int)
     q = np.percentile(bh, [2.5, 16, 50, 84, 97.5])
@@ -505,6 +511,7 @@ def sbc_trial(seed, n_stars=600, n_ranks=99, walkers=16, max_steps=3000):
         **{f"q{p:g}": float(v) for p, v in zip((2.5, 16, 50, 84, 97.5), q)},
         "converged": bool(chain.converged),
         "tau": float(np.max(chain.tau)),
+        "sampler": sampler,
     }
 
 

@@ -2,10 +2,11 @@
 
 Both are slow science runs (``pytest -m slow``); their numbers go in docs/dynamics.md.
 Environment: ``DYN_WORKERS`` (processes, default 2), ``DYN_SBC_N`` (fits, default 100),
-``DYN_VALIDATION_SEEDS`` (seeds per case, default 10), ``DYN_OUT`` (JSON-lines file
+``DYN_SBC_SAMPLER`` ("emcee" or "nested"), ``DYN_VALIDATION_SEEDS`` (seeds per case, default 10), ``DYN_OUT`` (JSON-lines file
 receiving one row per finished fit).
 """
 
+import functools
 import json
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -48,7 +49,10 @@ def test_sbc_rank_histogram_of_bh_mass_is_uniform():
     """>= 100 fits of independent Plummer + IMBH mocks drawn from the prior: the rank
     histogram of the true M_bh is uniform (chi^2 p > 0.01); 68/95% coverage reported."""
     n = int(os.environ.get("DYN_SBC_N", "100"))
-    rows = _run(sbc_trial, [(s,) for s in range(1000, 1000 + n)])
+    sampler = os.environ.get("DYN_SBC_SAMPLER", "emcee")  # or "nested"
+    rows = _run(
+        functools.partial(sbc_trial, sampler=sampler), [(s,) for s in range(1000, 1000 + n)]
+    )
     ranks = [r["rank"] for r in rows]
     p = rank_uniformity_p(ranks, rows[0]["n_ranks"])
     cov68 = np.mean([r["q16"] <= r["bh_true"] <= r["q84"] for r in rows])
