@@ -166,6 +166,28 @@ class ModelFit:
         return MODELS[self.name]["bh"]
 
 
+def backend_key(stars, settings, distance, model, seed) -> str:
+    """Hash of everything an emcee chain depends on: the stars, the settings, distance, seed.
+
+    Stored with the chain in its backend so that a chain is resumed only for the
+    same data and settings, never continued for other data.
+    """
+    from dataclasses import asdict
+
+    from mavispm.core.array_cache import content_key
+
+    knobs = {k: v for k, v in asdict(settings).items() if k != "progress"}
+    arrays = [np.asarray(getattr(stars, c), dtype=float) for c in ("R", "v_r", "v_t", "e_r", "e_t")]
+    return content_key(
+        *arrays,
+        float(stars.field_radius),
+        knobs,
+        None if distance is None else float(distance),
+        str(model),
+        int(seed),
+    )
+
+
 def fit_model(stars, settings, distance, model, seed, backend_path=None) -> ModelFit:
     """Sample one model with emcee (and its evidences with dynesty if enabled)."""
     name = _model_name(model)
@@ -186,6 +208,7 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
             backend_path=backend_path,
             backend_name=name,
             progress=settings.progress,
+            backend_key=backend_key(stars, settings, distance, name, seed),
         )
         wall["emcee"] = time.perf_counter() - t0
     evid = evid_kin = None

@@ -12,8 +12,9 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import ConfigError
+from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
@@ -67,7 +68,12 @@ def run_stage(
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
     frame = read_frame(frames, require_truth=not cfg.blind)
-    stars, attrs, psf = measure_frame(frame, cfg, seed)
+    try:
+        stars, attrs, psf = measure_frame(frame, cfg, seed)
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), path=frames) from None  # name the frame measured
     copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
     psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
     return write_product(
@@ -93,8 +99,8 @@ def _load_config(path) -> dict:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"cannot read settings ({exc})", source=path) from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read settings ({exc})", key="--config", source=path) from None
     return dict(data.get("stars", data))
 
 
@@ -132,7 +138,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
     p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the position perturbation")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the position perturbation"
+    )
     p.add_argument(
         "--report", default=None, metavar="DIR", help="also write the accuracy report here"
     )
