@@ -20,7 +20,7 @@ from mavispm.core.catalogue import read_catalogue
 from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
-from mavispm.core.products import TableSpec, read_product, write_product
+from mavispm.core.products import TableSpec, read_product, validate_table, write_product
 from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
@@ -39,7 +39,8 @@ PM_SPEC = TableSpec(
         "pm_t_err": "mas/yr",
     },
     optional={"flag": "", "mag": "mag", "pm_x": "mas/yr", "pm_y": "mas/yr"},
-    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err"),
+    # mag is the truth magnitude (scoring only): NaN for a star without a truth match
+    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err", "mag", "pm_x", "pm_y"),
 )
 
 
@@ -60,8 +61,15 @@ def load_stars(path, settings: DynamicsSettings):
     InputError
         Missing columns or distance, negative errors, or no usable stars.
     """
-    prod = read_product(path, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
-    t = prod.tables["stars"]
+    prod = read_product(path, "propermotions", load_arrays=False)
+    t = prod.tables.get("stars")
+    if t is None:
+        raise InputError("table 'stars' missing", path=path)
+    if "flag" in t.colnames and not settings.use_flagged:
+        # flagged rows are not used: drop them before validating (they may carry
+        # NaN in columns the fit needs, e.g. a detection without a truth match)
+        t = t[np.asarray(t["flag"]).astype(np.int64) == 0]
+    t = validate_table(t, PM_SPEC, path=path, table_name="stars")
     distance = settings.distance
     if distance is None:
         if "distance" not in prod.attrs:

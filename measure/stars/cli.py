@@ -19,6 +19,7 @@ from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 from mavispm.measure.stars.settings import MeasureSettings
+from mavispm.measure.stars.start_list import read_earlier
 
 MEASURED_KIND = "measured"
 
@@ -47,7 +48,11 @@ def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
 
 
 def run_stage(
-    frames, settings: Mapping | MeasureSettings | None, output, seed: int | None = None
+    frames,
+    settings: Mapping | MeasureSettings | None,
+    output,
+    seed: int | None = None,
+    earlier: Sequence | None = None,
 ) -> Path:
     """Measure every star of a ``frames`` product and write the ``measured`` product.
 
@@ -61,15 +66,21 @@ def run_stage(
         Output ``measured`` product (written atomically).
     seed : int, optional
         Seed of the forced-position perturbation.
+    earlier : sequence of path, optional
+        ``measured`` products of earlier epochs. With ``later_epochs =
+        "measured"`` (the default, observer mode) the frame starts from their
+        measured positions instead of the truth (docs/measure.md).
 
     Returns
     -------
     pathlib.Path
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
-    frame = read_frame(frames, require_truth=not cfg.blind)
+    previous = [read_earlier(p) for p in (earlier or ())]
+    carried = bool(previous) and cfg.later_epochs == "measured"
+    frame = read_frame(frames, require_truth=not (cfg.blind or carried))
     try:
-        stars, attrs, psf = measure_frame(frame, cfg, seed)
+        stars, attrs, psf = measure_frame(frame, cfg, seed, earlier=previous)
     except InputError as exc:
         if exc.path is not None:
             raise
@@ -115,7 +126,7 @@ def _handler(args: argparse.Namespace) -> int:
     if args.progress:
         settings["progress"] = True
     cfg = validate_settings(settings, source=args.config)
-    out = run_stage(args.frames, cfg, args.output, args.seed)
+    out = run_stage(args.frames, cfg, args.output, args.seed, earlier=args.earlier)
     print(f"wrote {out}")
     if args.report is not None:
         for path in write_report([out], args.report):
@@ -137,6 +148,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         "--psf", choices=("constant", "grid", "polynomial"), default=None, help="ePSF variation"
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
+    p.add_argument(
+        "--earlier",
+        nargs="+",
+        default=None,
+        metavar="MEASURED",
+        help="measured products of earlier epochs: start from their positions (observer mode)",
+    )
     p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
     p.add_argument(
         "--seed", type=non_negative_int, default=0, help="seed of the position perturbation"

@@ -70,7 +70,18 @@ class MeasureSettings:
         Gaussian perturbation (sigma per axis) of the forced starting positions.
     forced_positions : {"rendered", "catalogue"}
         Start from the truth's rendered ``x_pix, y_pix`` or from its catalogue
-        ``x_cat, y_cat`` (before distortion).
+        ``x_cat, y_cat`` (before distortion). Used by a first epoch, and by every
+        epoch when ``later_epochs = "truth"``.
+    later_epochs : {"measured", "truth"}
+        How an epoch after the first starts when the stage is given the earlier
+        epochs' measured products. "measured" (default, observer mode): from the
+        earlier epochs' measured positions moved into this frame by a transform
+        fitted on bright stars (:mod:`mavispm.measure.stars.start_list`); no truth
+        enters. "truth": from the true positions at this epoch (the paper's
+        truth-forced mode; the proper motion is already in the starting point).
+    refine_start : bool
+        Observer mode: refine the carried start list by one quick measurement
+        before the ePSF is built (:func:`mavispm.measure.stars.measure_frame.refined_start`).
     match_radius : float [pix]
         Truth cross-match distance cut.
     crowding_radius : float [pix]
@@ -91,6 +102,16 @@ class MeasureSettings:
         Detection threshold [background sigma] in blind mode.
     detection_fwhm : float [pix]
         Finder FWHM (blind mode); 0 uses 2.5 pixels.
+    detection_method : {"psf", "daofind"}
+        Blind mode: "psf" (default) finds, fits and subtracts stars and detects
+        again on the residuals, rejecting PSF structure around bright stars
+        (:mod:`mavispm.measure.stars.psf_detection`); "daofind": one
+        ``DAOStarFinder`` pass (many false detections in PSF wings).
+    detection_passes : int
+        Fit-subtract-detect passes of the "psf" detector.
+    detection_model_error : float
+        Fractional ePSF model error of the "psf" detector: a candidate must be
+        significant against this fraction of its neighbours' model light too.
     progress : bool
         Show progress bars.
     """
@@ -116,6 +137,8 @@ class MeasureSettings:
     max_shift: float = unit_field(2.0, "pix")
     perturbation: float = unit_field(0.0, "pix")
     forced_positions: Literal["rendered", "catalogue"] = "rendered"
+    later_epochs: Literal["measured", "truth"] = "measured"
+    refine_start: bool = True
     match_radius: float = unit_field(2.0, "pix")
     crowding_radius: float = unit_field(10.0, "pix")
     crowding_ratio: float = 0.1
@@ -126,6 +149,9 @@ class MeasureSettings:
     blind: bool = False
     detection_threshold: float = 5.0
     detection_fwhm: float = unit_field(0.0, "pix")
+    detection_method: Literal["psf", "daofind"] = "psf"
+    detection_passes: int = 3
+    detection_model_error: float = 0.03
     progress: bool = field(default=False)
 
     def __post_init__(self):
@@ -137,6 +163,7 @@ class MeasureSettings:
             "stamp_radius": self.stamp_radius,
             "iterations": self.iterations,
             "chunk": self.chunk,
+            "detection_passes": self.detection_passes,
         }
         for key, value in positive_ints.items():
             if value < 1:
@@ -168,6 +195,7 @@ class MeasureSettings:
             "crowding_ratio",
             "min_snr",
             "psf_star_max_gradient",
+            "detection_model_error",
         ):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=key)
