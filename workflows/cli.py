@@ -44,6 +44,7 @@ COMMANDS: dict[tuple[str | None, str], str] = {
     ("measure", "stars"): "mavispm.measure.stars.cli",
     ("measure", "propermotions"): "mavispm.measure.propermotions.cli",
     (None, "dynamics"): "mavispm.dynamics.cli",
+    (None, "fast-stars"): "mavispm.dynamics.fast_stars_cli",
     (None, "run"): "mavispm.workflows.runner_cli",
     (None, "report"): "mavispm.workflows.runner_cli",
     (None, "cache"): "mavispm.workflows.cache_cli",
