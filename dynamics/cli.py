@@ -107,6 +107,14 @@ def load_stars(path, settings: DynamicsSettings):
         x=cols["x"][ok],
         y=cols["y"][ok],
     )
+    for name, err in (("pm_r_err", stars.e_r), ("pm_t_err", stars.e_t)):
+        if np.any(err == 0):
+            raise InputError(
+                f"{int(np.count_nonzero(err == 0))} stars with zero error; expected measured "
+                "uncertainties > 0 (or set dynamics.pm_error_floor)",
+                path=path,
+                column=name,
+            )
     return stars, float(distance)
 
 
@@ -171,14 +179,6 @@ def load_catalogue_stars(path, settings: DynamicsSettings, epoch=None, pm_error:
         x=x[sel],
         y=y[sel],
     )
-    for name, err in (("pm_r_err", stars.e_r), ("pm_t_err", stars.e_t)):
-        if np.any(err == 0):
-            raise InputError(
-                f"{int(np.count_nonzero(err == 0))} stars with zero error; expected measured "
-                "uncertainties > 0 (or set dynamics.pm_error_floor)",
-                path=path,
-                column=name,
-            )
     return stars, float(distance)
 
 
@@ -294,7 +294,7 @@ def run_stage(
         raise InputError(
             f"only {stars.R.size} usable stars (finite, unflagged proper motions in the field); "
             f"a dynamical fit needs at least {MIN_FIT_STARS}",
-            path=from_catalogue if from_catalogue is not None else propermotions,
+            path=propermotions if from_catalogue is None else from_catalogue,
         )
     pm = u.mas / u.yr
     profile = dispersion_profile(
@@ -366,6 +366,15 @@ def run_stage(
         tables["bh_mass_marginal"] = QTable({"bh_mass": bh * u.Msun})
     for key, tab in truths.items():
         tables[f"profile_truth_{key}"] = tab
+    fast = None
+    if settings.fast_stars is not None:
+        from mavispm.dynamics.fast_stars import run_on_fits
+
+        fast = run_on_fits(
+            propermotions, settings, fits, distance, stars.field_radius, seed, stars=stars
+        )
+        tables["fast_stars"] = fast.table
+        attrs.update(fast.attrs)
     path = write_product(
         output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(settings), seed=seed
     )
@@ -376,6 +385,10 @@ def run_stage(
         profile_plot(profile, fits, truths, plots_dir / "dispersion_profile.png")
         for fit in fits:
             corner_plot(fit, plots_dir / f"corner_{fit.name}.png")
+        if fast is not None and fast.possible:
+            from mavispm.dynamics.plots import fast_star_plot
+
+            fast_star_plot(fast, plots_dir / "fast_stars.png")
     return path
 
 
@@ -398,6 +411,10 @@ def _handler(args) -> int:
         settings = settings.fast()
     if args.no_evidence:
         settings = dataclasses.replace(settings, evidence=False)
+    if args.fast_stars and settings.fast_stars is None:
+        from mavispm.dynamics.fast_stars import FastStarSettings
+
+        settings = dataclasses.replace(settings, fast_stars=FastStarSettings())
     if (args.propermotions is None) == (args.from_catalogue is None):
         raise InputError("give either a propermotions product or --from-catalogue CATALOGUE")
     if args.from_catalogue is None and (args.epoch is not None or args.pm_error is not None):
@@ -462,5 +479,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
+    p.add_argument(
+        "--fast-stars",
+        action="store_true",
+        help="also run the fast-star test (stars above the no-IMBH escape velocity)",
+    )
     p.set_defaults(func=_handler)
     return p

@@ -10,6 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from mavispm.core.config import unit_field
+from mavispm.dynamics.fast_stars import FastStarSettings
 from mavispm.dynamics.tracers import TRACERS
 
 #: Mass models of the comparison: which dark central components each one has.
@@ -47,6 +48,8 @@ class DynamicsSettings:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
     "nested": the posterior from the nested-sampling run, no emcee). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``.
+    Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
+    :class:`~mavispm.dynamics.fast_stars.FastStarSettings`; None = no test).
     """
 
     tracer: str = "plummer"
@@ -98,6 +101,7 @@ class DynamicsSettings:
     nlive: int = 250
     dlogz: float = 0.1
     progress: bool = True
+    fast_stars: FastStarSettings | None = None
 
     def __post_init__(self):
         if self.tracer == "king":
