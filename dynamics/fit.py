@@ -177,7 +177,8 @@ def backend_key(stars, settings, distance, model, seed) -> str:
     from mavispm.core.array_cache import content_key
 
     knobs = {k: v for k, v in asdict(settings).items() if k != "progress"}
-    arrays = [np.asarray(getattr(stars, c), dtype=float) for c in ("R", "v_r", "v_t", "e_r", "e_t")]
+    cols = ("R", "v_r", "v_t", "e_r", "e_t") + (("x", "y") if stars.x is not None else ())
+    arrays = [np.asarray(getattr(stars, c), dtype=float) for c in cols]
     return content_key(
         *arrays,
         float(stars.field_radius),
