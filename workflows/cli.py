@@ -28,6 +28,7 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
     ("measure", "mavispm.measure.stars.cli"),
     ("measure", "mavispm.measure.propermotions.cli"),
     (None, "mavispm.dynamics.cli"),
+    (None, "mavispm.dynamics.fast_stars_cli"),
     (None, "mavispm.workflows.runner_cli"),
     (None, "mavispm.workflows.cache_cli"),
 ]
@@ -43,6 +44,7 @@ COMMANDS: dict[tuple[str | None, str], str] = {
     ("measure", "stars"): "mavispm.measure.stars.cli",
     ("measure", "propermotions"): "mavispm.measure.propermotions.cli",
     (None, "dynamics"): "mavispm.dynamics.cli",
+    (None, "fast-stars"): "mavispm.dynamics.fast_stars_cli",
     (None, "run"): "mavispm.workflows.runner_cli",
     (None, "report"): "mavispm.workflows.runner_cli",
     (None, "cache"): "mavispm.workflows.cache_cli",
