@@ -109,6 +109,10 @@ class FitResult:
     model_image : ndarray or None
         Sum of the fitted star models (no sky) [electron], frame shaped (None
         when not asked for).
+    sky_slope : ndarray, shape (N, 2)
+        Fitted sky slopes d sky / d column, d sky / d row [electron / pixel] about
+        the stamp centre (the nearest pixel to the start position); zeros
+        without ``sky_gradient``.
     """
 
     x: np.ndarray
@@ -123,6 +127,7 @@ class FitResult:
     flag: np.ndarray
     iterations: int
     model_image: np.ndarray | None
+    sky_slope: np.ndarray | None = None
 
 
 def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
@@ -517,6 +522,7 @@ def fit_stars(
         flag=flag,
         iterations=done,
         model_image=_frame_image(model, pixels, (ny, nx)) if return_model else None,
+        sky_slope=np.where(usable[:, None], slope, 0.0),
     )
 
 

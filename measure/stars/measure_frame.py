@@ -356,6 +356,7 @@ def epsf_options(settings: MeasureSettings) -> EPSFOptions:
         isolation=settings.psf_star_isolation,
         min_snr=settings.psf_star_min_snr,
         fit_radius=settings.stamp_radius,
+        fit_sky_gradient=settings.sky_gradient,
         max_gradient=settings.psf_star_max_gradient,
     )
 
