@@ -37,7 +37,7 @@ def test_isolated_star_flux_and_truth(optics):
     assert frame.truth["flux"].to_value(u.electron)[0] == pytest.approx(flux)
     assert _stars_only(frame, scene).sum() == pytest.approx(flux, rel=1e-4)
     assert frame.truth["x_pix"][0] == pytest.approx(0.0123 / 0.0075 + 31.5)
-    assert frame.image.dtype == np.float32
+    assert frame.adu.dtype == np.float32
 
 
 def test_halo_conserves_flux_when_inside_the_frame():
@@ -113,8 +113,8 @@ def test_extreme_fluxes_coincident_stars_and_empty(optics):
     )
     frame = render_frame(epoch_table([0.0], [0.0], [mag_1e10]), 0 * u.yr, scene, optics, rng())
     assert frame.saturated[31:33, 31:33].all()
-    assert np.isfinite(frame.image).all()
-    assert frame.image.max() == pytest.approx(2 * 65535.0)
+    assert np.isfinite(frame.adu).all()
+    assert frame.adu.max() == pytest.approx(2 * 65535.0)
     # a star too faint to matter and an empty catalogue give sky-only frames
     for t in (epoch_table([0.0], [0.0], [60.0]), epoch_table([], [], [])):
         f = render_frame(t, 0 * u.yr, scene, optics, rng())
@@ -267,7 +267,7 @@ def test_sky_only_frame_variance_is_mean_plus_read_noise(optics):
             {"nexp": nexp, "detector": {"nx": 300, "ny": 300, "gain": gain, "read_noise": 3.0}}
         )
         frame = render_frame(epoch_table([], [], []), 0 * u.yr, scene, optics, rng())
-        e = frame.image.astype(float) * gain
+        e = frame.adu.astype(float) * gain
         sky = frame.attrs["sky"].to_value(u.electron)
         var = sky + nexp * 9.0
         assert e.mean() == pytest.approx(sky, abs=5 * np.sqrt(var / e.size))

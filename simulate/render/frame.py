@@ -7,13 +7,12 @@ contract in ``docs/render.md``) and returns the stacked image with its truth.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.errors import InputError
+from mavispm.core.frame import Frame
 from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
 from mavispm.simulate.render.scene import SceneSettings
@@ -22,31 +21,6 @@ from mavispm.simulate.render.zero_point import sky_electrons_per_pixel, star_ele
 
 #: Automatic halo down-sampling aims at coarse pixels of about this size (mas).
 HALO_COARSE_PIXEL_MAS = 60.0
-
-
-@dataclass
-class Frame:
-    """A rendered frame.
-
-    Attributes
-    ----------
-    image : ndarray (ny, nx) float32
-        Stacked frame, adu.
-    saturated : ndarray (ny, nx) bool
-        Pixels saturated in at least one sub-exposure.
-    noiseless : ndarray (ny, nx) float64
-        Expected stack in electrons (stars + halo + sky), before noise and saturation.
-    truth : QTable
-        Rendered stars: id, x_pix, y_pix, x, y, x_cat, y_cat, flux, mag.
-    attrs : dict
-        Root attributes of the frames product (quantities).
-    """
-
-    image: np.ndarray
-    saturated: np.ndarray
-    noiseless: np.ndarray
-    truth: QTable
-    attrs: dict
 
 
 def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
@@ -102,6 +76,10 @@ def render_frame(
     Returns
     -------
     Frame
+        The stack in electrons (``frame.adu``: in adu, as written), its
+        saturation mask, the noise-free stack (``noiseless``), the truth table of
+        the rendered stars and the ``frames`` root attributes; the frame that
+        :func:`mavispm.measure.stars.measure_frame.measure_frame` measures.
     """
     for col in ("id", "x", "y", "mag"):
         if col not in stars.colnames:
@@ -183,10 +161,4 @@ def render_frame(
         "sky": sky * scene.nexp * u.electron,
         "halo_fraction": (1.0 - core_fraction),
     }
-    return Frame(
-        image=img_adu,
-        saturated=saturated,
-        noiseless=image,
-        truth=truth,
-        attrs=attrs,
-    )
+    return Frame.from_attrs(img_adu, saturated, attrs, truth, noiseless=image)
