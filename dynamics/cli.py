@@ -14,10 +14,10 @@ import astropy.units as u
 import numpy as np
 from astropy.table import QTable
 
-from mavispm.core.catalogue import read_catalogue
+from mavispm.core.catalogue import Catalogue, read_catalogue
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import InputError
-from mavispm.core.products import TableSpec, read_product, write_product
+from mavispm.core.products import TableSpec, read_product, validate_table, write_product
 from mavispm.dynamics.fit import compare, fit_model
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
@@ -48,9 +48,7 @@ def validate_settings(settings=None, source=None) -> DynamicsSettings:
 def load_stars(path, settings: DynamicsSettings):
     """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
 
-    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
-    error are dropped; stars outside the field radius are dropped. Errors become
-    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
+    See :func:`star_sample`, which does the selection.
 
     Raises
     ------
@@ -58,14 +56,46 @@ def load_stars(path, settings: DynamicsSettings):
         Missing columns or distance, negative errors, or no usable stars.
     """
     prod = read_product(path, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
-    t = prod.tables["stars"]
+    return star_sample(prod.tables["stars"], prod.attrs, settings, path=path)
+
+
+def star_sample(table, attrs, settings: DynamicsSettings, path=None):
+    """A propermotions ``stars`` table as a :class:`StarSample` plus its distance [kpc].
+
+    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
+    error are dropped; stars outside the field radius are dropped. Errors become
+    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
+
+    Parameters
+    ----------
+    table : QTable
+        Columns of ``PM_SPEC`` (``x``, ``y``, ``R`` [arcsec], ``pm_r``, ``pm_t`` and
+        their errors [mas/yr], optional ``flag``).
+    attrs : mapping
+        Root attributes; ``distance`` [kpc] unless ``settings.distance`` is set.
+    settings : DynamicsSettings
+    path : path, optional
+        Source file, for messages.
+
+    Returns
+    -------
+    stars : StarSample
+    distance : float
+        [kpc]
+
+    Raises
+    ------
+    InputError
+        Missing columns or distance, negative errors, or no usable stars.
+    """
+    t = validate_table(table, PM_SPEC, path=path, table_name="stars")
     distance = settings.distance
     if distance is None:
-        if "distance" not in prod.attrs:
+        if attrs.get("distance") is None:
             raise InputError(
                 "no 'distance' root attribute; set dynamics.distance in the settings", path=path
             )
-        distance = u.Quantity(prod.attrs["distance"], u.kpc).to_value(u.kpc)
+        distance = u.Quantity(attrs["distance"], u.kpc).to_value(u.kpc)
     if not (np.isfinite(distance) and distance > 0):
         raise InputError(f"distance must be > 0 kpc, got {distance}", path=path)
     cols = {k: np.asarray(t[k].value, dtype=float) for k in PM_SPEC.required if k != "id"}
@@ -98,8 +128,8 @@ def load_stars(path, settings: DynamicsSettings):
 
 
 def truth_profile(path, field_radius: float, settings: DynamicsSettings, seed: int) -> QTable:
-    """Dispersion profile of a truth catalogue (first epoch, luminous stars, no errors)."""
-    cat = read_catalogue(path)
+    """Dispersion profile of a truth catalogue (path or Catalogue; first epoch, luminous stars)."""
+    cat = path if isinstance(path, Catalogue) else read_catalogue(path)
     t = next(iter(cat.epochs.values()))
     keep = np.ones(len(t), bool)
     if "luminous" in t.colnames:
@@ -154,6 +184,152 @@ def _posterior_table(fit) -> QTable:
     return t
 
 
+@dataclasses.dataclass
+class DynamicsResult:
+    """What :func:`fit_dynamics` returns: the ``dynamics`` product in memory.
+
+    Attributes
+    ----------
+    tables : dict of str to QTable
+        ``profile`` (binned dispersion profile), ``posterior_imbh``,
+        ``posterior_no_imbh`` (samples), ``summary`` (per-parameter credible
+        intervals), ``profile_truth_*`` when truth catalogues were given.
+    attrs : dict
+        Root attributes: model comparison (``ln_bayes_factor``, ``delta_aic`` ...),
+        ``bh_mass_median`` ... [solMass], ``bh_detected``, convergence, timings.
+    fits : list of ModelFit
+        The IMBH and no-IMBH fits (chains, likelihoods).
+    """
+
+    tables: dict
+    attrs: dict
+    fits: list
+
+    @property
+    def truth_profiles(self) -> dict:
+        """Truth dispersion profiles by model ("imbh", "no_imbh") when truth was given."""
+        prefix = "profile_truth_"
+        return {k.removeprefix(prefix): t for k, t in self.tables.items() if k.startswith(prefix)}
+
+    @property
+    def profile(self) -> QTable:
+        """Binned dispersion profile of the stars (radius [arcsec], dispersions [mas/yr])."""
+        return self.tables["profile"]
+
+    @property
+    def summary(self) -> QTable:
+        """Posterior summary per model and parameter."""
+        return self.tables["summary"]
+
+
+def fit_dynamics(
+    propermotions,
+    settings=None,
+    seed: int = 0,
+    truth=None,
+    truth_no_imbh=None,
+    backend_path=None,
+    source=None,
+) -> DynamicsResult:
+    """Dispersion profile, IMBH and no-IMBH Jeans fits and their comparison, in memory.
+
+    Parameters
+    ----------
+    propermotions : QTable
+        The ``stars`` table of a ``propermotions`` product (``meta["distance"]``
+        [kpc] unless ``settings.distance`` is set), as :func:`mavispm.proper_motions`
+        returns it.
+    settings : mapping or DynamicsSettings, optional
+        See :class:`~mavispm.dynamics.settings.DynamicsSettings`.
+    seed : int
+        Seed of the samplers and the bootstrap.
+    truth, truth_no_imbh : Catalogue or path, optional
+        Truth catalogues whose profiles are added for comparison.
+    backend_path : path, optional
+        HDF5 file keeping the emcee chains (an interrupted fit resumes).
+    source : path, optional
+        The product the table was read from, named in error messages.
+
+    Returns
+    -------
+    DynamicsResult
+    """
+    if not isinstance(settings, DynamicsSettings):
+        settings = validate_settings(settings)
+    stars, distance = star_sample(propermotions, propermotions.meta, settings, path=source)
+    pm = u.mas / u.yr
+    profile = dispersion_profile(
+        stars.R * u.arcsec,
+        stars.v_r * pm,
+        stars.v_t * pm,
+        stars.e_r * pm,
+        stars.e_t * pm,
+        bin_size=settings.bin_size,
+        n_bootstrap=settings.n_bootstrap,
+        distance=distance * u.kpc,
+        seed=seed,
+    )
+    truths = {}
+    for key, path in (("imbh", truth), ("no_imbh", truth_no_imbh)):
+        if path is not None:
+            truths[key] = truth_profile(path, stars.field_radius, settings, seed)
+    fits = [
+        fit_model(stars, settings, distance, with_bh, seed, backend_path=backend_path)
+        for with_bh in (True, False)
+    ]
+    comp = compare(fits[0], fits[1], settings.bh_mass_max)
+    bh = fits[0].summary["bh_mass"]
+    attrs = {
+        **comp.as_attrs(),
+        "distance": distance * u.kpc,
+        "field_radius": stars.field_radius * u.arcsec,
+        "n_stars": int(stars.R.size),
+        "tracer": settings.tracer,
+        "bh_mass_median": bh["median"] * u.Msun,
+        "bh_mass_lo68": bh["lo68"] * u.Msun,
+        "bh_mass_hi68": bh["hi68"] * u.Msun,
+        "bh_mass_lo95": bh["lo95"] * u.Msun,
+        "bh_mass_hi95": bh["hi95"] * u.Msun,
+        "bh_mass_upper95": bh["upper95"] * u.Msun,
+        # with evidence: detected when ln B > 1 (positive evidence); else the posterior test
+        "bh_detected": bool(
+            comp.ln_bayes_factor > 1.0 if np.isfinite(comp.ln_bayes_factor) else bh["detected"]
+        ),
+        "bh_detected_posterior": bool(bh["detected"]),
+        "evidence_computed": bool(settings.evidence),
+    }
+    for fit in fits:
+        attrs[f"converged_{fit.name}"] = bool(fit.chain.converged)
+        attrs[f"steps_{fit.name}"] = int(fit.chain.steps)
+        attrs[f"tau_max_{fit.name}"] = float(np.max(fit.chain.tau))
+        attrs[f"acceptance_{fit.name}"] = float(fit.chain.acceptance)
+        attrs[f"aic_{fit.name}"] = float(fit.criteria["aic"])
+        attrs[f"bic_{fit.name}"] = float(fit.criteria["bic"])
+        attrs[f"max_log_like_{fit.name}"] = float(fit.criteria["max_log_like"])
+        for part, seconds in fit.wall_s.items():
+            attrs[f"time_{part}_{fit.name}"] = float(seconds) * u.s
+        if fit.evidence is not None:
+            attrs[f"log_z_{fit.name}"] = fit.evidence.log_z
+            attrs[f"log_z_err_{fit.name}"] = fit.evidence.log_z_err
+    tables = {
+        "profile": profile,
+        "posterior_imbh": _posterior_table(fits[0]),
+        "posterior_no_imbh": _posterior_table(fits[1]),
+        "summary": _summary_table(fits),
+    }
+    for key, tab in truths.items():
+        tables[f"profile_truth_{key}"] = tab
+    tables = {
+        "profile": profile,
+        "posterior_imbh": _posterior_table(fits[0]),
+        "posterior_no_imbh": _posterior_table(fits[1]),
+        "summary": _summary_table(fits),
+    }
+    for key, tab in truths.items():
+        tables[f"profile_truth_{key}"] = tab
+    return DynamicsResult(tables=tables, attrs=attrs, fits=fits)
+
+
 def run_stage(
     propermotions, settings, output, seed, plots_dir=None, truth=None, truth_no_imbh=None
 ):
@@ -180,71 +356,21 @@ def run_stage(
     if not isinstance(settings, DynamicsSettings):
         settings = validate_settings(settings)
     output = Path(output)
-    stars, distance = load_stars(propermotions, settings)
-    pm = u.mas / u.yr
-    profile = dispersion_profile(
-        stars.R * u.arcsec,
-        stars.v_r * pm,
-        stars.v_t * pm,
-        stars.e_r * pm,
-        stars.e_t * pm,
-        bin_size=settings.bin_size,
-        n_bootstrap=settings.n_bootstrap,
-        distance=distance * u.kpc,
-        seed=seed,
+    prod = read_product(propermotions, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
+    table = prod.tables["stars"]
+    table.meta = dict(prod.attrs)
+    result = fit_dynamics(
+        table,
+        settings,
+        seed,
+        truth=truth,
+        truth_no_imbh=truth_no_imbh,
+        backend_path=output.with_name(output.name + ".emcee.h5"),
+        source=propermotions,
     )
-    truths = {}
-    for key, path in (("imbh", truth), ("no_imbh", truth_no_imbh)):
-        if path is not None:
-            truths[key] = truth_profile(path, stars.field_radius, settings, seed)
-    backend = output.with_name(output.name + ".emcee.h5")
-    fits = [
-        fit_model(stars, settings, distance, with_bh, seed, backend_path=backend)
-        for with_bh in (True, False)
-    ]
-    comp = compare(fits[0], fits[1], settings.bh_mass_max)
-    bh = fits[0].summary["bh_mass"]
-    attrs = {
-        **comp.as_attrs(),
-        "distance": distance * u.kpc,
-        "field_radius": stars.field_radius * u.arcsec,
-        "n_stars": int(stars.R.size),
-        "tracer": settings.tracer,
-        "bh_mass_median": bh["median"] * u.Msun,
-        "bh_mass_lo68": bh["lo68"] * u.Msun,
-        "bh_mass_hi68": bh["hi68"] * u.Msun,
-        "bh_mass_lo95": bh["lo95"] * u.Msun,
-        "bh_mass_hi95": bh["hi95"] * u.Msun,
-        "bh_mass_upper95": bh["upper95"] * u.Msun,
-        # with evidence: detected when ln B > 1 (positive evidence); else the posterior test
-        "bh_detected": bool(
-            comp.ln_bayes_factor > 1.0 if np.isfinite(comp.ln_bayes_factor) else bh["detected"]
-        ),
-        "bh_detected_posterior": bool(bh["detected"]),
-        "evidence_computed": bool(settings.evidence),
-        "propermotions": str(propermotions),
-    }
-    for fit in fits:
-        attrs[f"converged_{fit.name}"] = bool(fit.chain.converged)
-        attrs[f"steps_{fit.name}"] = int(fit.chain.steps)
-        attrs[f"tau_max_{fit.name}"] = float(np.max(fit.chain.tau))
-        attrs[f"acceptance_{fit.name}"] = float(fit.chain.acceptance)
-        attrs[f"aic_{fit.name}"] = float(fit.criteria["aic"])
-        attrs[f"bic_{fit.name}"] = float(fit.criteria["bic"])
-        attrs[f"max_log_like_{fit.name}"] = float(fit.criteria["max_log_like"])
-        for part, seconds in fit.wall_s.items():
-            attrs[f"time_{part}_{fit.name}"] = float(seconds) * u.s
-        if fit.evidence is not None:
-            attrs[f"log_z_{fit.name}"] = fit.evidence.log_z
-            attrs[f"log_z_err_{fit.name}"] = fit.evidence.log_z_err
-    tables = {
-        "profile": profile,
-        "posterior_imbh": _posterior_table(fits[0]),
-        "posterior_no_imbh": _posterior_table(fits[1]),
-        "summary": _summary_table(fits),
-    }
-    for key, tab in truths.items():
-        tables[f"profile_truth_{key}"] = tab
+    tables, attrs, fits = result.tables, result.attrs, result.fits
+    profile, truths = tables["profile"], result.truth_profiles
+    attrs["propermotions"] = str(propermotions)
     path = write_product(
         output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(settings), seed=seed
     )

@@ -14,32 +14,99 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
 import astropy.units as u
 import numpy as np
 
-from mavispm.core.catalogue import read_catalogue
+from mavispm.core.catalogue import Catalogue, read_catalogue
 from mavispm.core.config import to_mapping
 from mavispm.core.products import read_product, write_product
-from mavispm.measure.propermotions.inputs import read_measured
+from mavispm.measure.propermotions.inputs import EpochCatalogue, epoch_catalogue, read_measured
 from mavispm.measure.propermotions.pipeline import derive_proper_motions
 from mavispm.measure.propermotions.report import write_report
 from mavispm.measure.propermotions.settings import ProperMotionSettings, validate_settings
 
-__all__ = ["register", "run_stage", "validate_settings", "write_report", "ProperMotionSettings"]
+__all__ = [
+    "ProperMotionSettings",
+    "proper_motions",
+    "register",
+    "run_stage",
+    "truth_from_catalogue",
+    "validate_settings",
+    "write_report",
+]
 
 
-def truth_from_catalogue(path: str | os.PathLike) -> dict:
-    """True proper motions ``{"id", "pm_x", "pm_y"}`` [mas/yr] from a catalogue product."""
-    cat = read_catalogue(path)
+def truth_from_catalogue(catalogue) -> dict:
+    """True proper motions ``{"id", "pm_x", "pm_y"}`` [mas/yr] from a catalogue.
+
+    Parameters
+    ----------
+    catalogue : path or Catalogue
+        A ``catalogue`` product or one in memory (:func:`mavispm.simulate_cluster`).
+
+    Returns
+    -------
+    dict
+        ``id`` (int64), ``pm_x``, ``pm_y`` [mas/yr] of the first epoch's stars.
+    """
+    cat = catalogue if isinstance(catalogue, Catalogue) else read_catalogue(catalogue)
     first = next(iter(cat.epochs.values()))
     return {
         "id": np.asarray(first["id"], np.int64),
         "pm_x": first["pm_x"].to_value(u.mas / u.yr),
         "pm_y": first["pm_y"].to_value(u.mas / u.yr),
     }
+
+
+def proper_motions(measured, settings=None, truth=None):
+    """Match, align and fit proper motions of measured epochs in memory.
+
+    Parameters
+    ----------
+    measured : sequence of QTable or EpochCatalogue
+        Two or more epochs' measured ``stars`` tables (any order), each with
+        ``meta["epoch"]`` [yr] (what :func:`mavispm.measure_stars` returns).
+    settings : mapping or ProperMotionSettings, optional
+        See :class:`~mavispm.measure.propermotions.settings.ProperMotionSettings`.
+    truth : Catalogue, path or dict, optional
+        True motions for scoring: a catalogue (in memory or a product) or
+        ``{"id", "pm_x", "pm_y"}`` [mas/yr].
+
+    Returns
+    -------
+    QTable
+        The ``stars`` table of the ``propermotions`` product (docs/formats.md),
+        ``pm_x``, ``pm_y`` ... [mas/yr]; ``meta`` holds the product's root
+        attributes (epochs [yr], reference epoch, distance [kpc], transformation
+        summary, matching counts, accuracy summaries).
+    """
+    cfg = validate_settings(settings)
+    epochs = [m if isinstance(m, EpochCatalogue) else epoch_catalogue(m) for m in measured]
+    truth_pm = truth if truth is None or isinstance(truth, dict) else truth_from_catalogue(truth)
+    result = derive_proper_motions(epochs, cfg, truth_pm=truth_pm)
+    frame_err = {
+        f"{t:g}": fit.frame_error() * 1e3 for t, fit in zip(result.epochs, result.fits) if fit
+    }
+    stars = result.stars
+    stars.meta.update(
+        {
+            "epochs": result.epochs * u.yr,
+            "reference_epoch": result.reference_epoch * u.yr,
+            "distance": None if result.distance is None else result.distance * u.kpc,
+            "transform": result.transform_summary(),
+            "match_method": result.match.method,
+            "n_stars": len(result.stars),
+            "n_unmatched": list(result.match.n_unmatched),
+            "n_ambiguous": int(np.count_nonzero(result.match.ambiguous)),
+            "n_dropped": result.n_dropped,
+            "frame_error_mas": frame_err,
+            "notes": "; ".join(result.notes),
+            **accuracy_attrs(result.stars),
+        }
+    )
+    return stars
 
 
 def run_stage(measured, settings, output, truth=None) -> Path:
@@ -62,30 +129,13 @@ def run_stage(measured, settings, output, truth=None) -> Path:
     """
     cfg = validate_settings(settings)
     epochs = [read_measured(p) for p in measured]
-    truth_pm = truth_from_catalogue(truth) if truth is not None else None
-    result = derive_proper_motions(epochs, cfg, truth_pm=truth_pm)
-    frame_err = {
-        f"{t:g}": fit.frame_error() * 1e3 for t, fit in zip(result.epochs, result.fits) if fit
-    }
-    attrs = {
-        "epochs": result.epochs * u.yr,
-        "reference_epoch": result.reference_epoch * u.yr,
-        "distance": None if result.distance is None else result.distance * u.kpc,
-        "transform": result.transform_summary(),
-        "match_method": result.match.method,
-        "n_stars": len(result.stars),
-        "n_unmatched": list(result.match.n_unmatched),
-        "n_ambiguous": int(np.count_nonzero(result.match.ambiguous)),
-        "n_dropped": result.n_dropped,
-        "frame_error_mas": frame_err,
-        "inputs": [str(p) for p in measured],
-        "notes": "; ".join(result.notes),
-        **accuracy_attrs(result.stars),
-    }
+    stars = proper_motions(epochs, cfg, truth=truth)
+    attrs = {**stars.meta, "inputs": [str(p) for p in measured]}
+    stars.meta.clear()
     return write_product(
         output,
         "propermotions",
-        tables={"stars": result.stars},
+        tables={"stars": stars},
         attrs=attrs,
         config={"propermotions": to_mapping(cfg)},
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import astropy.units as u
 import numpy as np
 
 from mavispm.core.errors import InputError
-from mavispm.core.products import TableSpec, read_product
+from mavispm.core.products import TableSpec, read_product, validate_table
 
 #: Columns the proper-motion stage reads from a measured product's ``stars`` table.
 MEASURED_PM_SPEC = TableSpec(
@@ -87,6 +88,15 @@ def _attr_quantity(attrs, key, unit, path, required):
 def read_measured(path: str | os.PathLike) -> EpochCatalogue:
     """Read one ``measured`` product into an :class:`EpochCatalogue`.
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``measured`` product.
+
+    Returns
+    -------
+    EpochCatalogue
+
     Raises
     ------
     InputError
@@ -95,9 +105,36 @@ def read_measured(path: str | os.PathLike) -> EpochCatalogue:
     """
     path = Path(path)
     prod = read_product(path, "measured", specs={"stars": MEASURED_PM_SPEC}, load_arrays=False)
-    stars = prod.tables["stars"]
-    epoch = _attr_quantity(prod.attrs, "epoch", "yr", path, required=True)
-    distance = _attr_quantity(prod.attrs, "distance", "kpc", path, required=False)
+    return epoch_catalogue(prod.tables["stars"], prod.attrs, path=path)
+
+
+def epoch_catalogue(stars, attrs: Mapping | None = None, path=None) -> EpochCatalogue:
+    """One epoch's measured stars (a ``measured`` ``stars`` table) as an :class:`EpochCatalogue`.
+
+    Parameters
+    ----------
+    stars : Table or QTable
+        Columns of :data:`MEASURED_PM_SPEC` (``id``, ``x``, ``y``, ``x_err``,
+        ``y_err`` [arcsec], optional ``flag``, ``mag``, ``x_true``, ``y_true``).
+    attrs : mapping, optional
+        ``epoch`` [yr] (required) and optional ``distance`` [kpc]; default
+        ``stars.meta`` (what :func:`mavispm.measure_stars` returns).
+    path : path, optional
+        Source file, for messages.
+
+    Returns
+    -------
+    EpochCatalogue
+
+    Raises
+    ------
+    InputError
+        Missing or misspelled columns, units that do not convert, no ``epoch``.
+    """
+    attrs = stars.meta if attrs is None else attrs
+    stars = validate_table(stars, MEASURED_PM_SPEC, path=path, table_name="stars")
+    epoch = _attr_quantity(attrs, "epoch", "yr", path, required=True)
+    distance = _attr_quantity(attrs, "distance", "kpc", path, required=False)
 
     def col(name):
         if name not in stars.colnames:
@@ -122,7 +159,7 @@ def read_measured(path: str | os.PathLike) -> EpochCatalogue:
         x_true=col("x_true"),
         y_true=col("y_true"),
         distance=distance,
-        path=path,
+        path=None if path is None else Path(path),
     )
 
 

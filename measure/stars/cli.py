@@ -13,7 +13,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import ConfigError
+from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.frame import Frame
 from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
@@ -45,6 +46,44 @@ def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
     return from_mapping(MeasureSettings, settings, source=source)
 
 
+def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = None, seed=None):
+    """Measure every star of a frame in memory.
+
+    Parameters
+    ----------
+    frame : Frame
+        A rendered frame (:func:`mavispm.render_frame`) or one read from a
+        ``frames`` product (:func:`~mavispm.measure.stars.measure_frame.read_frame`).
+    settings : mapping or MeasureSettings, optional
+        Stage settings (see :class:`MeasureSettings`); default: all defaults.
+    seed : int, optional
+        Seed of the forced-position perturbation.
+
+    Returns
+    -------
+    stars : QTable
+        The ``stars`` table of the ``measured`` product (docs/formats.md), with
+        units; ``stars.meta`` holds the product's root attributes (the frame's
+        ``epoch`` [yr], detector attributes, engine, timings, ePSF description).
+    psf : VariableEPSF
+        The frame's ePSF.
+    """
+    cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
+    if frame.truth is None and not cfg.blind:
+        raise InputError(
+            "the frame has no truth table: forced photometry needs the input star list "
+            "(use blind mode to detect stars instead)",
+            path=frame.path,
+        )
+    stars, attrs, psf = measure_frame(frame, cfg, seed)
+    copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
+    psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
+    stars.meta.update({**copied, **attrs, "epsf": psf_meta})
+    if frame.path is not None:
+        stars.meta["frames"] = str(frame.path)
+    return stars, psf
+
+
 def run_stage(
     frames, settings: Mapping | MeasureSettings | None, output, seed: int | None = None
 ) -> Path:
@@ -67,16 +106,41 @@ def run_stage(
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
     frame = read_frame(frames, require_truth=not cfg.blind)
-    stars, attrs, psf = measure_frame(frame, cfg, seed)
-    copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
-    psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
+    stars, psf = measure_stars(frame, cfg, seed)
+    return write_measured(output, stars, psf, cfg, seed)
+
+
+def write_measured(output, stars, psf, settings: MeasureSettings, seed=None) -> Path:
+    """Write a ``measured`` product (atomically) from :func:`measure_stars`' results.
+
+    Parameters
+    ----------
+    output : path
+        The product to write.
+    stars : QTable
+        Measured stars; ``stars.meta`` becomes the root attributes.
+    psf : VariableEPSF
+        The frame's ePSF (its basis is stored as ``epsf_basis``).
+    settings : MeasureSettings
+        Recorded as the product's configuration.
+    seed : int, optional
+        Recorded as the product's seed.
+
+    Returns
+    -------
+    pathlib.Path
+        ``output``.
+    """
+    attrs = dict(stars.meta)
+    table = stars.copy(copy_data=False)
+    table.meta.clear()
     return write_product(
         output,
         MEASURED_KIND,
-        tables={"stars": stars},
+        tables={"stars": table},
         arrays={"epsf_basis": psf.basis},
-        attrs={**copied, **attrs, "frames": str(Path(frames)), "epsf": psf_meta},
-        config=to_mapping(cfg),
+        attrs=attrs,
+        config=to_mapping(settings),
         seed=seed,
     )
 
