@@ -225,7 +225,7 @@ def run_frames(inputs, settings, params, seed, outdir):
 
         with atomic_path(outdir / "frames.fits") as tmp:
             hdr = fits.Header(
-                {"EPOCH": float(attrs["epoch"].value), "PIXSCALE": s.pixel_scale / 1000}
+                {"MVEPOCH": float(attrs["epoch"].value), "PIXSCALE": s.pixel_scale / 1000}
             )
             fits.PrimaryHDU(image, header=hdr).writeto(tmp, output_verify="silentfix")
         products["fits"] = outdir / "frames.fits"

@@ -28,6 +28,7 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
     ("measure", "mavispm.measure.propermotions.cli"),
     (None, "mavispm.dynamics.cli"),
     (None, "mavispm.workflows.runner_cli"),
+    (None, "mavispm.workflows.export_cli"),
 ]
 
 GROUP_HELP = {

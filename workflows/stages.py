@@ -177,7 +177,7 @@ def product_metrics(products: Mapping[str, Path]) -> dict:
                 out[key] = arr.item()
 
         def visit(name, obj):
-            if isinstance(obj, h5py.Group) and obj.attrs.get("mavispm_table", False):
+            if obj.attrs.get("mavispm_table", False):  # a table (dataset, or v1 group)
                 out[f"n_{name.replace('/', '_')}"] = int(obj.attrs.get("nrows", 0))
 
         f.visititems(visit)

@@ -113,7 +113,8 @@ def write_frame(
     scene_map = to_mapping(scene)
     attrs["scene"] = scene_map
     if fits_path is not None:
-        write_frame_fits(fits_path, frame.adu, attrs, scene_map, frame.saturated)
+        fits_attrs = {**attrs, "config": cat.attrs.get("config") or {}}  # OBJECT from the preset
+        write_frame_fits(fits_path, frame.adu, fits_attrs, scene_map, frame.saturated)
     arrays = {"image": u.Quantity(frame.adu, u.adu, copy=False), "saturated": frame.saturated}
     if scene.save_noiseless:
         arrays["noiseless"] = u.Quantity(frame.noiseless.astype(np.float32), u.electron)
