@@ -83,6 +83,12 @@ def test_render_and_measure_in_memory_equal_the_products(scene_and_catalogue):
 
     good = np.asarray(stars["flag"]) == 0
     assert good.sum() >= 30
+    # measured magnitudes follow the input ones, fainter by the light outside the ePSF
+    # footprint (the seeing halo): -2.5 log10 of the fitted / true flux fraction
+    offset = -2.5 * np.log10(stars.meta["epsf_flux_fraction"])
+    bright = good & (stars["mag"] < 19 * u.mag)
+    dmag = (stars["mag_fit"] - stars["mag"]).to_value(u.mag)[bright]
+    assert abs(np.median(dmag) - offset) < 0.02 and np.std(dmag) < 0.05
     dx = ((stars["x"] - stars["x_true"]) / stars["x_err"]).decompose().value[good]
     dy = ((stars["y"] - stars["y_true"]) / stars["y_err"]).decompose().value[good]
     # normalised residuals: unbiased and of about unit width (the errors describe the scatter)

@@ -16,9 +16,15 @@ from mavispm.core.products import TableSpec, read_product, validate_table
 #: Columns the proper-motion stage reads from a measured product's ``stars`` table.
 MEASURED_PM_SPEC = TableSpec(
     required={"id": "", "x": "arcsec", "y": "arcsec", "x_err": "arcsec", "y_err": "arcsec"},
-    optional={"flag": "", "mag": "mag", "x_true": "arcsec", "y_true": "arcsec"},
+    optional={
+        "flag": "",
+        "mag": "mag",
+        "mag_fit": "mag",
+        "x_true": "arcsec",
+        "y_true": "arcsec",
+    },
     id_column="id",
-    allow_nan=("x_err", "y_err", "x_true", "y_true", "mag"),
+    allow_nan=("x_err", "y_err", "x_true", "y_true", "mag", "mag_fit"),
 )
 
 #: Two epochs closer than this [yr] are the same epoch.
@@ -40,6 +46,8 @@ class EpochCatalogue:
         The measure stage's bitmask (0 = good).
     mag : ndarray or None
         Truth magnitude [mag].
+    mag_fit : ndarray or None
+        Measured magnitude [mag] (from the fitted flux).
     x_true, y_true : ndarray or None
         Truth positions [arcsec].
     distance : float or None
@@ -55,6 +63,7 @@ class EpochCatalogue:
     y_err: np.ndarray
     flag: np.ndarray
     mag: np.ndarray | None = None
+    mag_fit: np.ndarray | None = None
     x_true: np.ndarray | None = None
     y_true: np.ndarray | None = None
     distance: float | None = None
@@ -156,6 +165,7 @@ def epoch_catalogue(stars, attrs: Mapping | None = None, path=None) -> EpochCata
         y_err=col("y_err"),
         flag=flag,
         mag=col("mag"),
+        mag_fit=col("mag_fit"),
         x_true=col("x_true"),
         y_true=col("y_true"),
         distance=distance,

@@ -244,6 +244,9 @@ def derive_proper_motions(
             notes.append(f"epochs disagree on the distance {sorted(found)} kpc; using the first")
         distance = next((e.distance for e in epochs if e.distance is not None), None)
     stars = _stars_table(match.ids[keep], motion, mag[keep], flag, settings, distance, notes)
+    mag_fit = _row_median(_gather(epochs, match, "mag_fit"))[keep]
+    if np.any(np.isfinite(mag_fit)):  # measured magnitude: median over the epochs
+        stars.add_column(mag_fit * u.mag, name="mag_fit", index=stars.colnames.index("flag") + 1)
     truth = _truth_motion(
         epochs, match, keep, t, ref, fits, valid, x, y, truth_pm, motion, vx, vy, vxy
     )

@@ -12,6 +12,9 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import astropy.units as u
+import numpy as np
+
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.frame import Frame
@@ -32,6 +35,7 @@ _COPIED_ATTRS = (
     "sky",
     "nexp",
     "exptime",
+    "zero_point",
 )
 
 
@@ -44,6 +48,38 @@ def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
         Unknown keys, wrong types, bad units or impossible values, naming the key.
     """
     return from_mapping(MeasureSettings, settings, source=source)
+
+
+def add_fitted_magnitudes(stars, attrs) -> None:
+    """Add ``mag_fit`` and ``mag_fit_err`` [mag] from the fitted fluxes (in place).
+
+    ``mag_fit = zero_point - 2.5 log10(flux / (exptime nexp))`` with the frame's
+    photometric ``zero_point`` [mag for 1 electron/s]: a PSF magnitude, the light
+    inside the ePSF footprint (no aperture correction, so fainter than the total
+    magnitude by ``-2.5 log10(epsf_flux_fraction)`` when a seeing halo spreads
+    light beyond it). ``mag_fit_err = 2.5 / ln 10 * flux_err / flux``. NaN where
+    the flux is not positive or the frame has no zero point.
+
+    Parameters
+    ----------
+    stars : QTable
+        Measured stars with ``flux``, ``flux_err`` [electron].
+    attrs : mapping
+        Frame attributes: ``zero_point`` [mag], ``exptime`` [s], ``nexp``.
+    """
+    flux = stars["flux"].to_value(u.electron)
+    err = stars["flux_err"].to_value(u.electron)
+    mag = np.full(len(stars), np.nan)
+    mag_err = np.full(len(stars), np.nan)
+    if "zero_point" in attrs and "exptime" in attrs:
+        zp = u.Quantity(attrs["zero_point"], u.mag).value
+        total = u.Quantity(attrs["exptime"], u.s).value * int(attrs.get("nexp", 1))
+        with np.errstate(all="ignore"):
+            ok = np.isfinite(flux) & (flux > 0)
+            mag[ok] = zp - 2.5 * np.log10(flux[ok] / total)
+            mag_err[ok] = 2.5 / np.log(10.0) * err[ok] / flux[ok]
+    stars["mag_fit"] = mag * u.mag
+    stars["mag_fit_err"] = mag_err * u.mag
 
 
 def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = None, seed=None):
@@ -63,7 +99,8 @@ def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = Non
     -------
     stars : QTable
         The ``stars`` table of the ``measured`` product (docs/formats.md), with
-        units; ``stars.meta`` holds the product's root attributes (the frame's
+        units, including the measured magnitude ``mag_fit`` [mag]
+        (:func:`add_fitted_magnitudes`; ``mag`` is the input magnitude); ``stars.meta`` holds the product's root attributes (the frame's
         ``epoch`` [yr], detector attributes, engine, timings, ePSF description).
     psf : VariableEPSF
         The frame's ePSF.
@@ -76,6 +113,7 @@ def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = Non
             path=frame.path,
         )
     stars, attrs, psf = measure_frame(frame, cfg, seed)
+    add_fitted_magnitudes(stars, frame.attrs)
     copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
     psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
     stars.meta.update({**copied, **attrs, "epsf": psf_meta})

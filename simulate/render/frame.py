@@ -17,7 +17,11 @@ from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
-from mavispm.simulate.render.zero_point import sky_electrons_per_pixel, star_electrons
+from mavispm.simulate.render.zero_point import (
+    photometric_zero_point,
+    sky_electrons_per_pixel,
+    star_electrons,
+)
 
 #: Automatic halo down-sampling aims at coarse pixels of about this size (mas).
 HALO_COARSE_PIXEL_MAS = 60.0
@@ -160,5 +164,6 @@ def render_frame(
         "saturation": det.saturation_adu * u.adu,
         "sky": sky * scene.nexp * u.electron,
         "halo_fraction": (1.0 - core_fraction),
+        "zero_point": photometric_zero_point(phot),
     }
     return Frame.from_attrs(img_adu, saturated, attrs, truth, noiseless=image)

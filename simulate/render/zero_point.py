@@ -96,6 +96,23 @@ def electron_rate_zero_mag(settings: PhotometrySettings) -> u.Quantity:
     return rate * u.electron / u.s
 
 
+def photometric_zero_point(settings: PhotometrySettings) -> u.Quantity:
+    """Magnitude of a star that gives 1 detected electron per second (extinction included).
+
+    Parameters
+    ----------
+    settings : PhotometrySettings
+
+    Returns
+    -------
+    Quantity
+        ``ZP`` [mag] such that ``mag = ZP - 2.5 log10(flux / exposure)`` with the
+        flux in electrons and the exposure in seconds.
+    """
+    rate = electron_rate_zero_mag(settings).to_value(u.electron / u.s)
+    return (2.5 * math.log10(rate) - settings.extinction * settings.airmass) * u.mag
+
+
 def star_electrons(mag, settings: PhotometrySettings, exposure: u.Quantity) -> u.Quantity:
     """Electrons detected from stars of apparent V magnitude ``mag`` (above the atmosphere).
 
