@@ -18,6 +18,7 @@ from pathlib import Path
 
 import astropy.units as u
 import numpy as np
+from astropy.stats import mad_std
 
 from mavispm.core.catalogue import Catalogue, read_catalogue
 from mavispm.core.config import to_mapping
@@ -165,8 +166,7 @@ def accuracy_attrs(stars) -> dict:
     if d.shape[1] == 0:
         return {**out, "pm_rms_true": np.nan * mas_yr, "pm_frac_50uas": np.nan}
     d -= np.median(d, axis=1, keepdims=True)
-    mad = np.median(np.abs(d - np.median(d, axis=1, keepdims=True)), axis=1)
-    out["pm_rms_true"] = float(1.4826 * np.sqrt(np.mean(mad**2))) * mas_yr
+    out["pm_rms_true"] = float(np.sqrt(np.mean(mad_std(d, axis=1) ** 2))) * mas_yr
     out["pm_frac_50uas"] = float(np.mean(np.hypot(d[0], d[1]) <= 0.05))
     return out
 

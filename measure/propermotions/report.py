@@ -26,6 +26,7 @@ from pathlib import Path
 
 import astropy.units as u
 import numpy as np
+from astropy.stats import mad_std
 from astropy.table import QTable
 
 from mavispm.core.atomic import atomic_path
@@ -194,7 +195,7 @@ def residual_summary(data: AccuracyData) -> dict:
         "n": int(z.size),
         "mean": float(np.mean(z)),
         "std": float(np.std(z)),
-        "robust_std": float(1.4826 * np.median(np.abs(z - np.median(z)))),
+        "robust_std": float(mad_std(z)),
         "frac_gt3": float(np.mean(np.abs(z) > 3)),
     }
 
