@@ -586,10 +586,39 @@ def write_report(rundir: str | os.PathLike) -> Path:
         parts.append(f"\n## {RECIPE_TITLES[recipe]}\n")
         parts.append(_safe(RECIPES[recipe], summary, rundir, outdir))
     parts += _stage_reports(summary, rundir, outdir)
+    parts.append(warnings_section(summary))
     path = rundir / "report.md"
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(parts))
     return path
+
+
+def warnings_section(summary: Mapping) -> str:
+    """The warnings the libraries raised while each node ran (from the node records).
+
+    Parameters
+    ----------
+    summary : mapping
+        A run's ``summary.json``.
+
+    Returns
+    -------
+    str
+        A Markdown section: one row per distinct warning with the nodes that raised it,
+        or a line saying there were none.
+    """
+    nodes_of: dict[str, list[str]] = {}
+    for node in summary["nodes"]:
+        for text in node.get("warnings", []):
+            nodes_of.setdefault(text, []).append(node["id"])
+    head = "\n## Warnings raised while the nodes ran\n\n"
+    if not nodes_of:
+        return head + "None.\n"
+    rows = []
+    for text, ids in nodes_of.items():
+        shown = ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
+        rows.append([text.replace("|", "\\|"), shown])
+    return head + _md_table(["warning", "nodes"], rows)
 
 
 def _safe(func, *args) -> str:
