@@ -114,6 +114,28 @@ def _variant_label(node: Mapping) -> str:
     return " ".join(p for p in (lab.get("study"), lab.get("point")) if p) or "-"
 
 
+def panel_title(node: Mapping, keys=("study", "point", "scene", "epoch")) -> str:
+    """A node's labels spelled out for a plot title or legend.
+
+    Parameters
+    ----------
+    node : mapping
+        A node of ``summary.json`` (its ``labels``: study, point, scene, epoch).
+    keys : tuple of str
+        Labels to name, in order.
+
+    Returns
+    -------
+    str
+        For example "study imbh, mass=1500, scene main, epoch e1" (labels absent
+        from the node are left out).
+    """
+    lab = node["labels"]
+    names = {"study": "study", "point": "", "scene": "scene", "epoch": "epoch"}
+    parts = [f"{names[k]} {lab[k]}".strip() for k in keys if lab.get(k)]
+    return ", ".join(parts) or "run"
+
+
 def _read_table(path: Path, kind: str, table: str):
     from mavispm.core.products import read_product
 
@@ -186,13 +208,9 @@ def astrometry_by_magnitude(summary: Mapping, rundir: Path, outdir: Path) -> str
         csv_rows.append(
             [_variant_label(node), lab.get("scene", ""), lab.get("epoch", ""), *csv, *frac]
         )
-        _residual_panel(
-            ax,
-            mag[good],
-            dx[good],
-            " ".join(filter(None, (lab.get(k) for k in ("study", "point", "scene", "epoch")))),
-        )
-    axes[-1, 0].set_xlabel("V [mag] (truth)")
+        _residual_panel(ax, mag[good], dx[good], panel_title(node))
+    axes[-1, 0].set_xlabel("V (input) [mag]")
+    fig.suptitle("Astrometric residuals against magnitude, per scene and epoch", fontsize=10)
     fig.tight_layout()
     png = _save(fig, outdir / "astrometry_by_magnitude.png")
     csv_header = ["variant", "scene", "epoch"]
@@ -257,7 +275,7 @@ def _recovered(frames_node, rundir: Path, measured_mag: np.ndarray) -> list[floa
 
 
 def _residual_panel(ax, mag, dx, title):
-    ax.plot(mag, dx, ".", ms=2, color="tab:pink", alpha=0.6)
+    ax.plot(mag, dx, ".", ms=2, color="tab:pink", alpha=0.6, label="stars")
     edges = np.arange(
         math.floor(np.nanmin(mag, initial=14)), math.ceil(np.nanmax(mag, initial=27)) + 1
     )
@@ -268,11 +286,19 @@ def _residual_panel(ax, mag, dx, title):
         if kept >= 2:
             centres.append(lo + 0.5)
             disps.append(disp)
-    ax.errorbar(centres, np.zeros(len(centres)), yerr=disps, fmt="k_", capsize=3)
+    ax.errorbar(
+        centres,
+        np.zeros(len(centres)),
+        yerr=disps,
+        fmt="k_",
+        capsize=3,
+        label="clipped 1-sigma per magnitude",
+    )
     lim = 3 * np.nanmax(disps) if disps else 1000.0
     ax.set_ylim(-lim, lim)
-    ax.set_ylabel("dx [uas]")
+    ax.set_ylabel("x measured - input [uas]")
     ax.set_title(title, fontsize=8)
+    ax.legend(fontsize=6, loc="upper left")
 
 
 def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
@@ -327,14 +353,23 @@ def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
                 [label, scene, name, n, f"{rms:.1f}", f"{100 * f50:.0f}%", f"{100 * f150:.0f}%"]
             )
             csv_rows.append([label, scene, name, n, rms, f50, f150])
-        for ax, xval, xlabel in ((ax_m, mag, "V [mag]"), (ax_r, radius, "R [arcsec]")):
-            ax.plot(xval[good], d[good], ".", ms=2, color="0.5")
+        xaxes = ((ax_m, mag, "V (input) [mag]"), (ax_r, radius, "R from the centre [arcsec]"))
+        for ax, xval, xlabel in xaxes:
             ok50 = good & (np.abs(d) < 50)
+            ax.plot(
+                xval[good & ~ok50], d[good & ~ok50], ".", ms=2, color="0.5", label=">= 50 uas/yr"
+            )
             ax.plot(xval[ok50], d[ok50], ".", ms=2, color="purple", label="< 50 uas/yr")
             ax.set_xlabel(xlabel)
-            ax.set_ylabel("dpm_x [uas/yr]")
+            ax.set_ylabel("pm_x measured - true [uas/yr]")
             ax.set_ylim(-500, 500)
-        ax_m.set_title(f"{label} {scene}", fontsize=8)
+            ax.legend(fontsize=6, loc="upper left", title="|error|", title_fontsize=6)
+        ax_m.set_title(panel_title(node, ("study", "point", "scene")), fontsize=8)
+        ax_r.set_title(panel_title(node, ("study", "point", "scene")), fontsize=8)
+    fig.suptitle(
+        "Proper-motion error (x) against magnitude and radius, median offset removed",
+        fontsize=10,
+    )
     fig.tight_layout()
     png = _save(fig, outdir / "pm_accuracy.png")
     _write_csv(
@@ -404,7 +439,7 @@ def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: i
         radius = _q(stars, "R", "arcsec")
         n = len(stars)
         nb = per_bin if n >= 2 * per_bin else max(10, n // 5)
-        label = f"{_variant_label(node)} {node['labels'].get('scene', '')}".strip()
+        label = panel_title(node, ("study", "point", "scene"))
         c = colours[i % len(colours)]
         r, s, e = dispersion_profile(
             radius, _q(stars, "pm_x", "mas/yr"), _q(stars, "pm_y", "mas/yr"), nb
@@ -419,8 +454,9 @@ def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: i
             ax.fill_between(r, s - e, s + e, color=c, alpha=0.25, label=f"{label} truth")
             for j in range(r.size):
                 rows.append([label, "truth", f"{r[j]:.2f}", f"{s[j]:.4f}", f"{e[j]:.4f}"])
-    ax.set_xlabel("R [arcsec]")
+    ax.set_xlabel("R from the centre [arcsec]")
     ax.set_ylabel("1-D PM dispersion [mas/yr]")
+    ax.set_title("Proper-motion dispersion profiles (errors not deconvolved)", fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
     png = _save(fig, outdir / "dispersion_profiles.png")

@@ -266,9 +266,9 @@ def _plot_errors(data: AccuracyData, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("R [arcsec]", data.radius)]
+    panels = [("R from the centre [arcsec]", data.radius)]
     if data.mag is not None:
-        panels.insert(0, ("V [mag]", data.mag))
+        panels.insert(0, ("V (input) [mag]", data.mag))
     fig, axes = plt.subplots(len(panels), 1, figsize=(7, 3.2 * len(panels)), squeeze=False)
     dpm = data.dpm
     within = [dpm <= THRESHOLDS[0], (dpm > THRESHOLDS[0]) & (dpm <= THRESHOLDS[1])]
@@ -303,9 +303,10 @@ def _plot_residuals(data: AccuracyData, path: Path) -> None:
     ax.hist(np.clip(z, -5, 5), bins=bins, density=True, color="mediumpurple", label="measured")
     g = np.linspace(-5, 5, 400)
     ax.plot(g, np.exp(-0.5 * g**2) / np.sqrt(2 * np.pi), "k", label="N(0, 1)")
-    ax.set_xlabel(r"$(\mu - \mu_{\rm true}) / \sigma_\mu$")
+    ax.set_xlabel(r"$(\mu - \mu_{\rm true}) / \sigma_\mu$ (x and y)")
     ax.set_ylabel("density")
-    ax.legend()
+    ax.set_title(f"{data.name}: normalised PM residuals (baseline {data.baseline:g} yr)")
+    ax.legend(title="residuals", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)

@@ -184,12 +184,30 @@ def _markdown(table: QTable, title: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot(stars: QTable, table: QTable, path: Path, title: str) -> None:
+def _plot(panels: list, path: Path, title: str) -> None:
+    """One panel per epoch: measured - input x against magnitude, clipped sigma, CRLB.
+
+    ``panels``: (panel title, stars, accuracy table) per epoch.
+    """
+    fig, axes = plt.subplots(
+        len(panels), 1, figsize=(7, 3.6 * len(panels) + 0.6), squeeze=False, sharex=True
+    )
+    for ax, (name, stars, table) in zip(axes[:, 0], panels):
+        _panel(ax, stars, table)
+        ax.set_title(name, fontsize=9)
+    axes[-1, 0].set_xlabel("input magnitude V [mag]")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+
+
+def _panel(ax, stars: QTable, table: QTable) -> None:
     mag = stars["mag"].to_value(u.mag)
     dx = (stars["x"] - stars["x_true"]).to_value(u.mas)
     good = ((np.asarray(stars["flag"]) & EXCLUDE_FLAGS) == 0) & np.isfinite(dx)
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    ax.scatter(mag[good], dx[good], s=3, alpha=0.5, color="k", label="stars")
+    ax.scatter(mag[good], dx[good], s=3, alpha=0.5, color="k", label="unflagged stars")
     centres = [0.5 * (lo + hi) if np.isfinite(lo) and np.isfinite(hi) else (hi - 0.5 if np.isfinite(hi) else lo + 0.5)
                for lo, hi in zip(table["mag_lo"].value, table["mag_hi"].value)]  # fmt: skip
     sig = table["sigma_x"].to_value(u.mas)
@@ -200,26 +218,34 @@ def _plot(stars: QTable, table: QTable, path: Path, title: str) -> None:
         fmt="o",
         color="C3",
         capsize=3,
-        label="clipped 1-sigma",
+        label="clipped 1-sigma per bin",
     )
     if np.any(np.isfinite(table["crlb_x"])):
         ax.plot(
-            centres, table["crlb_x"].to_value(u.mas), "s--", color="C0", ms=4, label="CRLB (median)"
+            centres,
+            table["crlb_x"].to_value(u.mas),
+            "s--",
+            color="C0",
+            ms=4,
+            label="Cramer-Rao bound (median)",
         )
     lim = np.nanpercentile(np.abs(dx[good]), 99) if np.any(good) else 1.0
     ax.set_ylim(-1.2 * lim, 1.2 * lim)
-    ax.set_xlabel("input magnitude V [mag]")
-    ax.set_ylabel("measured - input x [mas]")
-    ax.set_title(title)
-    ax.legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    ax.set_ylabel("x measured - input [mas]")
+    ax.legend(loc="upper left", fontsize=7)
+
+
+def _epoch_name(prod) -> str:
+    epoch = prod.attrs.get("epoch")
+    return "epoch unknown" if epoch is None else f"epoch {u.Quantity(epoch, u.yr).value:g} yr"
 
 
 def write_report(measured_paths: Sequence, outdir) -> list[Path]:
-    """Accuracy report of one or more measured products (stars pooled).
+    """Accuracy report of one or more measured products, per epoch.
+
+    Products of the same epoch (``epoch`` attribute) are pooled; each epoch gets
+    its own table (rows of ``accuracy.ecsv`` carry an ``epoch`` column [yr]),
+    Markdown section and plot panel.
 
     Parameters
     ----------
@@ -238,25 +264,45 @@ def write_report(measured_paths: Sequence, outdir) -> list[Path]:
     if not measured_paths:
         raise InputError("no measured products given for the accuracy report")
     products = [read_product(p, "measured", specs={"stars": MEASURED_SPEC}) for p in measured_paths]
-    counts = np.zeros(len(MAG_BINS) - 1, dtype=int)
+    by_epoch: dict[str, list] = {}
     for prod in products:
         if "x_true" not in prod.tables["stars"].colnames:
             raise InputError(
                 "no truth columns (x_true, y_true, mag): cannot report accuracy", path=prod.path
             )
-        per_bin = prod.attrs.get("truth_bin_counts")
-        mags = prod.tables["stars"]["mag"].to_value(u.mag)
-        counts += np.asarray(per_bin if per_bin is not None else truth_bin_counts(mags), dtype=int)
-    tables = [prod.tables["stars"] for prod in products]
-    stars = vstack(tables) if len(tables) > 1 else tables[0]
-    table = accuracy_table(stars, counts)
+        by_epoch.setdefault(_epoch_name(prod), []).append(prod)
+    panels, tables, sections = [], [], []
+    for name, group in by_epoch.items():
+        counts = np.zeros(len(MAG_BINS) - 1, dtype=int)
+        for prod in group:
+            per_bin = prod.attrs.get("truth_bin_counts")
+            mags = prod.tables["stars"]["mag"].to_value(u.mag)
+            counts += np.asarray(
+                per_bin if per_bin is not None else truth_bin_counts(mags), dtype=int
+            )
+        parts = [prod.tables["stars"] for prod in group]
+        stars = vstack(parts) if len(parts) > 1 else parts[0]
+        table = accuracy_table(stars, counts)
+        sources = ", ".join(str(prod.attrs.get("frames", prod.path)) for prod in group)
+        panel = f"{name} ({len(stars)} stars; frames {sources})"
+        panels.append((panel, stars, table))
+        sections.append(_markdown(table, f"{name}").replace("# ", "## ", 1))
+        epoch = group[0].attrs.get("epoch")
+        table.add_column(
+            np.full(len(table), np.nan if epoch is None else u.Quantity(epoch, u.yr).value) * u.yr,
+            name="epoch",
+            index=0,
+        )
+        tables.append(table)
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    title = "Astrometric accuracy: " + ", ".join(Path(p).name for p in measured_paths)
+    title = "Astrometric accuracy per epoch: measured - input x against input magnitude"
     ecsv, md, png = outdir / "accuracy.ecsv", outdir / "accuracy.md", outdir / "astrometry_x.png"
     with atomic_path(ecsv) as tmp:
-        table.write(tmp, format="ascii.ecsv", overwrite=True)
+        (vstack(tables) if len(tables) > 1 else tables[0]).write(
+            tmp, format="ascii.ecsv", overwrite=True
+        )
     with atomic_path(md) as tmp:
-        tmp.write_text(_markdown(table, title))
-    _plot(stars, table, png, title)
+        tmp.write_text(f"# {title}\n\n" + "\n".join(sections))
+    _plot(panels, png, title)
     return [ecsv, md, png]
