@@ -211,24 +211,20 @@ def _panel(ax, stars: QTable, table: QTable) -> None:
     centres = [0.5 * (lo + hi) if np.isfinite(lo) and np.isfinite(hi) else (hi - 0.5 if np.isfinite(hi) else lo + 0.5)
                for lo, hi in zip(table["mag_lo"].value, table["mag_hi"].value)]  # fmt: skip
     sig = table["sigma_x"].to_value(u.mas)
+    has = np.isfinite(sig)  # bins without stars are not drawn
+    centres = np.asarray(centres)
     ax.errorbar(
-        centres,
-        np.zeros(len(centres)),
-        yerr=sig,
+        centres[has],
+        np.zeros(int(has.sum())),
+        yerr=sig[has],
         fmt="o",
         color="C3",
         capsize=3,
         label="clipped 1-sigma per bin",
     )
-    if np.any(np.isfinite(table["crlb_x"])):
-        ax.plot(
-            centres,
-            table["crlb_x"].to_value(u.mas),
-            "s--",
-            color="C0",
-            ms=4,
-            label="Cramer-Rao bound (median)",
-        )
+    crlb = table["crlb_x"].to_value(u.mas)
+    if np.any(np.isfinite(crlb)):
+        ax.plot(centres[has], crlb[has], "s--", color="C0", ms=4, label="Cramer-Rao bound (median)")
     lim = np.nanpercentile(np.abs(dx[good]), 99) if np.any(good) else 1.0
     ax.set_ylim(-1.2 * lim, 1.2 * lim)
     ax.set_ylabel("x measured - input [mas]")
