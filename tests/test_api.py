@@ -150,7 +150,9 @@ def test_readme_python_api_runs_as_written(tmp_path, monkeypatch):
     assert np.isfinite(fit.attrs["bh_mass_median"].value)
 
 
-@pytest.mark.parametrize("module", ["mavispm.core.frame", "mavispm.api"])
+@pytest.mark.parametrize(
+    "module", ["mavispm.core.frame", "mavispm.api", "mavispm.measure.stars.settings"]
+)
 def test_docstring_examples(module):
     """The doctest'd examples of the API modules run as written."""
     import doctest

@@ -138,7 +138,7 @@ def test_cli_run_dry_run_and_overrides(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("WF_TEST_LOG", str(log))
     monkeypatch.setattr(stages, "default_registry", stand_in_registry)
     wf = write_workflow(tmp_path)
-    common = [str(wf), "--workdir", str(tmp_path / "w"), "--quiet"]
+    common = [str(wf), "--workdir", str(tmp_path / "w")]  # not a terminal: no bars
     assert main(["run", *common, "--scheduler", "serial"]) == 0
     assert "cluster: 1 ran, 0 cached" in capsys.readouterr().out
     n_calls = len(read_log(log))

@@ -21,7 +21,7 @@ from mavispm.core.frame import Frame
 from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
-from mavispm.measure.stars.settings import MeasureSettings
+from mavispm.measure.stars.settings import MeasureSettings, nest_knobs
 
 MEASURED_KIND = "measured"
 
@@ -47,7 +47,7 @@ def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
     ConfigError
         Unknown keys, wrong types, bad units or impossible values, naming the key.
     """
-    return from_mapping(MeasureSettings, settings, source=source)
+    return from_mapping(MeasureSettings, nest_knobs(settings, source), source=source)
 
 
 def add_fitted_magnitudes(stars, attrs) -> None:
