@@ -206,7 +206,7 @@ def make_optics(kind="airy", nodes=3, half_field=2.0, n=129, psf_scale=1.0, **kw
     return FakeOptics(psf_grid=grid, **kw)
 
 
-def brute_force_stamp(grid, x, y, cov, x_pix, y_pix, pixel_scale, m, sub=15):
+def brute_force_stamp(grid, x, y, cov, x_pix, y_pix, pixel_scale, m, sub=15, sensitivity=None):
     """Independent reference: direct evaluation of PSF (x) Gaussian, integrated over pixels.
 
     The continuous PSF (bilinear mix of the analytic node functions, truncated to the
@@ -214,6 +214,8 @@ def brute_force_stamp(grid, x, y, cov, x_pix, y_pix, pixel_scale, m, sub=15):
     detector pixel of an ``m x m`` stamp (corner at ``round(x_pix) - m//2``), convolved
     on that lattice with the sampled 2-D Gaussian (linear FFT convolution with zero
     padding, no wrap-around), and each pixel is integrated by the midpoint rule.
+    ``sensitivity``: optional function of the sub-pixel position in (-1/2, 1/2) pixel
+    giving the relative response along each axis (separable); default uniform.
     """
     import scipy.signal
 
@@ -240,7 +242,13 @@ def brute_force_stamp(grid, x, y, cov, x_pix, y_pix, pixel_scale, m, sub=15):
     psf = np.where((np.abs(px) <= half_cube) & (np.abs(py) <= half_cube), psf, 0.0)
     psf = psf / grid.pixel_scale**2  # per mas^2
     img = scipy.signal.fftconvolve(psf, kern, mode="valid")  # (m*sub, m*sub)
-    pix = img.reshape(m, sub, m, sub).mean(axis=(1, 3))
+    w = np.ones(sub)
+    if sensitivity is not None:
+        w = sensitivity((np.arange(sub) + 0.5) / sub - 0.5)
+        w = w / w.mean()
+    pix = (img.reshape(m, sub, m, sub) * w[None, :, None, None] * w[None, None, None, :]).mean(
+        axis=(1, 3)
+    )
     return pix * pixel_scale**2
 
 

@@ -23,6 +23,7 @@ from mavispm.core.errors import MavispmError
 COMMAND_MODULES: list[tuple[str | None, str]] = [
     ("simulate", "mavispm.simulate.cluster.cli"),
     ("simulate", "mavispm.simulate.optics.cli"),
+    ("simulate", "mavispm.simulate.optics.calibration_cli"),
     ("simulate", "mavispm.simulate.render.cli"),
     ("measure", "mavispm.measure.stars.cli"),
     ("measure", "mavispm.measure.propermotions.cli"),

@@ -71,6 +71,9 @@ class DistortionSettings:
         quadratic_y, cubic).
     dynamic_seed : int
         Seed of the per-epoch draws.
+    calibration : str or None
+        A ``calibration`` product (``mavispm simulate calibration``): its recovered
+        distortion is subtracted, so the frames carry the post-calibration residual.
     """
 
     enabled: bool = True
@@ -83,6 +86,7 @@ class DistortionSettings:
     dynamic_amplitude: float = unit_field(0.1, "mas", "RMS per dynamic term")
     dynamic_terms: tuple[str, ...] = ("scale", "rotation", "shear1", "shear2")
     dynamic_seed: int = 0
+    calibration: str | None = None
 
     def __post_init__(self):
         unknown = [t for t in self.dynamic_terms if t not in _BASIS]
@@ -201,6 +205,11 @@ class Distortion:
                 RegularGridInterpolator((ys, xs), dy, bounds_error=False, fill_value=None),
             )
         self._rms = {t: _basis_rms(t) for t in settings.dynamic_terms}
+        self._recovered = None
+        if settings.enabled and settings.calibration:
+            from mavispm.simulate.optics.calibration_mask import read_recovered_distortion
+
+            self._recovered = read_recovered_distortion(settings.calibration)
 
     @property
     def enabled(self) -> bool:
@@ -250,4 +259,7 @@ class Distortion:
             bx, by = _BASIS[term](u, v)
             dx = dx + c / self._rms[term] * bx
             dy = dy + c / self._rms[term] * by
+        if self._recovered is not None:
+            rx, ry = self._recovered.displacement_mas(x, y)
+            dx, dy = dx - rx, dy - ry
         return np.asarray(dx, float) / 1000.0, np.asarray(dy, float) / 1000.0

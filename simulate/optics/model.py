@@ -39,7 +39,9 @@ from mavispm.simulate.optics.blur import BlurSettings, blur_sigma
 from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
 from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, PSFSettings, cached_grid
 from mavispm.simulate.optics.pupil import PupilSettings
+from mavispm.simulate.optics.refraction import RefractionSettings
 from mavispm.simulate.optics.seeing_halo import Halo, HaloSettings, build_halo
+from mavispm.simulate.optics.telescope import TelescopeSettings
 from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings
 
 #: Version of the halo computation (part of its disk-cache key).
@@ -58,6 +60,8 @@ class OpticsSettings:
     tiptilt: TipTiltSettings = field(default_factory=TipTiltSettings)
     blur: BlurSettings = field(default_factory=BlurSettings)
     distortion: DistortionSettings = field(default_factory=DistortionSettings)
+    refraction: RefractionSettings = field(default_factory=RefractionSettings)
+    telescope: TelescopeSettings = field(default_factory=TelescopeSettings)
 
 
 def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:

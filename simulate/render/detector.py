@@ -49,6 +49,13 @@ class DetectorSettings:
         Conversion gain, electron/adu (1.0).
     bits : int
         ADC depth; one sub-exposure saturates at ``2**bits - 1`` adu (16 bits: 65535 adu).
+    intrapixel_amplitude : float
+        Relative sensitivity dip at the pixel edges (0: uniform pixels); see
+        ``simulate/render/pixel_response.py``.
+    flat_residual : float
+        RMS of the pixel-to-pixel QE pattern left after flat-fielding (0: none).
+    flat_seed : int
+        Seed of that fixed pattern (one detector: the same in every epoch).
     """
 
     nx: int = 4000
@@ -57,6 +64,9 @@ class DetectorSettings:
     read_noise: float = unit_field(3.0, "electron")
     gain: float = unit_field(1.0, "electron / adu")
     bits: int = 16
+    intrapixel_amplitude: float = 0.0
+    flat_residual: float = 0.0
+    flat_seed: int = 0
 
     def __post_init__(self):
         if self.nx < 1 or self.ny < 1:
@@ -69,6 +79,14 @@ class DetectorSettings:
             raise ValueError(f"detector.gain must be > 0, got {self.gain}")
         if not 1 <= self.bits <= 32:
             raise ValueError(f"detector.bits must be in [1, 32], got {self.bits}")
+        if not 0.0 <= self.intrapixel_amplitude < 1.0:
+            raise ValueError(
+                f"detector.intrapixel_amplitude must be in [0, 1), got {self.intrapixel_amplitude}"
+            )
+        if not 0.0 <= self.flat_residual < 0.2:
+            raise ValueError(
+                f"detector.flat_residual must be in [0, 0.2), got {self.flat_residual}"
+            )
 
     @property
     def saturation_adu(self) -> float:

@@ -13,8 +13,11 @@ from astropy.table import QTable
 
 from mavispm.core.errors import InputError
 from mavispm.core.frame import Frame
+from mavispm.simulate.optics.refraction import star_displacement
+from mavispm.simulate.optics.telescope import telescope_displacement
 from mavispm.simulate.render.detector import expose_stack
 from mavispm.simulate.render.halo_convolution import halo_field
+from mavispm.simulate.render.pixel_response import flat_field_residual
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
 from mavispm.simulate.render.zero_point import (
@@ -33,7 +36,13 @@ def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
     ``cache_dir``: also keep its stamp plans (PSF-node transforms) in this folder
     (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
     """
-    return StarRenderer(optics.psf_grid, scene.detector.pixel_scale, scene.render, cache_dir)
+    return StarRenderer(
+        optics.psf_grid,
+        scene.detector.pixel_scale,
+        scene.render,
+        cache_dir,
+        intrapixel_amplitude=scene.detector.intrapixel_amplitude,
+    )
 
 
 def _values(q, unit) -> np.ndarray:
@@ -103,6 +112,13 @@ def render_frame(
         dx, dy = optics.distortion.displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value)
         x = x + _values(dx, u.arcsec)
         y = y + _values(dy, u.arcsec)
+    tel = getattr(getattr(optics, "settings", None), "telescope", None)
+    if tel is not None and tel.enabled and len(x):
+        tx, ty = telescope_displacement(x_cat, y_cat, u.Quantity(epoch, u.yr).value, tel)
+        x, y = x + tx, y + ty
+    dar = _refraction_shift(stars, optics, u.Quantity(epoch, u.yr).value)
+    if dar is not None:
+        x, y = x + dar[0], y + dar[1]
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2
     y_pix = y * 1000.0 / s + (det.ny - 1) / 2
     sub_exposure = scene.exptime * u.s
@@ -132,6 +148,9 @@ def render_frame(
         noise_sigma=noise,
         progress=progress,
     )
+    flat = flat_field_residual(image.shape, det.flat_residual, det.flat_seed)
+    if flat is not None:
+        image *= flat
     img_adu, saturated = expose_stack(
         image,
         scene.nexp,
@@ -154,6 +173,9 @@ def render_frame(
     truth["y_cat"] = y_cat[keep] * u.arcsec
     truth["flux"] = flux_sub[keep] * scene.nexp * u.electron
     truth["mag"] = mag[keep] * u.mag
+    if dar is not None:
+        truth["dar_x"] = dar[0][keep] * u.arcsec
+        truth["dar_y"] = dar[1][keep] * u.arcsec
     attrs = {
         "epoch": u.Quantity(epoch, u.yr),
         "pixel_scale": s * u.mas,
@@ -167,3 +189,19 @@ def render_frame(
         "zero_point": photometric_zero_point(phot),
     }
     return Frame.from_attrs(img_adu, saturated, attrs, truth, noiseless=image)
+
+
+def _refraction_shift(stars: QTable, optics, epoch: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Colour-dependent atmospheric refraction of each star [arcsec], or None when off.
+
+    Uses the epoch table's ``teff`` column [K] where present (else the settings'
+    ``default_teff``); see ``simulate/optics/refraction.py``.
+    """
+    refr = getattr(getattr(optics, "settings", None), "refraction", None)
+    if refr is None or not refr.enabled or len(stars) == 0:
+        return None
+    if "teff" in stars.colnames:
+        teff = _values(stars["teff"], u.K)
+    else:
+        teff = np.full(len(stars), np.nan)
+    return star_displacement(teff, refr, epoch)

@@ -40,6 +40,7 @@ import numpy as np
 import scipy.fft
 
 from mavispm.core.array_cache import content_key, load_arrays, save_arrays
+from mavispm.simulate.render.pixel_response import pixel_transfer
 from mavispm.simulate.render.stamp_kernels import (
     add_stamps,
     binned_max,
@@ -244,10 +245,16 @@ class StarRenderer:
     """
 
     def __init__(
-        self, psf_grid, pixel_scale: float, params: RenderParams | None = None, cache_dir=None
+        self,
+        psf_grid,
+        pixel_scale: float,
+        params: RenderParams | None = None,
+        cache_dir=None,
+        intrapixel_amplitude: float = 0.0,
     ):
         self.psf_grid = psf_grid
         self.pixel_scale = float(pixel_scale)
+        self.intrapixel_amplitude = float(intrapixel_amplitude)
         self.params = params or RenderParams()
         cube = np.asarray(psf_grid.cube, dtype=np.float64)
         if cube.ndim != 4 or cube.shape[2] != cube.shape[3] or cube.shape[2] % 2 == 0:
@@ -271,7 +278,8 @@ class StarRenderer:
                     p.oversampling,
                     p.spectrum_floor,
                     PLAN_FLOOR_DECADES,
-                ],
+                ]
+                + ([self.intrapixel_amplitude] if self.intrapixel_amplitude else []),
                 self._cube,
             )
 
@@ -394,7 +402,11 @@ class StarRenderer:
         """The plan of side ``m`` from the node transforms ``full`` (nodes, nfy, nfx)."""
         s = self.pixel_scale
         df = 1.0 / (m * s)  # cycles/mas per integer frequency
-        full *= np.sinc(fy * df * s)[None, :, None] * np.sinc(fx * df * s)[None, None, :]
+        a = self.intrapixel_amplitude
+        full *= (
+            pixel_transfer(fy * df, s, a)[None, :, None]
+            * pixel_transfer(fx * df, s, a)[None, None, :]
+        )
         peak = np.abs(full).max(axis=0)
         peak /= peak.max()
         # keep PLAN_FLOOR_DECADES below the floor: bright-star batches use lower floors
