@@ -25,6 +25,14 @@ from astropy.table import QTable
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product, write_product
 
+__all__ = [
+    "Catalogue",
+    "CATALOGUE_KIND",
+    "CATALOGUE_SPEC",
+    "read_catalogue",
+    "write_catalogue",
+]
+
 CATALOGUE_KIND = "catalogue"
 
 #: Columns of every epoch table. Required columns are what the renderer needs;
@@ -113,6 +121,16 @@ def _validate_epoch(table, path, name):
 
 def read_catalogue(path: str | os.PathLike) -> Catalogue:
     """Read and validate a catalogue product.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``catalogue`` product.
+
+    Returns
+    -------
+    Catalogue
+        Epoch tables in time order, root attributes, the path.
 
     Raises
     ------

@@ -256,14 +256,36 @@ class Frame:
         return u.Quantity(self.attrs.get("epoch", 0.0), u.yr)
 
     def to_arcsec(self, xp, yp):
-        """Field-frame position [arcsec] of pixel coordinates (0-based, centre = 0)."""
+        """Field-frame position [arcsec] of pixel coordinates (0-based, centre = 0).
+
+        Parameters
+        ----------
+        xp, yp : array-like
+            Pixel coordinates (column, row).
+
+        Returns
+        -------
+        x, y : ndarray
+            [arcsec] from the field centre.
+        """
         ny, nx = self.shape
         return (np.asarray(xp) - (nx - 1) / 2) * self.pixel_scale, (
             np.asarray(yp) - (ny - 1) / 2
         ) * self.pixel_scale
 
     def to_pixel(self, x, y):
-        """Pixel coordinates (0-based) of field-frame positions [arcsec]."""
+        """Pixel coordinates (0-based) of field-frame positions [arcsec].
+
+        Parameters
+        ----------
+        x, y : array-like
+            [arcsec] from the field centre.
+
+        Returns
+        -------
+        xp, yp : ndarray
+            Pixel coordinates (column, row).
+        """
         ny, nx = self.shape
         return np.asarray(x) / self.pixel_scale + (nx - 1) / 2, np.asarray(y) / self.pixel_scale + (
             ny - 1

@@ -40,6 +40,25 @@ from astropy.table import QTable, Table
 from mavispm.core.atomic import atomic_path
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "as_table",
+    "COLUMN_META_SUFFIX",
+    "EXPORT_FORMATS",
+    "export_table",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "open_product",
+    "Product",
+    "provenance_attrs",
+    "read_product",
+    "read_table",
+    "read_table_group",
+    "TableSpec",
+    "UNIT_SUFFIX",
+    "validate_table",
+    "write_product",
+]
+
 FORMAT_NAME = "mavispm"
 FORMAT_VERSION = 2
 #: Suffix of the dataset in which astropy describes a table's columns (units, YAML).
@@ -285,6 +304,18 @@ def _attr_ok(value) -> bool:
 def open_product(path: str | os.PathLike, kind: str | None = None) -> h5py.File:
     """Open a product for reading after checking that it is one.
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The product file.
+    kind : str, optional
+        Required product kind.
+
+    Returns
+    -------
+    h5py.File
+        Open for reading; close it (use it as a context manager).
+
     Raises
     ------
     InputError
@@ -348,6 +379,17 @@ def read_table_group(obj, path=None) -> QTable:
     """Read one table (compound dataset or, format version 1, group) into a QTable.
 
     Columns with units become Quantities; the table's attributes become ``meta``.
+
+    Parameters
+    ----------
+    obj : h5py.Dataset or h5py.Group
+        The table.
+    path : path, optional
+        File name, for messages.
+
+    Returns
+    -------
+    QTable
     """
     if isinstance(obj, h5py.Dataset):
         table = _read_astropy_table(obj, path)
@@ -666,7 +708,17 @@ def _convert_column(col, unit: str, path, cname: str, where: str):
 
 
 def as_table(obj) -> Table:
-    """Return ``obj`` as an astropy Table (accepts mappings of columns)."""
+    """Return ``obj`` as an astropy Table (accepts mappings of columns).
+
+    Parameters
+    ----------
+    obj : Table or mapping of str to array-like
+        A table, or columns by name.
+
+    Returns
+    -------
+    astropy.table.Table
+    """
     if isinstance(obj, Table):
         return obj
     return QTable(dict(obj))

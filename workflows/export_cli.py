@@ -22,7 +22,13 @@ def _handler(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``export`` command."""
+    """Add the ``export`` command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     p = subparsers.add_parser(
         "export",
         help="write one table of a product as FITS, ECSV or CSV",

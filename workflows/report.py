@@ -42,6 +42,25 @@ from astropy.stats import mad_std
 from mavispm.core.atomic import atomic_path
 from mavispm.core.errors import InputError, MavispmError
 
+__all__ = [
+    "astrometry_by_magnitude",
+    "BAD_FLAGS",
+    "bin_label",
+    "clipped_dispersion",
+    "dispersion_profile",
+    "dispersion_profiles",
+    "KEY_DYNAMICS_METRICS",
+    "model_comparison",
+    "panel_title",
+    "PAPER_BINS",
+    "pm_accuracy",
+    "read_summary",
+    "RECIPE_TITLES",
+    "RECIPES",
+    "warnings_section",
+    "write_report",
+]
+
 #: Magnitude bins of the paper's tab:simresults (lower, upper).
 PAPER_BINS = (
     (-math.inf, 16.0),

@@ -10,9 +10,21 @@ from pathlib import Path
 
 from mavispm.workflows.runner import DEFAULT_WORKDIR
 
+__all__ = [
+    "configure_logging",
+    "parse_overrides",
+    "register",
+]
+
 
 def register(subparsers) -> None:
-    """Add the ``run`` and ``report`` commands to the top-level sub-parsers."""
+    """Add the ``run`` and ``report`` commands to the top-level sub-parsers.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     run = subparsers.add_parser(
         "run",
         help="run a workflow file (cached, resumable)",

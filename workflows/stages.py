@@ -4,6 +4,27 @@ Each adapter turns the runner's uniform call
 ``run(inputs, settings, params, seed, outdir) -> {"main": path, ...}`` into the
 stage's documented ``run_stage`` signature, and :func:`product_metrics` reads a
 finished product's scalar attributes for summaries and sweep tables.
+
+Every ``run_<stage>`` adapter takes the same arguments (numpydoc, shared):
+
+Parameters
+----------
+inputs : dict of str to Path or list of Path
+    Upstream products by input name ("catalogue", "psf", "frames", "measured",
+    "propermotions", "truth", "truth_no_imbh").
+settings : mapping
+    The stage's TOML table.
+params : mapping
+    Node parameters (epoch, scene name, output switches).
+seed : int or None
+    The node's seed.
+outdir : pathlib.Path
+    Empty folder the products are written into.
+
+Returns
+-------
+dict of str to Path
+    Product name to path; "main" feeds the downstream stages.
 """
 
 from __future__ import annotations
@@ -14,6 +35,19 @@ from pathlib import Path
 import numpy as np
 
 from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
+
+__all__ = [
+    "STAGE_MODULES",
+    "UI_KEYS",
+    "default_registry",
+    "product_metrics",
+    "run_cluster",
+    "run_dynamics",
+    "run_frames",
+    "run_optics",
+    "run_propermotions",
+    "run_stars",
+]
 
 _THIS = "mavispm.workflows.stages"
 

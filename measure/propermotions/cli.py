@@ -212,7 +212,13 @@ def _handler(args) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``propermotions`` sub-command."""
+    """Add the ``propermotions`` sub-command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     p = subparsers.add_parser(
         "propermotions",
         help="cross-match epochs, align them and fit proper motions",

@@ -13,6 +13,15 @@ import numpy as np
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product, validate_table
 
+__all__ = [
+    "check_epochs",
+    "epoch_catalogue",
+    "EPOCH_TOLERANCE",
+    "EpochCatalogue",
+    "MEASURED_PM_SPEC",
+    "read_measured",
+]
+
 #: Columns the proper-motion stage reads from a measured product's ``stars`` table.
 MEASURED_PM_SPEC = TableSpec(
     required={"id": "", "x": "arcsec", "y": "arcsec", "x_err": "arcsec", "y_err": "arcsec"},

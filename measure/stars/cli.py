@@ -23,6 +23,17 @@ from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 from mavispm.measure.stars.settings import MeasureSettings, nest_knobs
 
+__all__ = [
+    "add_fitted_magnitudes",
+    "measure_stars",
+    "MEASURED_KIND",
+    "register",
+    "run_stage",
+    "validate_settings",
+    "write_measured",
+    "write_report",
+]
+
 MEASURED_KIND = "measured"
 
 #: Detector attributes of the frame copied to the measured product.
@@ -41,6 +52,19 @@ _COPIED_ATTRS = (
 
 def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
     """Build :class:`MeasureSettings` from a mapping (a TOML table).
+
+    Knobs may be given flat or in ``knobs`` (:func:`~mavispm.measure.stars.settings.nest_knobs`).
+
+    Parameters
+    ----------
+    settings : mapping or None
+        The stage's TOML table (keys in docs/measure.md); None: all defaults.
+    source : str, optional
+        File name, for messages.
+
+    Returns
+    -------
+    MeasureSettings
 
     Raises
     ------
@@ -184,8 +208,20 @@ def write_measured(output, stars, psf, settings: MeasureSettings, seed=None) -> 
 
 
 def write_report(measured_paths: Sequence, outdir) -> list[Path]:
-    """Accuracy report (ECSV, Markdown, PNG) of measured products; see
-    :func:`mavispm.measure.stars.accuracy_report.write_report`."""
+    """Accuracy report (ECSV, Markdown, PNG) of measured products, per epoch.
+
+    Parameters
+    ----------
+    measured_paths : sequence of path
+        ``measured`` products with truth columns.
+    outdir : path
+        Output folder (created).
+
+    Returns
+    -------
+    list of pathlib.Path
+        See :func:`mavispm.measure.stars.accuracy_report.write_report`.
+    """
     return accuracy_report.write_report(measured_paths, outdir)
 
 
@@ -220,7 +256,13 @@ def _handler(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``stars`` sub-command."""
+    """Add the ``stars`` sub-command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     p = subparsers.add_parser(
         "stars",
         help="build the ePSF and fit every star of a frame (forced or blind)",

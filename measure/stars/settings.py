@@ -25,6 +25,13 @@ from typing import Literal
 from mavispm.core.config import unit_field
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "KNOB_NAMES",
+    "MeasureKnobs",
+    "MeasureSettings",
+    "nest_knobs",
+]
+
 #: Names of the accuracy/speed knobs (fields of :class:`MeasureKnobs`).
 KNOB_NAMES: tuple[str, ...] = ()
 

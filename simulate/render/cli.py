@@ -25,6 +25,17 @@ from mavispm.simulate.render.fits_output import write_frame_fits
 from mavispm.simulate.render.frame import Frame, make_renderer, render_frame
 from mavispm.simulate.render.scene import SceneSettings, scene_from_mapping
 
+__all__ = [
+    "build_scene_optics",
+    "epoch_rng",
+    "FRAMES_KIND",
+    "plan_cache_dir",
+    "register",
+    "run_stage",
+    "validate_settings",
+    "write_frame",
+]
+
 FRAMES_KIND = "frames"
 
 
@@ -43,6 +54,17 @@ def validate_settings(scene_mapping: Mapping | None, source=None) -> SceneSettin
     """Check a scene mapping (a TOML document) and return :class:`SceneSettings`.
 
     The ``optics`` sub-table is checked by ``mavispm.simulate.optics.model.validate_settings``.
+
+    Parameters
+    ----------
+    scene_mapping : mapping or None
+        The stage's TOML table (keys in docs/render.md); None: all defaults.
+    source : str, optional
+        File name, for messages.
+
+    Returns
+    -------
+    SceneSettings
 
     Raises
     ------
@@ -74,6 +96,17 @@ def plan_cache_dir(optics, cache_dir=None) -> Path | None:
     """Folder for the renderer's stamp-plan cache: ``cache_dir``, else the PSF-grid cache's.
 
     None (in memory only) when neither is known, e.g. for optics built in memory.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics (``cache_path``: its PSF-grid cache file, or None).
+    cache_dir : path, optional
+        An explicit cache folder.
+
+    Returns
+    -------
+    pathlib.Path or None
     """
     if cache_dir is not None:
         return Path(cache_dir)
@@ -82,7 +115,19 @@ def plan_cache_dir(optics, cache_dir=None) -> Path | None:
 
 
 def epoch_rng(seed: int | None, epoch: str) -> np.random.Generator:
-    """Noise generator of one epoch: independent per epoch name, reproducible per seed."""
+    """Noise generator of one epoch: independent per epoch name, reproducible per seed.
+
+    Parameters
+    ----------
+    seed : int or None
+        The run's noise seed (None: 0).
+    epoch : str
+        Epoch name ("e0", ...).
+
+    Returns
+    -------
+    numpy.random.Generator
+    """
     seed = 0 if seed is None else int(seed)
     return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(epoch.encode())]))
 
@@ -105,7 +150,28 @@ def _select_epoch(cat: Catalogue, epoch: str):
 def write_frame(
     frame: Frame, output, scene: SceneSettings, cat: Catalogue, seed, fits_path=None
 ) -> Path:
-    """Write a rendered frame as the ``frames`` product (and optionally FITS), atomically."""
+    """Write a rendered frame as the ``frames`` product (and optionally FITS), atomically.
+
+    Parameters
+    ----------
+    frame : Frame
+        From :func:`~mavispm.simulate.render.frame.render_frame`.
+    output : path
+        The HDF5 product.
+    scene : SceneSettings
+        Recorded as the product's ``scene`` attribute and configuration.
+    cat : Catalogue
+        Source of ``distance``, ``ra_center``, ``dec_center`` and the FITS ``OBJECT``.
+    seed : int
+        Recorded as the product's seed.
+    fits_path : path, optional
+        Also write the image as FITS here.
+
+    Returns
+    -------
+    pathlib.Path
+        ``output``.
+    """
     attrs = dict(frame.attrs)
     for key in ("distance", "ra_center", "dec_center"):
         if key in cat.attrs:
@@ -245,7 +311,13 @@ def _handle(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
-    """Add the ``frames`` sub-command (``mavispm simulate frames``)."""
+    """Add the ``frames`` sub-command (``mavispm simulate frames``).
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     p = subparsers.add_parser(
         "frames",
         help="render catalogue epochs into stacked MAVIS frames",

@@ -32,6 +32,13 @@ from astropy.io.fits.verify import VerifyWarning
 
 from mavispm.core.atomic import atomic_path
 
+__all__ = [
+    "EPOCH_ZERO",
+    "frame_header",
+    "standard_cards",
+    "write_frame_fits",
+]
+
 
 def _flatten(mapping: Mapping, prefix: str = ""):
     for key, value in mapping.items():

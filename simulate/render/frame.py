@@ -26,6 +26,13 @@ from mavispm.simulate.render.zero_point import (
     star_electrons,
 )
 
+__all__ = [
+    "HALO_COARSE_PIXEL_MAS",
+    "make_renderer",
+    "noise_sigma_per_subexposure",
+    "render_frame",
+]
+
 #: Automatic halo down-sampling aims at coarse pixels of about this size (mas).
 HALO_COARSE_PIXEL_MAS = 60.0
 
@@ -33,8 +40,19 @@ HALO_COARSE_PIXEL_MAS = 60.0
 def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
     """A star renderer for ``optics`` at the scene's pixel scale (reuse it across epochs).
 
-    ``cache_dir``: also keep its stamp plans (PSF-node transforms) in this folder
-    (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
+    Parameters
+    ----------
+    optics : Optics
+        Its ``psf_grid`` is rendered.
+    scene : SceneSettings
+        Pixel scale, render knobs and intra-pixel response.
+    cache_dir : path, optional
+        Also keep the stamp plans (PSF-node transforms) in this folder
+        (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
+
+    Returns
+    -------
+    StarRenderer
     """
     return StarRenderer(
         optics.psf_grid,
@@ -51,7 +69,18 @@ def _values(q, unit) -> np.ndarray:
 
 
 def noise_sigma_per_subexposure(scene: SceneSettings) -> float:
-    """Per-pixel noise sigma of the stack from sky and read noise, in electrons per sub-exposure."""
+    """Per-pixel noise sigma of the stack from sky and read noise, in electrons per sub-exposure.
+
+    Parameters
+    ----------
+    scene : SceneSettings
+        Exposure, detector and photometry.
+
+    Returns
+    -------
+    float
+        [electron] per sub-exposure.
+    """
     sky = sky_electrons_per_pixel(
         scene.photometry, scene.detector.pixel_scale * u.mas, scene.exptime * u.s
     ).value
