@@ -154,6 +154,22 @@ def render_epoch(
     Frame
         The stack in electrons with its truth table and ``frames`` attributes;
         what :func:`measure_stars` takes.
+    Examples
+    --------
+    A diffraction-limited 2 x 2 PSF grid (cached in a temporary folder) and
+    the second epoch of a small catalogue on a 128 x 128 detector:
+
+    >>> import tempfile, mavispm
+    >>> cat = mavispm.simulate_cluster(
+    ...     {"preset": "ngc3201", "n_stars": 50, "field_size": "2 arcsec", "epochs": [0, 5]})
+    >>> optics = mavispm.build_optics(
+    ...     {"psf": {"mode": "diffraction", "n_nodes": 2, "pupil_sampling": 32,
+    ...              "stamp_size": "0.2 arcsec", "field_size": "2 arcsec"},
+    ...      "halo": {"enabled": False}}, cache_dir=tempfile.mkdtemp())
+    >>> frame = mavispm.render_epoch(
+    ...     cat, "e1", {"nexp": 2, "detector": {"nx": 128, "ny": 128}}, optics, seed=3)
+    >>> frame.shape, frame.epoch, frame.to_nddata().unit
+    ((128, 128), <Quantity 5. yr>, Unit("adu"))
     """
     from mavispm.simulate.render import cli as render_cli
     from mavispm.simulate.render.frame import render_frame

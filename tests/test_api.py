@@ -151,7 +151,13 @@ def test_readme_python_api_runs_as_written(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "module", ["mavispm.core.frame", "mavispm.api", "mavispm.measure.stars.settings"]
+    "module",
+    [
+        "mavispm.core.frame",
+        "mavispm.api",
+        "mavispm.measure.stars.settings",
+        "mavispm.measure.propermotions.cli",
+    ],
 )
 def test_docstring_examples(module):
     """The doctest'd examples of the API modules run as written."""
