@@ -234,6 +234,37 @@ class Frame:
             noiseless=noiseless,
         )
 
+    @classmethod
+    def from_nddata(cls, data, truth: QTable | None = None) -> Frame:
+        """A frame from :class:`astropy.nddata.NDData` (the inverse of :meth:`to_nddata`).
+
+        Parameters
+        ----------
+        data : astropy.nddata.NDData
+            ``data`` in adu (``unit`` adu or None), ``mask`` the saturated pixels
+            (None: from ``saturation``), ``meta`` the ``frames`` attributes
+            (``gain``, ``read_noise``, ``sky``, ``saturation``, ``pixel_scale``,
+            ``epoch``, ``nexp``).
+        truth : QTable, optional
+            Rendered stars, for forced photometry (default ``meta["truth"]`` if any).
+
+        Returns
+        -------
+        Frame
+
+        Raises
+        ------
+        InputError
+            Data not in adu, or missing attributes.
+        """
+        unit = getattr(data, "unit", None)
+        if unit is not None and u.Unit(unit) != u.adu:
+            raise InputError(f"NDData unit must be adu, got {unit}")
+        meta = dict(data.meta or {})
+        truth = meta.pop("truth", None) if truth is None else truth
+        mask = None if data.mask is None else np.asarray(data.mask, bool)
+        return cls.from_attrs(np.asarray(data.data), mask, meta, truth)
+
     @property
     def shape(self) -> tuple[int, int]:
         """Image shape (ny, nx) [pixel]."""

@@ -71,6 +71,12 @@ def test_render_and_measure_in_memory_equal_the_products(scene_and_catalogue):
     np.testing.assert_array_equal(frame.image, on_disk.image)
     assert frame.attrs["distance"] == on_disk.attrs["distance"]
 
+    # the NDData view round-trips to the same frame (photutils-style input)
+    back = Frame.from_nddata(frame.to_nddata(), truth=frame.truth)
+    np.testing.assert_array_equal(back.image, frame.image)
+    np.testing.assert_array_equal(back.bad, frame.bad)
+    assert back.sky == frame.sky and back.read_noise_var == frame.read_noise_var
+
     settings = {"psf_variation": "constant", "psf_stars_per_node": 20, "epsf_size": 21}
     stars, psf = mavispm.measure_stars(frame, settings, seed=0)
     out = stars_cli.run_stage(frames_path, settings, tmp / "m.h5", seed=0)

@@ -111,9 +111,11 @@ def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = Non
 
     Parameters
     ----------
-    frame : Frame
-        A rendered frame (:func:`mavispm.render_frame`) or one read from a
-        ``frames`` product (:func:`~mavispm.measure.stars.measure_frame.read_frame`).
+    frame : Frame or astropy.nddata.NDData
+        A rendered frame (:func:`mavispm.render_epoch`), one read from a
+        ``frames`` product (:func:`~mavispm.measure.stars.measure_frame.read_frame`),
+        or an NDData in adu whose ``meta`` holds the frame attributes and, for
+        forced photometry, ``truth`` (:meth:`~mavispm.core.frame.Frame.from_nddata`).
     settings : mapping or MeasureSettings, optional
         Stage settings (see :class:`MeasureSettings`); default: all defaults.
     seed : int, optional
@@ -130,6 +132,8 @@ def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = Non
         The frame's ePSF.
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
+    if not isinstance(frame, Frame):  # an astropy NDData in adu with the frame attributes
+        frame = Frame.from_nddata(frame)
     if frame.truth is None and not cfg.blind:
         raise InputError(
             "the frame has no truth table: forced photometry needs the input star list "
