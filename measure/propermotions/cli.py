@@ -172,6 +172,16 @@ def accuracy_attrs(stars) -> dict:
     the cluster's mean motion), and ``pm_frac_50uas``, the fraction of stars with
     ``|pm - pm_true| <= 50 microarcsec/yr`` (the paper's statistic). Stars with
     non-finite values are left out; an empty selection gives NaN.
+
+    Parameters
+    ----------
+    stars : QTable
+        A propermotions ``stars`` table.
+
+    Returns
+    -------
+    dict
+        The summaries above (quantities).
     """
     mas_yr = u.mas / u.yr
     ex, ey = (stars[c].to_value(mas_yr) for c in ("pm_x_err", "pm_y_err"))
@@ -193,7 +203,17 @@ def accuracy_attrs(stars) -> dict:
 
 
 def summary_line(path) -> str:
-    """One-line summary of a propermotions product (stars, matching, clipping, notes)."""
+    """One-line summary of a propermotions product (stars, matching, clipping, notes).
+
+    Parameters
+    ----------
+    path : path
+        A propermotions product.
+
+    Returns
+    -------
+    str
+    """
     prod = read_product(path, "propermotions", load_arrays=False)
     a = prod.attrs
     transform = json.loads(a["transform"]) if isinstance(a.get("transform"), str) else {}

@@ -92,6 +92,16 @@ class AccuracyData:
 def load_accuracy(path: str | os.PathLike) -> AccuracyData:
     """Read a propermotions product and compute per-star errors against the truth.
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A propermotions product with truth columns.
+
+    Returns
+    -------
+    AccuracyData
+        Per-star errors [microarcsec/yr] and their normalised values.
+
     Raises
     ------
     InputError
@@ -154,7 +164,18 @@ def _bin_rows(data: AccuracyData, which: np.ndarray, edges) -> QTable:
 
 
 def accuracy_by_magnitude(data: AccuracyData) -> QTable | None:
-    """Error statistics in the paper's magnitude bins (None without magnitudes)."""
+    """Error statistics in the paper's magnitude bins (None without magnitudes).
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+
+    Returns
+    -------
+    QTable or None
+        One row per magnitude bin (``mag_lo``, ``mag_hi`` [mag]).
+    """
     if data.mag is None:
         return None
     table = _bin_rows(data, data.mag, MAG_EDGES)
@@ -164,7 +185,20 @@ def accuracy_by_magnitude(data: AccuracyData) -> QTable | None:
 
 
 def accuracy_by_radius(data: AccuracyData, n_bins: int = 8) -> QTable:
-    """Error statistics in equal-count bins of cluster-centric radius."""
+    """Error statistics in equal-count bins of cluster-centric radius.
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+    n_bins : int
+        Number of equal-count radial bins.
+
+    Returns
+    -------
+    QTable
+        One row per bin (``R_lo``, ``R_hi`` [arcsec]).
+    """
     edges = np.unique(np.quantile(data.radius, np.linspace(0, 1, n_bins + 1)))
     edges[-1] = np.nextafter(edges[-1], np.inf)
     table = _bin_rows(data, data.radius, edges)
@@ -174,7 +208,20 @@ def accuracy_by_radius(data: AccuracyData, n_bins: int = 8) -> QTable:
 
 
 def paper_statistic(data: AccuracyData, threshold: float = 50.0) -> dict:
-    """Stars with ``m <= 25`` and ``m > 25`` meeting ``threshold`` microarcsec(/yr)."""
+    """Stars with ``m <= 25`` and ``m > 25`` meeting ``threshold`` microarcsec(/yr).
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+    threshold : float
+        [microarcsec/yr]
+
+    Returns
+    -------
+    dict
+        ``bright``/``faint``: (meeting, total) star counts.
+    """
     if data.mag is None:
         return {}
     ok = data.dpm <= threshold
@@ -186,7 +233,18 @@ def paper_statistic(data: AccuracyData, threshold: float = 50.0) -> dict:
 
 
 def residual_summary(data: AccuracyData) -> dict:
-    """Mean, std, and outlier fractions of the normalised residuals."""
+    """Mean, std, and outlier fractions of the normalised residuals.
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+
+    Returns
+    -------
+    dict
+        ``n``, ``mean``, ``std``, ``robust_std`` (MAD), ``frac_gt3``.
+    """
     z = data.z
     z = z[np.isfinite(z)]
     if z.size == 0:
