@@ -21,6 +21,15 @@ def deposit_cic(field: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndar
     """Add ``weight`` at sub-pixel positions (x, y) with cloud-in-cell weights (in place).
 
     Points whose 2x2 cell is partly outside ``field`` keep only the inside part.
+
+    Parameters
+    ----------
+    field : ndarray (ny, nx)
+        Grid added into.
+    x, y : ndarray
+        Positions [grid pixels].
+    weight : ndarray
+        Amount per point (any unit).
     """
     ny, nx = field.shape
     x0 = np.floor(x).astype(np.int64)

@@ -348,6 +348,11 @@ class StarRenderer:
         direct (matrix) DFT for any other sampling; only samples where
         some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
         kept (the optical transfer function vanishes beyond D/lambda).
+
+        Parameters
+        ----------
+        m : int
+            Stamp side [pixel].
         """
         return self.plans([m])[m]
 
@@ -357,6 +362,15 @@ class StarRenderer:
         Plans missing from memory are loaded from ``cache_dir`` or computed; stamp
         periods that divide one another (same odd factor, e.g. 128, 64, 32 pixels)
         share one FFT per PSF node (see :func:`_node_transforms_fft`).
+
+        Parameters
+        ----------
+        sizes : iterable of int
+            Stamp sides [pixel].
+
+        Returns
+        -------
+        dict of int to StampPlan
         """
         missing = sorted({int(m) for m in sizes} - set(self._plans))
         todo = []
