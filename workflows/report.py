@@ -80,6 +80,16 @@ BAD_FLAGS = 1 | 16 | 32
 def read_summary(rundir: str | os.PathLike) -> dict:
     """Read a run directory's summary.json.
 
+    Parameters
+    ----------
+    rundir : str or os.PathLike
+        A run directory.
+
+    Returns
+    -------
+    dict
+        The parsed ``summary.json``.
+
     Raises
     ------
     InputError
@@ -95,7 +105,17 @@ def read_summary(rundir: str | os.PathLike) -> dict:
 
 
 def bin_label(lo: float, hi: float) -> str:
-    """Magnitude-bin label in the paper's style (``m<16``, ``[16,17)``, ``m>=26``)."""
+    """Magnitude-bin label in the paper's style (``m<16``, ``[16,17)``, ``m>=26``).
+
+    Parameters
+    ----------
+    lo, hi : float
+        Bin edges [mag] (infinite for open bins).
+
+    Returns
+    -------
+    str
+    """
     if math.isinf(lo):
         return f"m<{hi:g}"
     if math.isinf(hi):
@@ -108,6 +128,15 @@ def clipped_dispersion(
 ) -> tuple[float, int]:
     """Standard deviation after ``iterations`` rounds of ``sigma`` clipping about the mean
     (:func:`astropy.stats.sigma_clip`, the paper's tab:simresults statistic).
+
+    Parameters
+    ----------
+    values : ndarray
+        Values (any unit; non-finite ones are dropped).
+    sigma : float
+        Clipping threshold [standard deviations].
+    iterations : int
+        Maximum clipping rounds.
 
     Returns
     -------
@@ -192,7 +221,22 @@ def _rel(path: Path, rundir: Path) -> str:
 
 
 def astrometry_by_magnitude(summary: Mapping, rundir: Path, outdir: Path) -> str:
-    """Recipe: the paper's per-magnitude astrometric dispersion table (tab:simresults)."""
+    """Recipe: the paper's per-magnitude astrometric dispersion table (tab:simresults).
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     import matplotlib.pyplot as plt
 
     nodes = _nodes(summary, "stars")
@@ -321,7 +365,22 @@ def _residual_panel(ax, mag, dx, title):
 
 
 def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
-    """Recipe: proper-motion error against magnitude and radius, per variant."""
+    """Recipe: proper-motion error against magnitude and radius, per variant.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     import matplotlib.pyplot as plt
 
     nodes = _nodes(summary, "propermotions")
@@ -444,7 +503,24 @@ def dispersion_profile(radius: np.ndarray, pm_x: np.ndarray, pm_y: np.ndarray, p
 
 
 def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: int = 300) -> str:
-    """Recipe: measured and true PM dispersion profiles of every study (fig:imbhresults)."""
+    """Recipe: measured and true PM dispersion profiles of every study (fig:imbhresults).
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+    per_bin : int
+        Stars per radial bin.
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     import matplotlib.pyplot as plt
 
     nodes = _nodes(summary, "propermotions")
@@ -509,6 +585,20 @@ def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
 
     One column per fit, one row per result (the key results of
     :data:`KEY_DYNAMICS_METRICS`); every scalar result goes to ``model_comparison.csv``.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
     """
     nodes = _nodes(summary, "dynamics")
     if not nodes:

@@ -91,6 +91,16 @@ def register(subparsers) -> None:
 def parse_overrides(items: list[str]) -> dict:
     """``KEY=VALUE`` strings to a dict; values are TOML literals, else plain strings.
 
+    Parameters
+    ----------
+    items : list of str
+        ``--set`` arguments.
+
+    Returns
+    -------
+    dict
+        Dotted key to value.
+
     Raises
     ------
     ConfigError
