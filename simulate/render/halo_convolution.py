@@ -148,6 +148,17 @@ def add_bilinear(out, coarse, ylo, yfrac, xlo, xfrac) -> None:  # pragma: no cov
     """``out[i, j] += `` the bilinear interpolation of ``coarse`` at (ylo + yfrac, xlo + xfrac).
 
     One pass over ``out`` in row order (no full-size temporary).
+
+    Parameters
+    ----------
+    out : ndarray (ny, nx)
+        Fine grid, added into.
+    coarse : ndarray
+        Coarse grid.
+    ylo, xlo : ndarray of int
+        Lower coarse index per fine row / column.
+    yfrac, xfrac : ndarray
+        Fractional coarse offsets per fine row / column.
     """
     ny, nx = out.shape
     ncx = coarse.shape[1]

@@ -86,7 +86,17 @@ def mix_kernel_fold(
 
 @numba.njit(nogil=True, cache=True)
 def add_stamps(image, stamps, x0, y0) -> None:  # pragma: no cover
-    """Add ``stamps`` (S, m, m) into ``image`` at corners (x0, y0), clipped at the edges."""
+    """Add ``stamps`` (S, m, m) into ``image`` at corners (x0, y0), clipped at the edges.
+
+    Parameters
+    ----------
+    image : ndarray (ny, nx)
+        Added into [electron].
+    stamps : ndarray (S, m, m)
+        Stamps [electron].
+    x0, y0 : ndarray of int
+        Lower-left corner of each stamp [pixel].
+    """
     ny, nx = image.shape
     m = stamps.shape[1]
     for s in range(stamps.shape[0]):

@@ -290,7 +290,18 @@ class StarRenderer:
         return self._cube.shape[-1] * self.psf_pixel_scale / self.pixel_scale
 
     def max_stamp(self, max_sigma_mas: float = 0.0) -> int:
-        """Largest stamp side needed: the PSF extent plus the kernel, in pixels."""
+        """Largest stamp side needed: the PSF extent plus the kernel, in pixels.
+
+        Parameters
+        ----------
+        max_sigma_mas : float
+            Largest tip-tilt/blur kernel sigma [mas].
+
+        Returns
+        -------
+        int
+            Stamp side [pixel].
+        """
         if self.params.max_stamp:
             return self.params.max_stamp
         need = self.psf_extent_pixels + 2 * (5 * max_sigma_mas / self.pixel_scale + 1)
@@ -645,6 +656,11 @@ def stamp_centre(pix) -> np.ndarray:
     the half, so that such a star gets the same stamp, offset by the same whole
     number of pixels, in every frame (the stamp is periodic: its centre pixel only
     decides which copy of the wing is kept, not where the star is).
+
+    Parameters
+    ----------
+    pix : array-like
+        Star positions [pixel].
     """
     return np.floor(np.asarray(pix, dtype=np.float64) + (0.5 + STAMP_CENTRE_BIAS)).astype(np.int64)
 
