@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 import numpy as np
@@ -28,6 +31,9 @@ from mavispm.measure.propermotions.pipeline import derive_proper_motions
 from mavispm.measure.propermotions.report import write_report
 from mavispm.measure.propermotions.settings import ProperMotionSettings, validate_settings
 
+if TYPE_CHECKING:
+    from astropy.table import QTable
+
 __all__ = [
     "ProperMotionSettings",
     "proper_motions",
@@ -39,7 +45,7 @@ __all__ = [
 ]
 
 
-def truth_from_catalogue(catalogue) -> dict:
+def truth_from_catalogue(catalogue: Catalogue | str | os.PathLike) -> dict:
     """True proper motions ``{"id", "pm_x", "pm_y"}`` [mas/yr] from a catalogue.
 
     Parameters
@@ -61,7 +67,11 @@ def truth_from_catalogue(catalogue) -> dict:
     }
 
 
-def proper_motions(measured, settings=None, truth=None):
+def proper_motions(
+    measured: Sequence,
+    settings: Mapping | ProperMotionSettings | None = None,
+    truth: Catalogue | str | os.PathLike | dict | None = None,
+) -> QTable:
     """Match, align and fit proper motions of measured epochs in memory.
 
     Parameters
@@ -163,7 +173,7 @@ def run_stage(measured, settings, output, truth=None) -> Path:
     )
 
 
-def accuracy_attrs(stars) -> dict:
+def accuracy_attrs(stars: QTable) -> dict:
     """Scalar accuracy summaries of a propermotions table (for sweep tables and plots).
 
     ``pm_err_median`` [mas/yr]: median per-axis reported PM error; with the truth

@@ -6,12 +6,16 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 import numpy as np
 
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product, validate_table
+
+if TYPE_CHECKING:
+    from astropy.table import Table
 
 __all__ = [
     "check_epochs",
@@ -126,7 +130,9 @@ def read_measured(path: str | os.PathLike) -> EpochCatalogue:
     return epoch_catalogue(prod.tables["stars"], prod.attrs, path=path)
 
 
-def epoch_catalogue(stars, attrs: Mapping | None = None, path=None) -> EpochCatalogue:
+def epoch_catalogue(
+    stars: Table, attrs: Mapping | None = None, path: str | os.PathLike | None = None
+) -> EpochCatalogue:
     """One epoch's measured stars (a ``measured`` ``stars`` table) as an :class:`EpochCatalogue`.
 
     Parameters

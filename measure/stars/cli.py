@@ -11,6 +11,7 @@ import json
 import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 import numpy as np
@@ -22,6 +23,11 @@ from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 from mavispm.measure.stars.settings import MeasureSettings, nest_knobs
+
+if TYPE_CHECKING:
+    from astropy.table import QTable
+
+    from mavispm.measure.stars.variable_psf import VariableEPSF
 
 __all__ = [
     "add_fitted_magnitudes",
@@ -74,7 +80,7 @@ def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
     return from_mapping(MeasureSettings, nest_knobs(settings, source), source=source)
 
 
-def add_fitted_magnitudes(stars, attrs) -> None:
+def add_fitted_magnitudes(stars: QTable, attrs: Mapping) -> None:
     """Add ``mag_fit`` and ``mag_fit_err`` [mag] from the fitted fluxes (in place).
 
     ``mag_fit = zero_point - 2.5 log10(flux / (exptime nexp))`` with the frame's
@@ -106,7 +112,9 @@ def add_fitted_magnitudes(stars, attrs) -> None:
     stars["mag_fit_err"] = mag_err * u.mag
 
 
-def measure_stars(frame: Frame, settings: Mapping | MeasureSettings | None = None, seed=None):
+def measure_stars(
+    frame: Frame, settings: Mapping | MeasureSettings | None = None, seed: int | None = None
+) -> tuple[QTable, VariableEPSF]:
     """Measure every star of a frame in memory.
 
     Parameters
@@ -176,7 +184,13 @@ def run_stage(
     return write_measured(output, stars, psf, cfg, seed)
 
 
-def write_measured(output, stars, psf, settings: MeasureSettings, seed=None) -> Path:
+def write_measured(
+    output: str | Path,
+    stars: QTable,
+    psf: VariableEPSF,
+    settings: MeasureSettings,
+    seed: int | None = None,
+) -> Path:
     """Write a ``measured`` product (atomically) from :func:`measure_stars`' results.
 
     Parameters
