@@ -9,7 +9,12 @@ Prints
 3. cost against number of field stars (end-to-end catalogue in memory and written
    to HDF5) with peak traced memory.
 
+4. the full multi-mass model (preset ngc3201-nbody with IMBH, Osipkov-Merritt anisotropy
+   and a black-hole subsystem): construction time of all DFs, and time and peak memory
+   for 1e5 and 1e6 field objects.
+
 Targets (2 cores): DF <= 0.5 s; 1e5 field stars <= 2 s; 1e6 <= 20 s; <= 2 GiB for 1e6.
+Multi-mass (issue 12): DFs <= 5 s; 1e5 objects <= 5 s, 1e6 <= 40 s, <= 2 GiB.
 
 Usage: ``python benchmarks/bench_cluster.py [--quick]``
 """
@@ -17,6 +22,7 @@ Usage: ``python benchmarks/bench_cluster.py [--quick]``
 from __future__ import annotations
 
 import argparse
+import resource
 import sys
 import tempfile
 import time
@@ -137,16 +143,50 @@ def bench_scaling(settings, sizes):
             del tables
 
 
+def bench_multimass(sizes):
+    print('\n== multi-mass model (ngc3201-nbody, IMBH 1500, r_a 300", BH subsystem 2000) ==')
+    settings = ClusterSettings(
+        preset="ngc3201-nbody",
+        imbh_mass=1500.0,
+        anisotropy_radius=300.0,
+        bh_subsystem_mass=2000.0,
+    )
+    t_model, model = _timed(build_cluster_model, settings)
+    n_groups = len(model.params["groups"])
+    print(
+        f"model set-up (params, {n_groups} groups, {len(model.components)} DFs): "
+        f"{t_model:.2f} s (target <= 5 s)"
+    )
+    print(f"{'n_stars':>9} {'objects':>9} {'simulate [s]':>12} {'peak [MiB]':>10}")
+    for n in sizes:
+        s = settings.replace(n_stars=n)
+        tracemalloc.start()
+        t_sim, (tables, _) = _timed(simulate_catalogue, s, 1, model)
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+        tracemalloc.stop()
+        print(f"{n:9d} {len(tables['e0']):9d} {t_sim:12.2f} {peak:10.0f}")
+        del tables
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10
+    print(f"process peak RSS so far: {rss:.0f} MiB (target <= 2048)")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes for development")
+    parser.add_argument(
+        "--multimass-only", action="store_true", help="only the multi-mass section (4)"
+    )
     args = parser.parse_args(argv)
+    if args.multimass_only:
+        bench_multimass([10_000] if args.quick else [70_000, 700_000])
+        return
     settings = ClusterSettings(imbh_mass=1500.0)
     bench_df(settings)
     bench_resolution(settings, 50_000 if args.quick else 400_000)
     bench_scaling(
         settings, [1_000, 10_000, 100_000] if args.quick else [1_000, 10_000, 100_000, 1_000_000]
     )
+    bench_multimass([10_000] if args.quick else [70_000, 700_000])
 
 
 if __name__ == "__main__":

@@ -34,6 +34,8 @@ __all__ = [
 ]
 
 CATALOGUE_KIND = "catalogue"
+#: Values of the optional catalogue column ``kind`` (what the object is).
+OBJECT_KINDS = ("star", "white_dwarf", "neutron_star", "black_hole", "imbh")
 
 #: Columns of every epoch table. Required columns are what the renderer needs;
 #: optional columns carry the dynamical truth.
@@ -54,8 +56,11 @@ CATALOGUE_SPEC = TableSpec(
         "vy": "km/s",
         "vz": "km/s",
         "luminous": "",  # bool; False for dark remnants (never rendered)
+        "teff": "K",  # effective temperature of luminous stars (NaN for dark objects)
     },
     id_column="id",
+    allow_nan=("teff",),
+    text={"kind": OBJECT_KINDS},  # star, white_dwarf, neutron_star, black_hole, imbh
 )
 
 

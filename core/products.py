@@ -83,6 +83,8 @@ class TableSpec:
         Columns in which NaN is allowed (for example errors of unmeasured stars).
     allow_empty : bool
         Whether a table with zero rows is valid.
+    text : dict of str to tuple of str
+        Text columns (no unit) and their allowed values (an empty tuple allows any).
     """
 
     required: Mapping[str, str]
@@ -90,6 +92,7 @@ class TableSpec:
     id_column: str | None = "id"
     allow_nan: tuple[str, ...] = ()
     allow_empty: bool = True
+    text: Mapping[str, tuple] = field(default_factory=dict)
 
 
 @dataclass
@@ -663,6 +666,9 @@ def validate_table(table, spec: TableSpec, path=None, table_name: str | None = N
                 path=path,
                 column=cname,
             )
+    for cname, allowed in spec.text.items():
+        if cname in colnames:
+            qt[cname] = _text_column(qt[cname], allowed, path, cname, where)
     if spec.id_column and spec.id_column in colnames and len(qt) > 0:
         ids = np.asarray(qt[spec.id_column])
         uniq, counts = np.unique(ids, return_counts=True)
@@ -670,6 +676,26 @@ def validate_table(table, spec: TableSpec, path=None, table_name: str | None = N
             dup = uniq[counts > 1][:5].tolist()
             raise InputError(f"duplicate IDs{where}: {dup}", path=path, column=spec.id_column)
     return qt
+
+
+def _text_column(col, allowed, path, cname: str, where: str) -> np.ndarray:
+    """A text column as a numpy str array, checked against its allowed values."""
+    arr = np.asarray(col)
+    if arr.dtype.kind == "S":
+        arr = np.char.decode(arr, "utf-8")
+    elif arr.dtype.kind == "O":
+        arr = arr.astype(str)
+    if arr.dtype.kind != "U":
+        raise InputError(f"expected text{where}, found dtype {arr.dtype}", path=path, column=cname)
+    if allowed:
+        bad = sorted(set(np.unique(arr).tolist()) - set(allowed))
+        if bad:
+            raise InputError(
+                f"unknown value(s) {bad[:5]}{where}; expected one of {list(allowed)}",
+                path=path,
+                column=cname,
+            )
+    return arr
 
 
 def _convert_column(col, unit: str, path, cname: str, where: str):

@@ -117,3 +117,111 @@ def sigma2_interpolator(ref: JeansReference, r_lo, r_hi, n=40):
     values = np.array([ref.projected_dispersion2(R) for R in grid])
     spline = CubicSpline(np.log(grid), values)
     return lambda R: spline(np.log(np.clip(R, r_lo, r_hi)))
+
+
+class MultiMassJeansReference:
+    """Osipkov-Merritt (or isotropic) Jeans profiles of one mass group in a total potential.
+
+    Independent of the generator's tables: only density *functions* are used, and
+    every integral is a ``scipy.integrate.quad``.
+
+    ``(r^2 + r_a^2) rho sigma_r^2 = int_r^inf (s^2 + r_a^2) rho G (M_tot(s) + M_BH) / s^2 ds``
+    (the OM Jeans equation with its integrating factor), ``beta = r^2 / (r^2 + r_a^2)``;
+    sky-plane projections (e.g. van der Marel & Anderson 2010):
+    ``Sigma sigma_R^2 = 2 int_0^inf (1 - beta + beta R^2 / r^2) rho sigma_r^2 dz``,
+    ``Sigma sigma_T^2 = 2 int_0^inf (1 - beta) rho sigma_r^2 dz``.
+
+    Parameters
+    ----------
+    density : callable
+        The group's density ``rho(r)`` [solMass/pc^3].
+    total_density : callable or JeansReference
+        Density of all groups (the potential's source) [solMass/pc^3], or a
+        :class:`JeansReference` of it (to share its enclosed mass between groups).
+    bh_mass : float
+        Central point mass [solMass].
+    r_min, r_max : float
+        Inner and outer radii [pc].
+    anisotropy_radius : float
+        OM radius [pc] (``inf``: isotropic).
+    beta : float
+        Constant anisotropy instead (needs ``anisotropy_radius = inf``):
+        ``r^(2 beta) rho sigma_r^2 = int_r^inf s^(2 beta) rho G M / s^2 ds``.
+    """
+
+    def __init__(
+        self, density, total_density, bh_mass, r_min, r_max, anisotropy_radius=np.inf, beta=0.0
+    ):
+        # M_tot(r) only; a prebuilt JeansReference of the total density may be passed
+        self.total = (
+            total_density
+            if isinstance(total_density, JeansReference)
+            else JeansReference(total_density, bh_mass, r_min, r_max)
+        )
+        self.rho = lambda r: float(density(np.asarray(r, float)))
+        self.bh = bh_mass
+        self.ra2 = anisotropy_radius**2
+        self.beta0 = beta
+        self.r_max = r_max
+        r = np.geomspace(r_min, r_max, 240)
+
+        def integrand(x):
+            w = (x * x + self.ra2) if np.isfinite(self.ra2) else x ** (2 * beta)
+            return w * self.rho(x) * G_PC * (self.total.mass(x) + self.bh) / x**2
+
+        p = [0.0]
+        for a, b in zip(r[::-1][1:], r[::-1][:-1]):
+            p.append(p[-1] + _quad(integrand, a, b, limit=100))
+        p = np.array(p[::-1])
+        self._r = r
+        self._lnp = CubicSpline(np.log(r[:-1]), np.log(p[:-1]))
+
+    def beta(self, r):
+        """Anisotropy ``r^2 / (r^2 + r_a^2)`` (or the constant ``beta``)."""
+        return self.beta0 if not np.isfinite(self.ra2) else r * r / (r * r + self.ra2)
+
+    def rho_sigma_r2(self, r):
+        """``rho sigma_r^2`` [solMass/pc^3 (km/s)^2]."""
+        if r >= self._r[-2]:
+            return 0.0
+        value = float(np.exp(self._lnp(np.log(max(r, self._r[0])))))
+        return (
+            value * r ** (-2 * self.beta0)
+            if not np.isfinite(self.ra2)
+            else value / (r * r + self.ra2)
+        )
+
+    def projected_pm2(self, R):
+        """Sky-plane radial and tangential dispersions squared at ``R`` [(km/s)^2]."""
+        zmax = np.sqrt(max(self.r_max**2 - R * R, 0.0))
+        kw = {"limit": 200, "points": [R]}
+
+        def radial(z):
+            r = np.hypot(R, z)
+            b = self.beta(r)
+            return (1 - b + b * R * R / (r * r)) * self.rho_sigma_r2(r)
+
+        def tangential(z):
+            r = np.hypot(R, z)
+            return (1 - self.beta(r)) * self.rho_sigma_r2(r)
+
+        sigma = 2 * _quad(lambda z: self.rho(np.hypot(R, z)), 0, zmax, **kw)
+        return (
+            2 * _quad(radial, 0, zmax, **kw) / sigma,
+            2 * _quad(tangential, 0, zmax, **kw) / sigma,
+        )
+
+
+def pm2_interpolators(ref: MultiMassJeansReference, r_lo, r_hi, n=20):
+    """Vectorised ``sigma_R^2(R)``, ``sigma_T^2(R)`` interpolators (cubic in ln R)."""
+    grid = np.geomspace(r_lo, r_hi, n)
+    values = np.array([ref.projected_pm2(R) for R in grid])
+    splines = [CubicSpline(np.log(grid), values[:, k]) for k in range(2)]
+    return [lambda R, s=s: s(np.log(np.clip(R, r_lo, r_hi))) for s in splines]
+
+
+def sky_components(stars):
+    """Projected radius [pc] and sky-plane radial / tangential velocities [km/s]."""
+    R = np.hypot(stars["x"], stars["y"])
+    cx, sy = stars["x"] / R, stars["y"] / R
+    return R, stars["vx"] * cx + stars["vy"] * sy, -stars["vx"] * sy + stars["vy"] * cx

@@ -116,3 +116,37 @@ def test_n_stars_for_circle_gives_the_requested_inner_count():
     t = tables["e0"]
     inner = (np.hypot(t["x"], t["y"]).to_value(u.arcsec) < 17.0) & t["luminous"]
     assert abs(inner.sum() - 2000) < 4 * np.sqrt(2000)
+
+
+def test_mass_groups_match_quadrature_of_the_mass_function():
+    """Group numbers and mean masses against scipy quad of the IMF and the IFMRs."""
+    from scipy.integrate import quad
+
+    mf = pop.MassFunction(alpha_low=0.5)
+    groups = pop.mass_groups(mf, True, ns_retention=0.1, bh_retention=0.5)
+
+    def dn(m):  # unnormalised broken power law
+        return (
+            m**-mf.alpha_low
+            if m < mf.mass_break
+            else (mf.mass_break ** (mf.alpha_high - mf.alpha_low) * m**-mf.alpha_high)
+        )
+
+    total = quad(dn, mf.mass_min, mf.mass_break)[0] + quad(dn, mf.mass_break, mf.mass_max)[0]
+    final = {
+        "star": lambda m: m,
+        "white_dwarf": lambda m: min(0.109 * m + 0.394, 1.2),
+        "neutron_star": lambda m: 1.3 + 0.1 * (m - 8.0) / 17.0,
+        "black_hole": lambda m: min(5.0 + (m - 25.0) / 3.0, 30.0),
+    }
+    keep = {"neutron_star": 0.1, "black_hole": 0.5}
+    kinds = [g.kind for g in groups]
+    assert kinds == ["star"] * 4 + ["white_dwarf"] * 2 + ["neutron_star", "black_hole"]
+    for g in groups:
+        pts = [mf.mass_break] if g.lo < mf.mass_break < g.hi else None
+        n = quad(dn, g.lo, g.hi, points=pts)[0] / total * keep.get(g.kind, 1.0)
+        fin = final[g.kind]
+        m = quad(lambda x, fin=fin: dn(x) * fin(x), g.lo, g.hi, points=pts, limit=200)[0]
+        m = m / total * keep.get(g.kind, 1.0)
+        assert g.number == pytest.approx(n, rel=1e-6)
+        assert g.mean_mass == pytest.approx(m / n, rel=2e-4)

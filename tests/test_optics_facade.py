@@ -112,15 +112,53 @@ def test_run_stage_and_cli(tmp_path):
     )
     assert rc == 0
     pngs = sorted(p.name for p in (tmp_path / "plots").glob("*.png"))
-    assert pngs == ["distortion_map.png", "psf_grid.png", "psf_profile.png", "tiptilt_map.png"]
+    assert pngs == [
+        "distortion_map.png",
+        "psf_grid.png",
+        "psf_profile.png",
+        "tiptilt_kernel_map.png",
+        "tiptilt_map.png",
+    ]
     bad = tmp_path / "bad.toml"
     bad.write_text("[scene.optics.psf]\nwavelenght = 500\n")
     assert main(["simulate", "optics", "--scene", str(bad), "-o", str(tmp_path / "x.h5")]) == 2
 
 
+def test_product_holds_tt_kernel_map(tmp_path):
+    table = small_table(n_nodes=3)
+    table["tiptilt"] = {"asterism": "bad", "scale_factor": 3.0}
+    table["atmosphere"] = {"seeing": "0.7 arcsec", "zenith_angle": "20 deg"}
+    out = optics_cli.run_stage(table, tmp_path / "g.h5", cache_dir=tmp_path / "c", progress=False)
+    optics = build_optics(validate_settings(table), cache_dir=tmp_path / "c", progress=False)
+    with open_product(out, "psfgrid") as f:
+        major = np.asarray(f["tt_sigma_major"])
+        minor = np.asarray(f["tt_sigma_minor"])
+        angle = np.asarray(f["tt_angle"])
+        assert f["tt_sigma_major"].attrs["unit"] == "mas"
+        assert f["tt_angle"].attrs["unit"] == "deg"
+        nx, ny = np.asarray(f["nodes_x"]), np.asarray(f["nodes_y"])
+        assert float(f.attrs["seeing"]) == pytest.approx(0.7)
+        assert float(f.attrs["zenith_angle"]) == pytest.approx(20.0)
+        assert f.attrs["asterism"] == "bad"
+        assert float(f.attrs["tt_scale_factor"]) == pytest.approx(3.0)
+    assert major.shape == minor.shape == angle.shape == (3, 3)
+    assert np.all(major >= minor) and np.all(minor > 0)
+    assert np.all((angle >= 0) & (angle < 180))
+    # the three numbers rebuild the covariance of the TT field at every node
+    gx, gy = np.meshgrid(nx, ny)
+    cov = optics.tiptilt.covariance(gx.ravel(), gy.ravel())
+    t = np.radians(angle.ravel())
+    u1 = np.stack([np.cos(t), np.sin(t)], -1)
+    u2 = np.stack([-np.sin(t), np.cos(t)], -1)
+    rebuilt = (major.ravel() ** 2)[:, None, None] * np.einsum("ni,nj->nij", u1, u1) + (
+        minor.ravel() ** 2
+    )[:, None, None] * np.einsum("ni,nj->nij", u2, u2)
+    np.testing.assert_allclose(rebuilt, cov, rtol=1e-6, atol=1e-9)
+
+
 def test_file_mode_through_facade(tmp_path):
     hdus = [fits.PrimaryHDU()]
-    hdus[0].header["PIXSCALE"] = 1.0
+    hdus[0].header["PIXSCALE"] = (2.0, "[mas]")
     for y in (-10.0, 10.0):
         for x in (-10.0, 10.0):
             yy, xx = np.indices((65, 65)) - 32

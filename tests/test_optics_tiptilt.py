@@ -14,6 +14,7 @@ from mavispm.simulate.optics.tiptilt import (
     TipTiltField,
     TipTiltSettings,
     field_average_sigma,
+    kernel_map,
     ngs_noise_variance,
 )
 
@@ -57,6 +58,17 @@ def test_anisoplanatism_elongated_along_ngs_axis():
     # on the NGS itself (bright star) the residual is small
     on = TipTiltField(s, ATM, PUPIL).covariance([20.0], [0.0])[0]
     assert np.trace(on) < 0.2 * np.trace(cov)
+
+
+@pytest.mark.parametrize("angle", [0.0, 45.0, 90.0, 150.0])
+def test_kernel_map_major_axis_points_at_the_ngs(angle):
+    """One NGS at position angle phi: the anisoplanatic kernel at the centre is elongated
+    along the centre-NGS axis (tilt anisoplanatism is larger parallel to the separation)."""
+    s = TipTiltSettings(asterism="custom", ngs=((25.0, angle, 8.0),))
+    km = kernel_map(TipTiltField(s, ATM, PUPIL), np.array([0.0]), np.array([0.0]))
+    assert km.sigma_major[0] > km.sigma_minor[0] > 0
+    diff = (km.angle[0] - angle + 90.0) % 180.0 - 90.0
+    assert abs(diff) < 1.0
 
 
 def test_scale_factor_and_switch():

@@ -42,7 +42,7 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
         raise ConfigError(str(exc), key="preset", source=source) from None
     if obj.cusp_gamma is not None:
         try:
-            check_isotropic_df_exists(obj.cusp_gamma, obj.imbh_mass)
+            check_isotropic_df_exists(obj.cusp_gamma, obj.imbh_mass, obj.anisotropy_beta)
         except NoIsotropicDFError as exc:
             raise ConfigError(str(exc), key="cusp_gamma", source=source) from None
     if obj.external.path and obj.external.format == "mavisim" and not obj.external.pm_convention:
@@ -118,6 +118,11 @@ _OPTION_KEYS = {
     "cusp_gamma": "cusp_gamma",
     "distance": "distance",
     "stellar_mass": "stellar_mass",
+    "anisotropy_radius": "anisotropy_radius",
+    "anisotropy_beta": "anisotropy_beta",
+    "bh_subsystem_mass": "bh_subsystem_mass",
+    "segregation": "segregation",
+    "core_collapse": "core_collapse",
 }
 
 
@@ -156,9 +161,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "cluster",
         help="equilibrium cluster catalogue (with or without IMBH) or external star list",
-        description="Draw the stars in the imaged field from an isotropic cluster model "
-        "(Eddington DF in the stars + IMBH potential), or import an N-body snapshot or "
-        "MAVISIM source list, and write a catalogue product with one table per epoch.",
+        description="Draw the objects in the imaged field from an equilibrium cluster model "
+        "(multi-mass, optionally mass-segregated, isotropic or Osipkov-Merritt DFs in the total "
+        "potential of stars, remnants and IMBH), or import an N-body snapshot or MAVISIM "
+        "source list, and write a catalogue product with one table per epoch.",
     )
     p.add_argument("-o", "--output", required=True, help="output catalogue (HDF5)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -176,6 +182,35 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--distance", type=float, help="distance in kpc (default: preset)")
     p.add_argument("--stellar-mass", type=float, help="stellar mass in solMass (default: preset)")
+    p.add_argument(
+        "--anisotropy-radius",
+        type=float,
+        metavar="ARCSEC",
+        help="Osipkov-Merritt anisotropy radius in arcsec (omitted: isotropic)",
+    )
+    p.add_argument(
+        "--anisotropy-beta",
+        type=float,
+        metavar="BETA",
+        help="constant velocity anisotropy in (-0.5, 0.5) (Cuddeford DF; default 0)",
+    )
+    p.add_argument(
+        "--bh-subsystem-mass",
+        type=float,
+        metavar="MSUN",
+        help="total mass of a central subsystem of 10-20 solMass black holes (default 0)",
+    )
+    p.add_argument(
+        "--segregation",
+        type=float,
+        help="mass-segregation exponent, scale radius ~ mass^-s (0 = none; default: preset)",
+    )
+    p.add_argument(
+        "--core-collapse",
+        action="store_const",
+        const=True,
+        help="core-collapse-like cusp without an IMBH (3-D slope 1.8 unless --cusp-gamma)",
+    )
     p.add_argument("--input", help="external N-body snapshot or MAVISIM source list")
     p.add_argument("--input-format", choices=["auto", "csv", "ecsv", "fits", "hdf5", "mavisim"])
     p.add_argument(

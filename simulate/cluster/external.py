@@ -29,6 +29,7 @@ import astropy.units as u
 import numpy as np
 from astropy.table import Table
 
+from mavispm.core.catalogue import OBJECT_KINDS
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, validate_table
 from mavispm.simulate.cluster import population as pop
@@ -51,12 +52,14 @@ SPEC_3D = TableSpec(
     optional={"id": "", "mass": "solMass", "mag": "mag", "luminous": ""},
     id_column="id",
     allow_empty=False,
+    text={"kind": OBJECT_KINDS},
 )
 SPEC_PROJECTED = TableSpec(
     required={"x": "arcsec", "y": "arcsec", "pm_x": "mas/yr", "pm_y": "mas/yr"},
     optional={"id": "", "mass": "solMass", "mag": "mag", "luminous": ""},
     id_column="id",
     allow_empty=False,
+    text={"kind": OBJECT_KINDS},
 )
 MAVISIM_COLUMNS = ("Star", "RA", "Dec", "X", "Y", "Flux", "PM_X", "PM_Y")
 
@@ -156,16 +159,23 @@ def _mavisim_to_projected(table: Table, ext: ExternalInput, path) -> Table:
         if ext.pm_convention == "arcsec_per_baseline":
             values = values / (ext.pm_baseline * u.yr)
         out[dst] = values
+    mass_col = next((c for c in ("mass", "Mass") if c in table.colnames), None)
+    if mass_col:
+        out["mass"] = _as_quantity(table[mass_col], u.solMass)
+    dark = np.zeros(len(table), bool)
+    if "Flux" in table.colnames:
+        flux = np.asarray(table["Flux"], float)
+        if np.any(~(flux >= 0)):
+            raise InputError("Flux must be finite and non-negative", path=path, column="Flux")
+        dark = flux < ext.dark_flux
+        out["luminous"] = ~dark
     mag_col = next((c for c in ("mag", "V", "Vmag") if c in table.colnames), None)
     if mag_col:
         out["mag"] = _as_quantity(table[mag_col], u.mag)
     elif "Flux" in table.colnames and ext.flux_zeropoint is not None:
-        flux = np.asarray(table["Flux"], float)
-        if np.any(~(flux > 0)):
-            raise InputError(
-                "Flux must be positive to convert to magnitudes", path=path, column="Flux"
-            )
-        out["mag"] = (ext.flux_zeropoint - 2.5 * np.log10(flux)) * u.mag
+        mag = np.full(len(table), pop.DARK_MAGNITUDE)
+        mag[~dark] = ext.flux_zeropoint - 2.5 * np.log10(flux[~dark])
+        out["mag"] = mag * u.mag
     else:
         raise InputError(
             "no magnitude: add a 'mag' or 'V' column, or set external.flux_zeropoint "
@@ -243,6 +253,14 @@ def read_external_stars(ext: ExternalInput, settings, distance: float, extinctio
     }
     if "mass" in checked.colnames:
         stars["mass"] = checked["mass"].to_value(u.solMass)
+    if "kind" in checked.colnames:
+        stars["kind"] = np.asarray(checked["kind"], str)
+        if np.any((stars["kind"] == "star") != luminous):
+            raise InputError(
+                "'kind' must be 'star' exactly for luminous objects", path=path, column="kind"
+            )
+    elif "mass" in stars:
+        stars["kind"] = pop.kind_from_mass(stars["mass"], luminous)
     if spec is SPEC_3D:
         pos = {k: checked[k].to_value(u.pc) for k in ("x", "y", "z")}
         vel = {k: checked[k].to_value(u.km / u.s) for k in ("vx", "vy", "vz")}

@@ -12,6 +12,16 @@ without generating the rest of the cluster:
    (quantile table in ``t = asinh(z / R)``, rows in ``ln R``);
 4. the speed from ``p(v | r) ~ v^2 f(Psi(r) - v^2/2)`` (quantile table of
    ``q = v / v_esc`` on rows in ``ln Psi``) and an isotropic direction.
+   For an Osipkov-Merritt DF ``f(Q)``, ``Q = Psi - (v_r^2 + w_t^2) / 2`` with
+   ``w_t = v_t sqrt(1 + r^2/r_a^2)``: the vector ``(v_r, w_t)`` is drawn exactly
+   as an isotropic velocity from ``f(Q)`` and the tangential part is divided
+   by ``sqrt(1 + r^2/r_a^2)`` (the Jacobian of this map is constant at fixed
+   r, so the density is ``rho_Q / (1 + r^2/r_a^2) = rho``).
+   For a constant-beta DF ``L^(-2 beta) g(E)``, in polar coordinates of the
+   ``(v_r, v_t)`` plane the density separates: the speed follows
+   ``v^(2 - 2 beta) g(Psi - v^2/2)`` and ``mu = cos(angle to r)`` follows
+   ``(1 - mu^2)^(-beta)``, i.e. ``(1 + mu) / 2 ~ Beta(1 - beta, 1 - beta)``
+   (exact inverse CDF), with a uniform azimuth about the radius vector.
 
 Every star is bound by construction (``q < 1``). All draws are inverse-CDF
 maps of uniform numbers, so two models fed the same uniforms give coupled
@@ -27,6 +37,7 @@ from typing import Literal
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
+from scipy.special import betaincinv
 
 from mavispm.simulate.cluster.eddington import DistributionFunction
 from mavispm.simulate.cluster.inverse_cdf import (
@@ -136,6 +147,10 @@ class FieldSampler:
     sigma_rows : tuple of ndarray
         ``(R, Sigma)`` surface density [pc, solMass/pc^2] on the table rows.
     model : MassModel
+    anisotropy_radius : float
+        Osipkov-Merritt radius [pc] of the DF (``inf``: isotropic).
+    beta : float
+        Constant anisotropy of the DF (0: isotropic or Osipkov-Merritt).
     """
 
     half_size: float
@@ -147,6 +162,8 @@ class FieldSampler:
     speed_table: QuantileTable
     sigma_rows: tuple
     model: MassModel
+    anisotropy_radius: float = np.inf
+    beta: float = 0.0
 
     def sample(self, region: Region, u_pos: np.ndarray, u_vel: np.ndarray) -> dict:
         """Map uniforms to stars in ``region``.
@@ -182,16 +199,48 @@ class FieldSampler:
         cos_pol = 2.0 * u_vel[:, 1] - 1.0
         sin_pol = np.sqrt(np.maximum(1.0 - cos_pol**2, 0.0))
         phi = 2.0 * np.pi * u_vel[:, 2]
+        x, y = R * np.cos(theta), R * np.sin(theta)
+        if self.beta != 0:
+            v = _constant_beta_velocity(np.stack([x, y, z]), speed, u_vel, self.beta)
+        else:
+            v = np.stack([sin_pol * np.cos(phi), sin_pol * np.sin(phi), cos_pol]) * speed
+        if np.isfinite(self.anisotropy_radius):
+            v = _osipkov_merritt_velocity(v, np.stack([x, y, z]), self.anisotropy_radius)
         return {
-            "x": R * np.cos(theta),
-            "y": R * np.sin(theta),
+            "x": x,
+            "y": y,
             "z": z,
             "r3d": r3d,
-            "vx": speed * sin_pol * np.cos(phi),
-            "vy": speed * sin_pol * np.sin(phi),
-            "vz": speed * cos_pol,
+            "vx": v[0],
+            "vy": v[1],
+            "vz": v[2],
             "psi": psi,
         }
+
+
+def _constant_beta_velocity(pos, speed, u_vel, beta: float) -> np.ndarray:
+    """Velocities of a constant-beta DF: ``mu = cos(v, r)`` from ``(1 - mu^2)^(-beta)``."""
+    mu = 2.0 * betaincinv(1.0 - beta, 1.0 - beta, u_vel[:, 1]) - 1.0
+    phi = 2.0 * np.pi * u_vel[:, 2]
+    r = np.sqrt(np.sum(pos**2, axis=0))
+    rhat = pos / np.maximum(r, 1e-300)
+    # an orthonormal basis (rhat, e1, e2): e1 from the axis least aligned with rhat
+    helper = np.where(np.abs(rhat[2]) < 0.9, 1.0, 0.0)
+    ref = np.stack([1.0 - helper, np.zeros_like(helper), helper])
+    e1 = np.cross(rhat, ref, axis=0)
+    e1 /= np.sqrt(np.sum(e1**2, axis=0))
+    e2 = np.cross(rhat, e1, axis=0)
+    sin_mu = np.sqrt(np.maximum(1.0 - mu**2, 0.0))
+    return speed * (mu * rhat + sin_mu * (np.cos(phi) * e1 + np.sin(phi) * e2))
+
+
+def _osipkov_merritt_velocity(w: np.ndarray, pos: np.ndarray, ra: float) -> np.ndarray:
+    """Velocities from isotropic ``(v_r, w_t)`` draws: ``v_t = w_t / sqrt(1 + r^2/r_a^2)``."""
+    r = np.sqrt(np.sum(pos**2, axis=0))
+    rhat = pos / np.maximum(r, 1e-300)
+    v_r = np.sum(w * rhat, axis=0)
+    tangential = w - v_r * rhat
+    return v_r * rhat + tangential / np.sqrt(1.0 + (r / ra) ** 2)
 
 
 def _los_quantiles(model: MassModel, radii: np.ndarray, res: SamplerResolution, levels):
@@ -205,9 +254,9 @@ def _los_quantiles(model: MassModel, radii: np.ndarray, res: SamplerResolution, 
 
 
 def _speed_quantiles(df: DistributionFunction, psi_rows: np.ndarray, res, levels):
-    """Quantiles of q = v / sqrt(2 Psi) on rows of Psi."""
+    """Quantiles of q = v / sqrt(2 Psi) on rows of Psi (``q^(2 - 2 beta) f``)."""
     q = np.linspace(0.0, 1.0, res.n_speed)
-    pdf = q[None, :] ** 2 * df(psi_rows[:, None] * (1.0 - q[None, :] ** 2))
+    pdf = q[None, :] ** (2.0 - 2.0 * df.beta) * df(psi_rows[:, None] * (1.0 - q[None, :] ** 2))
     return quantiles_from_pdf(q, pdf, levels)
 
 
@@ -224,7 +273,8 @@ def build_field_sampler(
     ----------
     model : MassModel
     df : DistributionFunction
-        Isotropic DF of ``model`` (from :func:`~mavispm.simulate.cluster.eddington.eddington_df`).
+        DF of ``model`` (from :func:`~mavispm.simulate.cluster.eddington.eddington_df`),
+        isotropic or Osipkov-Merritt.
     half_size : float
         Half the side of the square field [pc].
     margin : float
@@ -266,5 +316,15 @@ def build_field_sampler(
     speed = _speed_quantiles(df, psi_rows, res, levels)
     speed_table = QuantileTable(np.log(psi_rows), np.nan_to_num(speed, nan=0.5))
     return FieldSampler(
-        half_size, outer, grid, cdfs, masses, los_table, speed_table, (rows, sigma), model
+        half_size,
+        outer,
+        grid,
+        cdfs,
+        masses,
+        los_table,
+        speed_table,
+        (rows, sigma),
+        model,
+        df.anisotropy_radius,
+        df.beta,
     )

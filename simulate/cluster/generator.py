@@ -31,9 +31,11 @@ from astropy.table import QTable
 from mavispm.simulate.cluster import population as pop
 from mavispm.simulate.cluster.eddington import (
     DistributionFunction,
+    NoIsotropicDFError,
     check_isotropic_df_exists,
     eddington_df,
 )
+from mavispm.simulate.cluster.effective_temperature import effective_temperature
 from mavispm.simulate.cluster.field_sampler import (
     FieldSampler,
     SamplerResolution,
@@ -44,8 +46,11 @@ from mavispm.simulate.cluster.profiles import (
     MassModel,
     TracerProfile,
     build_mass_model,
+    build_multi_mass_model,
     central_dispersion_cored,
     influence_radius,
+    king_solution,
+    king_w0_for_truncation,
     projected_radii,
 )
 from mavispm.simulate.cluster.projection import (
@@ -60,27 +65,117 @@ from mavispm.simulate.cluster.settings import ClusterSettings
 
 #: Inner cusp slope used by default when an IMBH is present (N-body models).
 DEFAULT_CUSP_GAMMA = 1.55
-#: Star groups in stream order: (region, luminous).
-GROUPS = (("field", True), ("frame", True), ("field", False), ("frame", False))
+#: Inner 3-D slope of the core-collapse-like cusp (projected slope -0.8 of post-core-collapse
+#: clusters, Djorgovski & King 1986; Lugger, Cohn & Grindlay 1995).
+CORE_COLLAPSE_GAMMA = 1.8
+#: Default black-hole-subsystem scale radius, in scale radii of the reference group.
+BH_SUBSYSTEM_RADIUS = 0.4
+#: Regions in stream order.
+REGIONS = ("field", "frame")
 #: Largest ratio of stars drawn to stars kept for an offset field.
 MAX_OFFSET_OVERSAMPLING = 200.0
+#: IDs: object ``i`` of stream ``k`` (group ``k // 2``, region ``k % 2``) gets
+#: ``(k + 1) * ID_STRIDE + i``; the IMBH, when present, gets :data:`IMBH_ID`.
+ID_STRIDE = 10**9
+IMBH_ID = 0
 
 
 @dataclass(frozen=True)
-class ClusterModel:
-    """A mass model with its isotropic DF and its parameters.
+class Component:
+    """Groups sharing one density shape: their mass model and DF.
 
     Attributes
     ----------
     mass : MassModel
+        The component's density in the total potential.
     df : DistributionFunction
-    params : dict
-        See :func:`resolve_model_params`.
+    groups : tuple of int
+        Indices into ``params["groups"]``.
     """
 
     mass: MassModel
     df: DistributionFunction
+    groups: tuple
+
+
+@dataclass(frozen=True)
+class ClusterModel:
+    """A (multi-mass) cluster model with its DFs and its parameters.
+
+    Attributes
+    ----------
+    components : tuple of Component
+        One per distinct density shape (one for an unsegregated model).
+    params : dict
+        See :func:`resolve_model_params`.
+    """
+
+    components: tuple
     params: dict
+
+    @property
+    def mass(self) -> MassModel:
+        """Mass model of the first component (the whole cluster when unsegregated)."""
+        return self.components[0].mass
+
+    @property
+    def df(self) -> DistributionFunction:
+        """DF of the first component (the whole cluster when unsegregated)."""
+        return self.components[0].df
+
+    def total_density(self, r) -> np.ndarray:
+        """Density of all components [solMass/pc^3] at ``r`` [pc] (no IMBH)."""
+        return np.sum([c.mass.density(r) for c in self.components], axis=0)
+
+
+def _mass_function(settings, preset=None) -> pop.MassFunction:
+    preset = preset or get_preset(settings.preset)
+    return pop.MassFunction(
+        settings.mass_min,
+        settings.mass_break,
+        settings.mass_max,
+        preset.alpha_low if settings.alpha_low is None else settings.alpha_low,
+        preset.alpha_high if settings.alpha_high is None else settings.alpha_high,
+    )
+
+
+def _pick(settings, preset, key):
+    value = getattr(settings, key)
+    return getattr(preset, key) if value is None else value
+
+
+def _population_groups(settings, preset, mf, total_mass: float) -> list[dict]:
+    """Mass groups with their total masses [solMass] (see :func:`resolve_model_params`)."""
+    groups = pop.mass_groups(
+        mf,
+        settings.include_remnants,
+        _pick(settings, preset, "ns_retention"),
+        _pick(settings, preset, "bh_retention"),
+    )
+    bhs = float(settings.bh_subsystem_mass)
+    if bhs > 0:
+        if bhs >= 0.5 * total_mass:
+            raise ValueError(
+                f"'bh_subsystem_mass' ({bhs:g} solMass) must be below half the cluster mass "
+                f"({total_mass:g} solMass)"
+            )
+        groups = [g for g in groups if g.kind != "black_hole"] + [pop.black_hole_subsystem(bhs)]
+    rest = sum(g.mass for g in groups if not g.fixed_range)
+    out = []
+    for g in groups:
+        mass = g.mass if g.fixed_range else (total_mass - bhs) * g.mass / rest
+        out.append(
+            {
+                "kind": g.kind,
+                "lo": g.lo,
+                "hi": g.hi,
+                "fixed_range": g.fixed_range,
+                "mass": float(mass),
+                "mean_mass": float(g.mean_mass),
+                "number": float(mass / g.mean_mass),
+            }
+        )
+    return out
 
 
 def resolve_model_params(settings: ClusterSettings) -> dict:
@@ -89,17 +184,25 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
     Returns
     -------
     dict
-        ``tracer``, ``king_w0``, ``stellar_mass`` [solMass], ``scale_radius`` [pc],
-        ``bh_mass`` [solMass], ``cusp_gamma``, ``cusp_radius`` [pc],
+        ``tracer``, ``king_w0``, ``stellar_mass`` [solMass] (all stars and remnants,
+        no IMBH), ``scale_radius`` [pc] (of the reference group, mass
+        ``reference_mass``), ``bh_mass`` [solMass], ``cusp_gamma``, ``cusp_radius`` [pc],
         ``distance`` [kpc], ``extinction_v`` [mag], ``truncation_radius`` [pc],
-        ``core_radius``, ``half_mass_radius_projected`` [pc] (of the cored tracer,
-        without cusp), ``central_dispersion_cored`` [km/s] (1-D, no IMBH),
-        ``ra_center``, ``dec_center`` [deg], ``preset``.
+        ``core_radius``, ``half_mass_radius_projected`` [pc] (of the cored reference
+        profile, without cusp), ``central_dispersion_cored`` [km/s] (1-D, single-mass,
+        no IMBH), ``ra_center``, ``dec_center`` [deg], ``preset``, ``segregation``,
+        ``reference_mass`` [solMass], ``anisotropy_radius`` [pc] (None: isotropic),
+        ``bh_subsystem_mass`` [solMass], ``core_collapse``, and ``groups``: one dict per
+        mass group with ``kind``, ``lo``, ``hi`` (initial-mass range [solMass]; final
+        masses for ``fixed_range`` groups), ``mass`` (total [solMass]), ``mean_mass``
+        [solMass], ``number``, ``scale_radius`` [pc] and ``king_w0``; and
+        ``anisotropy_beta`` (constant anisotropy, 0 unless set).
 
     Raises
     ------
     ValueError
-        Unknown preset, or a cored tracer around an IMBH (An & Evans 2006).
+        Unknown preset, a cored tracer around an IMBH (An & Evans 2006), or an
+        impossible setting combination.
     """
     observed = observed_params(settings)
     preset = get_preset(settings.preset)
@@ -110,8 +213,12 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
     bh = float(settings.imbh_mass)
     gamma = settings.cusp_gamma
     if gamma is None:
-        gamma = DEFAULT_CUSP_GAMMA if bh > 0 else 0.0
-    check_isotropic_df_exists(gamma, bh)
+        gamma = (
+            DEFAULT_CUSP_GAMMA
+            if bh > 0
+            else (CORE_COLLAPSE_GAMMA if settings.core_collapse else 0.0)
+        )
+    check_isotropic_df_exists(gamma, bh, settings.anisotropy_beta)
     unit_core, unit_half = projected_radii(TracerProfile(tracer_kind, 1.0, w0))
     if settings.scale_radius is not None:
         scale = float(settings.scale_radius)
@@ -123,9 +230,25 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
     if gamma > 0:
         cusp_radius = settings.cusp_radius
         if cusp_radius is None:
-            ref_bh = bh if bh > 0 else 0.01 * mass
-            cusp_radius = influence_radius(cored, mass, ref_bh)
+            if bh > 0 or not settings.core_collapse:
+                ref_bh = bh if bh > 0 else 0.01 * mass
+                cusp_radius = influence_radius(cored, mass, ref_bh)
+            else:
+                cusp_radius = scale
     tracer = TracerProfile(tracer_kind, scale, w0, gamma, cusp_radius)
+    segregation = float(_pick(settings, preset, "segregation"))
+    groups = _population_groups(settings, preset, _mass_function(settings, preset), mass)
+    m_ref = pop.tip_mass()
+    for g in groups:
+        if g["fixed_range"] and settings.bh_subsystem_radius is not None:
+            g_scale = float(settings.bh_subsystem_radius)
+        elif g["fixed_range"]:
+            g_scale = BH_SUBSYSTEM_RADIUS * scale
+        else:
+            g_scale = scale * (g["mean_mass"] / m_ref) ** -segregation
+        g["scale_radius"] = g_scale
+        g["king_w0"] = _group_w0(tracer_kind, w0, scale, g_scale)
+    ra = settings.anisotropy_radius
     return {
         **observed,
         "tracer": tracer_kind,
@@ -139,6 +262,13 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
         "core_radius": unit_core * scale,
         "half_mass_radius_projected": unit_half * scale,
         "central_dispersion_cored": central_dispersion_cored(cored, mass),
+        "segregation": segregation,
+        "reference_mass": m_ref,
+        "anisotropy_radius": None if ra is None else float(arcsec_to_pc(ra, distance)),
+        "anisotropy_beta": float(settings.anisotropy_beta),
+        "bh_subsystem_mass": float(settings.bh_subsystem_mass),
+        "core_collapse": bool(settings.core_collapse),
+        "groups": groups,
         "units": {
             **observed["units"],
             "stellar_mass": "solMass",
@@ -148,8 +278,27 @@ def resolve_model_params(settings: ClusterSettings) -> dict:
             "core_radius": "pc",
             "half_mass_radius_projected": "pc",
             "central_dispersion_cored": "km/s",
+            "reference_mass": "solMass",
+            "anisotropy_radius": "pc",
+            "bh_subsystem_mass": "solMass",
         },
     }
+
+
+def _group_w0(kind: str, w0: float, scale: float, group_scale: float) -> float:
+    """King W0 of a group: the one that keeps the reference truncation radius."""
+    if kind != "king" or group_scale == scale:
+        return w0
+    try:
+        return king_w0_for_truncation(
+            king_solution(float(w0))[2] * scale / group_scale, guess=float(w0)
+        )
+    except ValueError:
+        raise ValueError(
+            f"'segregation' too strong for a King model: a group with scale radius "
+            f"{group_scale:.3g} pc cannot share the truncation radius; lower segregation, "
+            "bh_subsystem_radius, or use tracer = 'plummer'"
+        ) from None
 
 
 def observed_params(settings: ClusterSettings) -> dict:
@@ -182,7 +331,11 @@ def observed_params(settings: ClusterSettings) -> dict:
 
 
 def model_from_params(params: dict, n_energy: int = 800) -> ClusterModel:
-    """Rebuild the mass model and DF from a ``model_params`` dict.
+    """Rebuild the mass model and DFs from a ``model_params`` dict.
+
+    Groups with the same scale radius and W0 share one component (one density
+    shape, one DF). Catalogues written before multi-mass models (no ``groups``)
+    give one component of all the mass.
 
     Parameters
     ----------
@@ -191,16 +344,54 @@ def model_from_params(params: dict, n_energy: int = 800) -> ClusterModel:
         ``model_params`` attribute, a JSON string, after ``json.loads``).
     n_energy : int
         Energy grid size of the DF table.
+
+    Raises
+    ------
+    NoIsotropicDFError
+        If a component has no non-negative DF; the message names the component.
     """
-    tracer = TracerProfile(
-        params["tracer"],
-        params["scale_radius"],
-        params["king_w0"],
-        params["cusp_gamma"],
-        params["cusp_radius"],
-    )
-    mass = build_mass_model(tracer, params["stellar_mass"], params["bh_mass"])
-    return ClusterModel(mass, eddington_df(mass, n_energy=n_energy), dict(params))
+    groups = params.get("groups") or [
+        {"scale_radius": params["scale_radius"], "king_w0": params["king_w0"], "mass": 1.0}
+    ]
+    keys = []
+    for g in groups:
+        key = (round(g["scale_radius"], 12), g["king_w0"])
+        if key not in keys:
+            keys.append(key)
+    members = [
+        tuple(i for i, g in enumerate(groups) if (round(g["scale_radius"], 12), g["king_w0"]) == k)
+        for k in keys
+    ]
+    weights = np.array([sum(groups[i]["mass"] for i in m) for m in members])
+    masses = params["stellar_mass"] * weights / weights.sum()
+    tracers = [
+        TracerProfile(params["tracer"], a, w, params["cusp_gamma"], params["cusp_radius"])
+        for a, w in keys
+    ]
+    if len(tracers) == 1:
+        models = [build_mass_model(tracers[0], params["stellar_mass"], params["bh_mass"])]
+    else:
+        models = build_multi_mass_model(tracers, masses, params["bh_mass"])
+    ra = params.get("anisotropy_radius")
+    ra = np.inf if ra is None else float(ra)
+    components = []
+    for model, member in zip(models, members):
+        try:
+            df = eddington_df(
+                model,
+                n_energy=n_energy,
+                anisotropy_radius=ra,
+                beta=params.get("anisotropy_beta", 0.0),
+            )
+        except NoIsotropicDFError as exc:
+            if len(models) == 1:
+                raise
+            kinds = sorted({groups[i].get("kind", "star") for i in member})
+            raise NoIsotropicDFError(
+                f"mass group(s) {kinds} with scale radius {model.tracer.scale_radius:.3g} pc: {exc}"
+            ) from None
+        components.append(Component(model, df, member))
+    return ClusterModel(tuple(components), dict(params))
 
 
 def build_cluster_model(settings: ClusterSettings) -> ClusterModel:
@@ -208,28 +399,32 @@ def build_cluster_model(settings: ClusterSettings) -> ClusterModel:
     return model_from_params(resolve_model_params(settings), settings.resolution.n_energy)
 
 
-def _streams(seed: int):
-    """Per-group (population, position, velocity) generators."""
-    children = np.random.SeedSequence(seed).spawn(len(GROUPS))
+def _streams(seed: int, n_streams: int):
+    """Per-stream (population, position, velocity) generators."""
+    children = np.random.SeedSequence(seed).spawn(n_streams)
     return [[np.random.default_rng(s) for s in child.spawn(3)] for child in children]
 
 
-def _group_counts(settings, sampler: FieldSampler, n_field: int) -> list[int]:
-    mf = _mass_function(settings)
-    frame = sampler.region_mass["frame"] / max(sampler.region_mass["field"], 1e-300)
-    n_lum = [n_field, int(round(n_field * frame))]
-    ratio = pop.remnant_ratio(mf) if settings.include_remnants else 0.0
-    return n_lum + [int(round(n * ratio)) for n in n_lum]
+def _group_counts(groups, fractions, n_field: int) -> np.ndarray:
+    """Objects per (group, region): expected numbers with exactly ``n_field`` luminous in the field.
 
-
-def _mass_function(settings) -> pop.MassFunction:
-    return pop.MassFunction(
-        settings.mass_min,
-        settings.mass_break,
-        settings.mass_max,
-        settings.alpha_low,
-        settings.alpha_high,
-    )
+    ``fractions[i][j]`` is the fraction of group ``i``'s mass in region ``j``.
+    """
+    expect = np.array([[g["number"] * f for f in fr] for g, fr in zip(groups, fractions)])
+    lum = np.array([g["kind"] == "star" for g in groups])
+    total = expect[lum, 0].sum()
+    if n_field == 0 or total <= 0:
+        return np.zeros(expect.shape, int)
+    expect *= n_field / total
+    counts = np.rint(expect).astype(int)
+    # largest remainder: the luminous field counts sum to n_field exactly
+    lum_idx = np.flatnonzero(lum)
+    base = np.floor(expect[lum_idx, 0]).astype(int)
+    short = n_field - base.sum()
+    order = np.argsort(-(expect[lum_idx, 0] - base), kind="stable")
+    base[order[:short]] += 1
+    counts[lum_idx, 0] = base
+    return counts
 
 
 def _field_geometry(settings, distance):
@@ -243,9 +438,12 @@ def _field_geometry(settings, distance):
     return arcsec_to_pc(big, distance), 0.0
 
 
-def _field_sampler(settings, model: ClusterModel) -> FieldSampler:
+def _field_samplers(settings, model: ClusterModel) -> list[FieldSampler]:
     half, margin = _field_geometry(settings, model.params["distance"])
-    return build_field_sampler(model.mass, model.df, half, margin, settings.resolution)
+    return [
+        build_field_sampler(c.mass, c.df, half, margin, settings.resolution)
+        for c in model.components
+    ]
 
 
 def _offset_field_fraction(settings, sampler: FieldSampler, distance) -> float:
@@ -265,8 +463,37 @@ def _offset_field_fraction(settings, sampler: FieldSampler, distance) -> float:
     return mass / max(sampler.region_mass["field"], 1e-300)
 
 
+def _group_fractions(model: ClusterModel, samplers) -> list[list[float]]:
+    """Fraction of each group's mass in the field and in the frame."""
+    out = [None] * len(model.params.get("groups") or [0])
+    for comp, sampler in zip(model.components, samplers):
+        total = comp.mass.stellar_mass
+        fr = [sampler.region_mass[r] / total for r in REGIONS]
+        for i in comp.groups:
+            out[i] = fr
+    return out
+
+
+def _luminous_weights(model: ClusterModel, fractions) -> np.ndarray:
+    """Share of each component in the luminous stars of the field."""
+    groups = _groups(model)
+    w = np.zeros(len(model.components))
+    for k, comp in enumerate(model.components):
+        w[k] = sum(groups[i]["number"] * fractions[i][0] for i in comp.groups if _lum(groups[i]))
+    return w / max(w.sum(), 1e-300)
+
+
+def _groups(model: ClusterModel) -> list[dict]:
+    """The model's groups (old single-mass parameter sets: one luminous group)."""
+    return model.params.get("groups") or [{"kind": "star", "number": 1.0, "mass": 1.0}]
+
+
+def _lum(group: dict) -> bool:
+    return group["kind"] == "star"
+
+
 def sample_stars(settings: ClusterSettings, seed: int, model: ClusterModel | None = None):
-    """Draw the stars in the field and its margin at the reference epoch.
+    """Draw the objects in the field and its margin at the reference epoch.
 
     Parameters
     ----------
@@ -280,50 +507,116 @@ def sample_stars(settings: ClusterSettings, seed: int, model: ClusterModel | Non
     stars : dict of ndarray
         Cluster-frame truth: ``x, y, z, r3d`` [pc], ``vx, vy, vz`` [km/s] (sky axes,
         z along the line of sight away from the observer), ``mass`` [solMass],
-        ``mag`` [mag], ``luminous`` (bool), ``id`` (int64), ``region``
-        (0 field, 1 margin).
+        ``mag`` [mag], ``luminous`` (bool), ``kind`` (str), ``group`` (index into
+        ``model_params["groups"]``, -1 for the IMBH), ``id`` (int64), ``region``
+        (0 field, 1 margin). Order: luminous field, luminous margin, dark field,
+        dark margin (each by group). The IMBH is not included (see
+        :func:`simulate_catalogue`).
     model : ClusterModel
     """
     model = model or build_cluster_model(settings)
     distance = model.params["distance"]
-    sampler = _field_sampler(settings, model)
+    samplers = _field_samplers(settings, model)
+    groups = _groups(model)
+    fractions = _group_fractions(model, samplers)
     offset_mode = bool(settings.offset_x or settings.offset_y)  # see _field_geometry
     n_field = settings.n_stars
-    if sampler.region_mass["field"] <= 0 and settings.n_stars > 0:
+    weights = _luminous_weights(model, fractions)
+    if settings.n_stars > 0 and not any(
+        fractions[i][0] > 0 for i, g in enumerate(groups) if _lum(g)
+    ):
         raise ValueError("the field holds no cluster stars (is it beyond the tidal radius?)")
     if offset_mode:
-        fraction = _offset_field_fraction(settings, sampler, distance)
+        fraction = sum(
+            w * _offset_field_fraction(settings, s, distance) for w, s in zip(weights, samplers)
+        )
         if settings.n_stars > 0 and fraction * MAX_OFFSET_OVERSAMPLING < 1:
             raise ValueError(
                 f"the offset field holds only {fraction:.1e} of the stars of the square "
                 "enclosing it; field-only sampling would need too many stars: reduce the offset"
             )
         n_field = int(round(settings.n_stars / max(fraction, 1e-300)))
-    counts = _group_counts(settings, sampler, n_field)
+    counts = _group_counts(groups, fractions, n_field)
+    sampler_of = {i: samplers[k] for k, c in enumerate(model.components) for i in c.groups}
     mf = _mass_function(settings)
+    streams = _streams(seed, 2 * len(groups))
     parts = []
-    for (region, luminous), n, (rng_pop, rng_pos, rng_vel) in zip(GROUPS, counts, _streams(seed)):
-        u_mass = rng_pop.random(n)
-        if luminous:
-            mass = mf.sample(u_mass, hi=pop.tip_mass())
-            mag = pop.apparent_v(mass, distance, model.params["extinction_v"])
-        else:
-            mass = pop.remnant_mass(mf.sample(u_mass, lo=pop.tip_mass()))
-            mag = np.full(n, pop.DARK_MAGNITUDE)
-        stars = sampler.sample(region, rng_pos.random((n, 4)), rng_vel.random((n, 3)))
-        stars.update(
-            mass=mass,
-            mag=mag,
-            luminous=np.full(n, luminous),
-            region=np.full(n, 0 if region == "field" else 1),
-        )
-        parts.append(stars)
+    for luminous in (True, False):
+        for j, region in enumerate(REGIONS):
+            for i, g in enumerate(groups):
+                if _lum(g) != luminous:
+                    continue
+                n = int(counts[i, j])
+                rng_pop, rng_pos, rng_vel = streams[2 * i + j]
+                mass = _group_masses(g, mf, rng_pop.random(n))
+                if luminous:
+                    mag = pop.apparent_v(mass, distance, model.params["extinction_v"])
+                    teff = effective_temperature(mass)
+                else:
+                    mag = np.full(n, pop.DARK_MAGNITUDE)
+                    teff = np.full(n, np.nan)
+                stars = sampler_of[i].sample(region, rng_pos.random((n, 4)), rng_vel.random((n, 3)))
+                stars.update(
+                    mass=mass,
+                    mag=mag,
+                    teff=teff,
+                    luminous=np.full(n, luminous),
+                    kind=np.full(n, g["kind"]),
+                    group=np.full(n, i),
+                    region=np.full(n, j),
+                    id=(2 * i + j + 1) * ID_STRIDE + np.arange(n, dtype=np.int64),
+                )
+                parts.append(stars)
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "psi"}
-    out["id"] = np.arange(out["x"].size, dtype=np.int64)
     if offset_mode:
         keep = _in_offset_field(settings, out, distance)
         out = {k: v[keep] for k, v in out.items()}
     return out, model
+
+
+def _group_masses(group: dict, mf: pop.MassFunction, uniform: np.ndarray) -> np.ndarray:
+    """Present-day masses [solMass] of a group's objects from uniforms."""
+    if "lo" not in group:  # single-mass parameter sets: luminous stars of the mass function
+        return mf.sample(uniform, hi=pop.tip_mass())
+    g = pop.MassGroup(
+        group["kind"],
+        group["lo"],
+        group["hi"],
+        group["number"],
+        group["mass"],
+        group["fixed_range"],
+    )
+    return g.sample_masses(mf, uniform)
+
+
+def with_imbh(stars: dict, settings: ClusterSettings, bh_mass: float) -> dict:
+    """Append the IMBH (kind ``imbh``, id :data:`IMBH_ID`) if it lies in the field or margin."""
+    if not bh_mass > 0:
+        return stars
+    row = _imbh_row(bh_mass)
+    xf, yf, _, _ = sky_to_field(
+        0.0, 0.0, 0.0, 0.0, (settings.offset_x, settings.offset_y), settings.rotation
+    )
+    if not in_square(xf, yf, 0.5 * settings.field_size + settings.margin):
+        return stars
+    row["region"][0] = 0 if in_square(xf, yf, 0.5 * settings.field_size) else 1
+    return {k: np.concatenate([v, row[k]]) for k, v in stars.items() if k in row}
+
+
+def _imbh_row(bh_mass: float) -> dict:
+    """The IMBH as a catalogue row: at rest at the centre, dark."""
+    zero = np.zeros(1)
+    return {
+        **{k: zero for k in ("x", "y", "z", "r3d", "vx", "vy", "vz")},
+        "mass": np.array([bh_mass]),
+        "mag": np.array([pop.DARK_MAGNITUDE]),
+        "teff": np.array([np.nan]),
+        "luminous": np.array([False]),
+        "kind": np.array(["imbh"]),
+        "group": np.array([-1]),
+        "region": np.array([0]),
+        "id": np.array([IMBH_ID], np.int64),
+    }
 
 
 def _in_offset_field(settings, stars, distance):
@@ -359,9 +652,13 @@ def n_stars_for_circle(
         raise ValueError(f"radius must be in (0, field_size/2], got {radius} arcsec")
     model = model or build_cluster_model(settings)
     distance = model.params["distance"]
-    sampler = _field_sampler(settings, model)
-    grid, cdf = sampler.radius_grid, sampler.radius_cdf["field"]
-    fraction = float(np.interp(arcsec_to_pc(radius, distance), grid, cdf))
+    samplers = _field_samplers(settings, model)
+    weights = _luminous_weights(model, _group_fractions(model, samplers))
+    r_pc = arcsec_to_pc(radius, distance)
+    fraction = sum(
+        w * float(np.interp(r_pc, s.radius_grid, s.radius_cdf["field"]))
+        for w, s in zip(weights, samplers)
+    )
     return int(round(n_circle / max(fraction, 1e-300)))
 
 
@@ -402,7 +699,7 @@ def stars_to_epoch_tables(stars: dict, settings: ClusterSettings, distance: floa
         (settings.pm_sys_x, settings.pm_sys_y),
     )
     truth = {}
-    for key, unit in (("mass", u.solMass), ("r3d", u.pc), ("z", u.pc)):
+    for key, unit in (("mass", u.solMass), ("r3d", u.pc), ("z", u.pc), ("teff", u.K)):
         if key in stars:
             truth[key] = np.asarray(stars[key], float) * unit
     if "vx" in stars:
@@ -414,6 +711,8 @@ def stars_to_epoch_tables(stars: dict, settings: ClusterSettings, distance: floa
         )
     if "luminous" in stars:
         truth["luminous"] = np.asarray(stars["luminous"], bool)
+    if "kind" in stars:
+        truth["kind"] = np.asarray(stars["kind"], str)
     tables = {}
     for i, epoch in enumerate(sorted(settings.epochs)):
         xe, ye = propagate(xf, yf, pmxf, pmyf, epoch, settings.reference_epoch)
@@ -468,12 +767,23 @@ def simulate_catalogue(settings: ClusterSettings, seed: int, model: ClusterModel
     """
     stars, model = sample_stars(settings, seed, model)
     params = model.params
+    stars = with_imbh(stars, settings, params["bh_mass"])
     tables = stars_to_epoch_tables(stars, settings, params["distance"])
-    name = f"isotropic {params['tracer']}"
+    ra = params.get("anisotropy_radius")
+    name = "isotropic" if ra is None else f"Osipkov-Merritt r_a={ra:.3g} pc"
+    if params.get("anisotropy_beta", 0):
+        name = f"constant beta={params['anisotropy_beta']:g}"
+    name += f" {params['tracer']}"
     if params["tracer"] == "king":
         name += f" W0={params['king_w0']:g}"
+    if params.get("segregation", 0) > 0:
+        name += f" multi-mass segregation={params['segregation']:g}"
+    if params.get("bh_subsystem_mass", 0) > 0:
+        name += f" + BH subsystem {params['bh_subsystem_mass']:g} Msun"
     if params["cusp_gamma"] > 0:
         name += f" + cusp gamma={params['cusp_gamma']:g}"
+        if params.get("core_collapse") and params["bh_mass"] == 0:
+            name += " (core collapse)"
     if params["bh_mass"] > 0:
         name += f" + IMBH {params['bh_mass']:g} Msun"
     return tables, catalogue_attrs(settings, params, name)
@@ -481,6 +791,7 @@ def simulate_catalogue(settings: ClusterSettings, seed: int, model: ClusterModel
 
 __all__ = [
     "ClusterModel",
+    "Component",
     "SamplerResolution",
     "build_cluster_model",
     "catalogue_attrs",

@@ -1,16 +1,22 @@
 """Stellar population of an old metal-poor cluster: masses, V magnitudes, remnants.
 
-* Masses from a broken power-law initial mass function
+* Masses from a broken power-law mass function
   ``dN/dm ~ m^-alpha_low`` below ``mass_break`` and ``m^-alpha_high`` above
-  (Kroupa 2001 slopes by default).
+  (Kroupa 2001 slopes by default; a flatter ``alpha_low`` mimics the
+  present-day mass function of a dynamically evolved cluster).
 * Stars with initial mass up to the RGB tip are luminous; their absolute V
   magnitude follows a mass-luminosity relation for a ~12 Gyr, [Fe/H] ~ -1.5
   population (main sequence, turn-off, sub-giant and red-giant branches; an
   approximation to Dartmouth/BaSTI isochrones, no horizontal branch).
-* More massive stars are dark remnants (white dwarfs by the Kalirai et al.
-  2008 initial-final mass relation, neutron stars above 8 solMass, black holes
-  above 25 solMass). They are kept in the truth with ``luminous=False`` and
-  a placeholder magnitude :data:`DARK_MAGNITUDE`; they are never rendered.
+* More massive stars are dark remnants from initial-final mass relations:
+  white dwarfs (Kalirai et al. 2008, 0.49-1.2 solMass), neutron stars above
+  8 solMass (1.3-1.4 solMass) and black holes above 25 solMass (5-30 solMass,
+  the range of low-metallicity models, e.g. Belczynski et al. 2010). Neutron
+  stars and black holes are kept with a retention fraction (natal kicks). They
+  are in the truth with ``luminous=False`` and a placeholder magnitude
+  :data:`DARK_MAGNITUDE`; they are never rendered.
+* The objects are split into mass groups (:func:`mass_groups`), each of which
+  gets its own density profile in a multi-mass model (``generator.py``).
 * Apparent V = M_V + distance modulus + extinction A_V.
 """
 
@@ -150,11 +156,60 @@ def absolute_v(mass: np.ndarray) -> np.ndarray:
     return out
 
 
-def remnant_mass(initial: np.ndarray) -> np.ndarray:
-    """Remnant mass [solMass]: WD (Kalirai et al. 2008), NS (1.4) or BH (10 % of M_init)."""
+#: Initial masses [solMass] separating white dwarfs, neutron stars and black holes.
+NS_PROGENITOR_MIN = 8.0
+BH_PROGENITOR_MIN = 25.0
+#: Mass range [solMass] of the black holes of a black-hole subsystem (``bh_subsystem_mass``).
+BH_SUBSYSTEM_RANGE = (10.0, 20.0)
+
+
+def white_dwarf_mass(initial) -> np.ndarray:
+    """White-dwarf mass [solMass] (Kalirai et al. 2008 IFMR, capped at 1.2 solMass)."""
+    return np.minimum(0.109 * np.asarray(initial, float) + 0.394, 1.2)
+
+
+def neutron_star_mass(initial) -> np.ndarray:
+    """Neutron-star mass [solMass]: 1.3 at 8 solMass rising to 1.4 at 25 solMass."""
     m = np.asarray(initial, float)
-    wd = np.minimum(0.109 * m + 0.394, 1.35)
-    return np.where(m < 8.0, wd, np.where(m < 25.0, 1.4, 0.1 * m))
+    t = (m - NS_PROGENITOR_MIN) / (BH_PROGENITOR_MIN - NS_PROGENITOR_MIN)
+    return 1.3 + 0.1 * np.clip(t, 0.0, 1.0)
+
+
+def black_hole_mass(initial) -> np.ndarray:
+    """Black-hole mass [solMass]: 5 at 25 solMass rising linearly to 30 at 100 solMass."""
+    m = np.asarray(initial, float)
+    return np.clip(5.0 + (m - BH_PROGENITOR_MIN) / 3.0, 5.0, 30.0)
+
+
+def remnant_kind(initial) -> np.ndarray:
+    """Kind of the remnant of stars of initial ``mass`` above the RGB tip."""
+    m = np.asarray(initial, float)
+    return np.where(
+        m < NS_PROGENITOR_MIN,
+        "white_dwarf",
+        np.where(m < BH_PROGENITOR_MIN, "neutron_star", "black_hole"),
+    )
+
+
+def remnant_mass(initial) -> np.ndarray:
+    """Remnant mass [solMass] of stars of initial mass ``initial`` (WD, NS or BH)."""
+    m = np.asarray(initial, float)
+    return np.where(
+        m < NS_PROGENITOR_MIN,
+        white_dwarf_mass(m),
+        np.where(m < BH_PROGENITOR_MIN, neutron_star_mass(m), black_hole_mass(m)),
+    )
+
+
+def kind_from_mass(mass, luminous) -> np.ndarray:
+    """Best guess of ``kind`` from a present-day mass [solMass] (external lists).
+
+    Luminous objects are stars; dark ones are white dwarfs below 1.25 solMass,
+    neutron stars up to 3 solMass and black holes above.
+    """
+    m = np.asarray(mass, float)
+    dark = np.where(m < 1.25, "white_dwarf", np.where(m <= 3.0, "neutron_star", "black_hole"))
+    return np.where(np.asarray(luminous, bool), "star", dark)
 
 
 def distance_modulus(distance_kpc: float) -> float:
@@ -169,8 +224,112 @@ def apparent_v(mass: np.ndarray, distance_kpc: float, extinction_v: float) -> np
     return absolute_v(mass) + distance_modulus(distance_kpc) + extinction_v
 
 
-def remnant_ratio(mf: MassFunction) -> float:
-    """Number of dark remnants per luminous star for this mass function."""
-    lum = mf.number_fraction(mf.mass_min, tip_mass())
-    dark = mf.number_fraction(tip_mass(), mf.mass_max)
-    return dark / lum if lum > 0 else 0.0
+#: Upper initial-mass edges [solMass] of the luminous-star groups (the last ends at the tip).
+STAR_GROUP_EDGES = (0.3, 0.5, 0.7)
+#: Initial mass [solMass] splitting the white dwarfs into two groups (final mass 0.6 solMass).
+WD_GROUP_SPLIT = 1.89
+
+
+@dataclass(frozen=True)
+class MassGroup:
+    """One mass group of the multi-mass model (objects of one kind in a mass range).
+
+    Parameters
+    ----------
+    kind : str
+        ``star``, ``white_dwarf``, ``neutron_star`` or ``black_hole``.
+    lo, hi : float
+        Initial (progenitor) mass range [solMass] (for ``fixed_range`` groups: the
+        final mass range).
+    number : float
+        Objects per star of the mass function (retention applied), or the absolute
+        number for ``fixed_range`` groups.
+    mass : float
+        Their total mass, in the same normalisation as ``number`` [solMass].
+    fixed_range : bool
+        Final masses uniform in [lo, hi] (the black-hole subsystem) instead of
+        the mass function and an initial-final mass relation.
+    """
+
+    kind: str
+    lo: float
+    hi: float
+    number: float
+    mass: float
+    fixed_range: bool = False
+
+    @property
+    def luminous(self) -> bool:
+        """Whether the group's objects shine (stars)."""
+        return self.kind == "star"
+
+    @property
+    def mean_mass(self) -> float:
+        """Mean present-day mass [solMass]."""
+        return self.mass / self.number
+
+    def sample_masses(self, mf: MassFunction, uniform: np.ndarray) -> np.ndarray:
+        """Present-day masses [solMass] of objects of this group from uniforms."""
+        u = np.asarray(uniform, float)
+        if self.fixed_range:
+            return self.lo + (self.hi - self.lo) * u
+        initial = mf.sample(u, lo=self.lo, hi=self.hi)
+        return initial if self.luminous else remnant_mass(initial)
+
+
+def _final_mass(kind: str, initial: np.ndarray) -> np.ndarray:
+    return initial if kind == "star" else remnant_mass(initial)
+
+
+def _group_moments(mf: MassFunction, kind: str, lo: float, hi: float, n: int = 4001):
+    """Number fraction and mass per mass-function star of the group [solMass]."""
+    lo, hi = max(lo, mf.mass_min), min(hi, mf.mass_max)
+    if hi <= lo:
+        return 0.0, 0.0
+    number = mf.number_fraction(lo, hi)
+    levels = (np.arange(n) + 0.5) / n  # midpoint rule in the group's own quantile
+    mean = float(np.mean(_final_mass(kind, mf.sample(levels, lo=lo, hi=hi))))
+    return number, number * mean
+
+
+def mass_groups(
+    mf: MassFunction,
+    include_remnants: bool = True,
+    ns_retention: float = 1.0,
+    bh_retention: float = 1.0,
+) -> list[MassGroup]:
+    """Mass groups of a population, numbers and masses per mass-function star.
+
+    Stars are split at :data:`STAR_GROUP_EDGES` up to the RGB tip, white dwarfs
+    at a final mass of 0.6 solMass; neutron stars and black holes (retained
+    fractions ``ns_retention``, ``bh_retention``) form one group each. Empty
+    groups are dropped.
+
+    Returns
+    -------
+    list of MassGroup
+    """
+    tip = tip_mass()
+    edges = [mf.mass_min, *[e for e in STAR_GROUP_EDGES if mf.mass_min < e < tip], tip]
+    spec = [("star", a, b, 1.0) for a, b in zip(edges[:-1], edges[1:])]
+    if include_remnants:
+        spec += [
+            ("white_dwarf", tip, WD_GROUP_SPLIT, 1.0),
+            ("white_dwarf", WD_GROUP_SPLIT, NS_PROGENITOR_MIN, 1.0),
+            ("neutron_star", NS_PROGENITOR_MIN, BH_PROGENITOR_MIN, ns_retention),
+            ("black_hole", BH_PROGENITOR_MIN, np.inf, bh_retention),
+        ]
+    groups = []
+    for kind, lo, hi, keep in spec:
+        number, mass = _group_moments(mf, kind, lo, hi)
+        if number * keep > 0:
+            lo, hi = max(lo, mf.mass_min), min(hi, mf.mass_max)
+            groups.append(MassGroup(kind, lo, hi, float(number * keep), float(mass * keep)))
+    return groups
+
+
+def black_hole_subsystem(total_mass: float) -> MassGroup:
+    """A black-hole group of ``total_mass`` [solMass], masses uniform in 10-20 solMass."""
+    lo, hi = BH_SUBSYSTEM_RANGE
+    mean = 0.5 * (lo + hi)
+    return MassGroup("black_hole", lo, hi, total_mass / mean, total_mass, fixed_range=True)

@@ -27,6 +27,7 @@ import astropy.units as u
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, solve_ivp
 from scipy.interpolate import CubicSpline
+from scipy.optimize import brentq
 from scipy.special import gammainc
 
 #: Newton's constant in pc (km/s)^2 / solMass.
@@ -62,7 +63,7 @@ def king_density_of_w(w: np.ndarray) -> np.ndarray:
     return np.exp(w) * gammainc(2.5, w)
 
 
-@functools.lru_cache(maxsize=32)
+@functools.lru_cache(maxsize=512)
 def king_solution(w0: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Solve King's Poisson equation for central potential ``w0``.
 
@@ -169,7 +170,34 @@ class TracerProfile:
         return self.core_shape(r) * self.cusp_factor(r)
 
 
-@functools.lru_cache(maxsize=32)
+@functools.lru_cache(maxsize=256)
+def king_w0_for_truncation(x_t: float, guess: float | None = None) -> float:
+    """King W0 whose truncation radius is ``x_t`` King radii.
+
+    ``guess`` (a nearby W0) narrows the first bracket to ``guess +- 1.5``.
+
+    Raises
+    ------
+    ValueError
+        If ``x_t`` is outside what W0 in [0.1, 20] gives.
+    """
+    lo, hi = 0.1, 20.0
+    f_lo = np.log(king_solution(lo)[2] / x_t)
+    f_hi = np.log(king_solution(hi)[2] / x_t)
+    if f_lo > 0 or f_hi < 0:
+        raise ValueError(
+            f"no King model (W0 in [0.1, 20]) has a truncation radius of {x_t:.3g} King radii"
+        )
+    if guess is not None:  # a narrow bracket first (most groups are close to the reference)
+        a, b = max(lo, guess - 1.5), min(hi, guess + 1.5)
+        if np.log(king_solution(a)[2] / x_t) <= 0 <= np.log(king_solution(b)[2] / x_t):
+            lo, hi = a, b
+    # ln x_t(W0) is smooth and monotonic: Brent's method needs a handful of King solutions
+    w0 = brentq(lambda w: np.log(king_solution(w)[2] / x_t), lo, hi, xtol=1e-4, rtol=1e-8)
+    return round(float(w0), 4)
+
+
+@functools.lru_cache(maxsize=512)
 def _king_spline(w0: float) -> CubicSpline:
     x, w, _ = king_solution(w0)
     return CubicSpline(x, w)
@@ -196,6 +224,10 @@ class MassModel:
     r, rho, mass, psi : ndarray
         Radial grid [pc], density [solMass/pc^3], enclosed stellar mass
         [solMass] and relative potential [(km/s)^2].
+    potential_mass : ndarray or None
+        For one component of a multi-mass model: the enclosed mass of *all*
+        components [solMass] (without the point mass), which sets the potential
+        together with ``bh_mass``; None when this model is the whole cluster.
     """
 
     tracer: TracerProfile
@@ -206,6 +238,13 @@ class MassModel:
     rho: np.ndarray
     mass: np.ndarray
     psi: np.ndarray
+    potential_mass: np.ndarray | None = None
+
+    @property
+    def gravitating_mass(self) -> np.ndarray:
+        """Mass inside each grid radius that sets the potential (all stars + BH) [solMass]."""
+        stars = self.mass if self.potential_mass is None else self.potential_mass
+        return stars + self.bh_mass
 
     @property
     def r_max(self) -> float:
@@ -356,6 +395,58 @@ def build_mass_model(
     mass = norm * m_shape
     psi = _relative_potential(r, rho, mass, bh_mass)
     return MassModel(tracer, stellar_mass, bh_mass, norm, r, rho, mass, psi)
+
+
+def build_multi_mass_model(
+    tracers, masses, bh_mass=0.0, n_grid: int = N_RADIAL_GRID
+) -> list[MassModel]:
+    """Components of a multi-mass model, all in the total potential.
+
+    Each component ``k`` has density ``M_k * shape_k(r) / int shape_k dV``; the
+    relative potential is that of the sum of all components plus the point mass.
+
+    Parameters
+    ----------
+    tracers : sequence of TracerProfile
+        Density shape of each component.
+    masses : sequence of float
+        Total mass of each component [solMass].
+    bh_mass : float
+        Central point mass [solMass].
+    n_grid : int
+        Number of radii of the shared grid.
+
+    Returns
+    -------
+    list of MassModel
+        One per component, sharing the radial grid and ``psi``; ``potential_mass``
+        is the enclosed mass of all components.
+    """
+    masses = [_value(m, "solMass") for m in masses]
+    bh_mass = _value(bh_mass, "solMass")
+    if not masses or any(not (np.isfinite(m) and m > 0) for m in masses):
+        raise ValueError(f"component masses must be positive, got {masses} solMass")
+    if not (np.isfinite(bh_mass) and bh_mass >= 0):
+        raise ValueError(f"IMBH mass must be >= 0, got {bh_mass} solMass")
+    r_hi = max(t.truncation_radius for t in tracers)
+    r_lo = min(t.scale_radius for t in tracers) * 1e-6
+    for t in tracers:
+        if t.cusp_gamma > 0:
+            r_lo = max(min(r_lo, t.cusp_radius * 1e-4), t.scale_radius * 1e-13)
+    r = radial_grid(r_lo, r_hi, n_grid)
+    parts = []
+    for tracer, m in zip(tracers, masses):
+        shape = np.maximum(tracer.shape(r), 1e-300)  # Plummer shapes run to the common edge
+        m_shape = _cumulative_mass(r, shape)
+        norm = m / m_shape[-1]
+        parts.append((tracer, m, norm, norm * shape, norm * m_shape))
+    rho_tot = np.sum([p[3] for p in parts], axis=0)
+    mass_tot = np.sum([p[4] for p in parts], axis=0)
+    psi = _relative_potential(r, rho_tot, mass_tot, bh_mass)
+    return [
+        MassModel(tracer, m, bh_mass, norm, r, rho, mass, psi, mass_tot)
+        for tracer, m, norm, rho, mass in parts
+    ]
 
 
 def projected_radii(tracer: TracerProfile, n: int = 200) -> tuple[float, float]:

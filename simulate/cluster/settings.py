@@ -15,6 +15,12 @@ from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.population import MassFunction
 
 PM_CONVENTIONS = ("mas_per_yr", "arcsec_per_baseline")
+#: Default margin around the field [arcsec] for simulated clusters and for MAVISIM lists
+#: (MAVISIM's own buffer is 10.005").
+DEFAULT_MARGIN = 1.0
+MAVISIM_MARGIN = 10.0
+#: Largest mass-segregation exponent accepted (scale radius ~ mass^-segregation).
+MAX_SEGREGATION = 1.5
 
 
 @dataclass(frozen=True)
@@ -42,6 +48,9 @@ class ExternalInput:
         Table path inside an HDF5 file (astropy ``Table.read(path=...)``).
     flux_zeropoint : float or None
         For MAVISIM lists without a magnitude column: ``mag = zp - 2.5 log10(Flux)``.
+    dark_flux : float
+        MAVISIM ``Flux`` below which an object is dark (``luminous = False``; MAVISIM
+        lists give remnants tiny placeholder fluxes such as 1.8e-4) [photon/s].
     recenter : bool
         Subtract the mass-weighted mean position and velocity of 3-D snapshots.
     """
@@ -54,7 +63,12 @@ class ExternalInput:
     columns: dict = field(default_factory=dict)
     hdf5_path: str | None = None
     flux_zeropoint: float | None = None
+    dark_flux: float = 1.0
     recenter: bool = False
+
+    def __post_init__(self):
+        if not self.dark_flux >= 0:
+            raise ValueError(f"'dark_flux' must be >= 0 photon/s, got {self.dark_flux}")
 
 
 @dataclass(frozen=True)
@@ -65,7 +79,7 @@ class ClusterSettings:
     imbh_mass: float = unit_field(0.0, "solMass")
     n_stars: int = 3500
     field_size: float = unit_field(30.0, "arcsec")
-    margin: float = unit_field(1.0, "arcsec")
+    margin: float | None = unit_field(None, "arcsec")
     epochs: list[float] = field(default_factory=lambda: [0.0, 10.0])
     reference_epoch: float = unit_field(0.0, "yr")
     tracer: Literal["plummer", "king"] | None = None
@@ -88,12 +102,23 @@ class ClusterSettings:
     mass_min: float = unit_field(MassFunction.mass_min, "solMass")
     mass_break: float = unit_field(MassFunction.mass_break, "solMass")
     mass_max: float = unit_field(MassFunction.mass_max, "solMass")
-    alpha_low: float = MassFunction.alpha_low
-    alpha_high: float = MassFunction.alpha_high
+    alpha_low: float | None = None
+    alpha_high: float | None = None
+    ns_retention: float | None = None
+    bh_retention: float | None = None
+    segregation: float | None = None
+    anisotropy_radius: float | None = unit_field(None, "arcsec")
+    anisotropy_beta: float = 0.0
+    bh_subsystem_mass: float = unit_field(0.0, "solMass")
+    bh_subsystem_radius: float | None = unit_field(None, "pc")
+    core_collapse: bool = False
     resolution: SamplerResolution = field(default_factory=SamplerResolution)
     external: ExternalInput = field(default_factory=ExternalInput)
 
     def __post_init__(self):
+        if self.margin is None:  # MAVISIM lists carry a 10" buffer whose light reaches the field
+            mavisim = bool(self.external.path) and self.external.format == "mavisim"
+            object.__setattr__(self, "margin", MAVISIM_MARGIN if mavisim else DEFAULT_MARGIN)
         checks = [
             (self.imbh_mass >= 0, "imbh_mass", "must be >= 0 solMass"),
             (self.n_stars >= 0, "n_stars", "must be >= 0"),
@@ -109,6 +134,52 @@ class ClusterSettings:
             (self.distance is None or self.distance > 0, "distance", "must be > 0 kpc"),
             (self.stellar_mass is None or self.stellar_mass > 0, "stellar_mass", "must be > 0"),
             (self.king_w0 is None or 0.1 <= self.king_w0 <= 20, "king_w0", "must be in [0.1, 20]"),
+            (
+                self.segregation is None or 0 <= self.segregation <= MAX_SEGREGATION,
+                "segregation",
+                f"must be in [0, {MAX_SEGREGATION:g}] (0 = none, N-body-like ~0.4)",
+            ),
+            (
+                self.anisotropy_radius is None or self.anisotropy_radius > 0,
+                "anisotropy_radius",
+                "must be > 0 arcsec (omit it for isotropy)",
+            ),
+            (
+                -0.5 < self.anisotropy_beta < 0.5,
+                "anisotropy_beta",
+                "must be in (-0.5, 0.5) (0 = isotropic)",
+            ),
+            (
+                self.anisotropy_beta == 0 or self.anisotropy_radius is None,
+                "anisotropy_beta",
+                "cannot be combined with anisotropy_radius; give one of them",
+            ),
+            (self.bh_subsystem_mass >= 0, "bh_subsystem_mass", "must be >= 0 solMass"),
+            (
+                self.bh_subsystem_radius is None or self.bh_subsystem_radius > 0,
+                "bh_subsystem_radius",
+                "must be > 0 pc",
+            ),
+            (
+                self.ns_retention is None or 0 <= self.ns_retention <= 1,
+                "ns_retention",
+                "must be in [0, 1]",
+            ),
+            (
+                self.bh_retention is None or 0 <= self.bh_retention <= 1,
+                "bh_retention",
+                "must be in [0, 1]",
+            ),
+            (
+                self.alpha_low is None or -1 <= self.alpha_low <= 4,
+                "alpha_low",
+                "must be in [-1, 4]",
+            ),
+            (
+                self.alpha_high is None or -1 <= self.alpha_high <= 4,
+                "alpha_high",
+                "must be in [-1, 4]",
+            ),
         ]
         for ok, key, what in checks:
             if not ok:

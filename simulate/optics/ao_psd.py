@@ -14,7 +14,9 @@ Fourier-domain model (Rigaut et al. 1998; Jolissaint 2010; Neichel et al.
   optimised over a set of fitting directions, with each layer's correction
   filtered by the closed-loop transfer function at its temporal frequency
   ``f . v``. The error for a science direction alpha is
-  ``e_l = B_l(alpha) - h_l (A(alpha) P W M)_l``.
+  ``e_l = B_l(alpha) - h_l (A(alpha) P W M)_l``;
+* the LGS cone effect: see ``simulate.optics.cone_effect`` (added per
+  direction by ``psf_grid``).
 
 Frequencies in m^-1, PSDs in rad^2 m^2 at the science wavelength.
 """
@@ -22,11 +24,17 @@ Frequencies in m^-1, PSDs in rad^2 m^2 at the science wavelength.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import ARCSEC_PER_RAD, Layers, von_karman_psd
+
+#: DM optimisation directions and weights of TIPTOP's MAVIS.ini ([DM] OptimizationZenith /
+#: Azimuth / Weight): the centre, and rings of 8 at 5", 15", 37.5" and 60".
+MAVIS_FITTING_RINGS = ((0.0, 1), (5.0, 8), (15.0, 8), (37.5, 8), (60.0, 8))
+MAVIS_FITTING_WEIGHTS = (1.0, 2.0, 30.0, 0.25, 0.25)
 
 
 @dataclass(frozen=True)
@@ -48,10 +56,28 @@ class AOSettings:
     lgs_radius : float
         Radius of the LGS constellation (arcsec).
     lgs_height : float
-        Sodium-layer altitude (m); only used to reject impossible DM heights
-        (the LGS cone effect is not modelled: the LGS are treated as at infinity).
-    lgs_slope_noise : float
-        RMS noise on one sub-aperture's wavefront difference (nm of OPD per frame).
+        Sodium-layer altitude above the telescope at zenith (m); the range along
+        the line of sight is ``lgs_height sec(z)``.
+    lgs_angle : float
+        Position angle of the first LGS (deg, from +x towards +y).
+    lgs_slope_noise : float or None
+        RMS noise on one sub-aperture's wavefront difference (nm of OPD per
+        frame); None computes it from the LGS photometry below with
+        :func:`shack_hartmann_noise`.
+    lgs_photons : float
+        Detected photons per sub-aperture per frame.
+    lgs_read_noise : float
+        Read-out noise (e- RMS per pixel).
+    lgs_excess_noise : float
+        Excess-noise factor of the detector.
+    lgs_pixel_scale : float
+        WFS pixel (mas).
+    lgs_pixels : int
+        Pixels across one sub-aperture's field (centre of gravity window).
+    lgs_spot_fwhm : float
+        Intrinsic LGS spot FWHM without turbulence (mas).
+    lgs_wavelength : float
+        LGS wavelength (nm).
     loop_frequency : float
         HO loop rate (Hz).
     loop_gain : float
@@ -62,28 +88,51 @@ class AOSettings:
         Diameter of the circular field the DM correction is optimised over (arcsec).
     n_fitting : int
         Fitting directions per side of the square grid sampling that circle.
-    fitting, aliasing, noise, servo_lag, tomography : bool
+    fitting_weights : tuple of float
+        Optional weights of rings of fitting directions (see ``fitting_rings``);
+        empty for the uniform square grid of ``n_fitting`` per side.
+    fitting_rings : tuple of (float, int)
+        Optional rings of fitting directions: (radius arcsec, number of
+        directions); a radius 0 ring has one direction. Empty for the square grid.
+    control_region : {"circle", "square"}
+        Shape of the corrected spatial frequencies: ``|f| < fc`` or ``|fx|, |fy| < fc``.
+    fitting, aliasing, noise, servo_lag, tomography, cone_effect : bool
         Switches of the residual terms. With ``tomography`` off the correction
-        is perfect in every direction apart from the other terms.
+        is perfect in every direction apart from the other terms (and the cone
+        effect is not modelled).
     """
 
     n_actuators: int = 40
     dm_heights: tuple[float, ...] = field(default=(0.0, 6000.0, 13500.0))
-    dm_pitches: tuple[float, ...] = field(default=(0.2, 0.25, 0.35))
+    dm_pitches: tuple[float, ...] = field(default=(0.21, 0.25, 0.32))
     n_lgs: int = 8
     lgs_radius: float = unit_field(17.5, "arcsec", "LGS constellation radius")
     lgs_height: float = unit_field(90000.0, "m", "sodium layer altitude")
-    lgs_slope_noise: float = unit_field(27.0, "nm", "sub-aperture wavefront-difference noise")
+    lgs_angle: float = unit_field(22.5, "deg", "position angle of the first LGS")
+    lgs_slope_noise: float | None = unit_field(
+        None, "nm", "sub-aperture wavefront-difference noise"
+    )
+    lgs_photons: float = 75.0
+    lgs_read_noise: float = 0.2
+    lgs_excess_noise: float = 2.0
+    lgs_pixel_scale: float = unit_field(833.0, "mas", "LGS WFS pixel")
+    lgs_pixels: int = 6
+    lgs_spot_fwhm: float = unit_field(0.0, "mas", "intrinsic LGS spot FWHM")
+    lgs_wavelength: float = unit_field(589.0, "nm", "LGS wavelength")
     loop_frequency: float = unit_field(1000.0, "Hz", "HO loop rate")
-    loop_gain: float = 0.5
+    loop_gain: float = 0.3
     loop_delay: float = 2.0
     fitting_field: float = unit_field(30.0, "arcsec", "DM optimisation field width")
     n_fitting: int = 5
+    fitting_rings: tuple[tuple[float, int], ...] = field(default=MAVIS_FITTING_RINGS)
+    fitting_weights: tuple[float, ...] = field(default=MAVIS_FITTING_WEIGHTS)
     fitting: bool = True
     aliasing: bool = True
     noise: bool = True
     servo_lag: bool = True
     tomography: bool = True
+    cone_effect: bool = True
+    control_region: Literal["square", "circle"] = "circle"
 
     def __post_init__(self):
         if self.n_actuators < 2:
@@ -100,10 +149,27 @@ class AOSettings:
             raise ValueError(f"loop_gain must be in (0, 1.5), got {self.loop_gain}")
         if self.loop_delay < 0 or self.loop_frequency <= 0:
             raise ValueError("loop_delay must be >= 0 frames and loop_frequency > 0 Hz")
-        if self.lgs_slope_noise < 0:
+        if self.lgs_slope_noise is not None and self.lgs_slope_noise < 0:
             raise ValueError("lgs_slope_noise must be >= 0 nm")
+        if not self.lgs_photons > 0 or self.lgs_read_noise < 0 or self.lgs_excess_noise < 1:
+            raise ValueError("lgs_photons must be > 0, lgs_read_noise >= 0, lgs_excess_noise >= 1")
+        if not self.lgs_pixel_scale > 0 or self.lgs_pixels < 1 or self.lgs_spot_fwhm < 0:
+            raise ValueError("lgs_pixel_scale must be > 0 mas, lgs_pixels >= 1, lgs_spot_fwhm >= 0")
+        if self.control_region not in ("square", "circle"):
+            raise ValueError(
+                f"control_region must be 'square' or 'circle', got {self.control_region!r}"
+            )
         if self.n_fitting < 1:
             raise ValueError("n_fitting must be >= 1")
+        if self.fitting_weights and len(self.fitting_weights) != len(self.fitting_rings):
+            raise ValueError("fitting_weights needs one weight per fitting_rings entry")
+        if any(w < 0 for w in self.fitting_weights) or (
+            self.fitting_weights and not sum(self.fitting_weights) > 0
+        ):
+            raise ValueError("fitting_weights must be >= 0 with a positive sum")
+        for ring in self.fitting_rings:
+            if len(ring) != 2 or ring[0] < 0 or int(ring[1]) < 1:
+                raise ValueError("fitting_rings entries must be [radius >= 0 arcsec, count >= 1]")
 
     def pitch(self, diameter: float) -> float:
         """Actuator / sub-aperture pitch d = D / n_act (m)."""
@@ -114,15 +180,55 @@ class AOSettings:
         return 1.0 / (2.0 * self.pitch(diameter))
 
 
+def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> float:
+    """RMS wavefront-difference noise of one LGS sub-aperture (nm) from its photometry.
+
+    Centre-of-gravity noise of Thomas et al. (2006, MNRAS 371, 323), the
+    phase-difference variance across a sub-aperture at the WFS wavelength:
+    ``sigma^2 = F [pi^2 / (2 N_ph) (N_T / N_D)^2 + pi^2 / 3 (RON / N_ph)^2 (N_s^2 / N_D)^2]``
+    with ``N_D = max(1, lambda / d / pixel)`` (diffraction spot FWHM in pixels),
+    ``N_T = max(1, hypot(spot, lambda / r0) / pixel)`` (turbulent spot FWHM),
+    ``N_s`` the pixels across the window and F the excess-noise factor.
+
+    Parameters
+    ----------
+    pitch : float
+        Sub-aperture size d (m).
+    r0_wfs : float
+        Fried parameter at the LGS wavelength along the line of sight (m).
+    """
+    s = settings
+    if s.lgs_slope_noise is not None:
+        return float(s.lgs_slope_noise)
+    lam = s.lgs_wavelength * 1e-9
+    pix = s.lgs_pixel_scale / 1000.0  # arcsec
+    n_d = max(1.0, lam / pitch * ARCSEC_PER_RAD / pix)
+    n_t = max(1.0, np.hypot(s.lgs_spot_fwhm / 1000.0, lam / r0_wfs * ARCSEC_PER_RAD) / pix)
+    shot = np.pi**2 / (2 * s.lgs_photons) * (n_t / n_d) ** 2
+    ron = np.pi**2 / 3 * (s.lgs_read_noise / s.lgs_photons) ** 2 * (s.lgs_pixels**2 / n_d) ** 2
+    var = s.lgs_excess_noise * (shot + ron)  # rad^2 at the LGS wavelength
+    return float(np.sqrt(var) * lam / (2 * np.pi) * 1e9)
+
+
 def lgs_directions(settings: AOSettings) -> np.ndarray:
     """LGS directions (rad), shape (n_lgs, 2), evenly spaced on the circle."""
-    ang = 2 * np.pi * np.arange(settings.n_lgs) / settings.n_lgs
+    ang = 2 * np.pi * np.arange(settings.n_lgs) / settings.n_lgs + np.radians(settings.lgs_angle)
     r = settings.lgs_radius / ARCSEC_PER_RAD
     return np.stack([r * np.cos(ang), r * np.sin(ang)], axis=-1)
 
 
 def fitting_directions(settings: AOSettings) -> np.ndarray:
-    """DM optimisation directions (rad), shape (K, 2): a square grid cut to the circle."""
+    """DM optimisation directions (rad), shape (K, 2).
+
+    Rings from ``fitting_rings`` when given, else a square grid cut to the circle.
+    """
+    if settings.fitting_rings:
+        out = []
+        for radius, count in settings.fitting_rings:
+            count = 1 if radius == 0 else int(count)
+            ang = 2 * np.pi * np.arange(count) / count
+            out.append(np.stack([radius * np.cos(ang), radius * np.sin(ang)], -1))
+        return np.concatenate(out) / ARCSEC_PER_RAD
     half = settings.fitting_field / 2 / ARCSEC_PER_RAD
     g = np.linspace(-half, half, settings.n_fitting) if settings.n_fitting > 1 else np.zeros(1)
     gx, gy = np.meshgrid(g, g)
@@ -130,15 +236,34 @@ def fitting_directions(settings: AOSettings) -> np.ndarray:
     return np.stack([gx[keep], gy[keep]], axis=-1)
 
 
-def control_mask(fx: np.ndarray, fy: np.ndarray, fc: float) -> np.ndarray:
-    """True inside the square DM control region ``|fx|, |fy| < fc``."""
+def fitting_weights(settings: AOSettings) -> np.ndarray:
+    """Weight of each fitting direction (sum 1), aligned with :func:`fitting_directions`."""
+    if not settings.fitting_rings:
+        n = fitting_directions(settings).shape[0]
+        return np.full(n, 1.0 / n)
+    per_ring = settings.fitting_weights or (1.0,) * len(settings.fitting_rings)
+    w = np.concatenate(
+        [
+            np.full(1 if r == 0 else int(c), float(wt))
+            for (r, c), wt in zip(settings.fitting_rings, per_ring)
+        ]
+    )
+    return w / w.sum()
+
+
+def control_mask(fx: np.ndarray, fy: np.ndarray, fc: float, shape: str = "square") -> np.ndarray:
+    """True inside the DM control region: ``|fx|, |fy| < fc`` ("square") or ``|f| < fc`` ("circle")."""
+    if shape == "circle":
+        return fx**2 + fy**2 < fc**2
     return (np.abs(fx) < fc) & (np.abs(fy) < fc)
 
 
-def fitting_psd(fx, fy, fc: float, r0: float, outer_scale: float) -> np.ndarray:
+def fitting_psd(
+    fx, fy, fc: float, r0: float, outer_scale: float, shape: str = "square"
+) -> np.ndarray:
     """Fitting-error PSD: the turbulence spectrum outside the control region."""
     w = von_karman_psd(fx**2 + fy**2, r0, outer_scale)
-    return np.where(control_mask(fx, fy, fc), 0.0, w)
+    return np.where(control_mask(fx, fy, fc, shape), 0.0, w)
 
 
 def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -150,7 +275,13 @@ def _ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
 
 
 def aliasing_psd(
-    fx, fy, pitch: float, r0: float, outer_scale: float, n_fold: int = 2
+    fx,
+    fy,
+    pitch: float,
+    r0: float,
+    outer_scale: float,
+    n_fold: int = 2,
+    temporal=None,
 ) -> np.ndarray:
     """Shack-Hartmann aliasing PSD inside the control region.
 
@@ -166,6 +297,10 @@ def aliasing_psd(
         Sub-aperture size d (m).
     n_fold : int
         Folded orders summed in each direction (|m|, |n| <= n_fold).
+    temporal : callable, optional
+        ``temporal(fpx, fpy)`` -> power gain (same shape) with which the aliased
+        turbulence at ``f'`` reaches the DMs (the closed-loop |H|^2 at each layer's
+        temporal frequency ``f' . v``, Cn^2-weighted); 1 when None.
     """
     f2 = fx**2 + fy**2
     safe = np.where(f2 > 0, f2, 1.0)
@@ -179,7 +314,8 @@ def aliasing_psd(
             rx = _ratio(np.asarray(fx, float), fpx) if m else np.ones_like(fx, float)
             ry = _ratio(np.asarray(fy, float), fpy) if n else np.ones_like(fy, float)
             transfer = (fx**2 * ry + fy**2 * rx) / safe
-            out += von_karman_psd(fpx**2 + fpy**2, r0, outer_scale) * transfer**2
+            gain = 1.0 if temporal is None else temporal(fpx, fpy)
+            out += von_karman_psd(fpx**2 + fpy**2, r0, outer_scale) * transfer**2 * gain
     return np.where(f2 > 0, out, 0.0)
 
 
@@ -210,6 +346,22 @@ def closed_loop_transfer(nu: np.ndarray, settings: AOSettings) -> np.ndarray:
     small = np.abs(den) < 1e-12
     h = np.where(small, 1.0 + 0j, num / np.where(small, 1.0, den + num))
     return h
+
+
+def aliasing_temporal_gain(settings: AOSettings, atmosphere: Layers):
+    """``g(fx, fy) = sum_l c_l |H(f . v_l)|^2``: closed-loop power gain of frozen-flow layers.
+
+    Aliased turbulence at ``f`` moves with each layer's wind and reaches the DMs
+    through the loop like the turbulence itself (not like white noise).
+    """
+
+    def gain(fx, fy):
+        out = np.zeros(np.shape(fx))
+        for w, (vx, vy) in zip(atmosphere.weights, atmosphere.velocities):
+            out += w * np.abs(closed_loop_transfer(fx * vx + fy * vy, settings)) ** 2
+        return out
+
+    return gain
 
 
 def noise_gain(settings: AOSettings, n: int = 4096) -> float:
@@ -254,7 +406,9 @@ class TomographicOperator:
 def _dm_mask(fx, fy, settings: AOSettings) -> np.ndarray:
     """(F, D) 1 where each DM can correct the frequency, else 0."""
     fc = 1.0 / (2.0 * np.asarray(settings.dm_pitches, float))
-    return ((np.abs(fx)[:, None] < fc) & (np.abs(fy)[:, None] < fc)).astype(float)
+    return control_mask(fx[:, None], fy[:, None], fc[None, :], settings.control_region).astype(
+        float
+    )
 
 
 def _phasor(fx, fy, heights, directions):
@@ -311,12 +465,13 @@ def tomographic_operator(
     recon = np.conj(np.swapaxes(wh, 1, 2))  # (F, L, G)
     # DM projection over fitting directions: P = (sum A^H A)^-1 sum A^H B
     fit = fitting_directions(settings)
+    wfit = fitting_weights(settings)
     dm_mask = _dm_mask(fx, fy, settings)
     a = _phasor(fx, fy, h_d, fit) * dm_mask[:, None, :]  # (F, K, D)
     b = _phasor(fx, fy, h_l, fit)  # (F, K, L)
-    aa = np.einsum("fkd,fke->fde", a.conj(), a)
-    aa += 1e-3 * fit.shape[0] * np.eye(h_d.size)[None]
-    ab = np.einsum("fkd,fkl->fdl", a.conj(), b)
+    aa = np.einsum("fkd,k,fke->fde", a.conj(), wfit, a)
+    aa += 1e-3 * np.eye(h_d.size)[None]
+    ab = np.einsum("fkd,k,fkl->fdl", a.conj(), wfit, b)
     proj = np.linalg.solve(aa, ab)  # (F, D, L)
     command_noise = np.einsum("fdl,flg->fdg", proj, recon)
     correction = np.einsum("fdg,fgl->fdl", command_noise, m)

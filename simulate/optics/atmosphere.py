@@ -22,11 +22,13 @@ VON_KARMAN_CONSTANT = 0.022896
 #: Fried-parameter reference wavelength (m)
 REFERENCE_WAVELENGTH = 500e-9
 
-# ESO Paranal median 10-layer profile as used for MAVIS performance studies.
+# The atmosphere of TIPTOP's MAVIS.ini (astro-tiptop/TIPTOP, perfTest/MAVIS.ini,
+# [atmosphere]): the ESO Paranal median profile reduced to 10 layers, 0.8" seeing
+# at 500 nm, L0 = 25 m, observed at 30 deg zenith angle.
 _HEIGHTS = (30.0, 140.0, 281.0, 562.0, 1125.0, 2250.0, 4500.0, 7750.0, 11000.0, 14000.0)
 _WEIGHTS = (0.59, 0.02, 0.04, 0.06, 0.01, 0.05, 0.09, 0.04, 0.05, 0.05)
-_SPEEDS = (6.6, 5.9, 5.1, 4.5, 5.1, 8.3, 16.3, 30.2, 34.3, 17.5)
-_DIRECTIONS = (0.0, -10.0, 0.0, 0.0, 90.0, -10.0, 0.0, 0.0, 0.0, 0.0)
+_SPEEDS = (6.6, 5.9, 5.1, 4.5, 5.1, 8.3, 16.3, 10.2, 14.3, 17.5)
+_DIRECTIONS = (0.0, 0.0, 0.0, 0.0, 90.0, -90.0, -90.0, 90.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,7 @@ class AtmosphereSettings:
         Wind direction of each layer (deg, from +x towards +y).
     """
 
-    seeing: float = unit_field(1.0, "arcsec", "zenith seeing FWHM at 500 nm")
+    seeing: float = unit_field(0.8, "arcsec", "zenith seeing FWHM at 500 nm")
     zenith_angle: float = unit_field(30.0, "deg", "zenith angle")
     outer_scale: float = unit_field(25.0, "m", "von Karman outer scale L0")
     layer_heights: tuple[float, ...] = field(default=_HEIGHTS)

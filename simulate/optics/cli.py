@@ -11,11 +11,15 @@ import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 
+import astropy.units as u
+import numpy as np
+
 from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.simulate.optics.model import Optics, OpticsSettings, build_optics
 from mavispm.simulate.optics.model import validate_settings as _validate
 from mavispm.simulate.optics.psf_grid import read_grid, write_grid
+from mavispm.simulate.optics.tiptilt import kernel_map
 
 
 def validate_settings(settings: Mapping | OpticsSettings | None, source=None) -> OpticsSettings:
@@ -61,8 +65,37 @@ def _build_and_write(
         key = optics.cache_path.stem.removeprefix("psfgrid-")
     else:  # pragma: no cover - the cache always writes a file
         raise InputError("PSF grid cache file missing after build", path=optics.cache_path)
-    write_grid(output, result, key, config=to_mapping(s))
+    arrays, attrs = tiptilt_product_fields(optics, result.grid)
+    write_grid(output, result, key, config=to_mapping(s), extra_arrays=arrays, extra_attrs=attrs)
     return output, optics
+
+
+def tiptilt_product_fields(optics: Optics, grid) -> tuple[dict, dict]:
+    """The TT kernel map on the grid nodes and the conditions, for the ``psfgrid`` product.
+
+    Returns
+    -------
+    arrays : dict
+        ``tt_sigma_major``, ``tt_sigma_minor`` [mas] and ``tt_angle`` [deg] (major-axis
+        position angle from +x towards +y), each (n_nodes_y, n_nodes_x).
+    attrs : dict
+        ``seeing`` [arcsec], ``zenith_angle`` [deg], ``asterism``, ``tt_scale_factor``.
+    """
+    gx, gy = np.meshgrid(grid.nodes_x, grid.nodes_y)
+    km = kernel_map(optics.tiptilt, gx, gy)
+    s = optics.settings
+    arrays = {
+        "tt_sigma_major": km.sigma_major * u.mas,
+        "tt_sigma_minor": km.sigma_minor * u.mas,
+        "tt_angle": km.angle * u.deg,
+    }
+    attrs = {
+        "seeing": s.atmosphere.seeing * u.arcsec,
+        "zenith_angle": s.atmosphere.zenith_angle * u.deg,
+        "asterism": s.tiptilt.asterism if s.tiptilt.enabled else "none",
+        "tt_scale_factor": float(s.tiptilt.scale_factor),
+    }
+    return arrays, attrs
 
 
 def load_scene_optics(path: str | Path) -> Mapping:

@@ -14,6 +14,8 @@ halo       seeing-wing kernel                     ``simulate.optics.seeing_halo`
 tiptilt    NGS asterism TT residual kernels       ``simulate.optics.tiptilt``
 blur       charge diffusion and vibration         ``simulate.optics.blur``
 distortion static and dynamic distortion          ``simulate.optics.distortion``
+image_     per-exposure image motion and dynamic  ``simulate.optics.image_motion``
+motion     distortion of stacks
 ========== ===================================== ==========================
 """
 
@@ -33,10 +35,16 @@ from mavispm.simulate.optics.atmosphere import (
     MAS_PER_RAD,
     AtmosphereSettings,
     fried_parameter,
+    layers,
     von_karman_psd,
 )
 from mavispm.simulate.optics.blur import BlurSettings, blur_sigma
 from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
+from mavispm.simulate.optics.image_motion import (
+    ImageMotion,
+    ImageMotionSettings,
+    build_image_motion,
+)
 from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, PSFSettings, cached_grid
 from mavispm.simulate.optics.pupil import PupilSettings
 from mavispm.simulate.optics.refraction import RefractionSettings
@@ -62,6 +70,7 @@ class OpticsSettings:
     distortion: DistortionSettings = field(default_factory=DistortionSettings)
     refraction: RefractionSettings = field(default_factory=RefractionSettings)
     telescope: TelescopeSettings = field(default_factory=TelescopeSettings)
+    image_motion: ImageMotionSettings = field(default_factory=ImageMotionSettings)
 
 
 def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
@@ -96,6 +105,9 @@ class Optics:
         The PSF-grid cache file used.
     control_radius : float
         AO control radius lambda n_act / (2 D) (mas).
+    image_motion : ImageMotion
+        Per-exposure image motion and dynamic distortion of stacks (``enabled`` false
+        by default).
     """
 
     settings: OpticsSettings
@@ -106,6 +118,7 @@ class Optics:
     distortion: Distortion
     cache_path: Path | None
     control_radius: float
+    image_motion: ImageMotion | None = None
 
     def kernel_covariance(self, x, y) -> np.ndarray:
         """TT covariance plus isotropic blur, (N, 2, 2) in mas^2, at field positions (arcsec)."""
@@ -201,13 +214,17 @@ def build_optics(
     if s.halo.enabled:
         halo = cached_halo(s, result, path)
         grid = taper_grid(grid, halo)
+    tiptilt = TipTiltField(s.tiptilt, s.atmosphere, s.pupil)
     return Optics(
         settings=s,
         psf_grid=grid,
         halo=halo,
-        tiptilt=TipTiltField(s.tiptilt, s.atmosphere, s.pupil),
+        tiptilt=tiptilt,
         blur_sigma=blur_sigma(s.blur),
         distortion=Distortion(s.distortion),
         cache_path=path,
         control_radius=control_radius_mas(s),
+        image_motion=build_image_motion(
+            s.image_motion, tiptilt, layers(s.atmosphere), s.pupil.diameter
+        ),
     )

@@ -4,6 +4,8 @@
 * ``psf_profile.png``: radial slices at (-15", -15") and (-9", -9") over the
   central PSF, with the control radius marked (fig:psfprofile);
 * ``tiptilt_map.png``: TT kernel ellipses every 3" with the NGS (fig:ttjitter);
+* ``tiptilt_kernel_map.png``: the product's TT kernel map (semi-axes and angle at the
+  PSF-grid nodes, with seeing, zenith angle and asterism);
 * ``distortion_map.png``: static distortion amplitude with the science field
   and the x / y projections (fig:staticdistmap).
 """
@@ -140,6 +142,54 @@ def plot_tiptilt_map(optics, path: Path, half_width: float = 15.0, step: float =
     return _save(fig, path)
 
 
+def plot_tiptilt_kernel_map(optics, path: Path) -> Path:
+    """The psfgrid product's TT kernel map: semi-major / semi-minor sigma and angle at the nodes."""
+    from mavispm.simulate.optics.tiptilt import kernel_map
+
+    g = optics.psf_grid
+    gx, gy = np.meshgrid(g.nodes_x, g.nodes_y)
+    km = kernel_map(optics.tiptilt, gx, gy)
+    s = optics.settings
+    half = [g.nodes_x[0], g.nodes_x[-1], g.nodes_y[0], g.nodes_y[-1]]
+    dx = (g.nodes_x[1] - g.nodes_x[0]) / 2 if g.nodes_x.size > 1 else 1.0
+    dy = (g.nodes_y[1] - g.nodes_y[0]) / 2 if g.nodes_y.size > 1 else 1.0
+    extent = [half[0] - dx, half[1] + dx, half[2] - dy, half[3] + dy]
+    vmax = max(float(km.sigma_major.max()), 1e-9)
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained")
+    for ax, arr, name in (
+        (axes[0], km.sigma_major, "tt_sigma_major"),
+        (axes[1], km.sigma_minor, "tt_sigma_minor"),
+    ):
+        im = ax.imshow(arr, origin="lower", extent=extent, cmap="magma", vmin=0, vmax=vmax)
+        fig.colorbar(im, ax=ax, label=f"{name} [mas]")
+        ax.set_xlabel("x [arcsec]")
+        ax.set_ylabel("y [arcsec]")
+    ang = np.radians(km.angle)
+    length = 1.6 * dx * km.sigma_major / vmax
+    axes[0].quiver(
+        gx,
+        gy,
+        length * np.cos(ang),
+        length * np.sin(ang),
+        color="c",
+        pivot="middle",
+        angles="xy",
+        scale_units="xy",
+        scale=1,
+        headwidth=0,
+        headlength=0,
+        headaxislength=0,
+    )
+    axes[0].set_title("semi-major sigma; bars: tt_angle (major axis)")
+    axes[1].set_title("semi-minor sigma")
+    fig.suptitle(
+        f'TT kernel map on the PSF-grid nodes: seeing {s.atmosphere.seeing:g}", zenith '
+        f"{s.atmosphere.zenith_angle:g} deg, asterism {s.tiptilt.asterism}, "
+        f"scale x{s.tiptilt.scale_factor:g}; mean semi-major {km.sigma_major.mean():.2f} mas"
+    )
+    return _save(fig, path)
+
+
 def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 61) -> Path:
     """Static distortion amplitude map and its x / y projections."""
     g = np.linspace(-half_width, half_width, n)
@@ -173,5 +223,6 @@ def draw_all(optics, outdir: Path) -> list[Path]:
         plot_psf_grid(optics, outdir / "psf_grid.png"),
         plot_psf_profile(optics, outdir / "psf_profile.png"),
         plot_tiptilt_map(optics, outdir / "tiptilt_map.png"),
+        plot_tiptilt_kernel_map(optics, outdir / "tiptilt_kernel_map.png"),
         plot_distortion_map(optics, outdir / "distortion_map.png"),
     ]

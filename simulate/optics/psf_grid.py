@@ -28,11 +28,12 @@ from tqdm.auto import tqdm
 from mavispm.core.config import unit_field
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import open_product, write_product
-from mavispm.simulate.optics import ao_psd
+from mavispm.simulate.optics import ao_psd, cone_effect
 from mavispm.simulate.optics.ao_psd import AOSettings
 from mavispm.simulate.optics.atmosphere import (
     ARCSEC_PER_RAD,
     AtmosphereSettings,
+    airmass,
     fried_parameter,
     layers,
     von_karman_variance_beyond,
@@ -47,7 +48,7 @@ from mavispm.simulate.optics.fourier_psf import (
 from mavispm.simulate.optics.pupil import PupilSettings
 
 #: bump when the algorithm changes so stale cache entries are not reused
-ALGORITHM_VERSION = 1
+ALGORITHM_VERSION = 2  # 2: LGS cone effect, weighted fitting directions, LGS position angle
 
 
 @dataclass(frozen=True)
@@ -80,6 +81,9 @@ class PSFSettings:
         MAVISIM PSF FITS database for ``file`` mode.
     file_pixel_scale : float or None
         Pixel scale of that file (mas) when its headers do not give it.
+    file_pixel_unit : {"mas", "arcsec", "deg"}
+        Unit of a header pixel scale (PIXSCALE / PIXSIZE) whose header does not
+        state one (PIXUNIT, CUNIT1 or the card comment).
     """
 
     mode: Literal["fourier", "static", "diffraction", "file"] = "fourier"
@@ -94,6 +98,7 @@ class PSFSettings:
     chunk: int = 8
     file: str | None = None
     file_pixel_scale: float | None = unit_field(None, "mas", "pixel scale of the PSF file")
+    file_pixel_unit: Literal["mas", "arcsec", "deg"] = "mas"
 
     def __post_init__(self):
         if not 300 <= self.wavelength <= 3000:
@@ -248,6 +253,17 @@ def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(n)[ok] * df, s[ok] / c[ok]
 
 
+@dataclass(frozen=True)
+class ConeGeometry:
+    """What the cone effect needs: LGS directions (rad, (G, 2)), LGS range along the
+    line of sight (m), pupil diameter (m) and obstruction ratio."""
+
+    lgs_directions: np.ndarray
+    lgs_range: float
+    diameter: float
+    obscuration: float
+
+
 @dataclass
 class ResidualPSDModel:
     """The residual PSD of one configuration on the PSD grid.
@@ -271,6 +287,8 @@ class ResidualPSDModel:
         Fitting variance beyond the PSD grid (rad^2).
     wavelength : float
         (m)
+    cone : ConeGeometry or None
+        LGS geometry for the cone effect; None when it is off.
     """
 
     sampling: object
@@ -282,6 +300,20 @@ class ResidualPSDModel:
     operator: object
     hf_variance: float
     wavelength: float
+    cone: ConeGeometry | None = None
+
+    def cone_psd(self, direction: np.ndarray) -> np.ndarray:
+        """Cone-effect PSD on the control-region frequencies ``sel`` for one direction (rad)."""
+        if self.cone is None or self.operator is None:
+            return np.zeros(int(self.sel.sum()))
+        c = self.cone
+        gaps, area = cone_effect.footprint_coverage(
+            direction, c.lgs_directions, self.operator.layer_heights, c.lgs_range, c.diameter
+        )
+        f = np.hypot(self.operator.fx, self.operator.fy)
+        return cone_effect.cone_psd(
+            f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration
+        )
 
     def psds(self, directions: np.ndarray, chunk: int):
         """Yield the full PSD for each direction (rad), computing ``chunk`` at a time."""
@@ -296,7 +328,7 @@ class ResidualPSDModel:
             for j in range(part.shape[0]):
                 psd = base.copy()
                 if res is not None:
-                    psd[self.sel] += res[j]
+                    psd[self.sel] += res[j] + self.cone_psd(part[j])
                 yield psd
 
     def budget(self, position_arcsec=(0.0, 0.0)) -> dict[str, float]:
@@ -308,12 +340,14 @@ class ResidualPSDModel:
             "aliasing": np.sqrt(self.aliasing.sum() * df2) * to_nm,
             "servo_tomography": 0.0,
             "noise": 0.0,
+            "cone": 0.0,
         }
         if self.operator is not None:
             d = np.asarray([position_arcsec], float) / ARCSEC_PER_RAD
             corr, noise = ao_psd.correction_residual_psd(self.operator, d, split=True)
             out["servo_tomography"] = np.sqrt(corr.sum() * df2) * to_nm
             out["noise"] = np.sqrt(noise.sum() * df2) * to_nm
+            out["cone"] = np.sqrt(self.cone_psd(d[0]).sum() * df2) * to_nm
         out["total"] = float(np.sqrt(sum(v**2 for v in out.values())))
         return {k: float(v) for k, v in out.items()}
 
@@ -352,23 +386,34 @@ def residual_psd_model(
     fitting = np.zeros_like(fx)
     aliasing = np.zeros_like(fx)
     hf_var = 0.0
-    inside = ao_psd.control_mask(fx, fy, fc)
+    inside = ao_psd.control_mask(fx, fy, fc, ao.control_region)
     sel = inside & ((fx != 0) | (fy != 0))
     op = None
+    cone = None
     if residual:
         if ao.fitting:
-            fitting = ao_psd.fitting_psd(fx, fy, fc, r0, l0)
+            fitting = ao_psd.fitting_psd(fx, fy, fc, r0, l0, ao.control_region)
             f_eq = smp.f_max * 2 / np.sqrt(np.pi)  # circle with the PSD grid's area
             hf_var = von_karman_variance_beyond(f_eq, r0, l0)
         if ao.aliasing:
-            # aliased high frequencies reach the DMs through the loop like noise
-            gain = ao_psd.noise_gain(ao)
-            aliasing[inside] = gain * ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0)
+            # aliased high frequencies reach the DMs through the loop at their own
+            # temporal frequencies (frozen flow of each layer)
+            gain = ao_psd.aliasing_temporal_gain(ao, layers(atmosphere))
+            aliasing[inside] = ao_psd.aliasing_psd(fx[inside], fy[inside], d, r0, l0, temporal=gain)
         fxs, fys = fx[sel], fy[sel]
-        sigma_rad = 2 * np.pi * ao.lgs_slope_noise * 1e-9 / lam
+        r0_wfs = fried_parameter(atmosphere, ao.lgs_wavelength * 1e-9)
+        sigma_nm = ao_psd.shack_hartmann_noise(ao, d, r0_wfs)
+        sigma_rad = 2 * np.pi * sigma_nm * 1e-9 / lam
         noise = ao_psd.noise_psd(fxs, fys, d, sigma_rad) if ao.noise else np.zeros_like(fxs)
         op = ao_psd.tomographic_operator(fxs, fys, ao, layers(atmosphere), r0, l0, noise)
-    return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam)
+        if ao.cone_effect:
+            cone = ConeGeometry(
+                lgs_directions=ao_psd.lgs_directions(ao),
+                lgs_range=ao.lgs_height * airmass(atmosphere),
+                diameter=pupil.diameter,
+                obscuration=pupil.obscuration_ratio,
+            )
+    return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam, cone)
 
 
 def compute_fourier_grid(
@@ -431,7 +476,12 @@ def compute_grid(
         from mavispm.simulate.optics.psf_fits import read_mavisim_psfs
 
         cube, nx, ny, lam = read_mavisim_psfs(
-            psf.file, psf.pixel_scale, psf.stamp_size * 1000, psf.file_pixel_scale
+            psf.file,
+            psf.pixel_scale,
+            psf.stamp_size * 1000,
+            psf.file_pixel_scale,
+            psf.file_pixel_unit,
+            pupil.diameter,
         )
         grid = PSFGrid(cube, nx, ny, psf.pixel_scale, lam, np.full(cube.shape[:2], np.nan))
         return GridResult(grid, np.zeros(0), np.zeros(0))
@@ -463,8 +513,19 @@ def compute_grid(
     return GridResult(grid, *prof)
 
 
-def write_grid(path: Path, result: GridResult, key: str, config: dict | None = None) -> Path:
-    """Write a grid as a ``psfgrid`` HDF5 product (see docs/optics.md)."""
+def write_grid(
+    path: Path,
+    result: GridResult,
+    key: str,
+    config: dict | None = None,
+    extra_arrays: dict | None = None,
+    extra_attrs: dict | None = None,
+) -> Path:
+    """Write a grid as a ``psfgrid`` HDF5 product (see docs/optics.md).
+
+    ``extra_arrays`` / ``extra_attrs`` add datasets and root attributes (quantities
+    allowed), e.g. the TT kernel map of :func:`mavispm.simulate.optics.cli.run_stage`.
+    """
     g = result.grid
     return write_product(
         path,
@@ -476,12 +537,14 @@ def write_grid(path: Path, result: GridResult, key: str, config: dict | None = N
             "strehl": g.strehl,
             "psd_frequency": result.psd_frequency / u.m,
             "psd_profile": result.psd_profile * u.m**2,
+            **(extra_arrays or {}),
         },
         attrs={
             "pixel_scale": g.pixel_scale * u.mas,
             "wavelength": g.wavelength * u.nm,
             "grid_key": key,
             "static": bool(g.is_static),
+            **(extra_attrs or {}),
         },
         config=config,
     )

@@ -26,7 +26,7 @@ class PupilSettings:
     """
 
     diameter: float = unit_field(8.0, "m", "primary diameter")
-    obscuration: float = unit_field(1.116, "m", "central obstruction diameter")
+    obscuration: float = unit_field(1.28, "m", "central obstruction diameter")
     spiders: bool = False
     spider_width: float = unit_field(0.05, "m", "spider vane width")
 

@@ -263,9 +263,69 @@ class TipTiltField:
         return res * self.settings.scale_factor**2
 
 
+def atmospheric_cross_covariance(field: TipTiltField, xy1, xy2) -> np.ndarray:
+    """Covariance of the atmospheric TT residuals at two sets of field positions.
+
+    ``cov(r(a), r(b)) = K(a - b) - K(a, NGS) C_ss^-1 K(NGS, b)`` in mas^2, shape
+    (N, M, 2, 2), for positions ``xy1`` (N, 2) and ``xy2`` (M, 2) in arcsec. The
+    diagonal ``a = b`` is :meth:`TipTiltField.covariance` without windshake and
+    scale factor (the NGS noise enters through ``C_ss``). Zeros when disabled.
+    """
+    xy1 = np.atleast_2d(np.asarray(xy1, float))
+    xy2 = np.atleast_2d(np.asarray(xy2, float))
+    if not field.settings.enabled:
+        return np.zeros((xy1.shape[0], xy2.shape[0], 2, 2))
+    a = xy1 * 1000 / MAS_PER_RAD
+    b = xy2 * 1000 / MAS_PER_RAD
+    kab = field._cov(a[:, None, :] - b[None, :, :])  # (N, M, 2, 2)
+    ka = np.concatenate(list(np.moveaxis(field._cov(a[:, None, :] - field._theta[None]), 1, 0)), -1)
+    kb = np.concatenate(list(np.moveaxis(field._cov(b[:, None, :] - field._theta[None]), 1, 0)), -1)
+    # ka: (N, 2, 2n), kb: (M, 2, 2n)
+    proj = np.einsum("nij,jk,mlk->nmil", ka, field._css_inv, kb)
+    return (kab - proj) * MAS_PER_RAD**2
+
+
 def field_average_sigma(field: TipTiltField, half_width: float = 15.0, n: int = 11) -> float:
     """Mean semi-major sigma (mas) over an n x n grid of the field (the paper's sigma_TT_ave)."""
     g = np.linspace(-half_width, half_width, n)
     gx, gy = np.meshgrid(g, g)
     cov = field.covariance(gx.ravel(), gy.ravel())
     return float(np.mean(np.sqrt(np.linalg.eigvalsh(cov)[:, -1])))
+
+
+@dataclass(frozen=True)
+class KernelMap:
+    """TT kernel shapes at field positions.
+
+    Attributes
+    ----------
+    sigma_major, sigma_minor : ndarray
+        1-sigma semi-axes of the Gaussian kernel (mas), major >= minor >= 0.
+    angle : ndarray
+        Position angle of the major axis (deg, from +x towards +y, in [0, 180)).
+    """
+
+    sigma_major: np.ndarray
+    sigma_minor: np.ndarray
+    angle: np.ndarray
+
+
+def kernel_map(field: TipTiltField, x, y) -> KernelMap:
+    """Semi-axes (mas) and major-axis angle (deg) of the TT kernels at positions (arcsec).
+
+    ``x`` and ``y`` may have any equal shape; the outputs have that shape.
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    if x.shape != y.shape:
+        raise ValueError("x and y must have the same shape (arcsec)")
+    cov = field.covariance(x.ravel(), y.ravel())
+    vals, vecs = np.linalg.eigh(cov)
+    vals = np.clip(vals, 0.0, None)
+    angle = np.degrees(np.arctan2(vecs[:, 1, 1], vecs[:, 0, 1])) % 180.0
+    angle = np.where(np.isclose(angle, 180.0), 0.0, angle)
+    return KernelMap(
+        np.sqrt(vals[:, 1]).reshape(x.shape),
+        np.sqrt(vals[:, 0]).reshape(x.shape),
+        angle.reshape(x.shape),
+    )

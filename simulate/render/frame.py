@@ -150,11 +150,24 @@ def render_frame(
         x, y = x + dar[0], y + dar[1]
     x_pix = x * 1000.0 / s + (det.nx - 1) / 2
     y_pix = y * 1000.0 / s + (det.ny - 1) / 2
+    # per-exposure image motion: each star is drawn at its mean displacement over the
+    # stack, blurred by the displacements' covariance (truth keeps the true position)
+    motion = getattr(optics, "image_motion", None)
+    motion_mean = motion_cov = None
+    if motion is not None and motion.enabled and len(x):
+        motion_mean, motion_cov = motion.stack(
+            x, y, scene.nexp, scene.exptime, u.Quantity(epoch, u.yr).value
+        )
     sub_exposure = scene.exptime * u.s
     flux_sub = star_electrons(mag, phot, sub_exposure).value
     halo = optics.halo if par.halo else None
     core_fraction = 1.0 - (halo.fraction if halo is not None else 0.0)
     cov = _values(optics.kernel_covariance(x, y), u.mas**2) if len(x) else np.zeros((0, 2, 2))
+    render_x_pix, render_y_pix = x_pix, y_pix
+    if motion_mean is not None:
+        cov = cov + motion_cov
+        render_x_pix = x_pix + motion_mean[:, 0] / s
+        render_y_pix = y_pix + motion_mean[:, 1] / s
     sigma_max = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0, None)) if len(x) else x
     noise = noise_sigma_per_subexposure(scene)
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max, x, y)
@@ -164,11 +177,13 @@ def render_frame(
     image = np.full((det.ny, det.nx), sky, dtype=np.float64)
     if halo is not None and len(x):
         b = par.halo_downsample or max(1, int(round(HALO_COARSE_PIXEL_MAS / s)))
-        halo_field(x_pix, y_pix, flux_sub, image.shape, halo, s, b, par.threads, out=image)
+        halo_field(
+            render_x_pix, render_y_pix, flux_sub, image.shape, halo, s, b, par.threads, out=image
+        )
     rendered = renderer.render(
         image,
-        x_pix,
-        y_pix,
+        render_x_pix,
+        render_y_pix,
         x,
         y,
         cov,
@@ -205,6 +220,9 @@ def render_frame(
     if dar is not None:
         truth["dar_x"] = dar[0][keep] * u.arcsec
         truth["dar_y"] = dar[1][keep] * u.arcsec
+    if motion_mean is not None:  # the stack's mean image motion (an astrometric error)
+        truth["dx_motion"] = motion_mean[keep, 0] * u.mas
+        truth["dy_motion"] = motion_mean[keep, 1] * u.mas
     attrs = {
         "epoch": u.Quantity(epoch, u.yr),
         "pixel_scale": s * u.mas,

@@ -1,0 +1,177 @@
+"""LGS cone effect (focal anisoplanatism) against independent references.
+
+References written here, independently of ``simulate.optics.cone_effect``:
+
+* the exact piston-removed focal-anisoplanatism variance of one on-axis LGS and
+  a single Kolmogorov layer, ``sigma^2 = 1/2 <D_eps(x, y)>_{x, y in pupil}`` with
+  ``eps(x) = phi(x) - phi(a x)`` expanded in the structure function
+  ``D(r) = 6.88 (r / r0)^(5/3)`` (Fried & Belsher 1994), by Monte-Carlo
+  quadrature over pupil point pairs;
+* Fried's closed form for small h / H, ``sigma^2 = (D / d0)^(5/3)`` with
+  ``d0 = lambda^(6/5) [19.77 int Cn^2(h) (h / H)^(5/3) dh]^(-3/5)``
+  (Fried & Belsher 1994; Tyler 1994 for the small-h/H limit), with
+  ``int Cn^2 dh = r0^(-5/3) / (0.423 k^2)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.special import jn_zeros
+
+from mavispm.simulate.optics import psf_grid
+from mavispm.simulate.optics.ao_psd import AOSettings, lgs_directions
+from mavispm.simulate.optics.atmosphere import AtmosphereSettings, layers, von_karman_psd
+from mavispm.simulate.optics.cone_effect import cone_psd, footprint_coverage, pupil_coherence
+from mavispm.simulate.optics.psf_grid import PSFSettings, grid_key, residual_psd_model
+from mavispm.simulate.optics.pupil import PupilSettings
+
+D = 8.0
+R0 = 0.2  # m, at the phase wavelength
+
+
+def _brute_force_fa(shrink: float, n: int = 400_000, seed: int = 3) -> float:
+    """Piston-removed variance (rad^2) of phi(x) - phi((1 - shrink) x) over the disc."""
+    rng = np.random.default_rng(seed)
+
+    def disc(k):
+        r = np.sqrt(rng.random(k)) * D / 2
+        t = rng.random(k) * 2 * np.pi
+        return np.stack([r * np.cos(t), r * np.sin(t)], -1)
+
+    def sf(v):
+        return 6.88 * (np.hypot(v[..., 0], v[..., 1]) / R0) ** (5 / 3)
+
+    a = 1 - shrink
+    total = 0.0
+    for _ in range(5):
+        x, y = disc(n), disc(n)
+        d_eps = (
+            sf(x - y)
+            + sf(a * (x - y))
+            - sf(x - a * y)
+            - sf(a * x - y)
+            + sf(shrink * x)
+            + sf(shrink * y)
+        )
+        total += 0.5 * d_eps.mean()
+    return total / 5
+
+
+def _fried_fa(shrink: float) -> float:
+    """Fried's small-h/H focal anisoplanatism (D / d0)^(5/3) for one layer (rad^2)."""
+    k2_int_cn2 = R0 ** (-5 / 3) / 0.423  # k^2 int Cn^2 dh
+    # (D / d0)^(5/3) = D^(5/3) lambda^-2 19.77 int Cn^2 (h/H)^(5/3); lambda^-2 = k^2 / (4 pi^2)
+    return D ** (5 / 3) * 19.77 * shrink ** (5 / 3) * k2_int_cn2 / (4 * np.pi**2)
+
+
+def _code_fa(shrink: float) -> float:
+    """The code's single on-axis LGS cone PSD, integrated over frequency (rad^2).
+
+    The PSD is isotropic, so a fine logarithmic radial grid integrates the
+    low-frequency cusp (1 - gamma^2) W ~ f^(-5/3) accurately.
+    """
+    h = 10000.0
+    lgs_range = h / shrink
+    gaps, area = footprint_coverage(np.zeros(2), np.zeros((1, 2)), np.array([h]), lgs_range, D)
+    f = np.geomspace(1e-5, 200.0, 40000)
+    w = von_karman_psd(f**2, R0, 1e6)[:, None]
+    psd = cone_psd(f, w, gaps, area, D)
+    return float(np.trapezoid(2 * np.pi * f * psd, f))
+
+
+def test_pupil_coherence_limits():
+    assert pupil_coherence(0.0, D) == pytest.approx(1.0)
+    # first zero of the Airy amplitude 2 J1(x)/x at x = 3.8317 = pi D q
+    q0 = jn_zeros(1, 1)[0] / (np.pi * D)
+    assert abs(pupil_coherence(q0, D)) < 1e-9
+    # an annular pupil: the transform of (disc D - disc eps D) / area
+    eps = 0.16
+    q = 0.1
+    x = np.pi * D * q
+    from scipy.special import j1
+
+    expect = (2 * j1(x) / x - eps**2 * 2 * j1(eps * x) / (eps * x)) / (1 - eps**2)
+    assert pupil_coherence(q, D, eps) == pytest.approx(expect, rel=1e-12)
+
+
+def test_single_lgs_gap_is_the_cone_annulus():
+    h, rng = 12000.0, 90000.0
+    gaps, area = footprint_coverage(np.zeros(2), np.zeros((1, 2)), np.array([h]), rng, D)
+    assert gaps[0] == pytest.approx(D / 2 * h / rng, rel=1e-9)
+    assert area[0] == pytest.approx(1.0)  # the whole cone annulus is unsensed
+
+
+@pytest.mark.parametrize("shrink", [0.05, 0.1, 0.2])
+def test_single_lgs_matches_focal_anisoplanatism(shrink):
+    code = _code_fa(shrink)
+    # exact piston-removed pupil integral: within 10% (the MMSE correction
+    # (1 - gamma^2) is slightly better than the plain LGS correction)
+    assert code == pytest.approx(_brute_force_fa(shrink), rel=0.10)
+    # Fried's closed form (D/d0)^(5/3), a small-h/H result: within 15% for h/H <= 0.1
+    if shrink <= 0.1:
+        assert code == pytest.approx(_fried_fa(shrink), rel=0.15)
+
+
+def test_cone_scales_as_five_thirds_of_h_over_h():
+    """(D / d0)^(5/3) with d0 ~ (h/H)^-1: sigma^2 ~ (h/H)^(5/3) for small h/H."""
+    ratio = _code_fa(0.04) / _code_fa(0.02)
+    assert ratio == pytest.approx(2 ** (5 / 3), rel=0.05)
+
+
+def test_mavis_lgs_cover_the_centre_not_the_corner():
+    atm = AtmosphereSettings()
+    ao = AOSettings()
+    lay = layers(atm)
+    rng = ao.lgs_height / np.cos(np.radians(atm.zenith_angle))
+    dirs = lgs_directions(ao)
+    centre = footprint_coverage(np.zeros(2), dirs, lay.heights, rng, D)
+    corner = footprint_coverage(np.array([-15.0, -15.0]) / 206264.8, dirs, lay.heights, rng, D)
+    assert np.all(centre[0] == 0) and np.all(centre[1] == 0)
+    assert corner[0][-1] > 0.5 and 0 < corner[1][-1] < 1
+    # gaps grow with altitude (wider separation, narrower LGS footprint)
+    assert np.all(np.diff(corner[0]) >= -1e-12)
+
+
+def test_cone_term_in_budget_and_switch():
+    psf = PSFSettings(pupil_sampling=32, psd_padding=2.5, stamp_size=0.3, pixel_scale=3.75)
+    pupil, atm = PupilSettings(), AtmosphereSettings()
+    on = residual_psd_model(psf, pupil, atm, AOSettings())
+    off = residual_psd_model(psf, pupil, atm, AOSettings(cone_effect=False))
+    assert on.budget((0.0, 0.0))["cone"] == 0.0
+    corner = on.budget((-15.0, -15.0))["cone"]
+    assert corner > 20.0  # nm
+    assert off.budget((-15.0, -15.0))["cone"] == 0.0
+
+
+def test_cache_key_changes_with_the_physics(monkeypatch):
+    args = (PSFSettings(), PupilSettings(), AtmosphereSettings(), AOSettings())
+    key = grid_key(*args)
+    assert (
+        grid_key(
+            PSFSettings(), PupilSettings(), AtmosphereSettings(), AOSettings(cone_effect=False)
+        )
+        != key
+    )
+    monkeypatch.setattr(psf_grid, "ALGORITHM_VERSION", psf_grid.ALGORITHM_VERSION - 1)
+    assert grid_key(*args) != key  # grids cached before the cone effect are not reused
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    x=st.floats(-40, 40),
+    y=st.floats(-40, 40),
+    h=st.floats(0.0, 30000.0),
+)
+def test_hypothesis_coverage_bounded(x, y, h):
+    ao = AOSettings()
+    gaps, unc = footprint_coverage(
+        np.array([x, y]) / 206264.8, lgs_directions(ao), np.array([h]), 100000.0, D
+    )
+    assert 0 <= unc[0] <= 1 and 0 <= gaps[0] <= D
+    f = np.array([0.0, 0.1, 1.0, 5.0])
+    w = np.ones((4, 1))
+    p = cone_psd(f, w, gaps, unc, D, 0.16)
+    assert np.all(p >= 0) and np.all(p <= 1 + 1e-12) and p[0] == pytest.approx(0.0, abs=1e-12)

@@ -1,0 +1,136 @@
+"""Regression figures against published numbers (independent truth).
+
+With the default settings (TIPTOP's MAVIS.ini: 0.8" seeing, 30 deg zenith, 10
+layers, 8 LGS at 17.5" / 90 km, DMs at 0 / 6 / 13.5 km, 550 nm):
+
+* TIPTOP 1.6.0 run on its shipped perfTest/MAVIS.ini (numbers quoted in
+  issue 15): Strehl centre 0.249, field median 0.225, corner 0.04-0.05;
+  FWHM centre 14.5, field median 15.4, corner 18.0 mas. Tolerance 10%.
+* The MAVISIM paper: field-average sigma_TT of tab:ttjitter's asterisms 2.92 /
+  6.45 / 9.23 mas (good / typical / bad), tolerance 10%; FWHM_ave of
+  tab:simparams (PSF x TT kernel x 3 mas charge diffusion x 3.5 mas
+  vibration), tolerance 5%.
+
+Figures the model does not reach yet are ``xfail(strict=True)`` with the
+measured value in the reason, so they flip to failures (and must be promoted)
+the day the model reaches them. Full 11 x 11 grids are slow-marked.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mavispm.simulate.optics.ao_psd import AOSettings
+from mavispm.simulate.optics.atmosphere import AtmosphereSettings
+from mavispm.simulate.optics.psf_grid import PSFSettings, compute_fourier_grid, compute_grid
+from mavispm.simulate.optics.psf_metrics import fwhm
+from mavispm.simulate.optics.pupil import PupilSettings
+from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings, field_average_sigma
+
+ATM, PUPIL, AO = AtmosphereSettings(), PupilSettings(), AOSettings()
+#: accuracy knobs: pupil_sampling 64 is within 0.002 in Strehl of 128 (docs/optics.md)
+PSF = PSFSettings(pupil_sampling=64, stamp_size=0.4)
+TIPTOP = {"strehl": (0.249, 0.225, (0.04, 0.05)), "fwhm": (14.5, 15.4, 18.0)}
+PAPER_TT = {"good": 2.92, "typical": 6.45, "bad": 9.23}
+#: tab:simparams: (asterism or None, TT scale, static HO PSF) -> FWHM_ave (mas)
+SIMPARAMS = {
+    "I": (None, 1, True, 17.99),
+    "Ia": (None, 1, False, 17.99),
+    "Ib": ("typical", 1, True, 22.20),
+    "II": ("good", 1, False, 18.96),
+    "III": ("typical", 1, False, 22.20),
+    "IV": ("bad", 1, False, 26.58),
+    "IIIx3": ("typical", 3, False, 42.99),
+    "IVx3": ("bad", 3, False, 61.42),
+}
+#: measured (idle-machine independent) values of the cases the model misses
+MISSES = {"III": 23.54, "IV": 29.57, "IIIx3": 50.03, "IVx3": 73.80}
+
+
+@pytest.fixture(scope="module")
+def centre_and_corner():
+    pos = np.array([[0.0, 0.0], [-15.0, -15.0]])
+    psfs, strehl, _, _ = compute_fourier_grid(PSF, PUPIL, ATM, AO, pos, progress=False)
+    return strehl, [fwhm(p, PSF.pixel_scale) for p in psfs]
+
+
+@pytest.mark.xfail(strict=True, reason="centre Strehl 0.30 against TIPTOP 0.249 (+21%)")
+def test_tiptop_strehl_centre(centre_and_corner):
+    assert centre_and_corner[0][0] == pytest.approx(TIPTOP["strehl"][0], rel=0.10)
+
+
+def test_tiptop_strehl_corner(centre_and_corner):
+    lo, hi = TIPTOP["strehl"][2]
+    assert 0.9 * lo <= centre_and_corner[0][1] <= 1.1 * hi
+
+
+def test_tiptop_fwhm_centre_and_corner(centre_and_corner):
+    f = centre_and_corner[1]
+    assert f[0] == pytest.approx(TIPTOP["fwhm"][0], rel=0.10)
+    assert f[1] == pytest.approx(TIPTOP["fwhm"][2], rel=0.10)
+
+
+@pytest.mark.parametrize(
+    "asterism",
+    [
+        "good",
+        "typical",
+        pytest.param(
+            "bad", marks=pytest.mark.xfail(strict=True, reason="10.19 mas against 9.23 (+10.4%)")
+        ),
+    ],
+)
+def test_paper_sigma_tt(asterism):
+    field = TipTiltField(TipTiltSettings(asterism=asterism), ATM, PUPIL)
+    assert field_average_sigma(field) == pytest.approx(PAPER_TT[asterism], rel=0.10)
+
+
+@pytest.fixture(scope="module")
+def full_grid():
+    return compute_grid(PSF, PUPIL, ATM, AO, progress=False).grid
+
+
+@pytest.mark.slow
+def test_tiptop_field_median(full_grid):
+    g = full_grid
+    assert np.median(g.strehl) == pytest.approx(TIPTOP["strehl"][1], rel=0.10)
+    f = [fwhm(p, g.pixel_scale) for p in g.cube.reshape(-1, g.n, g.n)]
+    assert np.median(f) == pytest.approx(TIPTOP["fwhm"][1], rel=0.10)
+
+
+def _gaussian_convolve(psf: np.ndarray, cov: np.ndarray, pixel: float) -> np.ndarray:
+    n = psf.shape[0]
+    yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2) * pixel
+    ic = np.linalg.inv(cov)
+    k = np.exp(-0.5 * (ic[0, 0] * xx**2 + 2 * ic[0, 1] * xx * yy + ic[1, 1] * yy**2))
+    k /= k.sum()
+    return np.fft.irfft2(np.fft.rfft2(psf) * np.fft.rfft2(np.fft.ifftshift(k)), s=psf.shape)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "sim",
+    [
+        pytest.param(s, marks=pytest.mark.xfail(strict=True, reason=f"measured {MISSES[s]} mas"))
+        if s in MISSES
+        else s
+        for s in SIMPARAMS
+    ],
+)
+def test_paper_fwhm_ave(full_grid, sim):
+    asterism, scale, static, paper = SIMPARAMS[sim]
+    g = full_grid
+    gx, gy = np.meshgrid(g.nodes_x, g.nodes_y)
+    if asterism is None:
+        cov = np.zeros((gx.size, 2, 2))
+    else:
+        tt = TipTiltField(TipTiltSettings(asterism=asterism, scale_factor=scale), ATM, PUPIL)
+        cov = tt.covariance(gx.ravel(), gy.ravel())
+    blur = (3.0**2 + 3.5**2) * np.eye(2)
+    c = g.cube.shape[0] // 2  # the centre node (11 x 11 grid)
+    widths = []
+    for k, (i, j) in enumerate(np.ndindex(gx.shape)):
+        psf = g.cube[c, c] if static else g.cube[i, j]
+        widths.append(fwhm(_gaussian_convolve(psf, cov[k] + blur, g.pixel_scale), g.pixel_scale))
+    assert np.mean(widths) == pytest.approx(paper, rel=0.05)
