@@ -327,6 +327,8 @@ def open_product(path: str | os.PathLike, kind: str | None = None) -> h5py.File:
     path = Path(path)
     if not path.exists():
         raise InputError("file does not exist", path=path)
+    if path.is_dir():
+        raise InputError(f"is a folder; expected a '{kind or 'mavispm'}' product file", path=path)
     if path.stat().st_size == 0:
         raise InputError("file is empty", path=path)
     try:

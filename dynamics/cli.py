@@ -15,8 +15,9 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.catalogue import Catalogue, read_catalogue
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
-from mavispm.core.errors import InputError
+from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import TableSpec, read_product, validate_table, write_product
 from mavispm.dynamics.fit import compare, fit_model
 from mavispm.dynamics.likelihood import StarSample
@@ -124,6 +125,14 @@ def star_sample(table, attrs, settings: DynamicsSettings, path=None):
         e_t=np.hypot(scale * cols["pm_t_err"][ok], floor),
         field_radius=field,
     )
+    for name, err in (("pm_r_err", stars.e_r), ("pm_t_err", stars.e_t)):
+        if np.any(err == 0):
+            raise InputError(
+                f"{int(np.count_nonzero(err == 0))} stars with zero error; expected measured "
+                "uncertainties > 0 (or set dynamics.pm_error_floor)",
+                path=path,
+                column=name,
+            )
     return stars, float(distance)
 
 
@@ -182,6 +191,10 @@ def _posterior_table(fit) -> QTable:
         t[name] = fit.chain.samples[:, i]
     t["log_like"] = fit.chain.log_like
     return t
+
+
+#: Fewest usable stars a dynamical fit accepts (below, the "mass" is the prior's).
+MIN_FIT_STARS = 10
 
 
 @dataclasses.dataclass
@@ -257,6 +270,12 @@ def fit_dynamics(
     if not isinstance(settings, DynamicsSettings):
         settings = validate_settings(settings)
     stars, distance = star_sample(propermotions, propermotions.meta, settings, path=source)
+    if stars.R.size < MIN_FIT_STARS:
+        raise InputError(
+            f"only {stars.R.size} usable stars (finite, unflagged proper motions in the field); "
+            f"a dynamical fit needs at least {MIN_FIT_STARS}",
+            path=source,
+        )
     pm = u.mas / u.yr
     profile = dispersion_profile(
         stars.R * u.arcsec,
@@ -389,8 +408,15 @@ def _handler(args) -> int:
     if args.config is not None:
         import tomllib
 
-        with open(args.config, "rb") as fh:
-            settings = tomllib.load(fh).get("dynamics", {})
+        try:
+            with open(args.config, "rb") as fh:
+                settings = tomllib.load(fh).get("dynamics", {})
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(
+                f"cannot read settings ({exc}); expected a TOML file with a [dynamics] table",
+                key="--config",
+                source=args.config,
+            ) from None
     settings = validate_settings(settings, source=args.config)
     if args.fast:
         settings = settings.fast()
@@ -436,7 +462,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--truth", default=None, help="truth catalogue with the IMBH")
     p.add_argument("--truth-no-imbh", default=None, help="truth catalogue without IMBH")
     p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
     p.set_defaults(func=_handler)

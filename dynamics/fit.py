@@ -127,12 +127,35 @@ class Comparison:
         return dict(self.__dict__)
 
 
+def backend_key(stars, settings, distance, with_bh, seed) -> str:
+    """Hash of everything an emcee chain depends on: the stars, the settings, distance, seed.
+
+    Stored with the chain in its backend so that a chain is resumed only for the
+    same data and settings, never continued for other data.
+    """
+    from dataclasses import asdict
+
+    from mavispm.core.array_cache import content_key
+
+    knobs = {k: v for k, v in asdict(settings).items() if k != "progress"}
+    arrays = [np.asarray(getattr(stars, c), dtype=float) for c in ("R", "v_r", "v_t", "e_r", "e_t")]
+    return content_key(
+        *arrays,
+        float(stars.field_radius),
+        knobs,
+        None if distance is None else float(distance),
+        bool(with_bh),
+        int(seed),
+    )
+
+
 def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> ModelFit:
     """Sample one model with emcee (and its evidence with dynesty if enabled)."""
     name = "imbh" if with_bh else "no_imbh"
     space = parameter_space(settings, distance, with_bh)
     like = make_likelihood(stars, space, settings, distance)
     t0 = time.perf_counter()
+    key = backend_key(stars, settings, distance, with_bh, seed)
     chain = run_emcee(
         like,
         space,
@@ -144,6 +167,7 @@ def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> Mo
         backend_path=backend_path,
         backend_name=name,
         progress=settings.progress,
+        backend_key=key,
     )
     wall = {"emcee": time.perf_counter() - t0}
     max_ll = chain.max_log_like

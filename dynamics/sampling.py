@@ -4,7 +4,11 @@
   (every parameter of order unity), started in a small ball around the
   maximum a posteriori point found with Powell's method.
 * The chain is stored in an emcee HDF5 backend, so a killed fit resumes where
-  it stopped (same file, same group name, same walker number).
+  it stopped. The backend is keyed (``backend_key``: a hash of the data and
+  settings); a chain of other data, other settings or another walker number is
+  never continued but started again. A resumed fit replays the convergence
+  checks of the steps already stored and continues with the stored random
+  state, so it gives the same samples as an uninterrupted fit.
 * Convergence: the run continues in blocks until every parameter's integrated
   autocorrelation time ``tau`` satisfies ``steps >= tau_factor * tau`` (default
   50) and ``tau`` changed by less than 1 % over the last block, or until
@@ -55,6 +59,64 @@ class ChainResult:
     map_params: np.ndarray
     max_log_like: float
     acceptance: float
+    resumed_at: int = 0
+
+
+#: Attribute of the backend group holding the key of the data and settings it samples.
+BACKEND_KEY_ATTR = "mavispm_key"
+
+
+def checkpoints(max_steps: int, check_every: int) -> list[int]:
+    """Chain lengths at which convergence is checked: every ``check_every`` steps and at the end."""
+    every = max(1, int(check_every))
+    out = list(range(every, max_steps + 1, every))
+    if max_steps > 0 and (not out or out[-1] != max_steps):
+        out.append(max_steps)
+    return out
+
+
+def _converged(tau, old_tau, it: int, tau_factor: float) -> bool:
+    """The stopping rule: ``it > tau_factor * tau`` and tau stable to 1 % (or twice as long)."""
+    if np.all(np.isfinite(tau)) and np.all(tau_factor * tau < it):
+        return bool(
+            np.all(np.abs(old_tau - tau) / tau < 0.01) or np.all(tau_factor * tau < 0.5 * it)
+        )
+    return False
+
+
+def _open_backend(path, name: str, walkers: int, ndim: int, key: str | None):
+    """The emcee backend and the number of steps it holds that may be continued (0 = fresh).
+
+    A chain is continued only when its group exists with the same shape and the
+    same key; otherwise (other data or settings, unreadable file) it is reset.
+    """
+    backend = emcee.backends.HDFBackend(str(path), name=name)
+    try:
+        with backend.open() as f:
+            stored = f[name].attrs.get(BACKEND_KEY_ATTR) if name in f else None
+        same = (stored.decode() if isinstance(stored, bytes) else stored) == key
+        iteration = int(backend.iteration) if same and backend.shape == (walkers, ndim) else 0
+    except (OSError, KeyError, AttributeError):
+        iteration = 0
+        if Path(path).exists() and not h5py_readable(path):
+            Path(path).unlink()  # a damaged file (killed while writing): start again
+    if iteration == 0:
+        backend.reset(walkers, ndim)
+        if key is not None:
+            with backend.open("a") as f:
+                f[name].attrs[BACKEND_KEY_ATTR] = key
+    return backend, iteration
+
+
+def h5py_readable(path) -> bool:
+    """Whether ``path`` opens as an HDF5 file."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r"):
+            return True
+    except OSError:
+        return False
 
 
 class _Posterior:
@@ -129,6 +191,7 @@ def run_emcee(
     backend_path: str | Path | None = None,
     backend_name: str = "mcmc",
     progress: bool = True,
+    backend_key: str | None = None,
 ) -> ChainResult:
     """Sample the posterior with emcee until the autocorrelation criterion holds.
 
@@ -151,33 +214,47 @@ def run_emcee(
     burn_tau : float
         Burn-in dropped, in autocorrelation times.
     backend_path : path, optional
-        emcee HDF5 backend file; an existing chain with the same name and shape is resumed.
+        emcee HDF5 backend file; an existing chain with the same name, shape and
+        ``backend_key`` is resumed (and gives the same result as an uninterrupted
+        run), any other chain in that group is discarded.
     backend_name : str
         Group name inside the backend file (one per model).
     progress : bool
         Show a tqdm progress bar.
+    backend_key : str, optional
+        Hash of everything the chain depends on (data, settings, seed), stored
+        with the chain: a chain is never continued for other data.
     """
     ndim = len(space)
     walkers = max(int(walkers), 2 * ndim + 2)
     rng = np.random.default_rng(seed)
     post = _Posterior(loglike, space)
     backend = None
-    resume = False
+    resumed_at = 0
     if backend_path is not None:
-        backend = emcee.backends.HDFBackend(str(backend_path), name=backend_name)
-        try:
-            resume = backend.iteration > 0 and backend.shape == (walkers, ndim)
-        except (OSError, KeyError, AttributeError):
-            resume = False
-        if not resume:
-            backend.reset(walkers, ndim)
+        backend, resumed_at = _open_backend(backend_path, backend_name, walkers, ndim, backend_key)
     # differential-evolution moves: affine invariant like the stretch move, but
     # much shorter autocorrelation times for the banana-shaped M-a-M_bh posteriors
     moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
     sampler = emcee.EnsembleSampler(walkers, ndim, post, backend=backend, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()
-    if resume:
+    old_tau = np.inf
+    converged = False
+    tau = np.full(ndim, np.nan)
+    plan = checkpoints(max_steps, check_every)
+    if resumed_at:
+        # the stored chain (and its random state) continues; replay the convergence
+        # checks an uninterrupted run made at the checkpoints already passed
         state = None
+        chain = sampler.get_chain()
+        for c in [c for c in plan if c <= resumed_at]:
+            tau = emcee.autocorr.integrated_time(chain[:c], tol=0)
+            if _converged(tau, old_tau, c, tau_factor):
+                converged = True
+                break
+            old_tau = tau
+        if resumed_at not in plan and not converged:
+            tau = sampler.get_autocorr_time(tol=0)
     else:
         z_map = find_map(loglike, space)
         state = z_map + 1e-3 * rng.standard_normal((walkers, ndim))
@@ -185,18 +262,14 @@ def run_emcee(
         for i in range(walkers):
             while not np.isfinite(post(state[i])[0]):
                 state[i] = z_map + 1e-4 * rng.standard_normal(ndim)
-    old_tau = np.inf
-    converged = False
-    tau = np.full(ndim, np.nan)
-    while sampler.iteration < max_steps:
-        n = min(check_every, max_steps - sampler.iteration)
-        state = sampler.run_mcmc(state, n, progress=progress)
+    for c in plan:
+        if converged or c <= sampler.iteration:
+            continue
+        state = sampler.run_mcmc(state, c - sampler.iteration, progress=progress)
         tau = sampler.get_autocorr_time(tol=0)
-        it = sampler.iteration
-        if np.all(np.isfinite(tau)) and np.all(tau_factor * tau < it):
-            if np.all(np.abs(old_tau - tau) / tau < 0.01) or np.all(tau_factor * tau < 0.5 * it):
-                converged = True
-                break
+        if _converged(tau, old_tau, sampler.iteration, tau_factor):
+            converged = True
+            break
         old_tau = tau
     tau_max = float(np.nanmax(tau)) if np.any(np.isfinite(tau)) else 1.0
     burn = min(int(burn_tau * tau_max), sampler.iteration // 2)
@@ -217,6 +290,7 @@ def run_emcee(
         map_params=space.from_scaled(all_z[best]),
         max_log_like=float(np.nanmax(np.asarray(all_ll, dtype=float))),
         acceptance=float(np.mean(sampler.acceptance_fraction)),
+        resumed_at=int(resumed_at),
     )
 
 

@@ -121,6 +121,10 @@ def _hooks(stage: str, detail: str, outdir: Path) -> None:
     if os.environ.get("WF_TEST_KILL") == stage:
         (outdir / "half_written.tmp").write_bytes(b"\0" * 1000)
         os.kill(os.getpid(), signal.SIGKILL)
+    once = outdir / "killed_once"
+    if os.environ.get("WF_TEST_KILL_ONCE") == stage and not once.exists():
+        once.write_text("")  # the retry (another worker) finds it and goes on
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 # ------------------------------------------------------------------ stages

@@ -12,6 +12,13 @@ A node's products live in ``<store>/<stage>/<key>/``. A task writes into
 step. A folder without its marker is never trusted, so a run killed at any
 moment resumes by redoing only unfinished nodes; the partial folder is reused
 so stages with their own resumable state (an emcee backend) pick it up.
+
+Committed products are made read-only and their SHA-256, size and
+modification time go into the marker. A product changed afterwards (through a
+hard link in a run directory, by a user allowed to write read-only files) no
+longer counts as cached: its node runs again (a warning says so). The check
+costs one ``stat`` per product; the content is hashed only when size or
+modification time changed.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import hashlib
 import json
 import os
 import shutil
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -173,10 +181,20 @@ class Store:
         marker = final / MARKER
         try:
             record = json.loads(marker.read_text())
-        except (OSError, json.JSONDecodeError):
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError):
             return None
-        if not all((final / rel).is_file() for rel in record.get("products", {}).values()):
+        if not isinstance(record, dict) or not isinstance(record.get("products"), dict):
             return None
+        if not all((final / rel).is_file() for rel in record["products"].values()):
+            return None
+        for name, rel in record["products"].items():
+            if not _unchanged(final / rel, (record.get("digests") or {}).get(name)):
+                warnings.warn(
+                    f"cached product {final / rel} was changed after it was made; "
+                    f"running node {record.get('node', key)} again",
+                    stacklevel=2,
+                )
+                return None
         return record
 
     def begin(self, stage: str, key: str) -> Path:
@@ -212,8 +230,11 @@ class Store:
         final = self.final_dir(stage, key)
         from mavispm.core.atomic import atomic_path
 
+        record = {**record, "digests": _digests(part, record.get("products", {}))}
         with atomic_path(part / MARKER) as tmp:
             tmp.write_text(json.dumps(record, indent=1, sort_keys=True, default=_json_default))
+        for rel in record.get("products", {}).values():  # run directories link to these
+            _read_only(part / rel)
         if final.exists() and self.lookup(stage, key) is None:
             shutil.rmtree(final)  # an incomplete leftover from an older layout
         try:
@@ -230,6 +251,35 @@ class Store:
         with contextlib.suppress(FileNotFoundError):
             (final / MARKER).unlink()
         shutil.rmtree(final, ignore_errors=True)
+
+
+def _digests(folder: Path, products: Mapping) -> dict:
+    """SHA-256, size and modification time of each product file (for tamper checks)."""
+    out = {}
+    for name, rel in products.items():
+        path = folder / rel
+        st = path.stat()
+        out[name] = {"sha256": file_digest(path), "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    return out
+
+
+def _unchanged(path: Path, digest) -> bool:
+    """Whether a product still has the content recorded at commit (True when none was)."""
+    if not isinstance(digest, Mapping):
+        return True  # a store written before digests were recorded
+    try:
+        st = path.stat()
+    except OSError:
+        return False
+    if st.st_size == digest.get("size") and st.st_mtime_ns == digest.get("mtime_ns"):
+        return True
+    return st.st_size == digest.get("size") and file_digest(path) == digest.get("sha256")
+
+
+def _read_only(path: Path) -> None:
+    """Remove every write permission of a file (best effort)."""
+    with contextlib.suppress(OSError):
+        os.chmod(path, path.stat().st_mode & ~0o222)
 
 
 def product_fingerprint(path: str | os.PathLike, ignore: tuple[str, ...] = ()) -> str:

@@ -29,6 +29,7 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
     ("measure", "mavispm.measure.propermotions.cli"),
     (None, "mavispm.dynamics.cli"),
     (None, "mavispm.workflows.runner_cli"),
+    (None, "mavispm.workflows.cache_cli"),
     (None, "mavispm.workflows.export_cli"),
 ]
 
@@ -38,9 +39,20 @@ GROUP_HELP = {
 }
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (exit status 2).
+
+    ``mavispm run: error: argument --workers: ...; see 'mavispm run --help'``
+    instead of the usage block. Sub-command parsers inherit the class.
+    """
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Assemble the full argument parser from the stage modules."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="mavispm",
         description="MAVIS MCAO proper-motion pipeline: simulate, measure, "
         "proper motions, dynamics.",
@@ -75,11 +87,17 @@ def _help_of(parser: argparse.ArgumentParser):
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mavispm`` console script."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # a usage error (one line, already printed): exit status 2
+        if exc.code in (0, None):  # --help, --version
+            raise
+        return 2
     try:
         return int(args.func(args) or 0)
     except MavispmError as exc:
-        print(f"mavispm: error: {exc}", file=sys.stderr)
+        # one line, whatever a library put into the message (HDF5 errors hold newlines)
+        print(f"mavispm: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("mavispm: interrupted", file=sys.stderr)

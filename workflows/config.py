@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -49,6 +50,7 @@ import astropy.units as u
 
 from mavispm.core.config import check_known_keys, from_mapping
 from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.paths import check_name
 from mavispm.workflows.registry import StageRegistry
 from mavispm.workflows.sweeps import SweepPoint, apply_point, deep_merge, expand_points
 
@@ -67,6 +69,9 @@ STUDY_SECTIONS = (
     "dynamics",
 )
 TOP_SECTIONS = ("workflow", "outputs", "studies", "sweep", *STUDY_SECTIONS)
+
+#: Names a workflow may not take: folders of the work directory that are not run directories.
+RESERVED_NAMES = ("store", "products", "report")
 
 #: Workflow section -> registry stage name that validates it.
 SECTION_STAGE = {
@@ -235,7 +240,7 @@ def read_toml(path: Path) -> dict:
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"invalid TOML: {exc}", source=str(path)) from None
     except OSError as exc:
         raise ConfigError(f"cannot read workflow file ({exc.strerror})", source=str(path)) from None
@@ -299,6 +304,7 @@ def parse_workflow(mapping: Mapping, source: Path, registry: StageRegistry) -> W
                 source=src,
             )
         check_known_keys(overlay, STUDY_SECTIONS, f"studies.{sname}", src)
+        check_name(sname, f"studies.{sname}", src, what="study name")
     points = expand_points(axes, meta.sweep_mode)
     validated: dict[str, Any] = {}
     variants = []
@@ -306,7 +312,8 @@ def parse_workflow(mapping: Mapping, source: Path, registry: StageRegistry) -> W
         swept = apply_point(mapping, point, source=src)
         for sname in list((swept.get("studies") or {}) or [""]):
             variants.append(_variant(swept, sname, point, source, registry, validated))
-    name = meta.name or source.stem
+    default = re.sub(r"[^A-Za-z0-9_.+=,-]+", "_", source.stem).lstrip(".-") or "workflow"
+    name = check_name(meta.name or default, "workflow.name", src, RESERVED_NAMES, "workflow name")
     return Workflow(
         source=source,
         name=name,
@@ -363,7 +370,9 @@ def _parse_axes(raw, src: str) -> list[SweepAxis]:
             raise ConfigError(
                 "expected a non-empty list of values", key=f"sweep[{i}].values", source=src
             )
-        name = axis.name or axis.parameter.split(".")[-1]
+        name = check_name(
+            axis.name or axis.parameter.split(".")[-1], f"sweep[{i}].name", src, what="axis name"
+        )
         if name in names:
             raise ConfigError(
                 f"two sweep axes are named '{name}'; give them distinct 'name's",
@@ -618,6 +627,8 @@ def _epochs(table: Mapping | None, ctx: _Context, available: dict | None) -> lis
             key="epochs.names",
             source=src,
         )
+    for i, n in enumerate(names):
+        check_name(n, f"epochs.names[{i}]", src, what="epoch name")
     if available is not None:
         for n, t in zip(names, times):
             if n not in available or abs(available[n] - t) > 1e-9:
@@ -646,6 +657,7 @@ def _scenes(eff: Mapping, ctx: _Context) -> list[SceneConfig]:
     out = []
     for name, overlay in (overlays or {"main": {}}).items():
         prefix = f"scenes.{name}"
+        check_name(name, prefix, src, what="scene name")
         if not isinstance(overlay, Mapping):
             raise ConfigError(f"expected a table, got {overlay!r}", key=prefix, source=src)
         overlay = dict(overlay)

@@ -41,6 +41,7 @@ from astropy.stats import mad_std
 
 from mavispm.core.atomic import atomic_path
 from mavispm.core.errors import InputError, MavispmError
+from mavispm.core.paths import NAME_PATTERN, contained
 
 __all__ = [
     "astrometry_by_magnitude",
@@ -78,7 +79,10 @@ BAD_FLAGS = 1 | 16 | 32
 
 
 def read_summary(rundir: str | os.PathLike) -> dict:
-    """Read a run directory's summary.json.
+    """Read and check a run directory's summary.json.
+
+    The file is data: its structure is checked (:func:`check_summary`) and
+    nothing in it is ever imported or executed.
 
     Parameters
     ----------
@@ -93,15 +97,69 @@ def read_summary(rundir: str | os.PathLike) -> dict:
     Raises
     ------
     InputError
-        When the folder is not a mavispm run directory.
+        When the folder is not a mavispm run directory or summary.json is malformed.
     """
     path = Path(rundir) / "summary.json"
     if not path.is_file():
         raise InputError("not a mavispm run directory (no summary.json)", path=rundir)
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
+        summary = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"summary.json is not valid JSON ({exc})", path=path) from None
+    check_summary(summary, path)
+    return summary
+
+
+def check_summary(summary, path) -> None:
+    """Check the structure of a summary.json mapping (see docs/workflows.md).
+
+    Raises
+    ------
+    InputError
+        Naming the file and the first entry that is not as expected.
+    """
+
+    def fail(what: str):
+        raise InputError(f"malformed summary.json: {what}", path=path)
+
+    if not isinstance(summary, dict):
+        fail(f"expected a JSON object, got {type(summary).__name__}")
+    for key, kind in (("workflow", str), ("nodes", list), ("stages", dict)):
+        if not isinstance(summary.get(key), kind):
+            fail(f"expected '{key}' to be a {kind.__name__}")
+    for i, node in enumerate(summary["nodes"]):
+        if not isinstance(node, dict):
+            fail(f"nodes[{i}] is not an object")
+        for key, kind in (
+            ("id", str),
+            ("stage", str),
+            ("status", str),
+            ("products", dict),
+            ("labels", dict),
+        ):
+            if not isinstance(node.get(key), kind):
+                fail(f"expected nodes[{i}].{key} to be a {kind.__name__}")
+        for name, rel in node["products"].items():
+            if not isinstance(rel, str):
+                fail(f"expected nodes[{i}].products.{name} to be a path string")
+            contained(path.parent, rel, f"summary.json nodes[{i}].products.{name}", False)
+        for name, value in node["labels"].items():
+            if value and (not isinstance(value, str) or not NAME_PATTERN.fullmatch(value)):
+                fail(f"nodes[{i}].labels.{name} = {value!r} is not a plain name")
+        if node.get("wall_s") is not None and not isinstance(node["wall_s"], (int, float)):
+            fail(f"expected nodes[{i}].wall_s to be a number")
+    for stage, entry in summary["stages"].items():
+        if not isinstance(entry, dict) or not all(
+            isinstance(entry.get(k), (int, float)) for k in ("tasks", "ran", "cached", "wall_s")
+        ):
+            fail(f"expected stages.{stage} to hold numbers tasks, ran, cached, wall_s")
+    tables = (summary.get("outputs") or {}).get("tables", [])
+    if not isinstance(tables, list):
+        fail("expected outputs.tables to be a list of report recipe names")
+    for recipe in tables:
+        if recipe not in RECIPES:
+            fail(f"unknown report recipe {recipe!r}; expected one of {sorted(RECIPES)}")
+    stage_report_names(summary, path)
 
 
 def bin_label(lo: float, hi: float) -> str:
@@ -667,22 +725,83 @@ def _write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
 # --------------------------------------------------------------------------- the report
 
 
-def write_report(rundir: str | os.PathLike) -> Path:
+def stage_report_functions() -> dict[str, str]:
+    """The trusted stage-report registry: stage name -> ``"module:function"`` in mavispm.
+
+    ``mavispm report`` calls only these; a run directory names stages, never code.
+    """
+    from mavispm.workflows.stages import STAGE_MODULES
+
+    return {stage: f"{module}:write_report" for stage, (module, _) in STAGE_MODULES.items()}
+
+
+def stage_report_names(summary: Mapping, path=None) -> list[str]:
+    """Stage names whose reports summary.json asks for, checked against the registry.
+
+    ``stage_reports`` is a list of stage names. Run directories written before
+    this check hold a mapping of stage name to ``"module:function"``; such an
+    entry is accepted only when it names the registered function of that stage.
+
+    Raises
+    ------
+    InputError
+        For a name that is not a registered stage report (a run directory is
+        data: it can never name code to run).
+    """
+    raw = summary.get("stage_reports") or []
+    trusted = stage_report_functions()
+    if isinstance(raw, Mapping):
+        for stage, ref in raw.items():
+            if trusted.get(stage) != ref:
+                raise InputError(
+                    f"summary.json: stage_reports entry {stage!r} = {ref!r} is not a registered "
+                    f"stage report; run directories hold data, never code (expected stage names "
+                    f"{sorted(trusted)})",
+                    path=path,
+                )
+        raw = list(raw)
+    if not isinstance(raw, list):
+        raise InputError(
+            "summary.json: expected stage_reports to be a list of stage names", path=path
+        )
+    for name in raw:
+        if name not in trusted:
+            raise InputError(
+                f"summary.json: unknown stage report {name!r}; expected one of {sorted(trusted)}",
+                path=path,
+            )
+    return list(raw)
+
+
+def _fmt_number(value, spec: str) -> str:
+    return format(value, spec) if isinstance(value, (int, float)) else "-"
+
+
+def write_report(rundir: str | os.PathLike, reports: Mapping[str, str] | None = None) -> Path:
     """Write ``report.md`` (and ``report/`` with tables and plots) for a run directory.
 
     Parameters
     ----------
     rundir : path
         A run directory written by :func:`mavispm.workflows.runner.run_workflow`.
+    reports : mapping, optional
+        Stage name -> ``"module:function"`` of the stage reports, given by the
+        calling code (the runner passes its stage registry's). Default: the
+        trusted registry :func:`stage_report_functions`. summary.json only
+        selects stages by name (``stage_reports``); it never names code.
 
-    Each stage's own report function (``write_report`` of the stage module, as
-    recorded in summary.json's ``stage_reports``) is called on that stage's
-    products; stage modules that cannot be imported are skipped.
+    Each selected stage's report function is called on that stage's products;
+    stage modules that cannot be imported are skipped.
 
     Returns
     -------
     pathlib.Path
         The report file.
+
+    Raises
+    ------
+    InputError
+        For a malformed summary.json (see :func:`check_summary`).
     """
     from mavispm.workflows.sweeps import write_sweep_table
 
@@ -691,13 +810,22 @@ def write_report(rundir: str | os.PathLike) -> Path:
     outdir = rundir / "report"
     outdir.mkdir(exist_ok=True)
     parts = [f"# mavispm run: {summary['workflow']}\n"]
-    if summary.get("description"):
+    if isinstance(summary.get("description"), str) and summary["description"].strip():
         parts.append(summary["description"].strip() + "\n")
     parts.append(
-        f"Workflow file `{summary['source']}`, mavispm {summary['mavispm_version']}, "
-        f"executor {summary['executor']}, finished {summary['created']}, "
-        f"wall time {summary['wall_s']:.1f} s.\n"
+        f"Workflow file `{summary.get('source', '-')}`, mavispm "
+        f"{summary.get('mavispm_version', '-')}, executor {summary.get('executor', '-')}, "
+        f"finished {summary.get('created', '-')}, "
+        f"wall time {_fmt_number(summary.get('wall_s'), '.1f')} s.\n"
     )
+    lost = summary.get("interrupted_tasks")
+    if isinstance(lost, list) and lost:
+        parts.append(
+            f"**{len(lost)} task(s) were redone after an attempt died** (a killed run or a "
+            "lost dask worker; products are the same as an uninterrupted run's): "
+            + ", ".join(str(x) for x in lost)
+            + "\n"
+        )
     parts.append("## Stages\n")
     from mavispm.workflows.registry import STAGE_NAMES
 
@@ -721,16 +849,23 @@ def write_report(rundir: str | os.PathLike) -> Path:
             ]
         )
     parts.append(_md_table(["node", "status", "time [s]", "product"], rows))
-    sweep_files = write_sweep_table(summary, outdir)
+    try:
+        sweep_files = write_sweep_table(summary, outdir)
+    except Exception as exc:  # a malformed sweep must not hide the rest of the report
+        sweep_files = []
+        parts.append(f"\n*The sweep table could not be produced: {type(exc).__name__}: {exc}*\n")
     if sweep_files:
         parts.append("\n## Sweep\n")
         md = [p for p in sweep_files if p.suffix == ".md"]
         parts.append(md[0].read_text() if md else "")
         parts += [f"\n![{p.stem}]({_rel(p, rundir)})\n" for p in sweep_files if p.suffix == ".png"]
     for recipe in summary.get("outputs", {}).get("tables", []):
-        parts.append(f"\n## {RECIPE_TITLES[recipe]}\n")
+        parts.append(f"\n## {RECIPE_TITLES.get(recipe, recipe)}\n")
         parts.append(_safe(RECIPES[recipe], summary, rundir, outdir))
-    parts += _stage_reports(summary, rundir, outdir)
+    if reports is None:
+        reports = stage_report_functions()
+    names = [s for s in stage_report_names(summary, rundir / "summary.json") if s in reports]
+    parts += _stage_reports(summary, rundir, outdir, {s: reports[s] for s in names})
     parts.append(warnings_section(summary))
     path = rundir / "report.md"
     with atomic_path(path) as tmp:
@@ -774,11 +909,13 @@ def _safe(func, *args) -> str:
         return f"*This section could not be produced: {type(exc).__name__}: {exc}*\n"
 
 
-def _stage_reports(summary: Mapping, rundir: Path, outdir: Path) -> list[str]:
+def _stage_reports(
+    summary: Mapping, rundir: Path, outdir: Path, reports: Mapping[str, str]
+) -> list[str]:
     from mavispm.workflows.registry import resolve
 
     parts = []
-    for stage, ref in (summary.get("stage_reports") or {}).items():
+    for stage, ref in reports.items():
         try:
             func = resolve(ref)
         except (ImportError, AttributeError):
@@ -787,13 +924,15 @@ def _stage_reports(summary: Mapping, rundir: Path, outdir: Path) -> list[str]:
         for node in _nodes(summary, stage):
             lab = node["labels"]
             key = (lab.get("study", ""), lab.get("point", ""), lab.get("scene", ""))
-            groups.setdefault(key, []).append(rundir / node["products"]["main"])
+            groups.setdefault(key, []).append(
+                contained(rundir, node["products"]["main"], "product", follow_links=False)
+            )
         if not groups:
             continue
         parts.append(f"\n## {stage} report\n")
         for key, paths in groups.items():
             name = "_".join(p for p in key if p) or "all"
-            target = outdir / stage / name
+            target = contained(outdir, Path(stage) / name, "report folder")
 
             def call(func=func, paths=paths, target=target):
                 return list(func(paths, target) or [])

@@ -32,7 +32,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mavispm.core.errors import MavispmError
+from mavispm.core.errors import ConfigError, MavispmError
+from mavispm.core.paths import check_name, contained
 from mavispm.workflows import node_warnings
 from mavispm.workflows.cache import Store, canonical_json, exclusive_lock, node_keys
 from mavispm.workflows.config import Workflow, load_workflow
@@ -118,14 +119,17 @@ def _run_in(outdir: Path, task: Task) -> dict:
     }
     start = time.perf_counter()
     lock = _EXCLUSIVE_LOCK if task.stage.exclusive else contextlib.nullcontext()
+    interrupted = _begin_attempt(outdir)
     try:
         run = resolve(task.stage.run)
         with lock, node_warnings.capture() as caught:
             products = run(inputs, dict(task.settings), dict(task.params), task.seed, outdir)
         rel = _relative_products(products, outdir, task)
+        (outdir / RUNNING).unlink(missing_ok=True)
         summarize = resolve(task.stage.summarize)
         metrics = summarize({k: outdir / v for k, v in rel.items()}) if summarize else {}
     except Exception as exc:
+        (outdir / RUNNING).unlink(missing_ok=True)  # a failure, reported below; not a loss
         (outdir / "error.txt").write_text(traceback.format_exc())
         if isinstance(exc, MavispmError):
             raise TaskError(f"{task.node_id}: {exc}") from None
@@ -143,8 +147,26 @@ def _run_in(outdir: Path, task: Task) -> dict:
         "settings": task.settings,
         "params": task.params,
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "interrupted_attempts": interrupted,
         "warnings": list(caught),
     }
+
+
+#: Marker of a task attempt in progress in its partial folder. Found at the start
+#: of an attempt, it means an earlier attempt died without finishing or failing:
+#: a killed run, or a lost dask worker whose task the scheduler retried.
+RUNNING = ".running"
+
+
+def _begin_attempt(outdir: Path) -> int:
+    """Mark an attempt as running; return how many earlier attempts died in this folder."""
+    marker = outdir / RUNNING
+    try:
+        died = int(marker.read_text() or 0)
+    except (OSError, ValueError):
+        died = 0
+    marker.write_text(str(died + 1))
+    return died
 
 
 def _relative_products(products, outdir: Path, task: Task) -> dict[str, str]:
@@ -245,7 +267,11 @@ def run_workflow(
         registry = default_registry()
     if not isinstance(workflow, Workflow):
         workflow = load_workflow(workflow, registry)
-    workdir = Path(workdir or DEFAULT_WORKDIR).resolve()
+    workdir = check_workdir(workdir)
+    if workers is not None and (not isinstance(workers, int) or workers < 0):
+        raise ConfigError(
+            f"expected an integer >= 0 (0 = all CPUs), got {workers!r}", key="--workers"
+        )
     nodes = expand(workflow)
     keys = node_keys(nodes, registry)
     store = Store(workdir / "store")
@@ -261,13 +287,12 @@ def run_workflow(
             nodes, keys, store, registry, executor, force, progress
         )
     wall = time.perf_counter() - start
-    rundir = workdir / workflow.name
+    rundir = contained(workdir, check_name(workflow.name, "workflow.name"), "run directory")
     summary = _summary(
         workflow, nodes, keys, records, ran_keys, failures, executor.name, wall, workdir
     )
-    summary["stage_reports"] = {
-        s: registry[s].report for s in summary["stages"] if registry[s].report is not None
-    }
+    reports = {s: registry[s].report for s in summary["stages"] if registry[s].report is not None}
+    summary["stage_reports"] = sorted(reports)  # names only: a run directory never names code
     _materialize(rundir, summary, nodes, keys, store, workflow)
     if failures:
         lines = "; ".join(failures.values())
@@ -278,10 +303,32 @@ def run_workflow(
     if workflow.outputs.report:
         from mavispm.workflows.report import write_report
 
-        write_report(rundir)
+        write_report(rundir, reports=reports)
     ran = [n["id"] for n in summary["nodes"] if n["status"] == "ran"]
     cached = [n["id"] for n in summary["nodes"] if n["status"] == "cached"]
     return RunResult(rundir=rundir, summary=summary, ran=ran, cached=cached)
+
+
+def check_workdir(workdir) -> Path:
+    """The work directory as an absolute path; it must be a folder (or not exist yet).
+
+    Raises
+    ------
+    ConfigError
+        When it (or a folder above it) is a file, or a store inside it is a file.
+    """
+    path = Path(workdir or DEFAULT_WORKDIR).resolve()
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise ConfigError(
+                    f"'{p}' is a file; expected a work directory (a folder, created if missing)",
+                    key="--workdir",
+                )
+            break
+    if (path / "store").exists() and not (path / "store").is_dir():
+        raise ConfigError(f"'{path / 'store'}' is not a folder", key="--workdir")
+    return path
 
 
 def plan_workflow(
@@ -305,7 +352,7 @@ def plan_workflow(
         registry = default_registry()
     if not isinstance(workflow, Workflow):
         workflow = load_workflow(workflow, registry)
-    store = Store(Path(workdir or DEFAULT_WORKDIR).resolve() / "store")
+    store = Store(check_workdir(workdir) / "store")
     nodes = expand(workflow)
     keys = node_keys(nodes, registry)
     plan, seen = [], set()
@@ -454,6 +501,8 @@ def _summary(
         }
         if k in failures:
             entry["error"] = failures[k]
+        if status == "ran" and rec is not None and rec.get("interrupted_attempts"):
+            entry["interrupted_attempts"] = rec["interrupted_attempts"]
         out_nodes.append(entry)
         st = stages.setdefault(
             node.stage, {"tasks": 0, "ran": 0, "cached": 0, "failed": 0, "wall_s": 0.0}
@@ -482,6 +531,8 @@ def _summary(
         "studies": sorted({v.study for v in workflow.variants if v.study}),
         "stages": stages,
         "nodes": out_nodes,
+        # tasks redone after an attempt died (a killed run or a lost dask worker)
+        "interrupted_tasks": sorted({n["id"] for n in out_nodes if n.get("interrupted_attempts")}),
     }
 
 
@@ -512,8 +563,8 @@ def _materialize_locked(
         if rec is None:
             continue
         for name, rel in rec["products"].items():
-            target = rundir / entry["products"][name]
-            target = new / target.relative_to(rundir / "products")
+            target = contained(rundir, entry["products"][name], "product")
+            target = contained(new, target.relative_to(rundir / "products"), "product")
             target.parent.mkdir(parents=True, exist_ok=True)
             _link(final / rel, target, workflow.outputs.link)
     old = rundir / "products.old"
@@ -537,6 +588,14 @@ def canonical_json_pretty(obj) -> str:
 
 
 def _link(src: Path, dst: Path, mode: str) -> None:
+    """Make a store product appear in a run directory.
+
+    ``hardlink`` and ``symlink`` share the store's read-only file (an edit through
+    the run directory is refused, or detected by the store's digest check);
+    ``copy`` (also the fall-back across file systems) makes a private writable copy.
+    """
+    from mavispm.core.atomic import current_umask
+
     if mode == "symlink":
         os.symlink(src, dst)
         return
@@ -546,4 +605,5 @@ def _link(src: Path, dst: Path, mode: str) -> None:
             return
         except OSError:
             pass  # another file system: fall back to a copy
-    shutil.copy2(src, dst)
+    shutil.copyfile(src, dst)
+    os.chmod(dst, 0o666 & ~current_umask())

@@ -8,6 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
+from mavispm.core.cliargs import non_negative_int
 from mavispm.workflows.runner import DEFAULT_WORKDIR
 
 __all__ = [
@@ -49,7 +50,10 @@ def register(subparsers) -> None:
         "dask.distributed scheduler such as tcp://host:8786",
     )
     run.add_argument(
-        "--workers", type=int, default=None, help="local pool size (default: all CPUs)"
+        "--workers",
+        type=non_negative_int,
+        default=None,
+        help="local pool size (default: all CPUs)",
     )
     run.add_argument("--force", action="store_true", help="recompute every node even when cached")
     run.add_argument(
@@ -162,6 +166,9 @@ def _run(args: argparse.Namespace) -> int:
         return 0
     for name, st in result.summary["stages"].items():
         print(f"  {name:>13}: {st['ran']} ran, {st['cached']} cached, {st['wall_s']:.1f} s")
+    lost = result.summary.get("interrupted_tasks") or []
+    if lost:
+        print(f"  {len(lost)} task(s) redone after an attempt died (killed run or lost worker)")
     n_warn = sum(len(n.get("warnings", [])) for n in result.summary["nodes"])
     print(
         f"  total wall time {result.summary['wall_s']:.1f} s; report: {result.rundir / 'report.md'}"

@@ -162,10 +162,21 @@ def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
     return colour
 
 
+#: Separation [pixel] below which two stars are one blob to any fit: both are flagged
+#: crowded whatever their fluxes (the fit shares their light arbitrarily).
+UNRESOLVED_SEPARATION = 1.0
+
+
 def crowding_flags(
-    x: np.ndarray, y: np.ndarray, flux: np.ndarray, radius: float, ratio: float
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    radius: float,
+    ratio: float,
+    min_separation: float = UNRESOLVED_SEPARATION,
 ) -> np.ndarray:
-    """True for stars with a neighbour within ``radius`` at least ``ratio`` times as bright."""
+    """True for stars with a neighbour within ``radius`` at least ``ratio`` times as bright,
+    and for both stars of every pair closer than ``min_separation`` [pixel]."""
     n = len(x)
     crowded = np.zeros(n, dtype=bool)
     good = np.isfinite(x) & np.isfinite(y)
@@ -179,6 +190,9 @@ def crowding_flags(
     f = np.where(np.isfinite(flux), flux, 0.0)
     crowded[i[f[j] >= ratio * f[i]]] = True
     crowded[j[f[i] >= ratio * f[j]]] = True
+    close = np.hypot(x[i] - x[j], y[i] - y[j]) < min_separation
+    crowded[i[close]] = True
+    crowded[j[close]] = True
     return crowded
 
 

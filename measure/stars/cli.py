@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import astropy.units as u
 import numpy as np
 
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.frame import Frame
@@ -180,7 +181,12 @@ def run_stage(
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
     frame = read_frame(frames, require_truth=not cfg.blind)
-    stars, psf = measure_stars(frame, cfg, seed)
+    try:
+        stars, psf = measure_stars(frame, cfg, seed)
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), path=frames) from None  # name the frame measured
     return write_measured(output, stars, psf, cfg, seed)
 
 
@@ -249,8 +255,8 @@ def _load_config(path) -> dict:
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ConfigError(f"cannot read settings ({exc})", source=path) from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read settings ({exc})", key="--config", source=path) from None
     return dict(data.get("stars", data))
 
 
@@ -294,7 +300,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
     p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the position perturbation")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the position perturbation"
+    )
     p.add_argument(
         "--report", default=None, metavar="DIR", help="also write the accuracy report here"
     )

@@ -30,6 +30,7 @@ from mavispm.measure.stars.batched_fit import (
     FLAG_CROWDED,
     FLAG_FAILED,
     FLAG_NO_MATCH,
+    UNRESOLVED_SEPARATION,
     FitOptions,
     FitResult,
     crowding_flags,
@@ -92,9 +93,49 @@ def read_frame(path, require_truth: bool = True) -> Frame:
             "(use blind mode to detect stars instead)",
             path=path,
         )
-    return Frame.from_attrs(
+    frame = Frame.from_attrs(
         prod.arrays["image"], prod.arrays.get("saturated"), prod.attrs, truth, path=path
     )
+    if require_truth and len(frame.truth) == 0:
+        raise InputError(
+            "table 'truth' is empty: no input stars to measure (forced photometry)", path=path
+        )
+    _check_usable_image(frame.image, frame.saturated, prod.attrs, path)
+    return frame
+
+
+def _check_usable_image(image: np.ndarray, saturated: np.ndarray, attrs, path) -> None:
+    """Refuse frames with nothing measurable, naming the cause (not "no PSF stars").
+
+    Raises
+    ------
+    InputError
+        For an image that is entirely (or mostly) NaN/infinite, constant (all
+        zero), or saturated everywhere, and for a non-positive exposure time.
+    """
+    finite = np.isfinite(image)
+    n_bad = image.size - int(np.count_nonzero(finite))
+    if n_bad > 0.5 * image.size:
+        raise InputError(
+            f"array 'image': {n_bad} of {image.size} pixels are NaN or infinite; "
+            "expected a measurable frame (bad pixels are a minority)",
+            path=path,
+        )
+    good = image[finite]
+    if good.max() == good.min():
+        raise InputError(
+            f"array 'image' is constant (every finite pixel is {good.min():g}): no stars to measure",
+            path=path,
+        )
+    if np.all(saturated | ~finite):
+        raise InputError("array 'image': every pixel is saturated: no stars to measure", path=path)
+    exptime = attrs.get("exptime")
+    if exptime is not None:
+        value = float(exptime.to_value(u.s)) if isinstance(exptime, u.Quantity) else float(exptime)
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(
+                f"attribute 'exptime' must be a positive time in s, got {value}", path=path
+            )
 
 
 #: Square ring [pixel, Chebyshev distance] whose median is a star's local background.
@@ -396,6 +437,8 @@ def measure_frame(frame: Frame, settings: MeasureSettings, seed: int | None = No
     flag[
         crowding_flags(fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio)
     ] |= FLAG_CROWDED
+    # stars that start at (nearly) one position cannot be told apart by the fit either
+    flag[crowding_flags(x0, y0, np.ones(len(x0)), UNRESOLVED_SEPARATION, np.inf)] |= FLAG_CROWDED
     n = len(x0)
     x_true = y_true = mag = flux_true = dist = crlb_x = crlb_y = np.full(n, np.nan)
     if truth is not None:

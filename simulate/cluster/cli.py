@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from mavispm.core.catalogue import write_catalogue
+from mavispm.core.cliargs import non_negative_int, positive_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.simulate.cluster.eddington import NoIsotropicDFError, check_isotropic_df_exists
@@ -25,6 +26,14 @@ from mavispm.simulate.cluster.generator import (
 from mavispm.simulate.cluster.presets import get_preset
 from mavispm.simulate.cluster.settings import ClusterSettings
 
+#: Largest IMBH mass accepted, as a fraction of the cluster's stellar mass (observed
+#: candidates are a few per cent; above this the "cluster" is a galaxy nucleus).
+MAX_IMBH_FRACTION = 0.2
+
+#: Memory per star and epoch while a catalogue is drawn and written (about 20
+#: float64 columns, with the sampler's temporaries).
+BYTES_PER_STAR_EPOCH = 160
+
 
 def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
     """Build :class:`ClusterSettings` from a mapping (TOML table ``[cluster]``).
@@ -36,10 +45,27 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
         or a cored tracer around an IMBH.
     """
     obj = from_mapping(ClusterSettings, settings, source=source)
+    from mavispm.core.limits import check_memory
+
+    check_memory(
+        float(obj.n_stars) * BYTES_PER_STAR_EPOCH * (len(obj.epochs) + 2),
+        f"a catalogue of {obj.n_stars} stars at {len(obj.epochs)} epochs",
+        "n_stars",
+        source,
+    )
     try:
-        get_preset(obj.preset)
+        preset = get_preset(obj.preset)
     except ValueError as exc:
         raise ConfigError(str(exc), key="preset", source=source) from None
+    cluster_mass = obj.stellar_mass if obj.stellar_mass is not None else preset.stellar_mass
+    if obj.imbh_mass > MAX_IMBH_FRACTION * cluster_mass:
+        raise ConfigError(
+            f"an IMBH of {obj.imbh_mass:.4g} solMass is more than {MAX_IMBH_FRACTION:g} x the "
+            f"cluster's stellar mass ({cluster_mass:.4g} solMass); the stars would move at "
+            "unphysical speeds around it. Expected a black hole lighter than its cluster",
+            key="imbh_mass",
+            source=source,
+        )
     if obj.cusp_gamma is not None:
         try:
             check_isotropic_df_exists(obj.cusp_gamma, obj.imbh_mass, obj.anisotropy_beta)
@@ -132,7 +158,7 @@ def _handler(args: argparse.Namespace) -> int:
         try:
             with open(args.config, "rb") as fh:
                 data = tomllib.load(fh)
-        except (OSError, tomllib.TOMLDecodeError) as exc:
+        except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise InputError(f"cannot read TOML settings ({exc})", path=args.config) from None
         settings.update(data.get("cluster", data))
     for opt, key in _OPTION_KEYS.items():
@@ -150,10 +176,43 @@ def _handler(args: argparse.Namespace) -> int:
         if args.flux_zeropoint is not None:
             ext["flux_zeropoint"] = args.flux_zeropoint
         settings["external"] = ext
-    obj = validate_settings(settings, source=args.config)
-    out = run_stage(obj, Path(args.output), args.seed)
+    try:
+        obj = validate_settings(settings, source=args.config)
+        out = run_stage(obj, Path(args.output), args.seed)
+    except ConfigError as exc:
+        raise _as_option_error(exc, args) from None
     print(f"wrote {out}")
     return 0
+
+
+#: Settings key -> the option that sets it (errors name what the user typed).
+_KEY_OPTIONS = {
+    "external.path": "input",
+    "external.format": "input_format",
+    "external.pm_convention": "pm_convention",
+    "external.pm_baseline": "pm_baseline",
+    "external.flux_zeropoint": "flux_zeropoint",
+}
+
+
+def _as_option_error(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
+    """The error naming ``--option`` instead of the settings key.
+
+    Done when the option set the key, or when no ``--config`` file could have.
+    """
+    keys = {key: opt for opt, key in _OPTION_KEYS.items()} | _KEY_OPTIONS
+    opt = keys.get(exc.key or "")
+    given = getattr(args, opt, None) not in (None, False) if opt else False
+    if opt is None or (args.config and not given):  # the key came from the --config file
+        return exc
+    flag = "--" + opt.replace("_", "-")
+    text = str(exc)
+    if exc.source is not None:
+        text = text.replace(f"file '{exc.source}', ", "", 1)
+    text = text.replace(f"key '{exc.key}'", f"option {flag}", 1)
+    err = ConfigError(text)
+    err.key, err.source = flag, exc.source
+    return err
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -167,11 +226,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         "source list, and write a catalogue product with one table per epoch.",
     )
     p.add_argument("-o", "--output", required=True, help="output catalogue (HDF5)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     p.add_argument("--config", help="TOML file with a [cluster] table (options override it)")
     p.add_argument("--preset", help="cluster preset (default ngc3201)")
     p.add_argument("--imbh-mass", type=float, help="IMBH mass in solMass (0 = none)")
-    p.add_argument("--n-stars", type=int, help="luminous stars in the field (default 3500)")
+    p.add_argument(
+        "--n-stars", type=positive_int, help="luminous stars in the field (default 3500)"
+    )
     p.add_argument("--field-size", type=float, help="field side in arcsec (default 30)")
     p.add_argument("--margin", type=float, help="margin around the field in arcsec (default 1)")
     p.add_argument("--epochs", type=_epochs, help="comma-separated epochs in yr (default 0,10)")

@@ -105,9 +105,19 @@ def load_scene_optics(path: str | Path) -> Mapping:
         raise InputError("scene file does not exist", path=path)
     try:
         data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"invalid TOML ({exc})", source=str(path)) from None
     scene = data.get("scene", data)
+    if isinstance(scene, Mapping):  # a typo ([opticz]) must not silently mean "defaults"
+        import dataclasses
+
+        from mavispm.core.config import check_known_keys
+        from mavispm.simulate.render.scene import SceneSettings
+
+        known = [f.name for f in dataclasses.fields(SceneSettings)]
+        check_known_keys(scene, known, "scene" if "scene" in data else "", str(path))
+        if "scene" in data:
+            check_known_keys(data, ["scene"], "", str(path))
     optics = scene.get("optics", {}) if isinstance(scene, Mapping) else {}
     if not isinstance(optics, Mapping):
         raise ConfigError("expected a table", key="scene.optics", source=str(path))

@@ -81,7 +81,47 @@ def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
     ConfigError
         Unknown keys, wrong types or units, impossible values (naming the key).
     """
-    return from_mapping(OpticsSettings, mapping, prefix="scene.optics", source=source)
+    settings = from_mapping(OpticsSettings, mapping, prefix="scene.optics", source=source)
+    check_psf_grid_memory(settings, source)
+    return settings
+
+
+def psf_grid_memory(settings: OpticsSettings) -> tuple[float, str]:
+    """Estimated peak memory of building the PSF grid [bytes] and the key that drives it.
+
+    The stamp cube (``n_nodes^2`` stamps, held twice) and, in Fourier mode, the
+    complex FFT work arrays of one chunk of directions.
+    """
+    from mavispm.simulate.optics.fourier_psf import fourier_sampling
+
+    psf = settings.psf
+    n_stamp = int(round(psf.stamp_size * 1000 / psf.pixel_scale)) // 2 * 2 + 1
+    n_fft = n_stamp
+    if psf.mode != "file":
+        try:
+            smp = fourier_sampling(
+                psf.wavelength * 1e-9,
+                psf.pixel_scale,
+                settings.pupil.diameter,
+                psf.pupil_sampling,
+                psf.psd_padding,
+                psf.stamp_size * 1000,
+            )
+            n_stamp, n_fft = smp.n_stamp, max(smp.n_fft, smp.n_psd)
+        except ValueError:  # coarser than Nyquist: refused later with its own message
+            pass
+    cube = 2.0 * psf.n_nodes**2 * n_stamp**2 * 8
+    fft = 4.0 * min(psf.chunk, psf.n_nodes**2) * n_fft**2 * 16 if psf.mode != "file" else 0.0
+    key = "scene.optics.psf.n_nodes" if cube >= fft else "scene.optics.psf.pupil_sampling"
+    return cube + fft, key
+
+
+def check_psf_grid_memory(settings: OpticsSettings, source=None) -> None:
+    """Refuse PSF-grid settings beyond the memory limit (:mod:`mavispm.core.limits`)."""
+    from mavispm.core.limits import check_memory
+
+    nbytes, key = psf_grid_memory(settings)
+    check_memory(nbytes, "the PSF grid", key, source)
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,10 +23,12 @@ match the source flux over the same square within 2% (both of the stamp sum).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 from astropy.io import fits
+from astropy.utils.exceptions import AstropyUserWarning
 from scipy.ndimage import map_coordinates
 
 from mavispm.core.errors import InputError
@@ -180,9 +182,17 @@ def read_mavisim_psfs(
     path = Path(path)
     if not path.exists():
         raise InputError("PSF database does not exist", path=path)
+    size = path.stat().st_size
+    if size % 2880:  # FITS files are whole 2880-byte blocks: a cut one is not
+        raise InputError(
+            f"truncated or damaged FITS file ({size} bytes, not a multiple of 2880)", path=path
+        )
     try:
-        hdul = fits.open(path, memmap=False)
-    except (OSError, ValueError) as exc:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", AstropyUserWarning)  # "may have been truncated"
+            hdul = fits.open(path, memmap=False)
+            hdul.readall()
+    except (OSError, ValueError, TypeError, AstropyUserWarning) as exc:
         raise InputError(f"not a readable FITS file ({exc})", path=path) from None
     with hdul:
         if len(hdul) < 2:

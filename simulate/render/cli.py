@@ -18,6 +18,7 @@ import astropy.units as u
 import numpy as np
 
 from mavispm.core.catalogue import Catalogue, read_catalogue
+from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import write_product
@@ -73,7 +74,21 @@ def validate_settings(scene_mapping: Mapping | None, source=None) -> SceneSettin
     """
     scene = scene_from_mapping(scene_mapping, source=source)
     _optics_module().validate_settings(scene.optics, source=source)
+    from mavispm.core.limits import check_memory
+
+    det = scene.detector
+    check_memory(
+        float(det.nx) * float(det.ny) * BYTES_PER_PIXEL,
+        f"a {det.nx} x {det.ny} pixel detector",
+        "detector.nx",
+        source,
+    )
     return scene
+
+
+#: Memory per detector pixel while a frame is made: about six float64 images
+#: (mean, stack, noiseless, variance, mask, output).
+BYTES_PER_PIXEL = 48
 
 
 def build_scene_optics(scene: SceneSettings, cache_dir=None, progress: bool = False):
@@ -245,6 +260,15 @@ def run_stage(
     cat = _load_catalogue(catalogue)
     settings = scene_from_mapping(scene)
     table, t = _select_epoch(cat, epoch)
+    from mavispm.simulate.render.frame import check_drawable
+
+    try:
+        check_drawable(table, settings)
+    except InputError as exc:
+        path = getattr(cat, "path", None) or (
+            catalogue if isinstance(catalogue, (str, Path)) else None
+        )
+        raise InputError(f"epoch '{epoch}': {exc}", path=path) from None
     if optics is None:
         optics = build_scene_optics(settings, cache_dir, progress)
     if renderer is None:
@@ -262,8 +286,8 @@ def _read_scene(path) -> tuple[dict, str]:
             data = tomllib.load(fh)
     except FileNotFoundError:
         raise InputError("scene file does not exist", path=path) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(f"not valid TOML ({exc})", path=path) from None
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not a readable TOML scene file ({exc})", path=path) from None
     if set(data) == {"scene"} and isinstance(data["scene"], dict):
         data = data["scene"]
     return data, str(path)
@@ -332,7 +356,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, help="frames product (or folder for 'all')")
     p.add_argument("--fits", help="also write the image as this FITS file")
     p.add_argument("--fits-dir", help="write FITS copies into this folder (frames_<epoch>.fits)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="noise seed (default 0)")
     p.add_argument(
         "--cache-dir", help="PSF-grid and stamp-plan cache folder (default: the optics default)"
     )

@@ -87,6 +87,52 @@ def noise_sigma_per_subexposure(scene: SceneSettings) -> float:
     return float(np.sqrt(scene.nexp * (sky + scene.detector.read_noise**2)) / scene.nexp)
 
 
+#: Most electrons of one star in one sub-exposure that the noise model can draw
+#: (numpy's Poisson sampler stops near 9e18; real detectors saturate far below).
+MAX_STAR_ELECTRONS = 1e15
+
+
+def check_drawable(stars, scene) -> None:
+    """Refuse catalogues that cannot make a meaningful frame, naming the column.
+
+    Cheap (no optics needed), so the frames stage calls it before building a PSF grid.
+
+    Raises
+    ------
+    InputError
+        A star too bright for the noise model (``mag``), or no star on the
+        detector or within one detector size of it (``x``/``y``: an empty frame
+        is not a simulation).
+    """
+    if "luminous" in stars.colnames:
+        stars = stars[np.asarray(stars["luminous"], dtype=bool)]
+    det, nexp = scene.detector, scene.nexp
+    mag = np.asarray(u.Quantity(stars["mag"], u.mag).value, dtype=float)
+    flux_sub = star_electrons(mag, scene.photometry, scene.exptime * u.s).value
+    x_pix = _values(stars["x"], u.arcsec) * 1000.0 / det.pixel_scale + (det.nx - 1) / 2
+    y_pix = _values(stars["y"], u.arcsec) * 1000.0 / det.pixel_scale + (det.ny - 1) / 2
+    if len(mag) and np.max(flux_sub) * nexp > MAX_STAR_ELECTRONS:
+        i = int(np.argmax(flux_sub))
+        raise InputError(
+            f"star {stars['id'][i]} with mag {mag[i]:g} gives {flux_sub[i] * nexp:.3g} electrons, "
+            f"beyond the {MAX_STAR_ELECTRONS:.0e} the detector model can draw; expected "
+            "magnitudes of stars in a cluster field",
+            column="mag",
+        )
+    # stars just off the edge light the frame with their wings: only a catalogue with
+    # no star within one detector size of it cannot put any light on it
+    m = max(det.nx, det.ny)
+    near = (x_pix > -m) & (x_pix < det.nx + m) & (y_pix > -m) & (y_pix < det.ny + m)
+    if len(mag) and not np.any(near):
+        raise InputError(
+            f"none of the {len(mag)} stars falls on or near the {det.nx} x {det.ny} pixel detector "
+            f"(star pixels x {np.min(x_pix):.0f}..{np.max(x_pix):.0f}, "
+            f"y {np.min(y_pix):.0f}..{np.max(y_pix):.0f}); expected positions in arcsec "
+            "from the field centre",
+            column="x",
+        )
+
+
 def render_frame(
     stars: QTable,
     epoch: u.Quantity,
@@ -160,6 +206,7 @@ def render_frame(
         )
     sub_exposure = scene.exptime * u.s
     flux_sub = star_electrons(mag, phot, sub_exposure).value
+    check_drawable(stars, scene)
     halo = optics.halo if par.halo else None
     core_fraction = 1.0 - (halo.fraction if halo is not None else 0.0)
     cov = _values(optics.kernel_covariance(x, y), u.mas**2) if len(x) else np.zeros((0, 2, 2))

@@ -1,0 +1,29 @@
+"""argparse value types shared by the command-line modules.
+
+A value of the wrong kind is an argparse usage error naming the option
+(``argument --seed: expected an integer >= 0, got '-1'``): one line, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def _integer(text: str, minimum: int, what: str) -> int:
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """An integer >= 0 (seeds, pool sizes where 0 means "all CPUs")."""
+    return _integer(text, 0, "an integer >= 0")
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (counts)."""
+    return _integer(text, 1, "an integer >= 1")
