@@ -49,7 +49,7 @@ def test_accuracy_report_is_per_epoch(tmp_path):
     # the epochs are not pooled: their dispersions keep the injected ratio of 3
     assert 2.7 < sigma[10.0] / sigma[0.0] < 3.3
     text = md.read_text()
-    assert "## epoch 0 yr" in text and "## epoch 10 yr" in text and "measured.h5" not in text
+    assert "**epoch 0 yr**" in text and "**epoch 10 yr**" in text and "measured.h5" not in text
     assert png.stat().st_size > 1000
 
 

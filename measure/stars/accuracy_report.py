@@ -292,7 +292,8 @@ def write_report(measured_paths: Sequence, outdir) -> list[Path]:
         sources = ", ".join(str(prod.attrs.get("frames", prod.path)) for prod in group)
         panel = f"{name} ({len(stars)} stars; frames {sources})"
         panels.append((panel, stars, table))
-        sections.append(_markdown(table, f"{name}").replace("# ", "## ", 1))
+        # the epoch as a bold label, not a heading: the run report embeds this file
+        sections.append(_markdown(table, name).replace(f"# {name}", f"**{name}**", 1))
         epoch = group[0].attrs.get("epoch")
         table.add_column(
             np.full(len(table), np.nan if epoch is None else u.Quantity(epoch, u.yr).value) * u.yr,
