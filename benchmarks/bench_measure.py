@@ -9,8 +9,12 @@ Run ``python benchmarks/bench_measure.py [--quick]`` (with the repository's
 2. ePSF grid building time;
 3. fit time and peak extra memory (tracemalloc) against the number of stars
    for the batched engine with a field-variable (3 x 3 gridded) ePSF;
-4. photutils ``PSFPhotometry`` with its default fitter and with
-   ``LevMarLSQFitter`` on the same frame (ratios measured in this run);
+4. peers, in the same run on the same frames: plain photutils
+   ``PSFPhotometry`` (LevMar and default TRF fitters, no grouper, no local
+   background, the same ePSF and starting positions, 11 x 11 stamps) at 3,500
+   and 10,000 stars: wall and process CPU time and MAD / CRLB per magnitude
+   bin; and the ePSF builders (ours, photutils ``EPSFBuilder``) on the same PSF
+   stars of a field-constant frame, each ePSF used by our fitter;
 5. the whole stage (``measure_frame``: ePSF with the two half-set ePSFs of the
    error model, fit, errors) on frames with a truth table: times, and the
    normalised residuals (measured - true) / error per magnitude bin with the
@@ -50,7 +54,6 @@ from measure_helpers import (  # noqa: E402
 from mavispm.measure.stars.batched_fit import FitOptions, fit_stars  # noqa: E402
 from mavispm.measure.stars.crlb import crlb  # noqa: E402
 from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf  # noqa: E402
-from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils  # noqa: E402
 
 PSF = SynthPSF(1.2, gradient=0.2)
 DET = Detector(saturation=1e9)
@@ -108,13 +111,16 @@ def main(argv=None):
     ap.add_argument("--frames", nargs="*", default=[], help="frames products for section 5")
     ap.add_argument("--grid", type=int, default=3, help="ePSF grid of the --frames runs")
     ap.add_argument("--only-stage", action="store_true", help="run section 5 only")
+    ap.add_argument("--only-peers", action="store_true", help="run section 4 only")
     args = ap.parse_args(argv)
+    if args.only_peers:
+        peer_section(args, {})
+        return 0
     if args.only_stage:
         return stage_section(args)
     size = 1000 if args.quick else 2000
     n_knobs = 1000 if args.quick else 3500
     counts = [1000, 3500] if args.quick else [1000, 3500, 10000]
-    n_photutils = 300 if args.quick else 3500
 
     frame = make_frame(n_knobs, size, seed=1)
     shape = frame["image"].shape
@@ -178,26 +184,120 @@ def main(argv=None):
         s, _ = accuracy(fr, res, true_epsf(PSF, fr["image"].shape, grid=5, size=21))
         print(f"{n:>8}{side:>7}x{side:<4}{t:>10.2f}{peak:>15.1f}{s:>12.2f}")
 
-    print(f"\n## 4. photutils PSFPhotometry vs batched engine, same frame of {n_photutils} stars")
-    side = int(max(size / 2, np.sqrt(n_photutils / 3500) * 2000))
-    sub = frames.get(n_photutils) or make_frame(n_photutils, side, seed=7)
-    epsf = true_epsf(PSF, fr["image"].shape, grid=3, size=21)
-    res, t_fast = timed(fit_fast, sub, epsf)
-    s_fast, _ = accuracy(sub, res, epsf)
-    print(f"{'batched (ours)':<28}{t_fast:8.2f} s   sigma/CRLB {s_fast:6.2f}")
-    rows = {}
-    for fitter in ("levmar", "default"):
-        res_p, t_p = timed(
-            fit_stars_photutils, sub["image"], epsf, sub["x0"], sub["y0"], read_noise_var=RN2,
-            sky0=DET.sky, saturated=sub["sat"], options=PhotutilsOptions(fitter=fitter),
-        )  # fmt: skip
-        s_p, _ = accuracy(sub, res_p, epsf)
-        rows[fitter] = t_p
-        print(
-            f"{'photutils ' + fitter:<28}{t_p:8.2f} s   sigma/CRLB {s_p:6.2f}   ({t_p / t_fast:5.1f}x ours)"
-        )
-    print(f"photutils default / LevMar time ratio: {rows['default'] / rows['levmar']:.2f}")
+    peer_section(args, frames)
     return stage_section(args)
+
+
+#: Magnitude bins of the peer comparison (MAD / CRLB per bin).
+PEER_BINS = ((16, 18), (18, 20), (20, 22), (22, 24), (24, 25))
+
+
+def mad_over_crlb(frame, x, y, flag, epsf_true, radius=5):
+    """Robust sigma (1.4826 MAD) of (measured - true) / CRLB per :data:`PEER_BINS` bin,
+    x and y pooled; stars flagged failed (32) or non-finite are left out."""
+    ok = ((flag & 32) == 0) & np.isfinite(x) & np.isfinite(y)
+    bound = crlb(epsf_true, frame["x"], frame["y"], frame["flux"], DET.sky, RN2, radius)
+    out = []
+    for lo, hi in PEER_BINS:
+        s = ok & (frame["mag"] >= lo) & (frame["mag"] < hi)
+        z = np.r_[(x[s] - frame["x"][s]) / bound[s, 0], (y[s] - frame["y"][s]) / bound[s, 1]]
+        out.append(robust_sigma(z) if z.size >= 6 else np.nan)
+    return out
+
+
+def plain_photutils(frame, epsf, fitter: str):
+    """Plain photutils ``PSFPhotometry``: no grouper, no local background (the known
+    sky is subtracted), the same ePSF (``GriddedPSFModel``), 11 x 11 fit stamps,
+    the same starting positions; ``fitter`` "levmar" or "default" (TRF)."""
+    import warnings
+
+    from astropy.modeling.fitting import LevMarLSQFitter, TRFLSQFitter
+    from astropy.table import QTable
+    from photutils.psf import PSFPhotometry
+
+    from mavispm.measure.stars.photutils_engine import to_photutils_model
+
+    data = frame["image"] - DET.sky
+    err = np.sqrt(np.maximum(frame["image"], DET.sky) + RN2)
+    phot = PSFPhotometry(
+        to_photutils_model(epsf, data.shape),
+        (11, 11),
+        fitter=LevMarLSQFitter() if fitter == "levmar" else TRFLSQFitter(),
+        aperture_radius=3.0,
+    )
+    init = QTable({"x": frame["x0"], "y": frame["y0"]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        table = phot(data, mask=frame["sat"], error=err, init_params=init)
+    x = np.asarray(table["x_fit"], float)
+    y = np.asarray(table["y_fit"], float)
+    flag = np.where(np.isfinite(x) & (np.asarray(table["flux_fit"], float) > 0), 0, 32)
+    return x, y, flag
+
+
+def timed_cpu(fn, *args, **kw):
+    """Result, wall time [s] and process CPU time [s] (all threads) of a call."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    out = fn(*args, **kw)
+    return out, time.perf_counter() - w0, time.process_time() - c0
+
+
+def peer_section(args, frames: dict) -> None:
+    """Section 4: honest peer comparison on the same frames, in one run.
+
+    Our batched fitter against plain photutils ``PSFPhotometry`` (LevMar and the
+    default TRF fitter, no grouper, the same 3 x 3 gridded ePSF and starting
+    positions, 11 x 11 stamps), time and MAD / CRLB per magnitude bin; then the
+    ePSF builders on the same PSF stars of a field-constant frame (ours and
+    photutils' ``EPSFBuilder``), each ePSF used by our fitter.
+    """
+    counts = [1000] if args.quick else [3500, 10000]
+    head = "".join(f"{f'{lo}-{hi}':>8}" for lo, hi in PEER_BINS)
+    print("\n## 4. peers on the same frames: plain photutils PSFPhotometry (no grouper)")
+    print(
+        f"{'stars':>6} {'engine':<22}{'wall [s]':>9}{'CPU [s]':>9}{'x ours':>8}  MAD/CRLB per V bin:"
+    )
+    print(f"{'':>6} {'':<22}{'':>9}{'':>9}{'(CPU)':>8}  {head}")
+    for n in counts:
+        side = int(max(1000, np.sqrt(n / 3500) * 2000))
+        fr = frames.get(n) or make_frame(n, side, seed=n)
+        epsf = true_epsf(PSF, fr["image"].shape, grid=3, size=21)
+        ref = true_epsf(PSF, fr["image"].shape, grid=5, size=21)
+        res, w_ours, c_ours = timed_cpu(fit_fast, fr, epsf)
+        rows = [("mavispm batched", w_ours, c_ours, mad_over_crlb(fr, res.x, res.y, res.flag, ref))]
+        for fitter in ("levmar", "default"):
+            (x, y, flag), w, c = timed_cpu(plain_photutils, fr, epsf, fitter)
+            rows.append((f"photutils {fitter}", w, c, mad_over_crlb(fr, x, y, flag, ref)))
+        for name, w, c, mad in rows:
+            cells = "".join(f"{m:8.2f}" for m in mad)
+            print(f"{n:>6} {name:<22}{w:9.1f}{c:9.1f}{c / c_ours:8.1f}  {cells}")
+
+    print("\n## 4b. ePSF builders on the same PSF stars (field-constant PSF), our fitter")
+    n, side = (1000, 1000) if args.quick else (3500, 2000)
+    flat = SynthPSF(1.2, gradient=0.0)
+    rng = np.random.default_rng(11)
+    x, y = rng.uniform(3, side - 4, n), rng.uniform(3, side - 4, n)
+    mag = rng.uniform(16, 25, n)
+    flux = mag_to_flux(mag)
+    image, sat = noisy_frame(render_image((side, side), x, y, flux, flat), DET, rng)
+    fr = dict(
+        image=image.astype(float) * DET.gain, sat=sat, x=x, y=y, mag=mag, flux=flux,
+        x0=x + rng.normal(0, 0.05, n), y0=y + rng.normal(0, 0.05, n),
+    )  # fmt: skip
+    ref = true_epsf(flat, (side, side), grid=1, size=21)
+    print(f"{'builder':<22}{'stars':>6}{'wall [s]':>9}{'CPU [s]':>9}  MAD/CRLB per V bin:")
+    print(f"{'':<22}{'':>6}{'':>9}{'':>9}  {head}")
+    common = dict(variation="constant", grid=1, size=21, stars_per_node=150, min_snr=100)
+    for builder in ("fast", "photutils"):
+        opts = EPSFOptions(builder=builder, oversampling=4, **common)
+        (epsf, used), w, c = timed_cpu(
+            build_field_epsf, fr["image"] - DET.sky, fr["x0"], fr["y0"], fr["flux"], fr["sat"],
+            DET.sky + RN2, opts,
+        )  # fmt: skip
+        res = fit_fast(fr, epsf)
+        cells = "".join(f"{m:8.2f}" for m in mad_over_crlb(fr, res.x, res.y, res.flag, ref))
+        name = "mavispm (fast)" if builder == "fast" else "photutils EPSFBuilder"
+        print(f"{name:<22}{len(used):>6}{w:9.1f}{c:9.1f}  {cells}")
 
 
 def print_centre_residuals(frame, stars, centre_fraction: float = 0.15) -> None:

@@ -37,7 +37,8 @@ PM_SPEC = TableSpec(
         "pm_t_err": "mas/yr",
     },
     optional={"flag": "", "mag": "mag", "pm_x": "mas/yr", "pm_y": "mas/yr"},
-    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err"),
+    # mag is the truth magnitude (scoring only): NaN for a star without a truth match
+    allow_nan=("pm_r", "pm_t", "pm_r_err", "pm_t_err", "mag", "pm_x", "pm_y"),
 )
 
 
@@ -56,8 +57,11 @@ def load_stars(path, settings: DynamicsSettings):
     InputError
         Missing columns or distance, negative errors, or no usable stars.
     """
-    prod = read_product(path, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
-    return star_sample(prod.tables["stars"], prod.attrs, settings, path=path)
+    prod = read_product(path, "propermotions", load_arrays=False)
+    t = prod.tables.get("stars")
+    if t is None:
+        raise InputError("table 'stars' missing", path=path)
+    return star_sample(t, prod.attrs, settings, path=path)
 
 
 def star_sample(table, attrs, settings: DynamicsSettings, path=None):
@@ -89,7 +93,12 @@ def star_sample(table, attrs, settings: DynamicsSettings, path=None):
     InputError
         Missing columns or distance, negative errors, or no usable stars.
     """
-    t = validate_table(table, PM_SPEC, path=path, table_name="stars")
+    t = table
+    if "flag" in t.colnames and not settings.use_flagged:
+        # flagged rows are not used: drop them before validating (they may carry
+        # NaN in columns the fit needs, e.g. a detection without a truth match)
+        t = t[np.asarray(t["flag"]).astype(np.int64) == 0]
+    t = validate_table(t, PM_SPEC, path=path, table_name="stars")
     distance = settings.distance
     if distance is None:
         if attrs.get("distance") is None:
@@ -375,8 +384,10 @@ def run_stage(
     if not isinstance(settings, DynamicsSettings):
         settings = validate_settings(settings)
     output = Path(output)
-    prod = read_product(propermotions, "propermotions", specs={"stars": PM_SPEC}, load_arrays=False)
-    table = prod.tables["stars"]
+    prod = read_product(propermotions, "propermotions", load_arrays=False)
+    table = prod.tables.get("stars")
+    if table is None:
+        raise InputError("table 'stars' missing", path=propermotions)
     table.meta = dict(prod.attrs)
     result = fit_dynamics(
         table,

@@ -43,3 +43,45 @@ def test_user_errors_are_one_line_with_exit_code_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "missing.h5" in err and "Traceback" not in err
     assert not (tmp_path / "pm.h5").exists()
+
+
+def _commands_of(parser):
+    """(group, name) of every command of an assembled parser."""
+    import argparse
+
+    found = set()
+    top = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, sub in top.choices.items():
+        inner = [a for a in sub._actions if isinstance(a, argparse._SubParsersAction)]
+        if name in cli.GROUP_HELP and inner:
+            found |= {(name, cmd) for cmd in inner[0].choices}
+        else:
+            found.add((None, name))
+    return found
+
+
+def test_command_table_names_every_registered_command():
+    """The lazy table must list exactly what the modules register (or commands go missing)."""
+    assert _commands_of(cli.build_parser()) == set(cli.COMMANDS)
+    for (group, name), module in cli.COMMANDS.items():
+        argv = [group, name] if group else [name]
+        assert cli.modules_for(argv) == [(group, module)]
+        assert (group, name) in _commands_of(cli.build_parser(argv, everything=False))
+    assert cli.modules_for(["--help"]) == cli.COMMAND_MODULES
+    assert cli.modules_for(["simulate", "--help"]) == cli.COMMAND_MODULES
+
+
+def test_one_command_imports_only_its_own_stage():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from mavispm.workflows import cli\n"
+        "try:\n    cli.main(['simulate', 'frames', '--help'])\n"
+        "except SystemExit:\n    pass\n"
+        "print(sorted(m for m in sys.modules if m.startswith('mavispm.measure')"
+        " or m.startswith('mavispm.dynamics') or m == 'matplotlib.pyplot'))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "--scene" in out.stdout
+    assert out.stdout.strip().splitlines()[-1] == "[]"

@@ -193,3 +193,20 @@ def test_fft_node_transforms_equal_direct_dft(n, m, ratio):
     _, shared = _node_transforms_fft(cube, [(4 * period, fy, fx), (period, fy, fx)])
     for result in (fast, shared):
         assert np.abs(result - direct).max() <= 1e-12 * np.abs(direct).max()
+
+
+def test_wing_envelope_cache_equals_fresh_computation(airy_optics, tmp_path):
+    from mavispm.simulate.render.stamps import _wing_envelope
+
+    first = StarRenderer(airy_optics.psf_grid, SCALE, cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("stampenv-*.npz"))) == 1
+    again = StarRenderer(airy_optics.psf_grid, SCALE, cache_dir=tmp_path)
+    cube = np.asarray(airy_optics.psf_grid.cube, float)
+    fresh = _wing_envelope(cube.reshape(-1, *cube.shape[2:]), first.psf_pixel_scale, SCALE)
+    for a, b, c in zip(first._envelope, again._envelope, fresh):
+        np.testing.assert_array_equal(a, c)
+        np.testing.assert_array_equal(b, c)
+    flux = np.array([1e2, 1e4, 1e6])
+    np.testing.assert_array_equal(
+        again.stamp_sizes(flux, 1.0, np.full(3, 5.0)), first.stamp_sizes(flux, 1.0, np.full(3, 5.0))
+    )

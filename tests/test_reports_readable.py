@@ -7,7 +7,6 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.products import write_product
-from mavispm.measure.stars.accuracy_report import write_report
 from mavispm.workflows.report import panel_title
 
 
@@ -34,23 +33,6 @@ def _measured(path, epoch, sigma_mas, seed):
     return write_product(
         path, "measured", tables={"stars": t}, attrs={"epoch": epoch * u.yr, "frames": f"e{epoch}"}
     )
-
-
-def test_accuracy_report_is_per_epoch(tmp_path):
-    paths = [_measured(tmp_path / "a.h5", 0, 1.0, 1), _measured(tmp_path / "b.h5", 10, 3.0, 2)]
-    ecsv, md, png = write_report(paths, tmp_path / "r")
-    table = QTable.read(ecsv)
-    assert sorted(set(table["epoch"].to_value(u.yr))) == [0.0, 10.0]
-    sigma = {}
-    for epoch in (0.0, 10.0):
-        rows = table[(table["epoch"].to_value(u.yr) == epoch) & (table["n_recovered"] > 500)]
-        assert len(rows) == 4  # the four 1-mag bins between 16 and 20
-        sigma[epoch] = np.median(rows["sigma_x"].to_value(u.mas))
-    # the epochs are not pooled: their dispersions keep the injected ratio of 3
-    assert 2.7 < sigma[10.0] / sigma[0.0] < 3.3
-    text = md.read_text()
-    assert "**epoch 0 yr**" in text and "**epoch 10 yr**" in text and "measured.h5" not in text
-    assert png.stat().st_size > 1000
 
 
 def test_panel_titles_name_studies_and_scenes():

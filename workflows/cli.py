@@ -33,6 +33,23 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
     (None, "mavispm.workflows.export_cli"),
 ]
 
+#: The command each module registers, by (group, name): running one command imports only
+#: its own module (the others pull in photutils, matplotlib, scipy.stats, ... for ~1-4 s
+#: of CPU); ``--help`` and unknown commands assemble everything.
+COMMANDS: dict[tuple[str | None, str], str] = {
+    ("simulate", "cluster"): "mavispm.simulate.cluster.cli",
+    ("simulate", "optics"): "mavispm.simulate.optics.cli",
+    ("simulate", "calibration"): "mavispm.simulate.optics.calibration_cli",
+    ("simulate", "frames"): "mavispm.simulate.render.cli",
+    ("measure", "stars"): "mavispm.measure.stars.cli",
+    ("measure", "propermotions"): "mavispm.measure.propermotions.cli",
+    (None, "dynamics"): "mavispm.dynamics.cli",
+    (None, "run"): "mavispm.workflows.runner_cli",
+    (None, "report"): "mavispm.workflows.runner_cli",
+    (None, "cache"): "mavispm.workflows.cache_cli",
+    (None, "export"): "mavispm.workflows.export_cli",
+}
+
 GROUP_HELP = {
     "simulate": "simulate cluster catalogues, optics and frames",
     "measure": "measure stars in frames and proper motions across epochs",
@@ -50,8 +67,27 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Assemble the full argument parser from the stage modules."""
+def modules_for(argv: list[str] | None) -> list[tuple[str | None, str]]:
+    """The (group, module) pairs needed to parse ``argv``: one for a known command, else all."""
+    words = list(sys.argv[1:] if argv is None else argv)
+    if words and words[0] in GROUP_HELP and len(words) > 1:
+        key = (words[0], words[1])
+    elif words:
+        key = (None, words[0])
+    else:
+        key = None
+    module = COMMANDS.get(key)
+    if module is None:
+        return COMMAND_MODULES
+    return [(group, m) for group, m in COMMAND_MODULES if m == module and group == key[0]]
+
+
+def build_parser(argv: list[str] | None = None, everything: bool = True) -> argparse.ArgumentParser:
+    """Assemble the argument parser from the stage modules.
+
+    ``everything=False``: only the module of the command ``argv`` names (see
+    :data:`COMMANDS`), so that running one stage does not import the others.
+    """
     parser = OneLineParser(
         prog="mavispm",
         description="MAVIS MCAO proper-motion pipeline: simulate, measure, "
@@ -60,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"mavispm {__version__}")
     top = parser.add_subparsers(dest="command", metavar="COMMAND")
     groups: dict[str, argparse._SubParsersAction] = {}
-    for group, module_name in COMMAND_MODULES:
+    for group, module_name in COMMAND_MODULES if everything else modules_for(argv):
         module = importlib.import_module(module_name)
         if group is None:
             module.register(top)
@@ -86,7 +122,7 @@ def _help_of(parser: argparse.ArgumentParser):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mavispm`` console script."""
-    parser = build_parser()
+    parser = build_parser(argv, everything=False)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # a usage error (one line, already printed): exit status 2

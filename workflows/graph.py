@@ -6,6 +6,10 @@ becomes the chain::
     cluster ---------------------------+--> frames[scene, epoch] --> stars[scene, epoch]
     (or an external catalogue file)    |                                   |
     optics[scene] (PSF grid) ----------+         propermotions[scene] <----+ (all epochs)
+
+(in observer mode, ``[measure] later_epochs = "measured"``, the default, the
+stars node of each later epoch also takes the earlier epochs' stars nodes as
+its ``earlier`` input: it starts from their measured positions)
                                                           |
                                                  dynamics[scene]
 
@@ -201,7 +205,12 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
             out.append(optics)
             psf_inputs["psf"] = optics.id
         measured = []
-        for epoch in v.epochs:
+        # observer mode (the default): a later epoch starts from the earlier epochs'
+        # measured positions, so its stars node depends on theirs
+        observer = scene.measure is not None and (
+            scene.measure.get("later_epochs", "measured") == "measured"
+        )
+        for epoch in sorted(v.epochs, key=lambda e: e.time):
             frames = make(
                 "frames",
                 ["frames", scene.name, epoch.name],
@@ -227,7 +236,10 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
                 scene.measure,
                 {"epoch": epoch.name},
                 derive_seed(v.seed, "stars", scene.name, epoch.name),
-                inputs={"frames": frames.id},
+                inputs={
+                    "frames": frames.id,
+                    **({"earlier": list(measured)} if observer and measured else {}),
+                },
                 scene=scene.name,
                 epoch=epoch.name,
             )

@@ -182,8 +182,13 @@ def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
 
 
 def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
-    """Measured stars of one frame."""
-    return {"main": _stage("stars")(inputs["frames"], dict(settings), outdir / "measured.h5", seed)}
+    """Measured stars of one frame (observer mode: started from the ``earlier``
+    epochs' measured products when the graph gives them)."""
+    earlier = list(inputs.get("earlier") or ())
+    out = _stage("stars")(
+        inputs["frames"], dict(settings), outdir / "measured.h5", seed, earlier=earlier
+    )
+    return {"main": out}
 
 
 def run_propermotions(inputs, settings, params, seed, outdir: Path) -> dict:

@@ -1,6 +1,7 @@
 """Astrometric accuracy report in the magnitude bins of the paper's tab:simresults.
 
-Per bin: input and recovered star counts, recovered fraction, the astrometric
+One table per frame (epoch), about the frame's common offset, which is shown
+separately (the proper-motion alignment absorbs it). Per bin: input and recovered star counts, recovered fraction, the astrometric
 dispersion of measured minus input positions after three iterations of
 2-sigma clipping (as in the paper), the bias, the median Cramér-Rao bound and
 median reported error. Written as ECSV and Markdown tables plus a PNG of
@@ -25,16 +26,6 @@ from mavispm.core.atomic import atomic_path  # noqa: E402
 from mavispm.core.errors import InputError  # noqa: E402
 from mavispm.core.products import read_product  # noqa: E402
 from mavispm.measure.stars.measured_table import MEASURED_SPEC  # noqa: E402
-
-__all__ = [
-    "accuracy_table",
-    "bin_label",
-    "clipped_std",
-    "EXCLUDE_FLAGS",
-    "MAG_BINS",
-    "truth_bin_counts",
-    "write_report",
-]
 
 #: Bin edges of the paper's results table [mag].
 MAG_BINS = (-np.inf, 16.0, 17.0, 18.0, 19.0, 20.0, 22.0, 24.0, 26.0, np.inf)
@@ -76,24 +67,12 @@ def clipped_std(
     return float(np.mean(data)), float(np.std(data, ddof=1)), len(data)
 
 
-def accuracy_table(stars: QTable, n_input: Sequence[int] | None = None) -> QTable:
-    """Per-magnitude-bin astrometric accuracy of a measured ``stars`` table.
+#: Stars brighter than this [mag] define a frame's common offset.
+OFFSET_MAG_LIMIT = 22.0
 
-    Parameters
-    ----------
-    stars : QTable
-        Measured stars with truth columns (``x_true``, ``y_true``, ``mag``).
-    n_input : sequence of int, optional
-        Input stars per bin (for the recovered fraction); by default counted
-        from the measured stars' truth magnitudes.
 
-    Returns
-    -------
-    QTable
-        Columns bin, mag_lo, mag_hi, n_input, n_recovered, recovered_fraction,
-        n_used, sigma_x, sigma_y, sigma_1d, bias_x, bias_y [uas], crlb_x, err_x
-        (medians) [uas].
-    """
+def _residuals(stars: QTable):
+    """Truth magnitude, measured - true x and y [uas], and the usable-star mask."""
     for col in ("x", "y", "x_true", "y_true", "mag", "flag"):
         if col not in stars.colnames:
             raise InputError(f"accuracy report needs column '{col}' (truth known)", column=col)
@@ -105,6 +84,56 @@ def accuracy_table(stars: QTable, n_input: Sequence[int] | None = None) -> QTabl
     dy = (stars["y"] - stars["y_true"]).to_value(u.uas)
     flag = np.asarray(stars["flag"], int)
     good = ((flag & EXCLUDE_FLAGS) == 0) & np.isfinite(dx) & np.isfinite(dy) & np.isfinite(mag)
+    return mag, dx, dy, good
+
+
+def frame_offset(stars: QTable) -> tuple[float, float, int]:
+    """Common offset of one frame's measured positions from the truth [uas].
+
+    The median of measured - true x and y of the unflagged stars brighter than
+    :data:`OFFSET_MAG_LIMIT` (a frame-wide shift: the epoch alignment of the
+    proper-motion stage absorbs it, so the accuracy table is computed about it).
+
+    Returns
+    -------
+    offset_x, offset_y : float
+        [uas]; 0 when no star qualifies.
+    n : int
+        Stars used.
+    """
+    mag, dx, dy, good = _residuals(stars)
+    sel = good & (mag < OFFSET_MAG_LIMIT)
+    if not np.any(sel):
+        return 0.0, 0.0, 0
+    return float(np.median(dx[sel])), float(np.median(dy[sel])), int(np.count_nonzero(sel))
+
+
+def accuracy_table(
+    stars: QTable, n_input: Sequence[int] | None = None, offset: tuple[float, float] = (0.0, 0.0)
+) -> QTable:
+    """Per-magnitude-bin astrometric accuracy of one frame's measured ``stars`` table.
+
+    Parameters
+    ----------
+    stars : QTable
+        Measured stars with truth columns (``x_true``, ``y_true``, ``mag``).
+    n_input : sequence of int, optional
+        Input stars per bin (for the recovered fraction); by default counted
+        from the measured stars' truth magnitudes.
+    offset : tuple of float
+        The frame's common offset [uas] (:func:`frame_offset`), removed from the
+        residuals before the dispersion and bias are computed.
+
+    Returns
+    -------
+    QTable
+        Columns bin, mag_lo, mag_hi, n_input, n_recovered, recovered_fraction,
+        n_used, sigma_x, sigma_y, sigma_1d, bias_x, bias_y [uas] (about the
+        frame offset), crlb_x, err_x (medians) [uas].
+    """
+    mag, dx, dy, good = _residuals(stars)
+    dx = dx - offset[0]
+    dy = dy - offset[1]
     crlb_x = (
         stars["crlb_x"].to_value(u.uas)
         if "crlb_x" in stars.colnames
@@ -148,31 +177,13 @@ def accuracy_table(stars: QTable, n_input: Sequence[int] | None = None) -> QTabl
     return table
 
 
-def _markdown(table: QTable, title: str) -> str:
-    cols = [
-        "bin",
-        "n_input",
-        "n_recovered",
-        "recovered_fraction",
-        "sigma_x",
-        "sigma_y",
-        "sigma_1d",
-        "bias_x",
-        "crlb_x",
-        "err_x",
-    ]
-    head = (
-        "| "
-        + " | ".join(
-            c
-            if c not in ("sigma_x", "sigma_y", "sigma_1d", "bias_x", "crlb_x", "err_x")
-            else f"{c} [uas]"
-            for c in cols
-        )
-        + " |"
-    )
-    lines = [f"# {title}", "", "Dispersion after 3 iterations of 2-sigma clipping; "
-             "crlb_x and err_x are bin medians.", "", head, "|" + "---|" * len(cols)]  # fmt: skip
+_UAS_COLS = ("sigma_x", "sigma_y", "sigma_1d", "bias_x", "crlb_x", "err_x")
+
+
+def _markdown_table(table: QTable) -> list[str]:
+    cols = ["bin", "n_input", "n_recovered", "recovered_fraction", *_UAS_COLS]
+    head = "| " + " | ".join(c if c not in _UAS_COLS else f"{c} [uas]" for c in cols) + " |"
+    lines = [head, "|" + "---|" * len(cols)]
     for row in table:
         cells = []
         for c in cols:
@@ -182,76 +193,86 @@ def _markdown(table: QTable, title: str) -> str:
                 cells.append(v)
             elif isinstance(v, (int, np.integer)):
                 cells.append(str(int(v)))
+            elif not np.isfinite(v):
+                cells.append("")
             else:
-                cells.append(
-                    ""
-                    if not np.isfinite(v)
-                    else f"{v:.3g}"
-                    if c == "recovered_fraction"
-                    else f"{v:.2f}"
-                )
+                cells.append(f"{v:.3g}" if c == "recovered_fraction" else f"{v:.2f}")
         lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _markdown(sections: list[tuple[str, tuple[float, float, int], QTable]], title: str) -> str:
+    lines = [
+        f"# {title}",
+        "",
+        "One table per frame (epoch). Each frame's common offset (median measured - "
+        f"true of its unflagged stars with m < {OFFSET_MAG_LIMIT:g}; the epoch alignment "
+        "absorbs it) is shown separately and removed; dispersions after 3 iterations of "
+        "2-sigma clipping; bias about the offset; crlb_x and err_x are bin medians.",
+    ]
+    for name, (ox, oy, n_off), table in sections:
+        lines += [
+            "",
+            f"## {name}",
+            "",
+            f"Frame offset: x {ox:+.2f} uas, y {oy:+.2f} uas ({n_off} stars).",
+            "",
+            *_markdown_table(table),
+        ]
     return "\n".join(lines) + "\n"
 
 
-def _plot(panels: list, path: Path, title: str) -> None:
-    """One panel per epoch: measured - input x against magnitude, clipped sigma, CRLB.
-
-    ``panels``: (panel title, stars, accuracy table) per epoch.
-    """
-    fig, axes = plt.subplots(
-        len(panels), 1, figsize=(7, 3.6 * len(panels) + 0.6), squeeze=False, sharex=True
+def _plot(
+    frames: list[tuple[str, QTable, tuple[float, float, int]]],
+    table: QTable,
+    path: Path,
+    title: str,
+) -> None:
+    """Measured - true x (each frame's offset removed) against magnitude; the
+    clipped sigma and CRLB of the first frame's table."""
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    all_dx = []
+    for k, (name, stars, (ox, _, _)) in enumerate(frames):
+        mag, dx, _, good = _residuals(stars)
+        dx = (dx - ox) / 1000.0
+        ax.scatter(mag[good], dx[good], s=3, alpha=0.5, color=f"C{k % 10}", label=name)
+        all_dx.append(dx[good])
+    dx = np.concatenate(all_dx) if all_dx else np.zeros(0)
+    good = np.isfinite(dx)
+    centres = [0.5 * (lo + hi) if np.isfinite(lo) and np.isfinite(hi) else (hi - 0.5 if np.isfinite(hi) else lo + 0.5)
+               for lo, hi in zip(table["mag_lo"].value, table["mag_hi"].value)]  # fmt: skip
+    sig = table["sigma_x"].to_value(u.mas)
+    ax.errorbar(
+        centres,
+        np.zeros(len(centres)),
+        yerr=sig,
+        fmt="o",
+        color="C3",
+        capsize=3,
+        label="clipped 1-sigma (first frame)",
     )
-    for ax, (name, stars, table) in zip(axes[:, 0], panels):
-        _panel(ax, stars, table)
-        ax.set_title(name, fontsize=9)
-    axes[-1, 0].set_xlabel("input magnitude V [mag]")
-    fig.suptitle(title, fontsize=10)
+    if np.any(np.isfinite(table["crlb_x"])):
+        ax.plot(
+            centres, table["crlb_x"].to_value(u.mas), "s--", color="C0", ms=4, label="CRLB (median)"
+        )
+    lim = np.nanpercentile(np.abs(dx[good]), 99) if np.any(good) else 1.0
+    ax.set_ylim(-1.2 * lim, 1.2 * lim)
+    ax.set_xlabel("input magnitude V [mag]")
+    ax.set_ylabel("measured - input x - frame offset [mas]")
+    ax.set_title(title)
+    ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=120)
     plt.close(fig)
 
 
-def _panel(ax, stars: QTable, table: QTable) -> None:
-    mag = stars["mag"].to_value(u.mag)
-    dx = (stars["x"] - stars["x_true"]).to_value(u.mas)
-    good = ((np.asarray(stars["flag"]) & EXCLUDE_FLAGS) == 0) & np.isfinite(dx)
-    ax.scatter(mag[good], dx[good], s=3, alpha=0.5, color="k", label="unflagged stars")
-    centres = [0.5 * (lo + hi) if np.isfinite(lo) and np.isfinite(hi) else (hi - 0.5 if np.isfinite(hi) else lo + 0.5)
-               for lo, hi in zip(table["mag_lo"].value, table["mag_hi"].value)]  # fmt: skip
-    sig = table["sigma_x"].to_value(u.mas)
-    has = np.isfinite(sig)  # bins without stars are not drawn
-    centres = np.asarray(centres)
-    ax.errorbar(
-        centres[has],
-        np.zeros(int(has.sum())),
-        yerr=sig[has],
-        fmt="o",
-        color="C3",
-        capsize=3,
-        label="clipped 1-sigma per bin",
-    )
-    crlb = table["crlb_x"].to_value(u.mas)
-    if np.any(np.isfinite(crlb)):
-        ax.plot(centres[has], crlb[has], "s--", color="C0", ms=4, label="Cramer-Rao bound (median)")
-    lim = np.nanpercentile(np.abs(dx[good]), 99) if np.any(good) else 1.0
-    ax.set_ylim(-1.2 * lim, 1.2 * lim)
-    ax.set_ylabel("x measured - input [mas]")
-    ax.legend(loc="upper left", fontsize=7)
-
-
-def _epoch_name(prod) -> str:
-    epoch = prod.attrs.get("epoch")
-    return "epoch unknown" if epoch is None else f"epoch {u.Quantity(epoch, u.yr).value:g} yr"
-
-
 def write_report(measured_paths: Sequence, outdir) -> list[Path]:
-    """Accuracy report of one or more measured products, per epoch.
+    """Accuracy report of one or more measured products, one table per frame (epoch).
 
-    Products of the same epoch (``epoch`` attribute) are pooled; each epoch gets
-    its own table (rows of ``accuracy.ecsv`` carry an ``epoch`` column [yr]),
-    Markdown section and plot panel.
+    Each frame's common offset (:func:`frame_offset`) is reported separately and
+    removed from that frame's residuals; frames are never pooled (each has its own
+    offset, which the epoch alignment absorbs).
 
     Parameters
     ----------
@@ -263,53 +284,45 @@ def write_report(measured_paths: Sequence, outdir) -> list[Path]:
     Returns
     -------
     list of Path
-        ``accuracy.ecsv``, ``accuracy.md``, ``astrometry_x.png``.
+        ``accuracy.ecsv`` (the tables stacked, with columns ``frame``, ``epoch``
+        [yr], ``offset_x`` and ``offset_y`` [uas]), ``accuracy.md``,
+        ``astrometry_x.png``.
     """
     if isinstance(measured_paths, (str, Path)):
         measured_paths = [measured_paths]
     if not measured_paths:
         raise InputError("no measured products given for the accuracy report")
     products = [read_product(p, "measured", specs={"stars": MEASURED_SPEC}) for p in measured_paths]
-    by_epoch: dict[str, list] = {}
-    for prod in products:
-        if "x_true" not in prod.tables["stars"].colnames:
+    sections, frames, tables = [], [], []
+    for path, prod in zip(measured_paths, products):
+        stars = prod.tables["stars"]
+        if "x_true" not in stars.colnames:
             raise InputError(
                 "no truth columns (x_true, y_true, mag): cannot report accuracy", path=prod.path
             )
-        by_epoch.setdefault(_epoch_name(prod), []).append(prod)
-    panels, tables, sections = [], [], []
-    for name, group in by_epoch.items():
-        counts = np.zeros(len(MAG_BINS) - 1, dtype=int)
-        for prod in group:
-            per_bin = prod.attrs.get("truth_bin_counts")
-            mags = prod.tables["stars"]["mag"].to_value(u.mag)
-            counts += np.asarray(
-                per_bin if per_bin is not None else truth_bin_counts(mags), dtype=int
-            )
-        parts = [prod.tables["stars"] for prod in group]
-        stars = vstack(parts) if len(parts) > 1 else parts[0]
-        table = accuracy_table(stars, counts)
-        sources = ", ".join(str(prod.attrs.get("frames", prod.path)) for prod in group)
-        panel = f"{name} ({len(stars)} stars; frames {sources})"
-        panels.append((panel, stars, table))
-        # the epoch as a bold label, not a heading: the run report embeds this file
-        sections.append(_markdown(table, name).replace(f"# {name}", f"**{name}**", 1))
-        epoch = group[0].attrs.get("epoch")
-        table.add_column(
-            np.full(len(table), np.nan if epoch is None else u.Quantity(epoch, u.yr).value) * u.yr,
-            name="epoch",
-            index=0,
-        )
+        per_bin = prod.attrs.get("truth_bin_counts")
+        counts = per_bin if per_bin is not None else truth_bin_counts(stars["mag"].to_value(u.mag))
+        offset = frame_offset(stars)
+        table = accuracy_table(stars, counts, offset[:2])
+        epoch = prod.attrs.get("epoch")
+        epoch = float(u.Quantity(epoch, u.yr).value) if epoch is not None else np.nan
+        name = f"{Path(path).parent.name}/{Path(path).name}"
+        name = f"{name} (epoch {epoch:g} yr)" if np.isfinite(epoch) else name
+        table.add_column(name, name="frame", index=0)
+        table.add_column(epoch * u.yr, name="epoch", index=1)
+        table["offset_x"] = offset[0] * u.uas
+        table["offset_y"] = offset[1] * u.uas
+        sections.append((name, offset, table))
+        frames.append((name, stars, offset))
         tables.append(table)
+    table = vstack(tables) if len(tables) > 1 else tables[0]
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    title = "Astrometric accuracy per epoch: measured - input x against input magnitude"
+    title = "Astrometric accuracy per frame"
     ecsv, md, png = outdir / "accuracy.ecsv", outdir / "accuracy.md", outdir / "astrometry_x.png"
     with atomic_path(ecsv) as tmp:
-        (vstack(tables) if len(tables) > 1 else tables[0]).write(
-            tmp, format="ascii.ecsv", overwrite=True
-        )
+        table.write(tmp, format="ascii.ecsv", overwrite=True)
     with atomic_path(md) as tmp:
-        tmp.write_text(f"# {title}\n\n" + "\n".join(sections))
-    _plot(panels, png, title)
+        tmp.write_text(_markdown(sections, title))
+    _plot(frames, tables[0], png, title)
     return [ecsv, md, png]

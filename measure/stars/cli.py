@@ -24,6 +24,7 @@ from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 from mavispm.measure.stars.settings import MeasureSettings, nest_knobs
+from mavispm.measure.stars.start_list import read_earlier
 
 if TYPE_CHECKING:
     from astropy.table import QTable
@@ -114,7 +115,10 @@ def add_fitted_magnitudes(stars: QTable, attrs: Mapping) -> None:
 
 
 def measure_stars(
-    frame: Frame, settings: Mapping | MeasureSettings | None = None, seed: int | None = None
+    frame: Frame,
+    settings: Mapping | MeasureSettings | None = None,
+    seed: int | None = None,
+    earlier: Sequence | None = None,
 ) -> tuple[QTable, VariableEPSF]:
     """Measure every star of a frame in memory.
 
@@ -129,6 +133,9 @@ def measure_stars(
         Stage settings (see :class:`MeasureSettings`); default: all defaults.
     seed : int, optional
         Seed of the forced-position perturbation.
+    earlier : sequence, optional
+        Earlier epochs' measured stars (:func:`~mavispm.measure.stars.start_list.read_earlier`);
+        with ``later_epochs = "measured"`` (observer mode) the frame starts from them.
 
     Returns
     -------
@@ -143,13 +150,15 @@ def measure_stars(
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
     if not isinstance(frame, Frame):  # an astropy NDData in adu with the frame attributes
         frame = Frame.from_nddata(frame)
-    if frame.truth is None and not cfg.blind:
+    earlier = list(earlier or ())
+    carried = bool(earlier) and cfg.later_epochs == "measured"
+    if frame.truth is None and not (cfg.blind or carried):
         raise InputError(
             "the frame has no truth table: forced photometry needs the input star list "
             "(use blind mode to detect stars instead)",
             path=frame.path,
         )
-    stars, attrs, psf = measure_frame(frame, cfg, seed)
+    stars, attrs, psf = measure_frame(frame, cfg, seed, earlier=earlier)
     add_fitted_magnitudes(stars, frame.attrs)
     copied = {k: frame.attrs[k] for k in _COPIED_ATTRS if k in frame.attrs}
     psf_meta = json.dumps({"kind": psf.kind, "oversampling": psf.oversampling, **psf.meta})
@@ -160,7 +169,11 @@ def measure_stars(
 
 
 def run_stage(
-    frames, settings: Mapping | MeasureSettings | None, output, seed: int | None = None
+    frames,
+    settings: Mapping | MeasureSettings | None,
+    output,
+    seed: int | None = None,
+    earlier: Sequence | None = None,
 ) -> Path:
     """Measure every star of a ``frames`` product and write the ``measured`` product.
 
@@ -174,15 +187,21 @@ def run_stage(
         Output ``measured`` product (written atomically).
     seed : int, optional
         Seed of the forced-position perturbation.
+    earlier : sequence of path, optional
+        ``measured`` products of earlier epochs. With ``later_epochs =
+        "measured"`` (the default, observer mode) the frame starts from their
+        measured positions instead of the truth (docs/measure.md).
 
     Returns
     -------
     pathlib.Path
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
-    frame = read_frame(frames, require_truth=not cfg.blind)
+    previous = [read_earlier(p) for p in (earlier or ())]
+    carried = bool(previous) and cfg.later_epochs == "measured"
+    frame = read_frame(frames, require_truth=not (cfg.blind or carried))
     try:
-        stars, psf = measure_stars(frame, cfg, seed)
+        stars, psf = measure_stars(frame, cfg, seed, earlier=previous)
     except InputError as exc:
         if exc.path is not None:
             raise
@@ -271,7 +290,7 @@ def _handler(args: argparse.Namespace) -> int:
     if args.progress:
         settings["progress"] = True
     cfg = validate_settings(settings, source=args.config)
-    out = run_stage(args.frames, cfg, args.output, args.seed)
+    out = run_stage(args.frames, cfg, args.output, args.seed, earlier=args.earlier)
     print(f"wrote {out}")
     if args.report is not None:
         for path in write_report([out], args.report):
@@ -299,6 +318,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         "--psf", choices=("constant", "grid", "polynomial"), default=None, help="ePSF variation"
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
+    p.add_argument(
+        "--earlier",
+        nargs="+",
+        default=None,
+        metavar="MEASURED",
+        help="measured products of earlier epochs: start from their positions (observer mode)",
+    )
     p.add_argument("--config", default=None, help="TOML settings file (table [stars] or top level)")
     p.add_argument(
         "--seed", type=non_negative_int, default=0, help="seed of the position perturbation"

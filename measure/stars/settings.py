@@ -159,7 +159,18 @@ class MeasureSettings:
         Gaussian perturbation (sigma per axis) of the forced starting positions.
     forced_positions : {"rendered", "catalogue"}
         Start from the truth's rendered ``x_pix, y_pix`` or from its catalogue
-        ``x_cat, y_cat`` (before distortion).
+        ``x_cat, y_cat`` (before distortion). Used by a first epoch, and by every
+        epoch when ``later_epochs = "truth"``.
+    later_epochs : {"measured", "truth"}
+        How an epoch after the first starts when the stage is given the earlier
+        epochs' measured products. "measured" (default, observer mode): from the
+        earlier epochs' measured positions moved into this frame by a transform
+        fitted on bright stars (:mod:`mavispm.measure.stars.start_list`); no truth
+        enters. "truth": from the true positions at this epoch (the paper's
+        truth-forced mode; the proper motion is already in the starting point).
+    refine_start : bool
+        Observer mode: refine the carried start list by one quick measurement
+        before the ePSF is built (:func:`mavispm.measure.stars.measure_frame.refined_start`).
     match_radius : float [pix]
         Truth cross-match distance cut.
     crowding_radius : float [pix]
@@ -172,6 +183,16 @@ class MeasureSettings:
         Detection threshold [background sigma] in blind mode.
     detection_fwhm : float [pix]
         Finder FWHM (blind mode); 0 uses 2.5 pixels.
+    detection_method : {"psf", "daofind"}
+        Blind mode: "psf" (default) finds, fits and subtracts stars and detects
+        again on the residuals, rejecting PSF structure around bright stars
+        (:mod:`mavispm.measure.stars.psf_detection`); "daofind": one
+        ``DAOStarFinder`` pass (many false detections in PSF wings).
+    detection_passes : int
+        Fit-subtract-detect passes of the "psf" detector.
+    detection_model_error : float
+        Fractional ePSF model error of the "psf" detector: a candidate must be
+        significant against this fraction of its neighbours' model light too.
     progress : bool
         Show progress bars.
     knobs : MeasureKnobs
@@ -187,12 +208,17 @@ class MeasureSettings:
     sky_gradient: bool = True
     perturbation: float = unit_field(0.0, "pix")
     forced_positions: Literal["rendered", "catalogue"] = "rendered"
+    later_epochs: Literal["measured", "truth"] = "measured"
+    refine_start: bool = True
     match_radius: float = unit_field(2.0, "pix")
     crowding_radius: float = unit_field(10.0, "pix")
     crowding_ratio: float = 0.1
     blind: bool = False
     detection_threshold: float = 5.0
     detection_fwhm: float = unit_field(0.0, "pix")
+    detection_method: Literal["psf", "daofind"] = "psf"
+    detection_passes: int = 3
+    detection_model_error: float = 0.03
     progress: bool = field(default=False)
     knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
 
@@ -203,8 +229,9 @@ class MeasureSettings:
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def __post_init__(self):
-        if self.psf_grid < 1:
-            raise ConfigError(f"must be a positive integer, got {self.psf_grid}", key="psf_grid")
+        for key in ("psf_grid", "detection_passes"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"must be a positive integer, got {getattr(self, key)}", key=key)
         if not 0 <= self.psf_poly_order <= 5:
             raise ConfigError(f"must be 0..5, got {self.psf_poly_order}", key="psf_poly_order")
         nterms = (self.psf_poly_order + 1) * (self.psf_poly_order + 2) // 2
@@ -216,7 +243,7 @@ class MeasureSettings:
         for key in ("match_radius", "crowding_radius"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=key)
-        for key in ("perturbation", "detection_fwhm", "crowding_ratio"):
+        for key in ("perturbation", "detection_fwhm", "crowding_ratio", "detection_model_error"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=key)
 

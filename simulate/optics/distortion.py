@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from scipy.interpolate import RegularGridInterpolator
 
 from mavispm.core.config import unit_field
 from mavispm.core.errors import InputError
@@ -199,6 +198,10 @@ class Distortion:
         self.settings = settings
         self._grid = None
         if settings.enabled and settings.static == "file":
+            # imported here: scipy.interpolate (and the scipy.optimize it pulls in) costs
+            # ~0.3-1 s of every process that renders or measures a frame otherwise
+            from scipy.interpolate import RegularGridInterpolator
+
             xs, ys, dx, dy = read_distortion_map(settings.file)
             self._grid = (
                 RegularGridInterpolator((ys, xs), dx, bounds_error=False, fill_value=None),

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy.special import j0, j1, jv
+from scipy.special import j0, j1
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import (
@@ -195,8 +195,11 @@ def tilt_covariance_function(
     rho_max = max(float(lay.heights.max()) * max_separation * 1.05, 1e-3)
     rho = np.linspace(0.0, rho_max, 400)
     arg = 2 * np.pi * rho[:, None] * f[None, :]
-    j2 = jv(2, arg)
-    a = np.pi * ((j0(arg) + j2) @ w)
+    # J2 by the recurrence 2 J1(x) / x - J0(x) (equal to scipy's jv(2, x) to 1e-14
+    # absolute here; jv of integer order 2 costs ~10x more: ~0.25 s per process)
+    j0a = j0(arg)
+    j2 = np.where(arg > 0, 2.0 * j1(arg) / np.where(arg > 0, arg, 1.0) - j0a, 0.0)
+    a = np.pi * ((j0a + j2) @ w)
     b = 2 * np.pi * (j2 @ w)
     return TiltCovariance(rho, a, b, lay.heights, lay.weights)
 

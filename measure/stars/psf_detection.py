@@ -1,0 +1,392 @@
+"""PSF-aware blind detection: find, fit, subtract, and find again on the residuals.
+
+DAOPhot's FIND + ALLSTAR loop, vectorised:
+
+1. **Bright pass.** Peaks of the frame matched-filtered with a Gaussian of the
+   PSF FWHM, above ``first_threshold`` and the highest within
+   ``first_box`` pixels (the rings and speckles of a bright star are not
+   separate maxima there). These seed the ePSF, built as in forced mode.
+2. **Joint fit and pruning.** All candidates are fitted together with the ePSF
+   (:func:`~mavispm.measure.stars.batched_fit.fit_stars`). A candidate is kept
+   when its flux is significant against the photon noise *and* the model
+   error of its neighbours' light in its core: ``F / sqrt(sigma_F^2 +
+   (alpha N / c)^2) >= threshold``, with ``N`` the other stars' model light in
+   the candidate's 3 x 3 core, ``c`` the ePSF's 3 x 3 core fraction and
+   ``alpha(r)`` the fractional model error at distance ``r`` from a star,
+   measured on the bright stars' residuals (at least ``model_error``); beyond
+   the first radius where ``alpha`` exceeds 0.5 the model is neither subtracted
+   nor its error counted (a wrong wing does more harm than none). PSF structure around a
+   bright star (rings, speckles, spikes beyond what the ePSF describes) gets at
+   most ``alpha N`` of flux from the joint fit and is rejected; candidates that
+   converge onto a brighter one (within ``merge_radius``) are merged.
+3. **Residual passes.** The kept stars are rendered with the full ePSF
+   footprint and subtracted; the residual is matched-filtered with the ePSF
+   core, its significance computed against ``sky + read noise + model +
+   (alpha model)^2``, and new peaks above ``threshold`` (not within
+   ``merge_radius`` of a known star, away from unusable pixels) are added.
+   In both passes the significance is divided by its own robust scatter in
+   32 x 32 pixel tiles: structured light the model does not hold (a cluster's
+   PSF halo beyond the ePSF footprint) raises the threshold where it is.
+   Steps 2-3 repeat ``passes - 1`` times or until nothing new is found.
+
+The functions take the frame and stage callables from
+:mod:`mavispm.measure.stars.measure_frame`; no truth is used.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from mavispm.measure.stars.batched_fit import FLAG_FAILED, render_model
+from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
+
+
+@dataclass(frozen=True)
+class DetectionOptions:
+    """Knobs of :func:`detect_stars`.
+
+    Attributes
+    ----------
+    threshold : float
+        Matched-filter significance (about the PSF-fit flux SNR) of a detection.
+    first_threshold : float
+        Significance of the bright pass that seeds the ePSF.
+    first_box : int
+        Bright-pass peaks are the maximum within this box [pixel] (odd).
+    fwhm : float
+        FWHM of the bright-pass Gaussian filter [pixel].
+    passes : int
+        Fit-subtract-detect passes after the bright pass.
+    model_error : float
+        Fractional error of the ePSF model of a star's light (alpha).
+    merge_radius : float
+        Candidates closer than this [pixel] to a brighter one are merged; new
+        residual peaks closer than this to a known star are ignored.
+    bad_margin : int
+        Residual peaks within this distance [pixel] of unusable pixels
+        (saturated cores) are ignored.
+    background_box : int
+        Box [pixel] of the running median removed from the residual before
+        detection (0: none; three times this before the bright pass).
+    noise_tile : int
+        Tile [pixel] in which the significance is divided by its own robust
+        scatter (:func:`locally_normalised`; 0: none).
+    """
+
+    threshold: float = 5.0
+    first_threshold: float = 30.0
+    first_box: int = 9
+    fwhm: float = 2.5
+    passes: int = 3
+    model_error: float = 0.03
+    merge_radius: float = 1.5
+    bad_margin: int = 2
+    background_box: int = 9
+    noise_tile: int = 32
+
+
+def _gaussian_kernel(fwhm: float) -> np.ndarray:
+    sigma = fwhm / 2.3548
+    r = int(np.ceil(2 * sigma)) + 1
+    off = np.arange(-r, r + 1)
+    g = np.exp(-0.5 * (off[:, None] ** 2 + off[None, :] ** 2) / sigma**2)
+    return g / g.sum()
+
+
+def sampled_epsf(psf, x: float, y: float, half: int) -> np.ndarray:
+    """The ePSF at ``(x, y)`` sampled at integer pixel offsets, (2 half + 1)^2 (a star
+    centred on a pixel; values are fractions of the star's light)."""
+    e = psf.epsf_at(x, y)
+    os_ = psf.oversampling
+    c = (e.shape[0] - 1) // 2
+    half = min(half, c // os_)
+    idx = c + os_ * np.arange(-half, half + 1)
+    return e[np.ix_(idx, idx)]
+
+
+def psf_kernel(psf, x: float, y: float, half: int = 3) -> np.ndarray:
+    """Matched-filter kernel: the ePSF core at ``(x, y)``, non-negative, sum 1."""
+    k = np.clip(sampled_epsf(psf, x, y, half), 0.0, None)
+    return k / k.sum()
+
+
+def significance(residual: np.ndarray, variance: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """Matched-filter significance ``sum(K r) / sqrt(sum(K^2 var))`` at every pixel."""
+    num = ndimage.correlate(residual, kernel, mode="constant")
+    den = np.sqrt(ndimage.correlate(variance, kernel**2, mode="constant"))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, 0.0)
+
+
+def peaks(snr: np.ndarray, threshold: float, box: int, usable: np.ndarray):
+    """Local maxima of ``snr`` (within ``box`` x ``box``) above ``threshold``, with
+    parabolic sub-pixel positions [pixel] and their significance."""
+    is_max = (snr == ndimage.maximum_filter(snr, size=box, mode="constant")) & (snr > threshold)
+    ys, xs = np.nonzero(is_max & usable)
+    ny, nx = snr.shape
+    xc, yc = xs.astype(float), ys.astype(float)
+    inner = (xs > 0) & (xs < nx - 1) & (ys > 0) & (ys < ny - 1)
+    i, j = ys[inner], xs[inner]
+    c, left, right = snr[i, j], snr[i, j - 1], snr[i, j + 1]
+    down, up = snr[i - 1, j], snr[i + 1, j]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dx = 0.5 * (left - right) / (left - 2 * c + right)
+        dy = 0.5 * (down - up) / (down - 2 * c + up)
+    xc[inner] += np.clip(np.nan_to_num(dx), -0.5, 0.5)
+    yc[inner] += np.clip(np.nan_to_num(dy), -0.5, 0.5)
+    return xc, yc, snr[ys, xs]
+
+
+def local_background_subtracted(residual: np.ndarray, box: int) -> np.ndarray:
+    """The residual minus its running median over about ``box`` x ``box`` pixels.
+
+    The fit's local sky planes absorb part of a bright star's light (halo, the
+    ePSF's normalisation), so the residual around a bright star sits on a
+    pedestal that a matched filter would call a star.
+    """
+    if box < 3:
+        return residual
+    step = max(1, box // 3)
+    small = ndimage.median_filter(residual[::step, ::step], size=3, mode="nearest")
+    zoom = (residual.shape[0] / small.shape[0], residual.shape[1] / small.shape[1])
+    bg = ndimage.zoom(small, zoom, order=1, mode="nearest", grid_mode=True)
+    return residual - bg[: residual.shape[0], : residual.shape[1]]
+
+
+def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
+    """Robust scatter of a significance map in ``tile`` x ``tile`` tiles (at least 1),
+    interpolated to every pixel.
+
+    Light the model does not hold (the structured PSF halo of a cluster's stars
+    beyond the ePSF footprint) makes the significance of empty places scatter
+    more than 1; each tile's robust sigma (1.4826 MAD; stars are a small
+    fraction of a tile's pixels) is that excess.
+    """
+    ny, nx = snr.shape
+    if tile < 4:
+        return np.ones_like(snr)
+    ty, tx = -(-ny // tile), -(-nx // tile)
+    padded = np.full((ty * tile, tx * tile), np.nan)
+    padded[:ny, :nx] = snr
+    blocks = padded.reshape(ty, tile, tx, tile).transpose(0, 2, 1, 3).reshape(ty, tx, -1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(blocks, axis=2)
+        mad = np.nanmedian(np.abs(blocks - med[:, :, None]), axis=2)
+    scale = np.clip(np.nan_to_num(1.4826 * mad, nan=1.0), 1.0, None)
+    full = ndimage.zoom(scale, (ny / ty, nx / tx), order=1, mode="nearest", grid_mode=True)
+    return full[:ny, :nx]
+
+
+def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
+    """Significance divided by its :func:`noise_scale`."""
+    return snr / noise_scale(snr, tile)
+
+
+def model_error_profile(
+    residual: np.ndarray, psf, x, y, flux, noise_var: float, floor: float, n_stars: int = 50
+) -> np.ndarray:
+    """Fractional model error of a star's light against radius, from the residuals.
+
+    For the ``n_stars`` brightest fitted stars away from the edges: the summed
+    absolute residual in 1-pixel annuli (less its noise expectation
+    ``sqrt(2 var / pi)`` per pixel) over the summed model light there; the median
+    over the stars, at least ``floor``, at most 1.
+
+    Returns
+    -------
+    ndarray
+        ``alpha[k]`` for radii ``k .. k + 1`` pixels, ``k = 0 .. R + 1``.
+    """
+    radius = int(np.floor(psf.radius_pix))
+    ny, nx = residual.shape
+    flux = np.nan_to_num(np.asarray(flux, float))
+    order = np.argsort(-flux)[:n_stars]
+    off = np.arange(-radius, radius + 1)
+    ring = np.hypot(off[:, None], off[None, :]).astype(int).ravel()
+    prof = []
+    for i in order:
+        cx, cy = int(np.rint(x[i])), int(np.rint(y[i]))
+        if not (radius <= cx < nx - radius and radius <= cy < ny - radius) or flux[i] <= 0:
+            continue
+        cut = residual[cy - radius : cy + radius + 1, cx - radius : cx + radius + 1]
+        geom = StampGeometry(np.array([cx]), np.array([cy]), radius)
+        mod = flux[i] * psf.evaluate(x[i : i + 1], y[i : i + 1], geom, derivatives=False)[0]
+        noise = np.sqrt(2 * (noise_var + np.clip(mod, 0, None)) / np.pi)
+        excess = np.bincount(ring, (np.abs(cut) - noise).ravel(), radius + 2)
+        light = np.bincount(ring, np.abs(mod).ravel(), radius + 2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            prof.append(excess / light)
+    if not prof:
+        return np.full(radius + 2, floor)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        alpha = np.nanmedian(np.array(prof), axis=0)
+    return np.clip(np.nan_to_num(alpha, nan=floor), floor, 1.0)
+
+
+#: Beyond the first radius where the model error exceeds this fraction of the model,
+#: the detector neither subtracts the model nor counts its error (it does more harm).
+MAX_USEFUL_ERROR = 0.5
+
+
+def useful_psfs(psf, alpha: np.ndarray) -> tuple[VariableEPSF, VariableEPSF]:
+    """The ePSF truncated where it stops being useful, and its model-error ePSF.
+
+    Returns
+    -------
+    model : VariableEPSF
+        The ePSF inside the first radius (>= 2 px) where ``alpha`` exceeds
+        :data:`MAX_USEFUL_ERROR`, zero outside.
+    error : VariableEPSF
+        ``alpha(r)`` times the |ePSF| inside that radius (the model error of a star).
+    """
+    n = psf.basis.shape[-1]
+    c = (n - 1) / 2
+    r = np.hypot(*np.meshgrid(np.arange(n) - c, np.arange(n) - c)) / psf.oversampling
+    k = np.clip(r.astype(int), 0, len(alpha) - 1)
+    bad = np.flatnonzero((alpha > MAX_USEFUL_ERROR) & (np.arange(len(alpha)) >= 2))
+    inside = r < (bad[0] if len(bad) else np.inf)
+    model = VariableEPSF(psf.basis * inside, psf.oversampling, psf._mixing, kind=psf.kind)
+    error = VariableEPSF(
+        np.abs(psf.basis) * alpha[k] * inside, psf.oversampling, psf._mixing, kind=psf.kind
+    )
+    return model, error
+
+
+def _core_sum(image: np.ndarray, x, y) -> np.ndarray:
+    """3 x 3 sums of ``image`` around the pixels nearest to (x, y)."""
+    ny, nx = image.shape
+    box = ndimage.uniform_filter(image, size=3, mode="constant") * 9
+    cx = np.clip(np.rint(np.nan_to_num(x)).astype(int), 0, nx - 1)
+    cy = np.clip(np.rint(np.nan_to_num(y)).astype(int), 0, ny - 1)
+    return box[cy, cx]
+
+
+def prune(fit, psf, err_psf, shape, options: DetectionOptions, scale=None):
+    """Candidates that survive the joint fit (see the module docstring).
+
+    ``psf`` is the ePSF the residuals are made with (:func:`useful_psfs`). A
+    candidate's flux must be significant against its photon noise and against
+    the model error (``err_psf``) of its neighbours' light in its 3 x 3 core,
+    divided by the local excess scatter ``scale`` (:func:`noise_scale`) of the
+    significance map it was found in.
+
+    Returns
+    -------
+    keep : ndarray of bool
+    model, error : ndarray
+        Images [electron] of the kept stars and of their model error (full ePSF
+        footprint).
+    """
+    flux = np.nan_to_num(fit.flux)
+    ok = ((fit.flag & FLAG_FAILED) == 0) & (flux > 0) & np.isfinite(fit.flux_err)
+    radius = int(np.floor(psf.radius_pix))
+    used = np.where(ok, flux, 0.0)
+    model = render_model(shape, psf, fit.x, fit.y, used, radius)
+    error = render_model(shape, err_psf, fit.x, fit.y, used, radius)
+    cx, cy = shape[1] / 2, shape[0] / 2
+    core3 = float(sampled_epsf(psf, cx, cy, 1).sum())
+    own = used * float(sampled_epsf(err_psf, cx, cy, 1).sum())
+    neighbours = np.clip(_core_sum(error, fit.x, fit.y) - own, 0.0, None)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        snr = flux / np.hypot(fit.flux_err, neighbours / core3)
+    if scale is not None:  # the local excess scatter of the significance (noise_scale)
+        ny, nx = shape
+        cx = np.clip(np.rint(np.nan_to_num(fit.x)).astype(int), 0, nx - 1)
+        cy = np.clip(np.rint(np.nan_to_num(fit.y)).astype(int), 0, ny - 1)
+        snr = snr / scale[cy, cx]
+    keep = ok & (snr >= options.threshold)
+    # merge candidates that converged onto a brighter one
+    order = np.argsort(-flux)
+    idx = order[keep[order]]
+    if len(idx) > 1:
+        tree = cKDTree(np.column_stack([fit.x[idx], fit.y[idx]]))
+        gone = np.zeros(len(idx), bool)
+        for a, b in sorted(tree.query_pairs(options.merge_radius)):
+            if not gone[a]:  # idx is sorted by flux: a is the brighter
+                gone[b] = True
+        keep[idx[gone]] = False
+    dropped = ok & ~keep
+    if np.any(dropped):
+        xd, yd, fd = fit.x[dropped], fit.y[dropped], flux[dropped]
+        model -= render_model(shape, psf, xd, yd, fd, radius)
+        error -= render_model(shape, err_psf, xd, yd, fd, radius)
+    return keep, model, error
+
+
+def detect_stars(frame, settings, build_psf, run_engine, options: DetectionOptions):
+    """Blind detection on a frame (see the module docstring).
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame (:class:`mavispm.measure.stars.measure_frame.Frame`).
+    settings : MeasureSettings
+        Stage settings (fit and ePSF knobs).
+    build_psf, run_engine : callable
+        :func:`mavispm.measure.stars.measure_frame.build_psf` and ``run_engine``.
+    options : DetectionOptions
+
+    Returns
+    -------
+    x, y : ndarray
+        Detected positions [pixel].
+    info : dict
+        ``n_first`` (bright-pass detections), ``n_pass`` (stars after each pass),
+        ``model_error_profile`` (alpha per 1-pixel annulus).
+    """
+    data = np.where(frame.bad, 0.0, np.nan_to_num(frame.image - frame.sky))
+    base_var = frame.sky + frame.read_noise_var
+    usable = ~ndimage.binary_dilation(frame.bad, iterations=options.bad_margin)
+    snr = significance(
+        local_background_subtracted(data, options.background_box * 3),
+        base_var + np.clip(data, 0, None),
+        _gaussian_kernel(options.fwhm),
+    )
+    scale = noise_scale(snr, options.noise_tile)
+    snr = snr / scale
+    box = max(3, options.first_box | 1)
+    x, y, _ = peaks(snr, options.first_threshold, box, ~frame.bad)
+    info = {"n_first": int(len(x)), "n_pass": []}
+    if len(x) == 0:
+        return x, y, info
+    quick = replace(settings, neighbour_passes=0, error_model="fisher", progress=False)
+    psf = build_psf(frame, x, y, quick).psf
+    kernel = psf_kernel(psf, frame.shape[1] / 2, frame.shape[0] / 2)
+    radius = int(np.floor(psf.radius_pix))
+    err_psf = None
+    for p in range(max(1, options.passes)):
+        fit = run_engine(frame, psf, x, y, quick, engine="fast", return_model=False)
+        if err_psf is None:  # the model error, measured on the bright stars' residuals
+            flux = np.clip(np.nan_to_num(fit.flux), 0.0, None)
+            model = render_model(frame.shape, psf, fit.x, fit.y, flux, radius)
+            resid = local_background_subtracted(data - model, options.background_box)
+            alpha = model_error_profile(
+                resid, psf, fit.x, fit.y, flux, base_var, options.model_error
+            )
+            info["model_error_profile"] = [round(float(a), 4) for a in alpha]
+            model_psf, err_psf = useful_psfs(psf, alpha)
+        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options, scale)
+        x, y = fit.x[keep], fit.y[keep]
+        info["n_pass"].append(int(len(x)))
+        if p == options.passes - 1:
+            break
+        var = base_var + np.clip(model, 0, None) + error**2
+        resid = local_background_subtracted(data - model, options.background_box)
+        snr = significance(resid, var, kernel)
+        scale = noise_scale(snr, options.noise_tile)
+        new_x, new_y, _ = peaks(snr / scale, options.threshold, 3, usable)
+        if len(new_x) and len(x):
+            d, _ = cKDTree(np.column_stack([x, y])).query(np.column_stack([new_x, new_y]))
+            far = d > options.merge_radius
+            new_x, new_y = new_x[far], new_y[far]
+        if len(new_x) == 0:
+            break
+        x, y = np.concatenate([x, new_x]), np.concatenate([y, new_y])
+    return x, y, info
