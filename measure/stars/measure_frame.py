@@ -400,7 +400,7 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
     few tenths of a pixel); an ePSF built on them is blurred and anchored to
     them, which doubled the bright-star scatter on the NGC 3201 frames.
     """
-    quick = replace(settings, neighbour_passes=0, error_model="fisher", progress=False)
+    quick = settings.replace(neighbour_passes=0, error_model="fisher", progress=False)
     psf = build_psf(frame, x0, y0, quick).psf
     fit = run_engine(frame, psf, x0, y0, quick, engine="fast", return_model=False)
     ok = ((fit.flag & FLAG_FAILED) == 0) & np.isfinite(fit.x) & np.isfinite(fit.y)

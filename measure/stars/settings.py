@@ -18,6 +18,7 @@ Example
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 from dataclasses import dataclass, field, fields
 from typing import Literal
@@ -221,6 +222,23 @@ class MeasureSettings:
     detection_model_error: float = 0.03
     progress: bool = field(default=False)
     knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
+
+    def replace(self, **changes) -> MeasureSettings:
+        """A copy with ``changes`` applied; knob names go into :attr:`knobs`.
+
+        Parameters
+        ----------
+        **changes
+            Method settings and knobs by name (``neighbour_passes=0, progress=False``).
+
+        Returns
+        -------
+        MeasureSettings
+        """
+        knobs = {k: changes.pop(k) for k in list(changes) if k in KNOB_NAMES}
+        if knobs:
+            changes["knobs"] = dataclasses.replace(self.knobs, **knobs)
+        return dataclasses.replace(self, **changes)
 
     def __getattr__(self, name):
         # only called when normal lookup fails: the knobs read as settings attributes
