@@ -8,7 +8,10 @@ Run ``python benchmarks/bench_dynamics.py [--quick]`` from the repository root
    Plummer result and against a very fine reference for the point-mass term);
 2. one likelihood evaluation against the number of stars;
 3. emcee to convergence (walkers, steps, tau, wall time) and posterior width;
-4. dynesty evidence per model (calls, wall time, ln Z error).
+4. dynesty evidence per model (calls, wall time, ln Z error);
+5. with ``--comparison``: the full four-model comparison against the number of
+   stars and with the cheap knobs (no cusp, centre/systemic fixed, no kinematic
+   evidence).
 
 Times are CPU (process) seconds, robust against other jobs on a shared
 machine; wall times are printed alongside. Compare ratios measured in one run.
@@ -58,9 +61,11 @@ def bench_projection(quick):
 
 
 def bench_likelihood(quick):
-    print("\n# likelihood: cost vs stars and radial grid size (4 parameters, Plummer)")
+    print("\n# likelihood: cost vs stars and radial grid size (Plummer, no cusp, IMBH model)")
     stars, (sp1, _), _ = mock_likelihoods(1, 1500.0)
-    theta = np.array([4.7, np.log10(25.0), 1500.0, 0.0])
+    truth = {"log_mass": 4.7, "log_scale_radius": np.log10(25.0), "bh_mass": 1500.0}
+    truth.update(beta=0.0, distance=4.6)
+    theta = np.array([truth[n] for n in sp1.names])
     rng = np.random.default_rng(0)
     ref_like = None
     print(f"{'stars':>6} {'grid':>5} {'time/ms':>8} {'dlnL vs grid 256':>17}")
@@ -82,30 +87,31 @@ def bench_tracers(quick):
     from mavispm.dynamics.settings import DynamicsSettings
     from mavispm.dynamics.star_sums import star_sums, star_sums_numpy
 
-    stars, _, _ = mock_likelihoods(1, 1500.0)
+    s = _stars(3500)
     rng = np.random.default_rng(0)
-    pick = rng.integers(0, stars.R.size, 3500)
-    s = StarSample(
-        stars.R[pick], stars.v_r[pick], stars.v_t[pick], stars.e_r[pick], stars.e_t[pick], 17.0
-    )
-    king = {"tracer": "king", "king_concentration": 1.33, "log_scale_radius_range": (1.0, 3.0)}
+    king = {"tracer": "king62", "king_concentration": 1.33, "log_scale_radius_range": (1.0, 3.0)}
+    fixed = {"centre_error": 0.0, "systemic_error": 0.0, "distance_error": 0.0}
     cases = {
-        "plummer": {},
-        "dehnen, free gamma": {"tracer": "dehnen", "fit_gamma": True},
-        "cusped King, free cusp radius": {**king, "cusp": True},
-        "cusped King, influence radius": {**king, "cusp": True, "cusp_link": "influence"},
+        "plummer, no cusp, nuisances fixed": ({"cusp": False, **fixed}, "imbh"),
+        "plummer + cusp, nuisances fixed": (fixed, "imbh"),
+        "dehnen, free gamma": ({"tracer": "dehnen", **fixed}, "imbh"),
+        "cusped King62": ({**king, **fixed}, "imbh"),
+        "plummer + cusp + nuisances": ({}, "imbh"),
+        "... + dark component (imbh_dark)": ({}, "imbh_dark"),
+        "... + Osipkov-Merritt (imbh_dark)": ({"anisotropy": "osipkov-merritt"}, "imbh_dark"),
+        "... star counts off": ({"star_counts": False}, "imbh_dark"),
     }
     n_calls = 50 if quick else 300
-    print(f"{'tracer':>32} {'ms/call':>8}")
-    for name, kw in cases.items():
+    print(f"{'model':>36} {'npar':>4} {'ms/call':>8}")
+    for name, (kw, model) in cases.items():
         settings = DynamicsSettings(**kw)
-        space = parameter_space(settings, 4.6, True)
+        space = parameter_space(settings, 4.6, model)
         like = make_likelihood(s, space, settings, 4.6)
         thetas = space.from_scaled(rng.uniform(-0.5, 0.5, (n_calls, len(space))))
         thetas[:, space.index("log_mass")] = 5.0
         like(thetas[0])  # build the cached tables
         t = _time(lambda lk=like, th=thetas: [lk(v) for v in th], 1) / n_calls
-        print(f"{name:>32} {1e3 * t:8.3f}")
+        print(f"{name:>36} {len(space):4d} {1e3 * t:8.3f}")
     # the star loop alone: fused numba kernel vs the numpy reference
     grid = np.linspace(-6, 2, 64)
     ln_s2 = np.stack([-grid, -grid - 0.1])
@@ -115,6 +121,48 @@ def bench_tracers(quick):
     t_nb = _time(lambda: star_sums(*args), 200)
     t_np = _time(lambda: star_sums_numpy(*args), 200)
     print(f"star sums (3,500 stars): numba {1e3 * t_nb:.3f} ms, numpy {1e3 * t_np:.3f} ms")
+
+
+def _stars(n, seed=1):
+    """``n`` mock stars (Plummer + 1500 Msun IMBH) with positions, inside 17"."""
+    from dynamics_helpers import mock_pm_stars
+
+    d = mock_pm_stars(seed, **{**RECOVERY_MOCK, "n_field": n})
+    return StarSample(
+        d["R"], d["pm_r"], d["pm_t"], d["pm_r_err"], d["pm_t_err"], 17.0, x=d["x"], y=d["y"]
+    )
+
+
+def bench_comparison(quick, n_stars=(1000, 3500), **knobs):
+    """The four-model comparison (emcee + full and kinematics-only dynesty) per star number."""
+    from mavispm.dynamics.fit import compare, fit_model
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    base = {
+        "progress": False,
+        "walkers": 32,
+        "max_steps": 3000,
+        "tau_factor": 20.0,
+        "check_every": 250,
+        "nlive": 100,
+        "dlogz": 0.5,
+    }
+    settings = DynamicsSettings(**{**base, **knobs})
+    print(f"\n# four-model comparison, knobs {knobs or 'default'} (wall and CPU seconds)")
+    for n in n_stars:
+        stars = _stars(n)
+        t0, c0 = time.perf_counter(), time.process_time()
+        fits = [fit_model(stars, settings, 4.6, m, seed=1) for m in settings.models]
+        comp = compare(fits, settings.bh_mass_max)
+        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+        parts = ", ".join(
+            f"{f.name}: " + "/".join(f"{v:.0f}" for v in f.wall_s.values()) for f in fits
+        )
+        print(
+            f"N={n}: {dt:.0f} s wall, {cpu:.0f} s CPU; ln B = {comp.ln_bayes_factor:.2f}, "
+            f"kinematic {comp.ln_bayes_factor_kinematic:.2f}, verdict {comp.verdict}; "
+            f"per model emcee/evidence/kinematic s: {parts}"
+        )
 
 
 def bench_samplers(quick):
@@ -157,6 +205,9 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats and cases")
     parser.add_argument("--no-samplers", action="store_true", help="skip emcee/dynesty")
+    parser.add_argument(
+        "--comparison", action="store_true", help="time the four-model comparison (slow)"
+    )
     args = parser.parse_args(argv)
     print(f"mock: {RECOVERY_MOCK}")
     bench_projection(args.quick)
@@ -164,6 +215,10 @@ def main(argv=None):
     bench_tracers(args.quick)
     if not args.no_samplers:
         bench_samplers(args.quick)
+    if args.comparison:
+        bench_comparison(args.quick)
+        fast = {"cusp": False, "centre_error": 0.0, "systemic_error": 0.0}
+        bench_comparison(args.quick, n_stars=(3500,), kinematic_evidence=False, **fast)
 
 
 if __name__ == "__main__":

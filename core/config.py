@@ -77,6 +77,9 @@ def _coerce(value, tp, key: str, source):
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
+        real = [a for a in args if a is not type(None)]
+        if len(real) == 1:  # Optional[X]: X's own, more precise message
+            return _coerce(value, real[0], key, source)
         errors = []
         for arg in args:
             if arg is type(None):

@@ -1,6 +1,8 @@
 """The ``mavispm dynamics`` stage: read proper motions, fit, compare, write, plot.
 
 ``mavispm dynamics pm.h5 -o fit.h5 --plots plots/ [--truth imbh.h5 --truth-no-imbh no.h5] [--fast]``
+``mavispm dynamics --from-catalogue cat.h5 [--epoch e0] [--pm-error 0.001] -o fit.h5``
+(truth-level fit: the true motions of the luminous stars inside the field radius).
 """
 
 from __future__ import annotations
@@ -14,12 +16,12 @@ import astropy.units as u
 import numpy as np
 from astropy.table import QTable
 
-from mavispm.core.catalogue import Catalogue, read_catalogue
+from mavispm.core.catalogue import read_catalogue
 from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import TableSpec, read_product, validate_table, write_product
-from mavispm.dynamics.fit import compare, fit_model
+from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
 from mavispm.dynamics.settings import DynamicsSettings
@@ -50,7 +52,9 @@ def validate_settings(settings=None, source=None) -> DynamicsSettings:
 def load_stars(path, settings: DynamicsSettings):
     """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
 
-    See :func:`star_sample`, which does the selection.
+    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
+    error are dropped; stars outside the field radius are dropped. Errors become
+    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
 
     Raises
     ------
@@ -61,39 +65,6 @@ def load_stars(path, settings: DynamicsSettings):
     t = prod.tables.get("stars")
     if t is None:
         raise InputError("table 'stars' missing", path=path)
-    return star_sample(t, prod.attrs, settings, path=path)
-
-
-def star_sample(table, attrs, settings: DynamicsSettings, path=None):
-    """A propermotions ``stars`` table as a :class:`StarSample` plus its distance [kpc].
-
-    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
-    error are dropped; stars outside the field radius are dropped. Errors become
-    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
-
-    Parameters
-    ----------
-    table : QTable
-        Columns of ``PM_SPEC`` (``x``, ``y``, ``R`` [arcsec], ``pm_r``, ``pm_t`` and
-        their errors [mas/yr], optional ``flag``).
-    attrs : mapping
-        Root attributes; ``distance`` [kpc] unless ``settings.distance`` is set.
-    settings : DynamicsSettings
-    path : path, optional
-        Source file, for messages.
-
-    Returns
-    -------
-    stars : StarSample
-    distance : float
-        [kpc]
-
-    Raises
-    ------
-    InputError
-        Missing columns or distance, negative errors, or no usable stars.
-    """
-    t = table
     if "flag" in t.colnames and not settings.use_flagged:
         # flagged rows are not used: drop them before validating (they may carry
         # NaN in columns the fit needs, e.g. a detection without a truth match)
@@ -101,11 +72,11 @@ def star_sample(table, attrs, settings: DynamicsSettings, path=None):
     t = validate_table(t, PM_SPEC, path=path, table_name="stars")
     distance = settings.distance
     if distance is None:
-        if attrs.get("distance") is None:
+        if "distance" not in prod.attrs:
             raise InputError(
                 "no 'distance' root attribute; set dynamics.distance in the settings", path=path
             )
-        distance = u.Quantity(attrs["distance"], u.kpc).to_value(u.kpc)
+        distance = u.Quantity(prod.attrs["distance"], u.kpc).to_value(u.kpc)
     if not (np.isfinite(distance) and distance > 0):
         raise InputError(f"distance must be > 0 kpc, got {distance}", path=path)
     cols = {k: np.asarray(t[k].value, dtype=float) for k in PM_SPEC.required if k != "id"}
@@ -133,6 +104,8 @@ def star_sample(table, attrs, settings: DynamicsSettings, path=None):
         e_r=np.hypot(scale * cols["pm_r_err"][ok], floor),
         e_t=np.hypot(scale * cols["pm_t_err"][ok], floor),
         field_radius=field,
+        x=cols["x"][ok],
+        y=cols["y"][ok],
     )
     for name, err in (("pm_r_err", stars.e_r), ("pm_t_err", stars.e_t)):
         if np.any(err == 0):
@@ -145,9 +118,73 @@ def star_sample(table, attrs, settings: DynamicsSettings, path=None):
     return stars, float(distance)
 
 
+def load_catalogue_stars(path, settings: DynamicsSettings, epoch=None, pm_error: float = 0.001):
+    """True motions of a catalogue's luminous stars as a :class:`StarSample` and distance [kpc].
+
+    Parameters
+    ----------
+    path : path
+        A ``catalogue`` product (truth).
+    settings : DynamicsSettings
+        ``field_radius`` (default: the largest circle inside the epoch's x/y extent),
+        ``distance`` (default: the catalogue's) and ``min_radius`` are used.
+    epoch : str, optional
+        Epoch table name (default: the first).
+    pm_error : float
+        Error given to every proper-motion component [mas/yr] (> 0); the true
+        motions are used unperturbed.
+
+    Raises
+    ------
+    InputError
+        Unknown epoch, no distance, bad error, or fewer than two stars.
+    """
+    if not (np.isfinite(pm_error) and pm_error > 0):
+        raise InputError(f"--pm-error must be > 0 mas/yr, got {pm_error}", path=path)
+    cat = read_catalogue(path)
+    if epoch is None:
+        epoch = next(iter(cat.epochs))
+    if epoch not in cat.epochs:
+        raise InputError(f"no epoch {epoch!r}; epochs are {sorted(cat.epochs)}", path=path)
+    t = cat.epochs[epoch]
+    keep = np.ones(len(t), bool)
+    if "luminous" in t.colnames:
+        keep &= np.asarray(t["luminous"], bool)
+    x, y = t["x"].to_value(u.arcsec)[keep], t["y"].to_value(u.arcsec)[keep]
+    pmx, pmy = t["pm_x"].to_value(u.mas / u.yr)[keep], t["pm_y"].to_value(u.mas / u.yr)[keep]
+    distance = settings.distance
+    if distance is None:
+        if "distance" not in cat.attrs:
+            raise InputError("no 'distance' attribute; set dynamics.distance", path=path)
+        distance = u.Quantity(cat.attrs["distance"], u.kpc).to_value(u.kpc)
+    R, v_r, v_t = radial_tangential(x, y, pmx, pmy)
+    field = settings.field_radius
+    if field is None:
+        if x.size == 0:
+            raise InputError("no luminous stars", path=path)
+        field = float(min(np.abs(x).max(), np.abs(y).max()))
+    sel = R <= field
+    if sel.sum() < 2:
+        raise InputError(
+            f"only {int(sel.sum())} luminous stars inside {field:.3g} arcsec", path=path
+        )
+    err = np.full(int(sel.sum()), float(pm_error))
+    stars = StarSample(
+        R=np.maximum(R[sel], settings.min_radius),
+        v_r=v_r[sel],
+        v_t=v_t[sel],
+        e_r=err,
+        e_t=err.copy(),
+        field_radius=field,
+        x=x[sel],
+        y=y[sel],
+    )
+    return stars, float(distance)
+
+
 def truth_profile(path, field_radius: float, settings: DynamicsSettings, seed: int) -> QTable:
-    """Dispersion profile of a truth catalogue (path or Catalogue; first epoch, luminous stars)."""
-    cat = path if isinstance(path, Catalogue) else read_catalogue(path)
+    """Dispersion profile of a truth catalogue (first epoch, luminous stars, no errors)."""
+    cat = read_catalogue(path)
     t = next(iter(cat.epochs.values()))
     keep = np.ones(len(t), bool)
     if "luminous" in t.colnames:
@@ -213,29 +250,17 @@ class DynamicsResult:
     Attributes
     ----------
     tables : dict of str to QTable
-        ``profile`` (binned dispersion profile), ``posterior_imbh``,
-        ``posterior_no_imbh`` (samples), ``summary`` (per-parameter credible
-        intervals), ``profile_truth_*`` when truth catalogues were given.
+        ``profile``, ``summary``, ``posterior_<model>``, ... (docs/formats.md).
     attrs : dict
-        Root attributes: model comparison (``ln_bayes_factor``, ``delta_aic`` ...),
-        ``bh_mass_median`` ... [solMass], ``bh_detected``, convergence, timings.
-    fits : list of ModelFit
-        The IMBH and no-IMBH fits (chains, likelihoods).
+        Root attributes: model comparison, ``bh_mass_median`` ... [solMass], convergence.
     """
 
     tables: dict
     attrs: dict
-    fits: list
-
-    @property
-    def truth_profiles(self) -> dict:
-        """Truth dispersion profiles by model ("imbh", "no_imbh") when truth was given."""
-        prefix = "profile_truth_"
-        return {k.removeprefix(prefix): t for k, t in self.tables.items() if k.startswith(prefix)}
 
     @property
     def profile(self) -> QTable:
-        """Binned dispersion profile of the stars (radius [arcsec], dispersions [mas/yr])."""
+        """Binned dispersion profile (radius [arcsec], dispersions [mas/yr])."""
         return self.tables["profile"]
 
     @property
@@ -244,46 +269,95 @@ class DynamicsResult:
         return self.tables["summary"]
 
 
-def fit_dynamics(
-    propermotions,
-    settings=None,
-    seed: int = 0,
-    truth=None,
-    truth_no_imbh=None,
-    backend_path=None,
-    source=None,
-) -> DynamicsResult:
-    """Dispersion profile, IMBH and no-IMBH Jeans fits and their comparison, in memory.
+def fit_dynamics(propermotions: QTable, settings=None, seed: int = 0, **kwargs) -> DynamicsResult:
+    """The dynamics stage on a proper-motion table in memory.
+
+    The table (``meta`` = the product's root attributes, as
+    :func:`mavispm.proper_motions` returns it) goes through :func:`run_stage` in a
+    temporary folder, so the result is exactly the stage's product.
 
     Parameters
     ----------
     propermotions : QTable
-        The ``stars`` table of a ``propermotions`` product (``meta["distance"]``
-        [kpc] unless ``settings.distance`` is set), as :func:`mavispm.proper_motions`
-        returns it.
+        The ``stars`` table of a ``propermotions`` product; ``meta["distance"]``
+        [kpc] unless ``settings.distance`` is set.
     settings : mapping or DynamicsSettings, optional
         See :class:`~mavispm.dynamics.settings.DynamicsSettings`.
     seed : int
         Seed of the samplers and the bootstrap.
-    truth, truth_no_imbh : Catalogue or path, optional
-        Truth catalogues whose profiles are added for comparison.
-    backend_path : path, optional
-        HDF5 file keeping the emcee chains (an interrupted fit resumes).
-    source : path, optional
-        The product the table was read from, named in error messages.
+    **kwargs
+        Passed to :func:`run_stage` (``truth``, ``truth_no_imbh``, ...).
 
     Returns
     -------
     DynamicsResult
     """
+    import tempfile
+
+    table = propermotions.copy(copy_data=False)
+    attrs = dict(table.meta)
+    table.meta.clear()
+    with tempfile.TemporaryDirectory() as tmp:
+        pm = write_product(
+            Path(tmp) / "pm.h5", "propermotions", tables={"stars": table}, attrs=attrs
+        )
+        out = run_stage(pm, settings, Path(tmp) / "dynamics.h5", seed, **kwargs)
+        prod = read_product(out, "dynamics")
+    return DynamicsResult(tables=prod.tables, attrs=prod.attrs)
+
+
+def run_stage(
+    propermotions,
+    settings,
+    output,
+    seed,
+    plots_dir=None,
+    truth=None,
+    truth_no_imbh=None,
+    from_catalogue=None,
+    epoch=None,
+    pm_error: float = 0.001,
+):
+    """Run the dynamics stage.
+
+    Parameters
+    ----------
+    propermotions : path or None
+        A ``propermotions`` product (None with ``from_catalogue``).
+    settings : mapping or DynamicsSettings
+    output : path
+        The ``dynamics`` product to write (atomically). The emcee chains are
+        kept next to it in ``<output>.emcee.h5`` so an interrupted fit resumes.
+    seed : int
+    plots_dir : path, optional
+        Write the profile and corner plots here.
+    truth, truth_no_imbh : path, optional
+        Truth catalogues (IMBH / no-IMBH) whose profiles are drawn for comparison.
+    from_catalogue : path, optional
+        Fit the true motions of this catalogue's luminous stars instead.
+    epoch : str, optional
+        Catalogue epoch (default: the first).
+    pm_error : float
+        Proper-motion error given to the catalogue's stars [mas/yr].
+
+    Returns
+    -------
+    pathlib.Path
+    """
     if not isinstance(settings, DynamicsSettings):
         settings = validate_settings(settings)
-    stars, distance = star_sample(propermotions, propermotions.meta, settings, path=source)
+    output = Path(output)
+    if from_catalogue is not None:
+        stars, distance = load_catalogue_stars(from_catalogue, settings, epoch, pm_error)
+        source = {"catalogue": str(from_catalogue), "pm_error": pm_error * u.mas / u.yr}
+    else:
+        stars, distance = load_stars(propermotions, settings)
+        source = {"propermotions": str(propermotions)}
     if stars.R.size < MIN_FIT_STARS:
         raise InputError(
             f"only {stars.R.size} usable stars (finite, unflagged proper motions in the field); "
             f"a dynamical fit needs at least {MIN_FIT_STARS}",
-            path=source,
+            path=propermotions if from_catalogue is None else from_catalogue,
         )
     pm = u.mas / u.yr
     profile = dispersion_profile(
@@ -301,106 +375,69 @@ def fit_dynamics(
     for key, path in (("imbh", truth), ("no_imbh", truth_no_imbh)):
         if path is not None:
             truths[key] = truth_profile(path, stars.field_radius, settings, seed)
+    backend = output.with_name(output.name + ".emcee.h5")
     fits = [
-        fit_model(stars, settings, distance, with_bh, seed, backend_path=backend_path)
-        for with_bh in (True, False)
+        fit_model(stars, settings, distance, model, seed, backend_path=backend)
+        for model in settings.models
     ]
-    comp = compare(fits[0], fits[1], settings.bh_mass_max)
-    bh = fits[0].summary["bh_mass"]
+    comp = compare(fits, settings.bh_mass_max, settings.ambiguous_ln_b)
     attrs = {
         **comp.as_attrs(),
         "distance": distance * u.kpc,
         "field_radius": stars.field_radius * u.arcsec,
         "n_stars": int(stars.R.size),
         "tracer": settings.tracer,
-        "bh_mass_median": bh["median"] * u.Msun,
-        "bh_mass_lo68": bh["lo68"] * u.Msun,
-        "bh_mass_hi68": bh["hi68"] * u.Msun,
-        "bh_mass_lo95": bh["lo95"] * u.Msun,
-        "bh_mass_hi95": bh["hi95"] * u.Msun,
-        "bh_mass_upper95": bh["upper95"] * u.Msun,
-        # with evidence: detected when ln B > 1 (positive evidence); else the posterior test
-        "bh_detected": bool(
-            comp.ln_bayes_factor > 1.0 if np.isfinite(comp.ln_bayes_factor) else bh["detected"]
-        ),
-        "bh_detected_posterior": bool(bh["detected"]),
+        "models": ",".join(f.name for f in fits),
         "evidence_computed": bool(settings.evidence),
+        **source,
     }
+    bh = marginal_bh_samples(fits, seed)
+    if bh.size:
+        q = np.percentile(bh, [2.5, 16, 50, 84, 97.5, 95])
+        if not comp.converged:  # never reported as a result
+            q = np.full(6, np.nan)
+        for k, key in enumerate(("lo95", "lo68", "median", "hi68", "hi95", "upper95")):
+            attrs[f"bh_mass_{key}"] = q[k] * u.Msun
+        detected_post = bool(q[0] > 0.1 * q[2])
+        attrs["bh_detected"] = bool(
+            comp.ln_bayes_factor > settings.ambiguous_ln_b
+            if np.isfinite(comp.ln_bayes_factor)
+            else detected_post
+        )
+        attrs["bh_detected_posterior"] = detected_post
     for fit in fits:
-        attrs[f"converged_{fit.name}"] = bool(fit.chain.converged)
-        attrs[f"steps_{fit.name}"] = int(fit.chain.steps)
-        attrs[f"tau_max_{fit.name}"] = float(np.max(fit.chain.tau))
-        attrs[f"acceptance_{fit.name}"] = float(fit.chain.acceptance)
-        attrs[f"aic_{fit.name}"] = float(fit.criteria["aic"])
-        attrs[f"bic_{fit.name}"] = float(fit.criteria["bic"])
-        attrs[f"max_log_like_{fit.name}"] = float(fit.criteria["max_log_like"])
+        n = fit.name
+        attrs[f"converged_{n}"] = bool(fit.chain.converged)
+        attrs[f"steps_{n}"] = int(fit.chain.steps)
+        attrs[f"tau_max_{n}"] = float(np.max(fit.chain.tau))
+        attrs[f"acceptance_{n}"] = float(fit.chain.acceptance)
+        attrs[f"aic_{n}"] = float(fit.criteria["aic"])
+        attrs[f"bic_{n}"] = float(fit.criteria["bic"])
+        attrs[f"max_log_like_{n}"] = float(fit.criteria["max_log_like"])
         for part, seconds in fit.wall_s.items():
-            attrs[f"time_{part}_{fit.name}"] = float(seconds) * u.s
+            attrs[f"time_{part}_{n}"] = float(seconds) * u.s
         if fit.evidence is not None:
-            attrs[f"log_z_{fit.name}"] = fit.evidence.log_z
-            attrs[f"log_z_err_{fit.name}"] = fit.evidence.log_z_err
-    tables = {
-        "profile": profile,
-        "posterior_imbh": _posterior_table(fits[0]),
-        "posterior_no_imbh": _posterior_table(fits[1]),
-        "summary": _summary_table(fits),
-    }
+            attrs[f"log_z_{n}"] = fit.evidence.log_z
+            attrs[f"log_z_err_{n}"] = fit.evidence.log_z_err
+        if fit.evidence_kinematic is not None:
+            attrs[f"log_z_kinematic_{n}"] = fit.evidence_kinematic.log_z
+            attrs[f"log_z_kinematic_err_{n}"] = fit.evidence_kinematic.log_z_err
+    tables = {"profile": profile, "summary": _summary_table(fits)}
+    for fit in fits:
+        tables[f"posterior_{fit.name}"] = _posterior_table(fit)
+    if bh.size:
+        tables["bh_mass_marginal"] = QTable({"bh_mass": bh * u.Msun})
     for key, tab in truths.items():
         tables[f"profile_truth_{key}"] = tab
-    tables = {
-        "profile": profile,
-        "posterior_imbh": _posterior_table(fits[0]),
-        "posterior_no_imbh": _posterior_table(fits[1]),
-        "summary": _summary_table(fits),
-    }
-    for key, tab in truths.items():
-        tables[f"profile_truth_{key}"] = tab
-    return DynamicsResult(tables=tables, attrs=attrs, fits=fits)
+    fast = None
+    if settings.fast_stars is not None:
+        from mavispm.dynamics.fast_stars import run_on_fits
 
-
-def run_stage(
-    propermotions, settings, output, seed, plots_dir=None, truth=None, truth_no_imbh=None
-):
-    """Run the dynamics stage.
-
-    Parameters
-    ----------
-    propermotions : path
-        A ``propermotions`` product.
-    settings : mapping or DynamicsSettings
-    output : path
-        The ``dynamics`` product to write (atomically). The emcee chains are
-        kept next to it in ``<output>.emcee.h5`` so an interrupted fit resumes.
-    seed : int
-    plots_dir : path, optional
-        Write the profile and corner plots here.
-    truth, truth_no_imbh : path, optional
-        Truth catalogues (IMBH / no-IMBH) whose profiles are drawn for comparison.
-
-    Returns
-    -------
-    pathlib.Path
-    """
-    if not isinstance(settings, DynamicsSettings):
-        settings = validate_settings(settings)
-    output = Path(output)
-    prod = read_product(propermotions, "propermotions", load_arrays=False)
-    table = prod.tables.get("stars")
-    if table is None:
-        raise InputError("table 'stars' missing", path=propermotions)
-    table.meta = dict(prod.attrs)
-    result = fit_dynamics(
-        table,
-        settings,
-        seed,
-        truth=truth,
-        truth_no_imbh=truth_no_imbh,
-        backend_path=output.with_name(output.name + ".emcee.h5"),
-        source=propermotions,
-    )
-    tables, attrs, fits = result.tables, result.attrs, result.fits
-    profile, truths = tables["profile"], result.truth_profiles
-    attrs["propermotions"] = str(propermotions)
+        fast = run_on_fits(
+            propermotions, settings, fits, distance, stars.field_radius, seed, stars=stars
+        )
+        tables["fast_stars"] = fast.table
+        attrs.update(fast.attrs)
     path = write_product(
         output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(settings), seed=seed
     )
@@ -409,8 +446,12 @@ def run_stage(
 
         plots_dir = Path(plots_dir)
         profile_plot(profile, fits, truths, plots_dir / "dispersion_profile.png")
-        corner_plot(fits[0], plots_dir / "corner_imbh.png")
-        corner_plot(fits[1], plots_dir / "corner_no_imbh.png")
+        for fit in fits:
+            corner_plot(fit, plots_dir / f"corner_{fit.name}.png")
+        if fast is not None and fast.possible:
+            from mavispm.dynamics.plots import fast_star_plot
+
+            fast_star_plot(fast, plots_dir / "fast_stars.png")
     return path
 
 
@@ -433,6 +474,14 @@ def _handler(args) -> int:
         settings = settings.fast()
     if args.no_evidence:
         settings = dataclasses.replace(settings, evidence=False)
+    if args.fast_stars and settings.fast_stars is None:
+        from mavispm.dynamics.fast_stars import FastStarSettings
+
+        settings = dataclasses.replace(settings, fast_stars=FastStarSettings())
+    if (args.propermotions is None) == (args.from_catalogue is None):
+        raise InputError("give either a propermotions product or --from-catalogue CATALOGUE")
+    if args.from_catalogue is None and (args.epoch is not None or args.pm_error is not None):
+        raise InputError("--epoch and --pm-error go with --from-catalogue")
     out = run_stage(
         args.propermotions,
         settings,
@@ -441,6 +490,9 @@ def _handler(args) -> int:
         plots_dir=args.plots,
         truth=args.truth,
         truth_no_imbh=args.truth_no_imbh,
+        from_catalogue=args.from_catalogue,
+        epoch=args.epoch,
+        pm_error=0.001 if args.pm_error is None else args.pm_error,
     )
     from mavispm.core.products import read_product as _read
 
@@ -450,9 +502,11 @@ def _handler(args) -> int:
             {
                 "output": str(out),
                 "ln_bayes_factor": a.get("ln_bayes_factor"),
-                "bh_mass_median": float(u.Quantity(a["bh_mass_median"]).value),
-                "bh_mass_upper95": float(u.Quantity(a["bh_mass_upper95"]).value),
-                "bh_detected": bool(a["bh_detected"]),
+                "ln_bayes_factor_kinematic": a.get("ln_bayes_factor_kinematic"),
+                "bh_mass_median": float(u.Quantity(a.get("bh_mass_median", np.nan)).value),
+                "bh_mass_upper95": float(u.Quantity(a.get("bh_mass_upper95", np.nan)).value),
+                "bh_detected": bool(a.get("bh_detected", False)),
+                "verdict": a.get("verdict"),
             }
         )
     )
@@ -463,11 +517,23 @@ def register(subparsers) -> argparse.ArgumentParser:
     """Add the top-level ``dynamics`` command."""
     p = subparsers.add_parser(
         "dynamics",
-        help="fit Jeans models with and without an IMBH to proper motions",
-        description="Dispersion profile, emcee fits of IMBH / no-IMBH Jeans models, "
-        "dynesty evidence and plots.",
+        help="fit Jeans mass models (no dark centre, IMBH, extended dark, both) to proper motions",
+        description="Dispersion profile, emcee fits of the Jeans mass models, dynesty "
+        "evidences (full and kinematics-only), model comparison and plots.",
     )
-    p.add_argument("propermotions", help="propermotions product (HDF5)")
+    p.add_argument("propermotions", nargs="?", default=None, help="propermotions product (HDF5)")
+    p.add_argument(
+        "--from-catalogue",
+        default=None,
+        help="fit the true motions of this catalogue's luminous stars (truth-level fit)",
+    )
+    p.add_argument("--epoch", default=None, help="catalogue epoch (default: the first)")
+    p.add_argument(
+        "--pm-error",
+        type=float,
+        default=None,
+        help="proper-motion error of the catalogue's stars [mas/yr] (default 0.001)",
+    )
     p.add_argument("-o", "--output", required=True, help="dynamics product to write")
     p.add_argument("--plots", default=None, help="folder for PNG plots")
     p.add_argument("--truth", default=None, help="truth catalogue with the IMBH")
@@ -476,5 +542,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
+    p.add_argument(
+        "--fast-stars",
+        action="store_true",
+        help="also run the fast-star test (stars above the no-IMBH escape velocity)",
+    )
     p.set_defaults(func=_handler)
     return p

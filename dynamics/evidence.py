@@ -36,6 +36,8 @@ class EvidenceResult:
     n_calls: int
     max_log_like: float
     samples: np.ndarray | None = None
+    #: physical parameters of the highest-likelihood point
+    best: np.ndarray | None = None
 
 
 def run_dynesty(
@@ -78,6 +80,7 @@ def run_dynesty(
         n_calls=int(np.sum(res.ncall)),
         max_log_like=float(np.max(res.logl)),
         samples=np.asarray(res.samples_equal(rstate=np.random.default_rng(seed))),
+        best=np.asarray(res.samples[int(np.argmax(res.logl))]),
     )
 
 

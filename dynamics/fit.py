@@ -1,7 +1,13 @@
-"""Fit the IMBH and no-IMBH Jeans models to a star sample and compare them.
+"""Fit the mass models (no dark centre, IMBH, extended dark component, both) and compare them.
 
 Pure orchestration of :mod:`likelihood`, :mod:`sampling` and :mod:`evidence`:
 no file input or output here (see :mod:`mavispm.dynamics.cli`).
+
+``ln_bayes_factor`` is the evidence of the best model with an IMBH against the
+best model without one; ``ln_bayes_factor_kinematic`` the same from the
+kinematics alone (the star-count term off). The M_BH posterior is marginalised
+over the IMBH models (their samples mixed in proportion to their evidences).
+A fit whose chains have not converged gives no headline numbers (NaN) and says so.
 """
 
 from __future__ import annotations
@@ -13,7 +19,6 @@ import numpy as np
 
 from mavispm.dynamics.evidence import (
     EvidenceResult,
-    bayes_factor,
     information_criteria,
     run_dynesty,
     savage_dickey,
@@ -21,16 +26,23 @@ from mavispm.dynamics.evidence import (
 from mavispm.dynamics.likelihood import DiscreteLikelihood, StarSample
 from mavispm.dynamics.parameters import Parameter, ParameterSpace
 from mavispm.dynamics.sampling import ChainResult, run_emcee, summarise
-from mavispm.dynamics.settings import DynamicsSettings
+from mavispm.dynamics.settings import MODELS, DynamicsSettings
 
 LABELS = {
     "log_mass": r"$\log_{10} M/M_\odot$",
     "log_scale_radius": r"$\log_{10} a/''$",
-    "bh_mass": r"$M_{\rm BH}/M_\odot$",
-    "beta": r"$\beta$",
-    "distance": r"$d$/kpc",
     "gamma": r"$\gamma$",
     "log_cusp_radius": r"$\log_{10} r_c/''$",
+    "bh_mass": r"$M_{\rm BH}/M_\odot$",
+    "dark_mass": r"$M_{\rm dark}/M_\odot$",
+    "log_dark_radius": r"$\log_{10} b/''$",
+    "beta": r"$\beta$",
+    "log_anisotropy_radius": r"$\log_{10} r_a/''$",
+    "distance": r"$d$/kpc",
+    "x0": r"$x_0/''$",
+    "y0": r"$y_0/''$",
+    "pm_x0": r"$\mu_{x,0}$",
+    "pm_y0": r"$\mu_{y,0}$",
 }
 
 
@@ -43,47 +55,84 @@ def _scale_radius_parameter(s: DynamicsSettings) -> Parameter:
     return Parameter("log_scale_radius", lo=lo, hi=hi)
 
 
-def parameter_space(settings: DynamicsSettings, distance: float, with_bh: bool) -> ParameterSpace:
-    """Priors of the IMBH (``with_bh``) or no-IMBH model.
+def _model_name(model) -> str:
+    if isinstance(model, bool):  # older callers: with / without an IMBH
+        return "imbh" if model else "none"
+    if model not in MODELS:
+        raise ValueError(f"unknown model {model!r}; expected one of {sorted(MODELS)}")
+    return model
+
+
+def parameter_space(
+    settings: DynamicsSettings, distance: float, model="imbh", positions: bool = True
+) -> ParameterSpace:
+    """Priors of one mass model.
 
     Parameters
     ----------
     settings : DynamicsSettings
     distance : float
-        Distance [kpc] (prior mean when ``settings.distance_error > 0``).
-    with_bh : bool
+        Distance [kpc] (prior mean when the distance is fitted).
+    model : {"none", "imbh", "dark", "imbh_dark"} or bool
+        Dark central components (``True``/``False`` mean "imbh"/"none").
+    positions : bool
+        Whether star positions are available (needed for the centre and systemic motion).
     """
     s = settings
+    parts = MODELS[_model_name(model)]
     params = [
         Parameter("log_mass", lo=s.log_mass_range[0], hi=s.log_mass_range[1]),
         _scale_radius_parameter(s),
     ]
-    if with_bh:
-        params.append(Parameter("bh_mass", lo=0.0, hi=s.bh_mass_max))
-    params.append(Parameter("beta", lo=s.beta_range[0], hi=s.beta_range[1]))
-    if s.distance_error > 0:
-        params.append(Parameter("distance", prior="gaussian", mean=distance, sd=s.distance_error))
-    linked = s.cusp and s.cusp_link == "influence"
-    if s.fit_gamma or (s.cusp and (with_bh or not linked)):
+    if s.cusp:
         params.append(Parameter("gamma", lo=s.gamma_range[0], hi=s.gamma_range[1]))
-    if s.cusp and not linked:
-        lo, hi = s.log_cusp_radius_range
-        params.append(Parameter("log_cusp_radius", lo=lo, hi=hi))
+        if s.tracer != "dehnen":
+            lo, hi = s.log_cusp_radius_range
+            params.append(Parameter("log_cusp_radius", lo=lo, hi=hi))
+    if parts["bh"]:
+        params.append(Parameter("bh_mass", lo=0.0, hi=s.bh_mass_max))
+    if parts["dark"]:
+        params.append(Parameter("dark_mass", lo=0.0, hi=s.dark_mass_max))
+        lo, hi = s.log_dark_radius_range
+        params.append(Parameter("log_dark_radius", lo=lo, hi=hi))
+    if s.anisotropy == "constant":
+        params.append(Parameter("beta", lo=s.beta_range[0], hi=s.beta_range[1]))
+    else:
+        lo, hi = s.log_anisotropy_radius_range
+        params.append(Parameter("log_anisotropy_radius", lo=lo, hi=hi))
+    sd = s.distance_sd(distance)
+    if sd > 0:
+        params.append(Parameter("distance", prior="gaussian", mean=distance, sd=sd))
+    if positions and s.centre_error > 0:
+        for name in ("x0", "y0"):
+            params.append(Parameter(name, prior="gaussian", mean=0.0, sd=s.centre_error))
+    if positions and s.systemic_error > 0:
+        for name in ("pm_x0", "pm_y0"):
+            params.append(Parameter(name, prior="gaussian", mean=0.0, sd=s.systemic_error))
     return ParameterSpace([Parameter(**{**p.__dict__, "label": LABELS[p.name]}) for p in params])
 
 
 def make_likelihood(
-    stars: StarSample, space: ParameterSpace, settings: DynamicsSettings, distance: float
+    stars: StarSample,
+    space: ParameterSpace,
+    settings: DynamicsSettings,
+    distance: float,
+    star_counts: bool | None = None,
 ):
-    """The discrete likelihood for one model's parameter order."""
+    """The discrete likelihood for one model's parameter order.
+
+    ``star_counts`` overrides ``settings.star_counts`` (False: kinematics only).
+    """
     s = settings
+    completeness = None
+    if s.completeness is not None:
+        completeness = (s.completeness_radius, s.completeness)
     return DiscreteLikelihood(
         stars,
         space.names,
         tracer=s.tracer,
         gamma=s.dehnen_gamma,
         concentration=s.king_concentration,
-        cusp_link=s.cusp_link if s.cusp else None,
         distance=distance,
         scale_radius_range=tuple(10.0 ** np.asarray(s.log_scale_radius_range)),
         min_radius=s.min_radius,
@@ -91,13 +140,14 @@ def make_likelihood(
         n_panels=s.projection_panels,
         n_gl=s.projection_nodes,
         x_max=s.truncation,
-        star_counts=s.star_counts,
+        star_counts=s.star_counts if star_counts is None else star_counts,
+        completeness=completeness,
     )
 
 
 @dataclass
 class ModelFit:
-    """One model's fit: space, likelihood, chain, summary and evidence."""
+    """One model's fit: space, likelihood, chain, summary and evidences."""
 
     name: str
     space: ParameterSpace
@@ -105,29 +155,18 @@ class ModelFit:
     chain: ChainResult
     summary: dict
     evidence: EvidenceResult | None = None
+    evidence_kinematic: EvidenceResult | None = None
     criteria: dict = field(default_factory=dict)
     #: wall-clock seconds of the emcee run and of the nested sampling
     wall_s: dict = field(default_factory=dict)
 
-
-@dataclass
-class Comparison:
-    """IMBH vs no-IMBH model comparison (``ln B > 0`` favours the IMBH)."""
-
-    ln_bayes_factor: float = np.nan
-    ln_bayes_factor_err: float = np.nan
-    delta_ln_likelihood: float = np.nan
-    delta_aic: float = np.nan
-    delta_bic: float = np.nan
-    savage_dickey_ln_b: float = np.nan
-    savage_dickey_note: str = ""
-
-    def as_attrs(self) -> dict:
-        """Root attributes for the dynamics product."""
-        return dict(self.__dict__)
+    @property
+    def has_bh(self) -> bool:
+        """Whether the model has a central point mass."""
+        return MODELS[self.name]["bh"]
 
 
-def backend_key(stars, settings, distance, with_bh, seed) -> str:
+def backend_key(stars, settings, distance, model, seed) -> str:
     """Hash of everything an emcee chain depends on: the stars, the settings, distance, seed.
 
     Stored with the chain in its backend so that a chain is resumed only for the
@@ -138,45 +177,56 @@ def backend_key(stars, settings, distance, with_bh, seed) -> str:
     from mavispm.core.array_cache import content_key
 
     knobs = {k: v for k, v in asdict(settings).items() if k != "progress"}
-    arrays = [np.asarray(getattr(stars, c), dtype=float) for c in ("R", "v_r", "v_t", "e_r", "e_t")]
+    cols = ("R", "v_r", "v_t", "e_r", "e_t") + (("x", "y") if stars.x is not None else ())
+    arrays = [np.asarray(getattr(stars, c), dtype=float) for c in cols]
     return content_key(
         *arrays,
         float(stars.field_radius),
         knobs,
         None if distance is None else float(distance),
-        bool(with_bh),
+        str(model),
         int(seed),
     )
 
 
-def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> ModelFit:
-    """Sample one model with emcee (and its evidence with dynesty if enabled)."""
-    name = "imbh" if with_bh else "no_imbh"
-    space = parameter_space(settings, distance, with_bh)
+def fit_model(stars, settings, distance, model, seed, backend_path=None) -> ModelFit:
+    """Sample one model with emcee (and its evidences with dynesty if enabled)."""
+    name = _model_name(model)
+    space = parameter_space(settings, distance, name, positions=stars.x is not None)
     like = make_likelihood(stars, space, settings, distance)
-    t0 = time.perf_counter()
-    key = backend_key(stars, settings, distance, with_bh, seed)
-    chain = run_emcee(
-        like,
-        space,
-        seed,
-        walkers=settings.walkers,
-        max_steps=settings.max_steps,
-        tau_factor=settings.tau_factor,
-        check_every=settings.check_every,
-        backend_path=backend_path,
-        backend_name=name,
-        progress=settings.progress,
-        backend_key=key,
-    )
-    wall = {"emcee": time.perf_counter() - t0}
-    max_ll = chain.max_log_like
-    evid = None
+    wall = {}
+    chain = None
+    if settings.posterior == "emcee":
+        t0 = time.perf_counter()
+        chain = run_emcee(
+            like,
+            space,
+            seed,
+            walkers=settings.walkers,
+            max_steps=settings.max_steps,
+            tau_factor=settings.tau_factor,
+            check_every=settings.check_every,
+            backend_path=backend_path,
+            backend_name=name,
+            progress=settings.progress,
+            backend_key=backend_key(stars, settings, distance, name, seed),
+        )
+        wall["emcee"] = time.perf_counter() - t0
+    evid = evid_kin = None
     if settings.evidence:
         t0 = time.perf_counter()
         evid = run_dynesty(like, space, seed + 1, nlive=settings.nlive, dlogz=settings.dlogz)
         wall["evidence"] = time.perf_counter() - t0
-        max_ll = max(max_ll, evid.max_log_like)
+        if settings.kinematic_evidence and settings.star_counts:
+            t0 = time.perf_counter()
+            kin = make_likelihood(stars, space, settings, distance, star_counts=False)
+            evid_kin = run_dynesty(kin, space, seed + 2, nlive=settings.nlive, dlogz=settings.dlogz)
+            wall["evidence_kinematic"] = time.perf_counter() - t0
+        elif not settings.star_counts:
+            evid_kin = evid
+    if chain is None:
+        chain = nested_chain(evid, space)
+    max_ll = chain.max_log_like if evid is None else max(chain.max_log_like, evid.max_log_like)
     return ModelFit(
         name=name,
         space=space,
@@ -184,19 +234,182 @@ def fit_model(stars, settings, distance, with_bh, seed, backend_path=None) -> Mo
         chain=chain,
         summary=summarise(chain.samples, chain.names),
         evidence=evid,
+        evidence_kinematic=evid_kin,
         criteria={"max_log_like": max_ll, **information_criteria(max_ll, len(space), stars.R.size)},
         wall_s=wall,
     )
 
 
-def compare(imbh: ModelFit, no_imbh: ModelFit, bh_mass_max: float) -> Comparison:
-    """Bayes factor, likelihood ratio, AIC/BIC and Savage-Dickey for two fits."""
+def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:
+    """A :class:`ChainResult` from nested-sampling posterior samples (``posterior = "nested"``).
+
+    The run stopped at its ``dlogz`` criterion, so it counts as converged; tau and
+    acceptance are NaN, the MAP is the highest-likelihood point.
+    """
+    ndim = len(space)
+    return ChainResult(
+        names=list(space.names),
+        samples=evid.samples,
+        log_like=np.full(evid.samples.shape[0], np.nan),
+        tau=np.full(ndim, np.nan),
+        steps=0,
+        converged=True,
+        map_params=evid.best,
+        max_log_like=evid.max_log_like,
+        acceptance=np.nan,
+    )
+
+
+@dataclass
+class Comparison:
+    """Model comparison (``ln B > 0`` favours an IMBH) and the verdict."""
+
+    ln_bayes_factor: float = np.nan
+    ln_bayes_factor_err: float = np.nan
+    ln_bayes_factor_kinematic: float = np.nan
+    ln_bayes_factor_kinematic_err: float = np.nan
+    best_model: str = ""
+    best_model_with_imbh: str = ""
+    best_model_without_imbh: str = ""
+    ln_b_dark_centre: float = np.nan
+    ln_b_imbh_vs_extended: float = np.nan
+    imbh_extended_indistinguishable: bool = False
+    delta_ln_likelihood: float = np.nan
+    delta_aic: float = np.nan
+    delta_bic: float = np.nan
+    savage_dickey_ln_b: float = np.nan
+    savage_dickey_note: str = ""
+    converged: bool = True
+    verdict: str = ""
+    verdict_text: str = ""
+
+    def as_attrs(self) -> dict:
+        """Root attributes for the dynamics product."""
+        return dict(self.__dict__)
+
+
+def _best(fits, key="evidence"):
+    """(fit, ln Z, ln Z err) of the highest evidence among ``fits`` (None if none)."""
+    best = None
+    for f in fits:
+        ev = getattr(f, key)
+        if ev is not None and (best is None or ev.log_z > best[1]):
+            best = (f, ev.log_z, ev.log_z_err)
+    return best
+
+
+def _ln_z(fits, name, key="evidence"):
+    for f in fits:
+        if f.name == name and getattr(f, key) is not None:
+            return getattr(f, key).log_z
+    return np.nan
+
+
+def marginal_bh_samples(fits, seed: int = 0) -> np.ndarray:
+    """M_BH posterior samples marginalised over the IMBH models (evidence-weighted mixture).
+
+    Without evidences the IMBH models are weighted equally.
+    """
+    bh_fits = [f for f in fits if f.has_bh]
+    if not bh_fits:
+        return np.empty(0)
+    if all(f.evidence is not None for f in bh_fits):
+        lz = np.array([f.evidence.log_z for f in bh_fits])
+        w = np.exp(lz - lz.max())
+    else:
+        w = np.ones(len(bh_fits))
+    w = w / w.sum()
+    n = min(f.chain.samples.shape[0] for f in bh_fits)
+    rng = np.random.default_rng(seed)
+    parts = []
+    for f, wi in zip(bh_fits, w):
+        k = int(round(wi * n))
+        col = f.chain.samples[:, f.space.index("bh_mass")]
+        if k > 0:
+            parts.append(rng.choice(col, size=k, replace=k > col.size))
+    return np.concatenate(parts) if parts else np.empty(0)
+
+
+def compare(fits, bh_mass_max: float, ambiguous_ln_b: float = 1.0) -> Comparison:
+    """Compare the fitted models.
+
+    Parameters
+    ----------
+    fits : list of ModelFit
+    bh_mass_max : float
+        Upper edge of the M_BH prior (Savage-Dickey).
+    ambiguous_ln_b : float
+        ``|ln B|`` below which two models count as indistinguishable.
+    """
     out = Comparison()
-    if imbh.evidence is not None and no_imbh.evidence is not None:
-        out.ln_bayes_factor, out.ln_bayes_factor_err = bayes_factor(imbh.evidence, no_imbh.evidence)
-    out.delta_ln_likelihood = imbh.criteria["max_log_like"] - no_imbh.criteria["max_log_like"]
-    out.delta_aic = imbh.criteria["aic"] - no_imbh.criteria["aic"]
-    out.delta_bic = imbh.criteria["bic"] - no_imbh.criteria["bic"]
-    bh = imbh.chain.samples[:, imbh.space.index("bh_mass")]
-    out.savage_dickey_ln_b, out.savage_dickey_note = savage_dickey(bh, bh_mass_max)
+    with_bh = [f for f in fits if f.has_bh]
+    without = [f for f in fits if not f.has_bh]
+    for key, attr in (("evidence", ""), ("evidence_kinematic", "_kinematic")):
+        b1, b0 = _best(with_bh, key), _best(without, key)
+        if b1 is not None and b0 is not None:
+            setattr(out, f"ln_bayes_factor{attr}", b1[1] - b0[1])
+            setattr(out, f"ln_bayes_factor{attr}_err", float(np.hypot(b1[2], b0[2])))
+            if key == "evidence":
+                out.best_model_with_imbh, out.best_model_without_imbh = b1[0].name, b0[0].name
+    best = _best(fits)
+    if best is not None:
+        out.best_model = best[0].name
+        dark_side = [f for f in fits if f.name != "none"]
+        bd = _best(dark_side)
+        if bd is not None and np.isfinite(_ln_z(fits, "none")):
+            out.ln_b_dark_centre = bd[1] - _ln_z(fits, "none")
+    out.ln_b_imbh_vs_extended = _ln_z(fits, "imbh") - _ln_z(fits, "dark")
+    ml1 = max((f.criteria["max_log_like"] for f in with_bh), default=np.nan)
+    ml0 = max((f.criteria["max_log_like"] for f in without), default=np.nan)
+    out.delta_ln_likelihood = ml1 - ml0
+    if with_bh and without:
+        a1 = min(with_bh, key=lambda f: f.criteria["aic"])
+        a0 = min(without, key=lambda f: f.criteria["aic"])
+        out.delta_aic = a1.criteria["aic"] - a0.criteria["aic"]
+        out.delta_bic = min(f.criteria["bic"] for f in with_bh) - min(
+            f.criteria["bic"] for f in without
+        )
+    imbh = next((f for f in fits if f.name == "imbh"), None)
+    if imbh is not None:
+        bh = imbh.chain.samples[:, imbh.space.index("bh_mass")]
+        out.savage_dickey_ln_b, out.savage_dickey_note = savage_dickey(bh, bh_mass_max)
+    unconverged = [f.name for f in fits if not f.chain.converged]
+    out.converged = not unconverged
+    out.verdict, out.verdict_text = _verdict(out, unconverged, ambiguous_ln_b)
+    if unconverged:  # never reported as a result
+        out.ln_bayes_factor = out.ln_bayes_factor_kinematic = np.nan
     return out
+
+
+def _verdict(c: Comparison, unconverged, thr: float):
+    """One word and one sentence for the product."""
+    if unconverged:
+        return "not_converged", (
+            f"chains of model(s) {', '.join(unconverged)} did not converge: no result is "
+            "reported; raise max_steps or simplify the model"
+        )
+    lnb = c.ln_bayes_factor
+    if not np.isfinite(lnb):
+        return "no_evidence", "no evidence computed (or a side of the comparison is missing)"
+    kin = c.ln_bayes_factor_kinematic
+    kin_txt = f"; kinematics alone ln B = {kin:.2f}" if np.isfinite(kin) else ""
+    parts = []
+    if np.isfinite(c.ln_b_imbh_vs_extended) and abs(c.ln_b_imbh_vs_extended) < thr:
+        c.imbh_extended_indistinguishable = bool(
+            np.isfinite(c.ln_b_dark_centre) and c.ln_b_dark_centre > thr
+        )
+    if c.imbh_extended_indistinguishable:
+        parts.append(
+            "a dark central mass is favoured, but the data cannot tell an IMBH from an "
+            f"extended dark component (ln Z_imbh - ln Z_dark = {c.ln_b_imbh_vs_extended:.2f})"
+        )
+    if lnb > thr:
+        word = "imbh"
+        head = f"IMBH favoured (ln B = {lnb:.2f}, best model {c.best_model})"
+    elif lnb < -thr:
+        word = "no_imbh"
+        head = f"no IMBH favoured (ln B = {lnb:.2f}, best model {c.best_model})"
+    else:
+        word = "undecided"
+        head = f"the data cannot decide whether there is an IMBH (ln B = {lnb:.2f})"
+    return word, "; ".join([head + kin_txt, *parts])

@@ -1,19 +1,23 @@
-"""Spherical constant-anisotropy Jeans models projected onto the sky.
+"""Spherical Jeans models projected onto the sky.
 
-For a tracer density ``nu(r)`` in a potential of a cluster of mass ``M`` (mass
-follows the tracer) plus a central point mass ``M_bh``, with constant
-anisotropy ``beta = 1 - sigma_t^2 / sigma_r^2``, the Jeans equation gives
+For a tracer density ``nu(r)`` in the potential of a cluster of mass ``M`` (whose
+mass has the tracer's shape ``m(r)``), a central point mass ``M_bh`` and a dark
+Plummer sphere of mass ``M_dark`` and scale ``b`` (a remnant or stellar-mass
+black-hole subsystem that holds no tracers), with anisotropy ``beta(r) = 1 -
+sigma_t^2 / sigma_r^2`` and its integrating factor ``g(r)`` (see
+:mod:`mavispm.dynamics.anisotropy`; ``g = r^(2 beta)`` for constant beta), the Jeans
+equation gives
 
-    nu sigma_r^2 (r) = r^(-2 beta) int_r^inf r'^(2 beta) nu(r') G [M m(r') + M_bh] / r'^2 dr'
+    nu sigma_r^2 (r) = g(r)^-1 int_r^inf g(r') nu(r') G [M m(r') + M_bh + M_dark m_P(r'/b)] / r'^2 dr'
 
 and the proper-motion dispersions projected along the projected radius ``R``
 (radial, ``R``) and perpendicular to it (tangential, ``T``) are
 
-    Sigma sigma_R^2 = 2 int_R^inf [(1 - beta) + beta R^2 / r^2] nu sigma_r^2 r dr / sqrt(r^2 - R^2)
-    Sigma sigma_T^2 = 2 int_R^inf (1 - beta) nu sigma_r^2 r dr / sqrt(r^2 - R^2).
+    Sigma sigma_R^2 = 2 int_R^inf [(1 - beta(r)) + beta(r) R^2 / r^2] nu sigma_r^2 r dr / sqrt(r^2 - R^2)
+    Sigma sigma_T^2 = 2 int_R^inf (1 - beta(r)) nu sigma_r^2 r dr / sqrt(r^2 - R^2).
 
 Numerics (all in units of the scale radius, G = M = 1; the cluster and point-mass
-terms are kept separate so that ``sigma^2 = G/a (M S_cl + M_bh S_bh)``):
+terms are kept separate so that ``sigma^2 = G/a (M S_cl + M_bh S_bh + M_dark S_dark)``):
 
 * Projection: ``r = R cosh t`` removes the inverse-square-root singularity;
   composite Gauss-Legendre panels in ``t`` up to ``x_max`` (>= 1e4 scale radii).
@@ -33,6 +37,10 @@ from dataclasses import dataclass
 
 import astropy.units as u
 import numpy as np
+
+from mavispm.dynamics.anisotropy import Anisotropy
+from mavispm.dynamics.anisotropy import constant as constant_anisotropy
+from mavispm.dynamics.tracers import Plummer
 
 #: Gravitational constant in pc (km/s)^2 / Msun.
 G_PC_KMS2_MSUN = 4.300917270e-3
@@ -54,7 +62,9 @@ class ProjectedMoments:
         Tracer fraction inside projected radius ``X``.
     radial_cluster, radial_bh, tangential_cluster, tangential_bh : ndarray
         ``sigma_R^2`` and ``sigma_T^2`` per unit cluster mass and per unit point
-        mass; physical ``sigma^2 = G / a * (M * cluster + M_bh * bh)``.
+        mass; physical ``sigma^2 = G / a * (M * cluster + M_bh * bh + M_dark * dark)``.
+    radial_dark, tangential_dark : ndarray
+        The same per unit mass of the dark Plummer component (zero without one).
     """
 
     X: np.ndarray
@@ -64,6 +74,8 @@ class ProjectedMoments:
     radial_bh: np.ndarray
     tangential_cluster: np.ndarray
     tangential_bh: np.ndarray
+    radial_dark: np.ndarray | None = None
+    tangential_dark: np.ndarray | None = None
 
 
 class JeansProjector:
@@ -100,7 +112,7 @@ class JeansProjector:
         cosh_t = np.cosh(t)
         self.r = X[:, None] * cosh_t  # projection nodes (M, K)
         self.w_proj = 2.0 * w * X[:, None] * cosh_t  # Sigma-type weights
-        self.w_proj_r2 = self.w_proj / cosh_t**2  # weights times R^2 / r^2
+        self._cosh2 = cosh_t**2  # r^2 / R^2 at the nodes
         # 4 pi X^3 int nu cosh t sinh t e^-t dt: mass inside the cylinder outside the sphere
         self.w_cyl = 4.0 * np.pi * X[:, None] ** 3 * w * cosh_t * np.sinh(t) * np.exp(-t)
         # sorted union of nodes for the outside-in radial integral
@@ -152,82 +164,65 @@ class JeansProjector:
             self._cache_key = tracer
         return self._cache
 
-    def moments(self, tracer, beta: float) -> ProjectedMoments:
-        """Projected moments for ``tracer`` and constant anisotropy ``beta`` (< 1)."""
-        if not beta < 1.0:
-            raise ValueError(f"anisotropy beta must be < 1, got {beta}")
+    def moments(self, tracer, anisotropy, dark_radius: float | None = None) -> ProjectedMoments:
+        """Projected moments of ``tracer`` in the cluster + point mass (+ dark Plummer) potential.
+
+        Parameters
+        ----------
+        tracer : profile from :mod:`mavispm.dynamics.tracers`
+            Tracer density, also the shape of the cluster's mass.
+        anisotropy : float or Anisotropy
+            Constant ``beta`` (< 1) or a radius-dependent :class:`Anisotropy`.
+        dark_radius : float, optional
+            Scale radius of the dark Plummer component in tracer scale radii
+            (its moments are zero without it).
+        """
+        if not isinstance(anisotropy, Anisotropy):
+            if not anisotropy < 1.0:
+                raise ValueError(f"anisotropy beta must be < 1, got {anisotropy}")
+            anisotropy = constant_anisotropy(float(anisotropy))
         tab = self._tracer_tables(tracer)
-        two_b = 2.0 * beta
-        fac = np.exp(two_b * self._lnsub)  # r^(2 beta) at sub-nodes
-        gap_cl = (tab["f_cl"] * fac).reshape(2, -1).sum(axis=0)
-        gap_bh = (tab["f_bh"] * fac).reshape(2, -1).sum(axis=0)
-        # analytic tail beyond x_max: nu ~ x^-n so r^(2b-2) nu ~ x^(2b-2-n)
-        n = tracer.outer_slope
-        if np.isfinite(n) and tab["nu_end"] > 0:
-            base = self.x_max ** (two_b - 1.0) * tab["nu_end"] / (n + 1.0 - two_b)
-            tail_cl, tail_bh = base * tab["m_end"], base
-        else:
-            tail_cl = tail_bh = 0.0
-        # cumulative from the outside in (reverse cumsum); all terms positive
-        i_cl = tail_cl + np.cumsum(gap_cl[::-1])[::-1]
-        i_bh = tail_bh + np.cumsum(gap_bh[::-1])[::-1]
-        r_fac = np.exp(-two_b * self._lnnode)
-        p_cl = np.empty(self.r.size)
-        p_bh = np.empty(self.r.size)
-        p_cl[self._order] = i_cl * r_fac
-        p_bh[self._order] = i_bh * r_fac
-        p_cl = p_cl.reshape(self.r.shape)
-        p_bh = p_bh.reshape(self.r.shape)
+        fac = np.exp(anisotropy.ln_factor(self._lnsub))  # g(r) at sub-nodes
+        tail = anisotropy.tail(self.x_max, tracer.outer_slope) * tab["nu_end"]
+        parts = {"cl": (tab["f_cl"], tab["m_end"]), "bh": (tab["f_bh"], 1.0)}
+        if dark_radius is not None:
+            if not dark_radius > 0:
+                raise ValueError(f"dark component radius must be > 0, got {dark_radius}")
+            m_dark = Plummer().enclosed(self._points[: self._lnsub.size] / dark_radius)
+            m_dark_end = float(Plummer().enclosed(self.x_max / dark_radius))
+            parts["dark"] = (tab["f_bh"] * m_dark, m_dark_end)
+        r_fac = np.exp(-anisotropy.ln_factor(self._lnnode))
+        beta_node = anisotropy.beta(self.r)
+        w_rad = self.w_proj * (1.0 - beta_node + beta_node / self._cosh2)
+        w_tan = self.w_proj * (1.0 - beta_node)
         sigma = np.einsum("jk,jk->j", self.w_proj, tab["nu_node"])
-        a_cl = np.einsum("jk,jk->j", self.w_proj, p_cl)
-        b_cl = np.einsum("jk,jk->j", self.w_proj_r2, p_cl)
-        a_bh = np.einsum("jk,jk->j", self.w_proj, p_bh)
-        b_bh = np.einsum("jk,jk->j", self.w_proj_r2, p_bh)
+        inv_sigma = 1.0 / np.maximum(sigma, np.finfo(float).tiny)
+        out = {}
+        for key, (f, m_end) in parts.items():
+            gap = (f * fac).reshape(2, -1).sum(axis=0)
+            # cumulative from the outside in (reverse cumsum); all terms positive
+            cum = tail * m_end + np.cumsum(gap[::-1])[::-1]
+            p = np.empty(self.r.size)
+            p[self._order] = cum * r_fac
+            p = p.reshape(self.r.shape)
+            out[key] = (
+                np.einsum("jk,jk->j", w_rad, p) * inv_sigma,
+                np.einsum("jk,jk->j", w_tan, p) * inv_sigma,
+            )
+        zero = np.zeros_like(sigma)
+        dark = out.get("dark", (zero, zero))
         proj_m = tab["m_X"] + np.einsum("jk,jk->j", self.w_cyl, tab["nu_node"])
-        tiny = np.finfo(float).tiny
-        inv_sigma = 1.0 / np.maximum(sigma, tiny)
         return ProjectedMoments(
             X=self.X,
             surface_density=sigma,
             projected_enclosed=proj_m,
-            radial_cluster=((1.0 - beta) * a_cl + beta * b_cl) * inv_sigma,
-            radial_bh=((1.0 - beta) * a_bh + beta * b_bh) * inv_sigma,
-            tangential_cluster=(1.0 - beta) * a_cl * inv_sigma,
-            tangential_bh=(1.0 - beta) * a_bh * inv_sigma,
+            radial_cluster=out["cl"][0],
+            radial_bh=out["bh"][0],
+            tangential_cluster=out["cl"][1],
+            tangential_bh=out["bh"][1],
+            radial_dark=dark[0],
+            tangential_dark=dark[1],
         )
-
-
-def cubic_weights(lnx_grid_start: float, step: float, n: int, lnq):
-    """Indices and 4-point Lagrange weights for cubic interpolation on a uniform grid.
-
-    Queries outside the grid are clamped to its ends.
-
-    Parameters
-    ----------
-    lnx_grid_start, step, n : float, float, int
-        The uniform grid ``lnx_grid_start + step * arange(n)`` (n >= 4).
-    lnq : ndarray
-        Query points.
-
-    Returns
-    -------
-    idx : ndarray of int, shape (4, N)
-    weights : ndarray, shape (4, N)
-    """
-    pos = np.clip((np.asarray(lnq, dtype=float) - lnx_grid_start) / step, 0.0, n - 1.0)
-    i = np.clip(np.floor(pos).astype(int), 1, n - 3)
-    s = pos - i
-    sm1, sm2, sp1 = s - 1.0, s - 2.0, s + 1.0
-    weights = np.stack(
-        [-s * sm1 * sm2 / 6.0, sp1 * sm1 * sm2 / 2.0, -sp1 * s * sm2 / 2.0, sp1 * s * sm1 / 6.0]
-    )
-    idx = np.stack([i - 1, i, i + 1, i + 2])
-    return idx, weights
-
-
-def interpolate(values, idx, weights):
-    """Apply :func:`cubic_weights` to grid ``values`` (..., n) -> (..., N)."""
-    return np.sum(values[..., idx] * weights, axis=-2)
 
 
 def projected_dispersion(
@@ -241,6 +236,8 @@ def projected_dispersion(
     x_max: float = 1e4,
     n_panels: int = 24,
     n_gl: int = 6,
+    dark_mass=None,
+    dark_radius=None,
 ):
     """Projected radial and tangential proper-motion dispersions at radii ``R``.
 
@@ -254,21 +251,21 @@ def projected_dispersion(
         Tracer/mass scale radius (same kind as ``R``).
     bh_mass : Quantity
         Central point mass [solMass].
-    beta : float
-        Constant anisotropy (< 1).
+    beta : float or Anisotropy
+        Constant anisotropy (< 1) or a radius-dependent profile (radii in scale radii).
     tracer : profile from :mod:`mavispm.dynamics.tracers`, default Plummer.
     distance : Quantity, optional
         Needed for angular radii; the result is then in mas/yr.
     x_max, n_panels, n_gl
         Quadrature settings, see :class:`JeansProjector`.
+    dark_mass, dark_radius : Quantity, optional
+        Mass [solMass] and scale radius (same kind as ``R``) of a dark Plummer sphere.
 
     Returns
     -------
     sigma_R, sigma_T : Quantity
         km/s (length radii) or mas/yr (angular radii with a distance).
     """
-    from mavispm.dynamics.tracers import Plummer
-
     tracer = tracer or Plummer()
     R = u.Quantity(R)
     a = u.Quantity(scale_radius)
@@ -281,12 +278,17 @@ def projected_dispersion(
     else:
         a_pc = a.to_value(u.pc)
         X = (R / a).to(u.one).value
-    mom = JeansProjector(X, x_max=x_max, n_panels=n_panels, n_gl=n_gl).moments(tracer, beta)
+    b = None if dark_radius is None else (u.Quantity(dark_radius) / a).to(u.one).value
+    projector = JeansProjector(X, x_max=x_max, n_panels=n_panels, n_gl=n_gl)
+    mom = projector.moments(tracer, beta, dark_radius=b)
     g_over_a = G_PC_KMS2_MSUN / a_pc
     m = u.Quantity(mass).to_value(u.Msun)
     mb = u.Quantity(bh_mass).to_value(u.Msun)
-    s2r = g_over_a * (m * mom.radial_cluster + mb * mom.radial_bh)
-    s2t = g_over_a * (m * mom.tangential_cluster + mb * mom.tangential_bh)
+    md = 0.0 if dark_mass is None else u.Quantity(dark_mass).to_value(u.Msun)
+    s2r = g_over_a * (m * mom.radial_cluster + mb * mom.radial_bh + md * mom.radial_dark)
+    s2t = g_over_a * (
+        m * mom.tangential_cluster + mb * mom.tangential_bh + md * mom.tangential_dark
+    )
     out_r, out_t = np.sqrt(s2r) * u.km / u.s, np.sqrt(s2t) * u.km / u.s
     if R.unit.physical_type == "angle":
         conv = KMS_PER_MASYR_KPC * u.Quantity(distance).to_value(u.kpc)

@@ -1,22 +1,30 @@
-"""Discrete (per-star) likelihood of a Jeans model with a star-count term.
+"""Discrete (per-star) likelihood of a Jeans model with an optional star-count term.
 
-For star ``i`` at projected radius ``R_i`` with proper-motion components
-``v_R, v_T`` (radial and tangential about the centre, relative to the cluster
-mean motion) and errors ``e_R, e_T``:
+For star ``i`` at sky position ``(x_i, y_i)`` with proper motion ``(mu_x, mu_y)``,
+relative to the model centre ``(x0, y0)`` and systemic motion ``(mu_x0, mu_y0)``
+(fitted nuisances, or fixed at 0), the projected radius ``R_i`` and the radial and
+tangential components ``v_R, v_T`` with errors ``e_R, e_T`` give
 
     ln L = sum_i  ln N(v_R,i | 0, sigma_R(R_i)^2 + e_R,i^2) + ln N(v_T,i | 0, sigma_T(R_i)^2 + e_T,i^2)
-         + sum_i  ln [ Sigma(R_i) / N(< R_field) ]            (star counts)
+         + sum_i  ln [ Sigma(R_i) c(R_i) / N_field ]             (star counts, optional)
 
-The star-count term is the probability of each star's position under the
-tracer surface density inside the (circular) field of radius ``R_field``; it
-constrains the scale radius and the cusp, which the kinematics of a small field
-cannot (they constrain mainly ``M / a`` and ``M_bh``). It assumes the sample's
-completeness does not depend on radius inside the field.
+``N_field = int_field Sigma c dA`` is the tracer number inside the circular
+field of radius ``R_field`` about the *field* centre (exact for a model centre
+offset by ``d``: the fraction of the ring at ``R`` inside the field is
+``arccos((R^2 + d^2 - R_field^2) / (2 R d)) / pi`` for ``|R_field - d| < R < R_field + d``),
+and ``c(R)`` is the sample's completeness against radius (1 unless given). The
+``c(R_i)`` factor of each star does not depend on the parameters and is dropped.
+
+When the centre moves, the errors are rotated with the radial direction:
+``e_R'^2 = e_R^2 cos^2 d + e_T^2 sin^2 d`` (``d`` the angle between the old and new
+radial directions; the R/T error covariance is neglected).
 
 Model parameters (physical): ``log_mass`` (log10 solMass), ``log_scale_radius``
-(log10 arcsec), ``bh_mass`` (solMass; IMBH model only), ``beta``, and
-optionally ``distance`` (kpc, Gaussian prior), ``gamma`` (Dehnen inner slope, or
-the cusp slope with ``log_cusp_radius``, log10 arcsec, for a cusped Plummer/King).
+(log10 arcsec), optionally ``gamma`` (cusp or Dehnen slope) and ``log_cusp_radius``
+(log10 arcsec), ``bh_mass`` (solMass), ``dark_mass`` (solMass) with
+``log_dark_radius`` (log10 arcsec), ``beta`` or ``log_anisotropy_radius`` (log10
+arcsec, Osipkov-Merritt; neither: isotropic), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
+``pm_y0`` (mas/yr).
 """
 
 from __future__ import annotations
@@ -26,19 +34,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavispm.core.errors import InputError
-from mavispm.dynamics.jeans import (
-    G_PC_KMS2_MSUN,
-    KMS_PER_MASYR_KPC,
-    JeansProjector,
-    cubic_weights,
-    interpolate,
-)
-from mavispm.dynamics.star_sums import star_sums
+from mavispm.dynamics.anisotropy import constant as constant_anisotropy
+from mavispm.dynamics.anisotropy import osipkov_merritt
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
+from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
+from mavispm.dynamics.star_sums import star_sums, stars_about
 from mavispm.dynamics.tracers import make_tracer
 
 #: parsec per (arcsec * kpc)
 PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 _LN_2PI = np.log(2.0 * np.pi)
+_GL16 = np.polynomial.legendre.leggauss(16)
 
 
 @dataclass(frozen=True)
@@ -48,13 +54,16 @@ class StarSample:
     Attributes
     ----------
     R : ndarray
-        Projected radius [arcsec] (already clipped to ``min_radius``).
+        Projected radius about the field centre [arcsec] (already clipped to ``min_radius``).
     v_r, v_t : ndarray
-        Radial / tangential proper motions [mas/yr].
+        Radial / tangential proper motions about the field centre [mas/yr].
     e_r, e_t : ndarray
         Their errors [mas/yr].
     field_radius : float
         Radius of the circular field the stars were selected in [arcsec].
+    x, y : ndarray, optional
+        Sky positions [arcsec] about the field centre; needed to fit the centre or
+        the systemic motion.
     """
 
     R: np.ndarray
@@ -63,10 +72,17 @@ class StarSample:
     e_r: np.ndarray
     e_t: np.ndarray
     field_radius: float
+    x: np.ndarray | None = None
+    y: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.R)
-        for name in ("R", "v_r", "v_t", "e_r", "e_t"):
+        names = ["R", "v_r", "v_t", "e_r", "e_t"]
+        if (self.x is None) != (self.y is None):
+            raise InputError("x and y go together", column="x/y")
+        if self.x is not None:
+            names += ["x", "y"]
+        for name in names:
             arr = np.asarray(getattr(self, name), dtype=float)
             if arr.shape != (n,):
                 raise InputError(f"expected {n} values, got shape {arr.shape}", column=name)
@@ -89,13 +105,9 @@ class DiscreteLikelihood:
     names : sequence of str
         Parameter order of the vectors passed to :meth:`__call__`.
     tracer : str
-        Tracer/mass profile name ("plummer", "dehnen", "king").
+        Tracer profile name ("plummer", "dehnen", "king62"); the cluster's mass has its shape.
     gamma, concentration : float
-        Fixed Dehnen slope / King concentration (``gamma`` may instead be a parameter).
-    cusp_link : {None, "free", "influence"}
-        Cusped Plummer/King tracer: ``"free"`` fits ``gamma`` and ``log_cusp_radius``;
-        ``"influence"`` fits ``gamma`` with the cusp radius set to the BH influence
-        radius (where the cored profile encloses ``2 M_bh``; no cusp without a BH).
+        Fixed Dehnen slope (without a ``gamma`` parameter) / King62 concentration.
     distance : float
         Distance [kpc] used when ``distance`` is not a parameter.
     scale_radius_range : (float, float)
@@ -106,6 +118,9 @@ class DiscreteLikelihood:
         Radial grid points and projection quadrature (see JeansProjector).
     star_counts : bool
         Include the star-count term.
+    completeness : (radii, values), optional
+        Completeness of the sample against projected radius [arcsec] (linear
+        interpolation, constant beyond the ends); used by the star-count term.
     """
 
     def __init__(
@@ -115,28 +130,39 @@ class DiscreteLikelihood:
         tracer: str = "plummer",
         gamma: float = 1.0,
         concentration: float = 1.5,
-        cusp_link: str | None = None,
         distance: float = 5.0,
         scale_radius_range=(1.0, 1000.0),
         min_radius: float = 0.01,
-        grid_size: int = 64,
-        n_panels: int = 16,
+        grid_size: int = 48,
+        n_panels: int = 12,
         n_gl: int = 6,
         x_max: float = 1e4,
         star_counts: bool = True,
+        completeness=None,
     ):
         self.stars = stars
         self.names = list(names)
+        self._idx = {n: i for i, n in enumerate(self.names)}
         self.tracer_name = tracer
         self.gamma = gamma
         self.concentration = concentration
-        self.cusp_link = cusp_link
         self.distance = distance
         self.star_counts = star_counts
+        self.min_radius = max(min_radius, 1e-6)
         self._fixed_tracer = make_tracer(tracer, gamma, concentration)
+        for req in ("log_mass", "log_scale_radius"):
+            if req not in self._idx:
+                raise ValueError(f"parameter {req!r} is required")
+        if "beta" in self._idx and "log_anisotropy_radius" in self._idx:
+            raise ValueError(
+                "give 'beta' or 'log_anisotropy_radius', not both (neither: isotropic)"
+            )
+        self._moving = any(n in self._idx for n in ("x0", "y0", "pm_x0", "pm_y0"))
+        if self._moving and stars.x is None:
+            raise InputError("fitting the centre or systemic motion needs star positions x, y")
         a_lo, a_hi = scale_radius_range
         self._log_a_range = (np.log10(a_lo) - 1e-9, np.log10(a_hi) + 1e-9)
-        r_lo = max(min_radius, 1e-6)
+        r_lo = self.min_radius
         self.lnR = np.log(np.maximum(stars.R, r_lo))
         x_lo = r_lo / a_hi / 1.5
         x_hi = stars.field_radius / a_lo * 1.5
@@ -154,11 +180,43 @@ class DiscreteLikelihood:
         )
         self._v2 = np.ascontiguousarray(np.stack([stars.v_r**2, stars.v_t**2]), dtype=float)
         self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)
+        if stars.x is not None:
+            x, y = (np.ascontiguousarray(v, dtype=float) for v in (stars.x, stars.y))
+            R = np.maximum(np.hypot(x, y), 1e-12)
+            cx, sy = x / R, y / R
+            self._pm_x = stars.v_r * cx - stars.v_t * sy
+            self._pm_y = stars.v_r * sy + stars.v_t * cx
+            self._cs = (cx, sy)
         self._ln_field = np.log(stars.field_radius)
+        self.completeness = None
+        if completeness is not None:
+            r, c = (np.asarray(v, dtype=float) for v in completeness)
+            self.completeness = (r, c)
         self.n_stars = len(stars.R)
 
     def _value(self, theta, name, default):
-        return theta[self.names.index(name)] if name in self.names else default
+        i = self._idx.get(name)
+        return default if i is None else theta[i]
+
+    def tracer_of(self, theta):
+        """Tracer profile (scale radius 1) of parameter vector ``theta``."""
+        if "log_cusp_radius" in self._idx:
+            a = 10.0 ** theta[self._idx["log_scale_radius"]]
+            x_c = 10.0 ** theta[self._idx["log_cusp_radius"]] / a
+            g = theta[self._idx["gamma"]]
+            return make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_c)
+        if "gamma" in self._idx:
+            return make_tracer("dehnen", theta[self._idx["gamma"]])
+        return self._fixed_tracer
+
+    def anisotropy_of(self, theta):
+        """Anisotropy profile (radii in scale radii) of ``theta``."""
+        if "beta" in self._idx:
+            return constant_anisotropy(theta[self._idx["beta"]])
+        if "log_anisotropy_radius" not in self._idx:
+            return constant_anisotropy(0.0)
+        ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
+        return osipkov_merritt(10.0 ** theta[self._idx["log_anisotropy_radius"]] / np.exp(ln_a))
 
     def model_on_grid(self, theta):
         """Grid quantities for physical parameter vector ``theta``.
@@ -172,31 +230,25 @@ class DiscreteLikelihood:
         ln_sigma, ln_proj : ndarray
             ln surface density (a = 1, unit mass) and ln projected mass fraction.
         """
-        log_m = theta[self.names.index("log_mass")]
-        ln_a = np.log(10.0) * theta[self.names.index("log_scale_radius")]
+        log_m = theta[self._idx["log_mass"]]
+        ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
         bh = self._value(theta, "bh_mass", 0.0)
-        beta = theta[self.names.index("beta")]
+        dark = self._value(theta, "dark_mass", 0.0)
         dist = self._value(theta, "distance", self.distance)
-        tracer = self._fixed_tracer
-        if self.cusp_link == "influence":
-            tracer = self._influence_cusp(theta, bh, 10.0**log_m)
-        elif "log_cusp_radius" in self.names:
-            x_c = 10.0 ** (theta[self.names.index("log_cusp_radius")]) / np.exp(ln_a)
-            g = theta[self.names.index("gamma")]
-            tracer = make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_c)
-        elif "gamma" in self.names:
-            tracer = make_tracer("dehnen", theta[self.names.index("gamma")])
-        mom = self.projector.moments(tracer, beta)
+        b = None
+        if "log_dark_radius" in self._idx:
+            b = 10.0 ** theta[self._idx["log_dark_radius"]] / np.exp(ln_a)
+        mom = self.projector.moments(self.tracer_of(theta), self.anisotropy_of(theta), b)
         a_pc = np.exp(ln_a) * dist * PC_PER_ARCSEC_KPC
         conv = (KMS_PER_MASYR_KPC * dist) ** 2
         scale = G_PC_KMS2_MSUN / a_pc / conv
         mass = 10.0**log_m
-        s2 = scale * np.stack(
-            [
-                mass * mom.radial_cluster + bh * mom.radial_bh,
-                mass * mom.tangential_cluster + bh * mom.tangential_bh,
-            ]
-        )
+        radial = mass * mom.radial_cluster + bh * mom.radial_bh
+        tangential = mass * mom.tangential_cluster + bh * mom.tangential_bh
+        if b is not None:
+            radial = radial + dark * mom.radial_dark
+            tangential = tangential + dark * mom.tangential_dark
+        s2 = scale * np.stack([radial, tangential])
         tiny = np.finfo(float).tiny
         return (
             self.lnX_grid,
@@ -205,48 +257,124 @@ class DiscreteLikelihood:
             np.log(np.maximum(mom.projected_enclosed, tiny)),
         )
 
-    def _influence_cusp(self, theta, bh_mass, mass):
-        """Cusped tracer whose cusp radius is the BH influence radius (base without a BH).
-
-        The influence radius encloses ``2 M_bh`` of the cored profile (capped at half
-        its mass); below 1e-6 scale radii the cusp has no effect and is dropped.
-        """
-        base = self._fixed_tracer
-        if bh_mass <= 0:
-            return base
-        x_infl = base.radius_enclosing(min(2.0 * bh_mass / mass, 0.5))
-        if x_infl < 1e-6:
-            return base
-        g = theta[self.names.index("gamma")]
-        return make_tracer(self.tracer_name, g, self.concentration, cusp_radius=x_infl)
-
     def dispersion_at(self, theta, R):
         """Model radial and tangential PM dispersions [mas/yr] at radii ``R`` [arcsec]."""
         lnX, s2, _, _ = self.model_on_grid(theta)
-        ln_a = np.log(10.0) * theta[self.names.index("log_scale_radius")]
+        ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
         idx, w = cubic_weights(lnX[0], self.step, lnX.size, np.log(np.asarray(R)) - ln_a)
         return np.sqrt(np.exp(interpolate(np.log(s2), idx, w)))
 
+    def _stars_about(self, theta):
+        """ln R, v^2 and e^2 of the stars about the model centre and systemic motion."""
+        if not self._moving:
+            return self.lnR, self._v2, self._e2
+        get = self._value
+        return stars_about(
+            self.stars.x,
+            self.stars.y,
+            self._pm_x,
+            self._pm_y,
+            self._cs[0],
+            self._cs[1],
+            self._e2[0],
+            self._e2[1],
+            get(theta, "x0", 0.0),
+            get(theta, "y0", 0.0),
+            get(theta, "pm_x0", 0.0),
+            get(theta, "pm_y0", 0.0),
+            self.min_radius,
+        )
+
+    def _stars_about_numpy(self, theta):
+        """Reference implementation of :meth:`_stars_about` (numpy, for the tests)."""
+        s = self.stars
+        dx = s.x - self._value(theta, "x0", 0.0)
+        dy = s.y - self._value(theta, "y0", 0.0)
+        R = np.maximum(np.hypot(dx, dy), 1e-12)
+        c, si = dx / R, dy / R
+        px = self._pm_x - self._value(theta, "pm_x0", 0.0)
+        py = self._pm_y - self._value(theta, "pm_y0", 0.0)
+        v_r = px * c + py * si
+        v_t = -px * si + py * c
+        cx, sy = self._cs
+        cos_d = cx * c + sy * si
+        cos2 = cos_d * cos_d
+        sin2 = 1.0 - cos2
+        er2, et2 = s.e_r**2, s.e_t**2
+        v2 = np.stack([v_r * v_r, v_t * v_t])
+        e2 = np.stack([er2 * cos2 + et2 * sin2, er2 * sin2 + et2 * cos2])
+        return np.log(np.maximum(R, self.min_radius)), v2, e2
+
+    def _completeness(self, R):
+        if self.completeness is None:
+            return np.ones_like(R)
+        r, c = self.completeness
+        return np.interp(R, r, c)
+
+    def ln_field_norm(self, ln_a, offset, ln_sig, ln_proj):
+        """ln of the tracer number (unit mass, completeness-weighted) inside the field.
+
+        Parameters
+        ----------
+        ln_a : float
+            ln scale radius [ln arcsec].
+        offset : float
+            Distance of the model centre from the field centre [arcsec].
+        ln_sig, ln_proj : ndarray
+            ln surface density and ln projected mass fraction on the grid.
+        """
+        lnX = self.lnX_grid
+        R_f = self.stars.field_radius
+        if self.completeness is None and offset <= 0.0:
+            i_f, w_f = cubic_weights(lnX[0], self.step, lnX.size, [self._ln_field - ln_a])
+            return float(interpolate(ln_proj, i_f, w_f)[0])
+        a = np.exp(ln_a)
+        r_in = 0.01 * R_f
+        offset = min(offset, 0.5 * R_f)
+        i_in, w_in = cubic_weights(lnX[0], self.step, lnX.size, [np.log(r_in) - ln_a])
+        total = float(np.exp(interpolate(ln_proj, i_in, w_in)[0])) * self._completeness(r_in)
+        t, w = _GL16
+        # Gauss-Legendre pieces in ln R, split at the completeness knots (kinks) and
+        # at R_field - offset (where the ring starts to leave the field); one pass
+        cuts = [r_in, R_f - offset, R_f + offset]
+        if self.completeness is not None:
+            cuts += [r for r in self.completeness[0] if r_in < r < R_f + offset]
+        ln_cuts = np.log(np.unique(cuts))
+        lo, hi = ln_cuts[:-1], ln_cuts[1:]
+        half = 0.5 * (hi - lo)
+        lnR = (0.5 * (hi + lo))[:, None] + half[:, None] * t[None, :]
+        R = np.exp(lnR).ravel()
+        idx, wt = cubic_weights(lnX[0], self.step, lnX.size, lnR.ravel() - ln_a)
+        f = np.exp(interpolate(ln_sig, idx, wt)) * (R / a) ** 2 * self._completeness(R)
+        if offset > 0:
+            cosang = (R * R + offset * offset - R_f * R_f) / (2.0 * R * offset)
+            f = f * np.arccos(np.clip(cosang, -1.0, 1.0)) / np.pi
+        total += 2.0 * np.pi * float(np.sum(f.reshape(lnR.shape) * w[None, :] * half[:, None]))
+        return float(np.log(max(total, np.finfo(float).tiny)))
+
     def __call__(self, theta) -> float:
         """ln L for physical parameter vector ``theta`` (finite, or -inf if invalid)."""
-        beta = theta[self.names.index("beta")]
-        if not beta < 1.0 or self._value(theta, "bh_mass", 0.0) < 0:
+        theta = np.asarray(theta, dtype=float)
+        if "beta" in self._idx and not theta[self._idx["beta"]] < 1.0:
             return -np.inf
-        if "distance" in self.names and not theta[self.names.index("distance")] > 0:
+        if self._value(theta, "bh_mass", 0.0) < 0 or self._value(theta, "dark_mass", 0.0) < 0:
             return -np.inf
-        if "gamma" in self.names and not 0 <= theta[self.names.index("gamma")] < 2.5:
+        if "distance" in self._idx and not theta[self._idx["distance"]] > 0:
             return -np.inf
-        log_a = theta[self.names.index("log_scale_radius")]
+        if "gamma" in self._idx and not 0 <= theta[self._idx["gamma"]] < 2.5:
+            return -np.inf
+        log_a = theta[self._idx["log_scale_radius"]]
         if not self._log_a_range[0] <= log_a <= self._log_a_range[1]:
             return -np.inf  # outside the radial grid (Gaussian prior tails)
+        offset = float(np.hypot(self._value(theta, "x0", 0.0), self._value(theta, "y0", 0.0)))
+        if offset >= 0.5 * self.stars.field_radius:
+            return -np.inf
         lnX, s2, ln_sig, ln_proj = self.model_on_grid(theta)
         ln_a = np.log(10.0) * log_a
-        chi, ln_sigma_stars = star_sums(
-            self.lnR - ln_a, lnX[0], self.step, np.log(s2), ln_sig, self._v2, self._e2
-        )
+        lnR, v2, e2 = self._stars_about(theta)
+        chi, ln_sigma_stars = star_sums(lnR - ln_a, lnX[0], self.step, np.log(s2), ln_sig, v2, e2)
         lnl = -0.5 * chi - self.n_stars * _LN_2PI
         if self.star_counts:
-            i_f, w_f = cubic_weights(lnX[0], self.step, lnX.size, [self._ln_field - ln_a])
-            ln_norm = float(interpolate(ln_proj, i_f, w_f)[0])
+            ln_norm = self.ln_field_norm(ln_a, offset, ln_sig, ln_proj)
             lnl += ln_sigma_stars - self.n_stars * (2.0 * ln_a + ln_norm)
         return lnl if np.isfinite(lnl) else -np.inf

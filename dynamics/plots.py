@@ -10,8 +10,20 @@ import numpy as np  # noqa: E402
 
 from mavispm.core.atomic import atomic_path  # noqa: E402
 
-_COLOURS = {"imbh": "tab:blue", "no_imbh": "tab:red"}
-_NAMES = {"imbh": "IMBH", "no_imbh": "no IMBH"}
+_COLOURS = {
+    "imbh": "tab:blue",
+    "no_imbh": "tab:red",
+    "none": "tab:red",
+    "dark": "tab:green",
+    "imbh_dark": "tab:purple",
+}
+_NAMES = {
+    "imbh": "IMBH",
+    "no_imbh": "no IMBH",
+    "none": "no dark centre",
+    "dark": "extended dark",
+    "imbh_dark": "IMBH + extended",
+}
 
 
 def model_band(fit, R, n_draws: int = 200, seed: int = 0):
@@ -146,5 +158,86 @@ def corner_plot(fit, path, bins: int | None = None):
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+    return path
+
+
+def fast_star_plot(result, path, title: str | None = None):
+    """2-D speed against projected radius with the escape-velocity curves.
+
+    Parameters
+    ----------
+    result : mavispm.dynamics.fast_stars.FastStarResult
+        A test that was possible (``result.curves`` filled).
+    path : path
+        PNG file (written atomically).
+    title : str, optional
+    """
+    from pathlib import Path
+
+    c = result.curves
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    fast = np.asarray(c["fast_all"], bool)
+    ax.errorbar(
+        np.maximum(c["R_all"][~fast], 1e-2),
+        c["v_all"][~fast],
+        yerr=c["v_err_all"][~fast],
+        fmt=".",
+        ms=2,
+        lw=0.5,
+        color="0.6",
+        label="stars",
+    )
+    if fast.any():
+        ax.errorbar(
+            np.maximum(c["R_all"][fast], 1e-2),
+            c["v_all"][fast],
+            yerr=c["v_err_all"][fast],
+            fmt="*",
+            ms=9,
+            color="tab:orange",
+            label=f"significant fast stars ({int(fast.sum())})",
+        )
+    q = result.attrs.get("fast_escape_quantile", 0.99)
+    ax.plot(
+        c["R"],
+        c["v_esc_no_imbh"],
+        color=_COLOURS["no_imbh"],
+        label=f"v_esc no IMBH ({q:.0%} quantile)",
+    )
+    ax.plot(
+        c["R"],
+        c["v_esc_no_imbh_median"],
+        color=_COLOURS["no_imbh"],
+        ls="--",
+        label="v_esc no IMBH (median)",
+    )
+    if np.any(np.isfinite(c["v_esc_imbh"])):
+        ax.plot(c["R"], c["v_esc_imbh"], color=_COLOURS["imbh"], label="v_esc IMBH model (median)")
+    ax.set_xscale("log")
+    ax.set_xlabel("projected radius R [arcsec]")
+    ax.set_ylabel("2-D velocity v_2D [km/s]")
+    lim = result.attrs.get("bh_mass_lower_limit")
+    conf = result.attrs.get("bh_mass_lower_limit_confidence", 0.95)
+    sub = ""
+    if lim is not None and fast.any():
+        sub = f"; M_BH > {float(getattr(lim, 'value', lim)):.0f} Msun ({conf:.0%})"
+    ax.set_title(title or f"Fast-star test: 2-D velocity vs radius{sub}", fontsize=10)
+    top = np.nanmax(
+        np.concatenate(
+            [
+                c["v_all"] + c["v_err_all"],
+                c["v_esc_imbh"][np.isfinite(c["v_esc_imbh"])],
+                c["v_esc_no_imbh"],
+            ]
+        )
+    )
+    ax.set_ylim(0, 1.1 * top)
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
     return path

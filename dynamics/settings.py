@@ -10,53 +10,82 @@ import dataclasses
 from dataclasses import dataclass
 
 from mavispm.core.config import unit_field
+from mavispm.dynamics.fast_stars import FastStarSettings
 from mavispm.dynamics.tracers import TRACERS
+
+#: Mass models of the comparison: which dark central components each one has.
+MODELS = {
+    "none": {"bh": False, "dark": False},
+    "imbh": {"bh": True, "dark": False},
+    "dark": {"bh": False, "dark": True},
+    "imbh_dark": {"bh": True, "dark": True},
+}
+ANISOTROPY = ("constant", "osipkov-merritt")
 
 
 @dataclass(frozen=True)
 class DynamicsSettings:
-    """All knobs of the dynamics fit.
+    """All knobs of the dynamics fit (see docs/dynamics.md for each key and its default).
 
-    Model: ``tracer`` ("plummer", "dehnen", "king"), ``dehnen_gamma`` (fixed
-    inner slope) or ``fit_gamma`` with ``gamma_range``; ``king_concentration``;
-    ``cusp`` gives a Plummer/King an inner cusp ``(1 + (r_c/r)^2)^(gamma/2)`` with
-    fitted ``gamma`` (``gamma_range``) and ``log_cusp_radius`` (``log_cusp_radius_range``,
-    log10 arcsec), or with ``cusp_link = "influence"`` the cusp radius is the BH
-    influence radius (no cusp without a BH).
-    Priors: ``log_mass_range`` (log10 solMass), ``log_scale_radius_range`` (log10
-    arcsec; with ``log_scale_radius_prior = (mean, sd)`` a Gaussian prior inside it,
-    e.g. from the cluster's surface-brightness profile), ``bh_mass_max`` (uniform on [0, max], solMass), ``beta_range``;
-    ``distance`` [kpc] overrides the product's, ``distance_error`` [kpc] > 0 makes it
-    a Gaussian-prior parameter. Data: ``field_radius`` [arcsec] (default: the
-    largest circle inside the data's x/y extent), ``min_radius`` [arcsec] (R
-    floor), ``pm_error_scale`` and ``pm_error_floor`` [mas/yr] (errors become
-    ``sqrt((scale e)^2 + floor^2)``), ``use_flagged``, ``star_counts``. Numerics: ``grid_size``,
-    ``projection_panels``, ``projection_nodes``, ``truncation`` (scale radii).
-    Profile: ``bin_size``, ``n_bootstrap``. emcee: ``walkers``, ``max_steps``,
-    ``tau_factor``, ``check_every``. Evidence: ``evidence``, ``nlive``, ``dlogz``.
+    Tracer: ``tracer`` ("plummer", "dehnen", "king62"); with ``cusp`` (default) the
+    tracer has a free inner cusp in every model: Plummer/King62 get
+    ``(1 + (r_c/r)^2)^(gamma/2)`` (``gamma_range``, ``log_cusp_radius_range`` in log10
+    arcsec), Dehnen a free inner slope; without it the Dehnen slope is ``dehnen_gamma``.
+    ``king_concentration`` (King 1962 ``log10 r_t/r_c``). Mass: cluster (tracer shape,
+    ``log_mass_range``) + point mass (``bh_mass_max``, uniform) + dark Plummer sphere
+    (``dark_mass_max``, uniform; ``log_dark_radius_range`` log10 arcsec), combined per
+    ``models``. ``anisotropy``: "constant" (``beta_range``) or "osipkov-merritt"
+    (``log_anisotropy_radius_range``, log10 arcsec). Nuisances: ``log_scale_radius_range``
+    or ``log_scale_radius_prior`` (mean, sd; e.g. from the surface-brightness profile);
+    ``distance`` [kpc] overrides the product's, ``distance_error`` [kpc] (None: 3 % of the
+    distance; 0: fixed); ``centre_error`` [arcsec] and ``systemic_error`` [mas/yr]
+    (Gaussian priors about 0; 0 fixes them). Data: ``field_radius``, ``min_radius``
+    [arcsec], ``pm_error_scale``, ``pm_error_floor``, ``use_flagged``; ``star_counts``
+    (the positional term), ``completeness_radius`` [arcsec] / ``completeness`` (tabulated
+    completeness of the sample vs radius), ``kinematic_evidence`` (also the evidence
+    without the star counts). Numerics: ``grid_size``, ``projection_panels``,
+    ``projection_nodes``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
+    "nested": the posterior from the nested-sampling run, no emcee). Evidence:
+    ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``.
+    Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
+    :class:`~mavispm.dynamics.fast_stars.FastStarSettings`; None = no test).
     """
 
     tracer: str = "plummer"
+    cusp: bool = True
     dehnen_gamma: float = 1.0
-    fit_gamma: bool = False
     gamma_range: tuple[float, float] = (0.0, 2.0)
+    log_cusp_radius_range: tuple[float, float] = (-1.0, 2.5)
     king_concentration: float = 1.5
-    cusp: bool = False
-    cusp_link: str = "free"
-    log_cusp_radius_range: tuple[float, float] = (0.0, 2.5)
     log_mass_range: tuple[float, float] = (3.0, 7.0)
     log_scale_radius_range: tuple[float, float] = (0.0, 3.0)
     log_scale_radius_prior: tuple[float, float] | None = None
+    models: tuple[str, ...] = ("none", "imbh", "dark", "imbh_dark")
     bh_mass_max: float = unit_field(1.0e4, "solMass", "upper edge of the uniform M_bh prior")
+    dark_mass_max: float = unit_field(2.0e4, "solMass", "upper edge of the uniform M_dark prior")
+    log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
+    anisotropy: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)
+    log_anisotropy_radius_range: tuple[float, float] = (0.0, 3.0)
     distance: float | None = unit_field(None, "kpc", "overrides the product's distance")
-    distance_error: float = unit_field(0.0, "kpc", "Gaussian prior width; 0 = fixed")
+    distance_error: float | None = unit_field(
+        None, "kpc", "Gaussian prior width; None = 3% of the distance, 0 = fixed"
+    )
+    centre_error: float = unit_field(0.5, "arcsec", "Gaussian prior width of x0, y0; 0 = fixed")
+    systemic_error: float = unit_field(
+        0.05, "mas/yr", "Gaussian prior width of the mean motion; 0 = fixed at 0"
+    )
     field_radius: float | None = unit_field(None, "arcsec", "circular field used")
     min_radius: float = unit_field(0.01, "arcsec", "radii are clipped to at least this")
     pm_error_scale: float = 1.0
     pm_error_floor: float = unit_field(0.0, "mas/yr", "added in quadrature to every PM error")
     use_flagged: bool = False
     star_counts: bool = True
+    completeness_radius: tuple[float, ...] | None = None
+    completeness: tuple[float, ...] | None = None
+    kinematic_evidence: bool = True
+    ambiguous_ln_b: float = 1.0
     grid_size: int = 64
     projection_panels: int = 16
     projection_nodes: int = 6
@@ -67,26 +96,40 @@ class DynamicsSettings:
     max_steps: int = 20000
     tau_factor: float = 50.0
     check_every: int = 500
+    posterior: str = "emcee"
     evidence: bool = True
     nlive: int = 250
     dlogz: float = 0.1
     progress: bool = True
+    fast_stars: FastStarSettings | None = None
 
     def __post_init__(self):
+        if self.tracer == "king":
+            raise ValueError(
+                "tracer 'king' was renamed 'king62' (King 1962 concentration law; the "
+                "generator's King 1966 W0 model is a different profile)"
+            )
         if self.tracer not in TRACERS:
             raise ValueError(f"tracer must be one of {sorted(TRACERS)}, got {self.tracer!r}")
-        if self.fit_gamma and self.tracer != "dehnen":
-            raise ValueError("fit_gamma needs tracer = 'dehnen'")
-        if self.cusp and self.tracer == "dehnen":
-            raise ValueError("cusp needs tracer = 'plummer' or 'king' (Dehnen has gamma)")
-        if self.cusp_link not in ("free", "influence"):
-            raise ValueError(f"cusp_link must be 'free' or 'influence', got {self.cusp_link!r}")
+        if self.posterior not in ("emcee", "nested"):
+            raise ValueError(f"posterior must be 'emcee' or 'nested', got {self.posterior!r}")
+        if self.posterior == "nested" and not self.evidence:
+            raise ValueError("posterior = 'nested' needs evidence = true")
+        if self.anisotropy not in ANISOTROPY:
+            raise ValueError(f"anisotropy must be one of {ANISOTROPY}, got {self.anisotropy!r}")
+        models = tuple(self.models)
+        bad = [m for m in models if m not in MODELS]
+        if bad or not models or len(set(models)) != len(models):
+            raise ValueError(f"models must be distinct names from {sorted(MODELS)}, got {models}")
+        object.__setattr__(self, "models", models)
         for name in (
             "gamma_range",
             "log_cusp_radius_range",
             "log_mass_range",
             "log_scale_radius_range",
             "beta_range",
+            "log_dark_radius_range",
+            "log_anisotropy_radius_range",
         ):
             lo, hi = getattr(self, name)
             if not lo < hi:
@@ -103,8 +146,19 @@ class DynamicsSettings:
             raise ValueError("beta_range must stay below 1")
         if not (0.0 <= self.gamma_range[0] and self.gamma_range[1] < 2.5):
             raise ValueError("gamma_range must lie in [0, 2.5)")
+        if (self.completeness_radius is None) != (self.completeness is None):
+            raise ValueError("completeness_radius and completeness go together")
+        if self.completeness is not None:
+            r, c = self.completeness_radius, self.completeness
+            if len(r) != len(c) or len(r) < 2 or any(b <= a for a, b in zip(r, r[1:])):
+                raise ValueError(
+                    "completeness_radius must increase, with one completeness value each (>= 2)"
+                )
+            if not all(0.0 < v <= 1.0 for v in c) or r[0] < 0:
+                raise ValueError("completeness values must be in (0, 1] at radii >= 0")
         positive = {
             "bh_mass_max": self.bh_mass_max,
+            "dark_mass_max": self.dark_mass_max,
             "min_radius": self.min_radius,
             "bin_size": self.bin_size - 1,
             "grid_size": self.grid_size - 7,
@@ -116,25 +170,34 @@ class DynamicsSettings:
             "check_every": self.check_every,
             "nlive": self.nlive,
             "dlogz": self.dlogz,
+            "ambiguous_ln_b": self.ambiguous_ln_b,
         }
         for name, val in positive.items():
             if not val > 0:
                 raise ValueError(f"{name} is too small: {getattr(self, name)}")
         if self.truncation < 1e3:
             raise ValueError(f"truncation must be >= 1e3 scale radii, got {self.truncation}")
-        if self.distance_error < 0 or (self.distance is not None and self.distance <= 0):
-            raise ValueError("distance must be > 0 and distance_error >= 0")
+        if self.distance_error is not None and self.distance_error < 0:
+            raise ValueError("distance_error must be >= 0 (0 = fixed distance)")
+        if self.distance is not None and self.distance <= 0:
+            raise ValueError("distance must be > 0")
+        if self.centre_error < 0 or self.systemic_error < 0:
+            raise ValueError("centre_error and systemic_error must be >= 0 (0 = fixed)")
         if not (self.pm_error_scale > 0 and self.pm_error_floor >= 0):
             raise ValueError("pm_error_scale must be > 0 and pm_error_floor >= 0")
         if self.field_radius is not None and self.field_radius <= 0:
             raise ValueError("field_radius must be > 0")
 
+    def distance_sd(self, distance: float) -> float:
+        """Gaussian prior width of the distance [kpc] (0: fixed)."""
+        return 0.03 * distance if self.distance_error is None else float(self.distance_error)
+
     def fast(self) -> DynamicsSettings:
         """Cheaper sampler settings for tests and quick looks (--fast)."""
         return dataclasses.replace(
             self,
-            walkers=24,
-            max_steps=min(self.max_steps, 2500),
+            walkers=max(self.walkers, 32),
+            max_steps=min(self.max_steps, 3000),
             tau_factor=min(self.tau_factor, 20.0),
             check_every=250,
             nlive=min(self.nlive, 100),

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from mavispm.dynamics.jeans import cubic_weights, interpolate
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
 
 
 def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
@@ -72,3 +72,37 @@ def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compile
             chi += v2[c, i] / var + np.log(var)
         lsig += w0 * ln_sig[j - 1] + w1 * ln_sig[j] + w2 * ln_sig[j + 1] + w3 * ln_sig[j + 2]
     return chi, lsig
+
+
+@numba.njit(nogil=True, cache=True)
+def stars_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  # pragma: no cover
+    """ln R, squared R/T motions and rotated squared errors about centre ``(x0, y0)``.
+
+    Motions are taken relative to ``(mx0, my0)``; the errors ``er2, et2`` (about the
+    field centre, directions ``cx, sy``) are rotated by the angle ``d`` between the
+    old and new radial directions: ``e_R'^2 = e_R^2 cos^2 d + e_T^2 sin^2 d``.
+    Reference: :meth:`mavispm.dynamics.likelihood.DiscreteLikelihood._stars_about_numpy`.
+    """
+    n = x.size
+    ln_r = np.empty(n)
+    v2 = np.empty((2, n))
+    e2 = np.empty((2, n))
+    for i in range(n):
+        dx = x[i] - x0
+        dy = y[i] - y0
+        r = max(np.sqrt(dx * dx + dy * dy), 1e-12)
+        c = dx / r
+        s = dy / r
+        px = pm_x[i] - mx0
+        py = pm_y[i] - my0
+        vr = px * c + py * s
+        vt = -px * s + py * c
+        cd = cx[i] * c + sy[i] * s
+        c2 = cd * cd
+        s2 = 1.0 - c2
+        ln_r[i] = np.log(max(r, min_r))
+        v2[0, i] = vr * vr
+        v2[1, i] = vt * vt
+        e2[0, i] = er2[i] * c2 + et2[i] * s2
+        e2[1, i] = er2[i] * s2 + et2[i] * c2
+    return ln_r, v2, e2

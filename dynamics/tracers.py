@@ -16,7 +16,7 @@ Dehnen (gamma)
     influence radius) turning over to ``x^-4`` outside ``a``. The surface density
     has no elementary closed form and is projected numerically by the Jeans
     projector.
-King (1962), concentration ``c = log10(r_t / r_c)``
+King (1962) "King62", concentration ``c = log10(r_t / r_c)``
     Analytic surface density and 3-D density, truncated at ``x_t = 10**c``; the
     enclosed mass is tabulated once per concentration (cached).
 """
@@ -28,14 +28,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavispm.dynamics.jeans import cubic_weights
+from mavispm.dynamics.interpolation import cubic_weights
 
 _FOUR_PI = 4.0 * np.pi
 
 
 class _ClosedFormEnclosedMass:
     """Shared methods of the profiles whose enclosed mass needs no per-call quadrature
-    (Plummer analytic, King tabulated once per concentration)."""
+    (Plummer analytic, King62 tabulated once per concentration)."""
 
     @property
     def family(self):
@@ -130,8 +130,12 @@ class Dehnen:
 
 
 @dataclass(frozen=True)
-class King(_ClosedFormEnclosedMass):
-    """King (1962) profile with core radius 1 and concentration ``c``.
+class King62(_ClosedFormEnclosedMass):
+    """King (1962) profile ("King62") with core radius 1 and concentration ``c``.
+
+    Not the King (1966) lowered-isothermal model of the cluster generator
+    (:mod:`mavispm.simulate.cluster.profiles`, parameter W0): this one is the
+    empirical surface-density law of King (1962).
 
     Parameters
     ----------
@@ -140,12 +144,12 @@ class King(_ClosedFormEnclosedMass):
     """
 
     concentration: float = 1.5
-    name = "king"
+    name = "king62"
     outer_slope = np.inf  # truncated: no density beyond the tidal radius
 
     def __post_init__(self):
         if not (0.3 < self.concentration <= 3.0):
-            raise ValueError(f"King concentration must be in (0.3, 3], got {self.concentration}")
+            raise ValueError(f"King62 concentration must be in (0.3, 3], got {self.concentration}")
 
     @property
     def tidal_radius(self) -> float:
@@ -203,7 +207,7 @@ class King(_ClosedFormEnclosedMass):
 @functools.lru_cache(maxsize=16)
 def _king_table(concentration: float):
     """ln x, ln m(x) on a fine grid and the density normalisation (cached)."""
-    king = King.__new__(King)
+    king = King62.__new__(King62)
     object.__setattr__(king, "concentration", concentration)
     xt = 10.0**concentration
     # Gauss-Legendre panels in ln x (interior), plus the tidal radius
@@ -256,7 +260,7 @@ class _CuspMassGrid:
     nu0 : float
         Central density of the base profile.
     x_hi, m_out : float
-        Outer edge of the grid and the base mass beyond it (0 for a King profile).
+        Outer edge of the grid and the base mass beyond it (0 for a King62 profile).
     """
 
     ln_edges: np.ndarray
@@ -355,7 +359,7 @@ class CuspedAtPoints(AtPoints):
 
     Parameters
     ----------
-    base : Plummer or King
+    base : Plummer or King62
     points, mass_points : array_like
         See :class:`AtPoints` (radii >= 0 in scale radii).
     """
@@ -398,7 +402,7 @@ class Cusped:
     """A cored profile with an inner cusp: ``nu ~ base(x) (1 + (x_c / x)^2)^(gamma / 2)``.
 
     The same multiplier as the cluster generator's cusp: ``nu ~ x^-gamma`` inside
-    ``x_c`` and the base profile (King core, Plummer) outside it. Renormalised to
+    ``x_c`` and the base profile (King62 core, Plummer) outside it. Renormalised to
     unit mass. The enclosed mass is a cumulative Gauss-Legendre quadrature in
     ``ln x`` on a fixed grid (800 panels x 4 nodes from 1e-8 to the base's outer
     radius, analytic power law inside 1e-8) whose parameter-free part is cached
@@ -407,7 +411,7 @@ class Cusped:
 
     Parameters
     ----------
-    base : Plummer or King
+    base : Plummer or King62
         Cored profile (unit mass, unit scale radius).
     gamma : float
         Inner slope in [0, 2.5).
@@ -415,7 +419,7 @@ class Cusped:
         ``x_c`` in scale radii (> 0).
     """
 
-    base: Plummer | King = Plummer()
+    base: Plummer | King62 = Plummer()
     gamma: float = 1.55
     cusp_radius: float = 0.5
     name = "cusped"
@@ -459,7 +463,7 @@ class Cusped:
 
 
 #: Known tracer profiles by name (for settings).
-TRACERS = {"plummer": Plummer, "dehnen": Dehnen, "king": King}
+TRACERS = {"plummer": Plummer, "dehnen": Dehnen, "king62": King62}
 
 
 def make_tracer(
@@ -469,21 +473,21 @@ def make_tracer(
 
     Parameters
     ----------
-    name : {"plummer", "dehnen", "king"}
+    name : {"plummer", "dehnen", "king62"}
     gamma : float
-        Dehnen inner slope, or the cusp slope of a Plummer/King with ``cusp_radius``.
+        Dehnen inner slope, or the cusp slope of a Plummer/King62 with ``cusp_radius``.
     concentration : float
-        King concentration ``log10(r_t/r_c)`` (ignored otherwise).
+        King62 concentration ``log10(r_t/r_c)`` (ignored otherwise).
     cusp_radius : float, optional
-        Cusp radius in scale radii: a Plummer or King profile gets an inner cusp
+        Cusp radius in scale radii: a Plummer or King62 profile gets an inner cusp
         of slope ``gamma`` (:class:`Cusped`).
     """
-    if cusp_radius is not None and name in ("plummer", "king"):
+    if cusp_radius is not None and name in ("plummer", "king62"):
         return Cusped(make_tracer(name, concentration=concentration), gamma, cusp_radius)
     if name == "plummer":
         return Plummer()
     if name == "dehnen":
         return Dehnen(gamma=float(gamma))
-    if name == "king":
-        return King(concentration=float(concentration))
+    if name == "king62":
+        return King62(concentration=float(concentration))
     raise ValueError(f"unknown tracer profile {name!r}; expected one of {sorted(TRACERS)}")

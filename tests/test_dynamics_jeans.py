@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from mavispm.dynamics.jeans import JeansProjector, cubic_weights, interpolate, projected_dispersion
-from mavispm.dynamics.tracers import Cusped, Dehnen, King, Plummer
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
+from mavispm.dynamics.jeans import JeansProjector, projected_dispersion
+from mavispm.dynamics.tracers import Cusped, Dehnen, King62, Plummer
 
 RADII = np.logspace(-4, 3, 22)  # R = 1e-4 a ... 1e3 a
 
@@ -108,7 +109,7 @@ def test_anisotropic_dehnen_matches_scipy_quad(beta):
 
 def test_surface_density_and_projected_mass_of_tracers():
     X = np.logspace(-3, 1.3, 12)
-    for tr in (Plummer(), King(1.5)):
+    for tr in (Plummer(), King62(1.5)):
         mom = JeansProjector(X).moments(tr, 0.0)
         np.testing.assert_allclose(mom.surface_density, tr.surface_density(X), rtol=1e-4)
         np.testing.assert_allclose(mom.projected_enclosed, tr.projected_enclosed(X), rtol=1e-4)
@@ -173,13 +174,13 @@ def _quad_mass(shape, x, xc):
     )[0]
 
 
-@pytest.mark.parametrize("base", [Plummer(), King(1.33)])
+@pytest.mark.parametrize("base", [Plummer(), King62(1.33)])
 @pytest.mark.parametrize("gamma, xc", [(1.55, 0.5), (2.3, 1e-3), (0.7, 3.0)])
 def test_cusped_profile_mass_matches_quad(base, gamma, xc):
     """Cusped King/Plummer: tabulated enclosed mass and density match scipy quad of the
     same (independently written) profile to 1e-4, from 1e-5 to 15 scale radii."""
     shape = _cusp_shape(base, gamma, xc)
-    if isinstance(base, King):
+    if isinstance(base, King62):
         total = _quad_mass(shape, base.tidal_radius, xc)
     else:
         total = _quad_mass(shape, 1e5, xc) + 1 - base.enclosed(1e5)
@@ -190,7 +191,7 @@ def test_cusped_profile_mass_matches_quad(base, gamma, xc):
     np.testing.assert_allclose(tr.density(x), shape(x) / total, rtol=1e-4)
 
 
-@pytest.mark.parametrize("base", [Plummer(), King(1.33)])
+@pytest.mark.parametrize("base", [Plummer(), King62(1.33)])
 def test_cusped_profile_limits(base):
     """Unit total mass, gamma = 0 gives back the base profile, nu ~ r^-gamma inside the cusp,
     and scalars and 2-D arrays keep their shape."""
@@ -198,7 +199,7 @@ def test_cusped_profile_limits(base):
     assert cusped.enclosed(1e6) == pytest.approx(1.0, rel=1e-6)
     x = np.array([0.05, 0.3, 2.0])
     np.testing.assert_allclose(Cusped(base, 0.0, 0.5).density(x), base.density(x), rtol=1e-6)
-    # (the King base mass is itself tabulated: linear in ln m, ~2e-6)
+    # (the King62 base mass is itself tabulated: linear in ln m, ~2e-6)
     np.testing.assert_allclose(Cusped(base, 0.0, 0.5).enclosed(x), base.enclosed(x), rtol=1e-5)
     slope = np.log(cusped.density(1e-4) / cusped.density(1e-3)) / np.log(0.1)
     assert slope == pytest.approx(-1.55, abs=1e-3)
@@ -212,8 +213,8 @@ def test_family_evaluators_match_direct_profiles():
     for proto, members in (
         (Dehnen(1.0), [Dehnen(0.0), Dehnen(1.55), Dehnen(2.2)]),
         (
-            Cusped(King(1.33), 1.0, 0.1),
-            [Cusped(King(1.33), 0.3, 0.02), Cusped(King(1.33), 2.0, 2.0)],
+            Cusped(King62(1.33), 1.0, 0.1),
+            [Cusped(King62(1.33), 0.3, 0.02), Cusped(King62(1.33), 2.0, 2.0)],
         ),
     ):
         ev = proto.at_points(pts, mpts)
@@ -224,11 +225,11 @@ def test_family_evaluators_match_direct_profiles():
 
 
 def test_cusped_king_surface_density_matches_quad():
-    """Projector with a cusped King tracer: surface density vs quad projection of the profile."""
-    tr = Cusped(King(1.33), 1.55, 0.4)
+    """Projector with a cusped King62 tracer: surface density vs quad projection of the profile."""
+    tr = Cusped(King62(1.33), 1.55, 0.4)
     X = np.array([0.005, 0.1, 0.7, 5.0])
     mom = JeansProjector(X).moments(tr, 0.0)
-    xt = King(1.33).tidal_radius
+    xt = King62(1.33).tidal_radius
 
     def dens(r):
         return np.where(r < xt, tr.density(np.minimum(r, xt)), 0.0)
@@ -237,10 +238,98 @@ def test_cusped_king_surface_density_matches_quad():
     np.testing.assert_allclose(mom.surface_density, ref, rtol=1e-4)
 
 
-@pytest.mark.parametrize("base", [Plummer(), King(1.33)])
+@pytest.mark.parametrize("base", [Plummer(), King62(1.33)])
 def test_radius_enclosing_inverts_enclosed_mass(base):
     q = np.array([1e-12, 1e-6, 1e-3, 0.05, 0.5, 0.9])
     x = np.array([base.radius_enclosing(qi) for qi in q])
     np.testing.assert_allclose(base.enclosed(x), q, rtol=1e-4)
     with pytest.raises(ValueError, match="mass fraction"):
         base.radius_enclosing(1.0)
+
+
+def _nested_quad_moments(nu, mass, beta_of_r, ln_g, R):
+    """Independent reference: Sigma, Sigma sigma_R^2, Sigma sigma_T^2 at R by nested scipy quad.
+
+    ``nu sigma_r^2(r) = exp(-ln_g(r)) int_r^inf exp(ln_g(s)) nu(s) mass(s) / s^2 ds``, then
+    projected with ``r = R cosh t`` (the code under test is not used).
+    """
+
+    def p(r):
+        val = integrate.quad(
+            lambda s: np.exp(ln_g(s) - ln_g(r)) * nu(s) * mass(s) / s**2,
+            r,
+            np.inf,
+            epsabs=0,
+            epsrel=1e-9,
+            limit=200,
+        )[0]
+        return val
+
+    def proj(kernel):
+        return (
+            2
+            * integrate.quad(
+                lambda t: kernel(R * np.cosh(t), R) * R * np.cosh(t),
+                0,
+                np.arccosh(1e4 / R),
+                epsabs=0,
+                epsrel=1e-8,
+                limit=200,
+            )[0]
+        )
+
+    sig = proj(lambda r, R_: nu(r))
+    rad = proj(lambda r, R_: (1 - beta_of_r(r) + beta_of_r(r) * R_**2 / r**2) * p(r))
+    tan = proj(lambda r, R_: (1 - beta_of_r(r)) * p(r))
+    return sig, rad / sig, tan / sig
+
+
+@pytest.mark.parametrize("r_a", [0.5, 3.0])
+def test_osipkov_merritt_projection_matches_nested_quad(r_a):
+    """Osipkov-Merritt beta(r) = r^2/(r^2+r_a^2): cluster, point-mass and dark terms vs quad."""
+    from mavispm.dynamics.anisotropy import osipkov_merritt
+
+    tr = Plummer()
+    b = 0.2
+    X = np.array([0.05, 1.0])
+    mom = JeansProjector(X).moments(tr, osipkov_merritt(r_a), dark_radius=b)
+    ln_g = lambda r: np.log(r * r + r_a * r_a)  # noqa: E731 - integrating factor by hand
+    beta = lambda r: r * r / (r * r + r_a * r_a)  # noqa: E731
+    masses = {
+        "cluster": lambda s: s**3 / (1 + s * s) ** 1.5,
+        "bh": lambda s: 1.0,
+        "dark": lambda s: (s / b) ** 3 / (1 + (s / b) ** 2) ** 1.5,
+    }
+    for j, R in enumerate(X):
+        for key, mass in masses.items():
+            _, rad, tan = _nested_quad_moments(tr.density, mass, beta, ln_g, R)
+            assert getattr(mom, f"radial_{key}")[j] == pytest.approx(rad, rel=2e-4), key
+            assert getattr(mom, f"tangential_{key}")[j] == pytest.approx(tan, rel=2e-4), key
+
+
+def test_dark_component_constant_beta_matches_nested_quad():
+    """Extended dark Plummer sphere in a cusped Dehnen tracer, beta = 0.3, vs nested quad."""
+    tr = Dehnen(gamma=1.2)
+    b, beta0 = 0.05, 0.3
+    X = np.array([0.02, 0.4])
+    mom = JeansProjector(X).moments(tr, beta0, dark_radius=b)
+    mass = lambda s: (s / b) ** 3 / (1 + (s / b) ** 2) ** 1.5  # noqa: E731
+    for j, R in enumerate(X):
+        _, rad, tan = _nested_quad_moments(
+            tr.density, mass, lambda r: beta0, lambda r: 2 * beta0 * np.log(r), R
+        )
+        assert mom.radial_dark[j] == pytest.approx(rad, rel=2e-4)
+        assert mom.tangential_dark[j] == pytest.approx(tan, rel=2e-4)
+
+
+def test_large_anisotropy_radius_is_isotropic_and_tiny_dark_radius_is_point_mass():
+    """Limits: r_a -> inf gives beta = 0; a dark sphere far inside R acts as the point mass."""
+    from mavispm.dynamics.anisotropy import osipkov_merritt
+
+    X = np.array([0.3, 1.0, 3.0])
+    proj = JeansProjector(X)
+    iso = proj.moments(Plummer(), 0.0)
+    om = proj.moments(Plummer(), osipkov_merritt(1e3), dark_radius=1e-4)
+    np.testing.assert_allclose(om.radial_cluster, iso.radial_cluster, rtol=1e-5)
+    np.testing.assert_allclose(om.tangential_cluster, iso.tangential_cluster, rtol=1e-5)
+    np.testing.assert_allclose(om.radial_dark, iso.radial_bh, rtol=1e-4)

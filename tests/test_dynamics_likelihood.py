@@ -144,25 +144,106 @@ def test_fused_star_sums_match_numpy_reference(n, shift, err_scale, seed):
     np.testing.assert_allclose(fused, ref, rtol=1e-10, atol=1e-9)
 
 
-def test_influence_linked_cusp():
-    """cusp_link = "influence": the cusp radius encloses 2 M_bh of the cored King profile,
-    the no-IMBH model is the plain King profile (no cusp parameters), and M_bh = 0 in the
-    IMBH model gives the no-IMBH likelihood."""
+def _mock_sample(n=400, seed=4):
+    from dynamics_helpers import mock_pm_stars
+
+    d = mock_pm_stars(seed, n_field=n, mass=5e4, a_arcsec=25.0, bh_mass=1500.0, distance=4.6)
+    return d, StarSample(
+        d["R"], d["pm_r"], d["pm_t"], d["pm_r_err"], d["pm_t_err"], 17.0, x=d["x"], y=d["y"]
+    )
+
+
+def test_nested_models_reduce_to_no_dark_centre():
+    """Every model has the free cusp; M_bh = 0 and M_dark = 0 give the no-dark-centre ln L."""
     from mavispm.dynamics.fit import make_likelihood, parameter_space
     from mavispm.dynamics.settings import DynamicsSettings
-    from mavispm.dynamics.tracers import Cusped, King
 
-    s = DynamicsSettings(tracer="king", king_concentration=1.33, cusp=True, cusp_link="influence")
-    sp1, sp0 = parameter_space(s, 4.6, True), parameter_space(s, 4.6, False)
-    assert sp1.names == ["log_mass", "log_scale_radius", "bh_mass", "beta", "gamma"]
-    assert sp0.names == ["log_mass", "log_scale_radius", "beta"]
-    stars = _stars(200, seed=4)
-    l1, l0 = make_likelihood(stars, sp1, s, 4.6), make_likelihood(stars, sp0, s, 4.6)
-    theta = np.array([5.2, 1.9, 3000.0, 0.1, 1.55])
-    tracer = l1._influence_cusp(theta, 3000.0, 10**5.2)
-    assert isinstance(tracer, Cusped) and tracer.gamma == 1.55
-    assert King(1.33).enclosed(tracer.cusp_radius) == pytest.approx(6000.0 / 10**5.2, rel=1e-4)
-    no_bh = theta.copy()
-    no_bh[2] = 0.0
-    assert l1(no_bh) == pytest.approx(l0(theta[[0, 1, 3]]), rel=1e-12)
-    assert np.isfinite(l1(theta)) and l1(theta) != l1(no_bh)
+    _, stars = _mock_sample()
+    for aniso in ("constant", "osipkov-merritt"):
+        s = DynamicsSettings(tracer="king62", king_concentration=1.33, anisotropy=aniso)
+        base = parameter_space(s, 4.6, "none")
+        assert {"gamma", "log_cusp_radius"} <= set(base.names)
+        v0 = base.as_dict(base.from_scaled(np.full(len(base), 0.1)))
+        ref = make_likelihood(stars, base, s, 4.6)(np.array(list(v0.values())))
+        for model in ("imbh", "dark", "imbh_dark"):
+            sp = parameter_space(s, 4.6, model)
+            assert {"gamma", "log_cusp_radius"} <= set(sp.names)
+            v = {**v0, "bh_mass": 0.0, "dark_mass": 0.0, "log_dark_radius": 0.3}
+            val = make_likelihood(stars, sp, s, 4.6)(np.array([v[n] for n in sp.names]))
+            assert val == pytest.approx(ref, abs=1e-8)
+            v["dark_mass" if "dark_mass" in sp.names else "bh_mass"] = 2000.0
+            assert make_likelihood(stars, sp, s, 4.6)(np.array([v[n] for n in sp.names])) != ref
+
+
+def test_centre_and_systemic_motion_are_nuisances_of_the_frame():
+    """Shifting every star and the model centre (or every PM and the systemic motion) by the
+    same amount leaves ln L unchanged: the fitted centre and mean motion act exactly."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.profiles import radial_tangential
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    d, stars = _mock_sample()
+    s = DynamicsSettings(star_counts=False)  # the field circle does not move with the stars
+    sp = parameter_space(s, 4.6, "imbh")
+    v = sp.as_dict(sp.from_scaled(np.zeros(len(sp))))
+    v.update(x0=0.0, y0=0.0, pm_x0=0.0, pm_y0=0.0)
+    like = make_likelihood(stars, sp, s, 4.6)
+    ref = like(np.array([v[n] for n in sp.names]))
+    dx, dy, mx, my = 0.7, -0.4, 0.03, -0.02
+    x, y = d["x"] + dx, d["y"] + dy
+    pmx = d["pm_r"] * d["x"] / d["R"] - d["pm_t"] * d["y"] / d["R"] + mx
+    pmy = d["pm_r"] * d["y"] / d["R"] + d["pm_t"] * d["x"] / d["R"] + my
+    R, vr, vt = radial_tangential(x, y, pmx, pmy)
+    err = d["pm_r_err"]  # isotropic errors: e_r = e_t per star in the mock? use one value
+    moved = StarSample(R, vr, vt, err, err, 17.0, x=x, y=y)
+    same = StarSample(d["R"], d["pm_r"], d["pm_t"], err, err, 17.0, x=d["x"], y=d["y"])
+    ref = make_likelihood(same, sp, s, 4.6)(np.array([v[n] for n in sp.names]))
+    v.update(x0=dx, y0=dy, pm_x0=mx, pm_y0=my)
+    got = make_likelihood(moved, sp, s, 4.6)(np.array([v[n] for n in sp.names]))
+    assert got == pytest.approx(ref, abs=1e-6)
+    assert like(np.array([v[n] for n in sp.names])) < ref - 1.0  # the offset matters
+
+
+@pytest.mark.parametrize("offset", [0.0, 2.0])
+def test_field_normalisation_with_offset_centre_and_completeness(offset):
+    """N_field for a centre offset and a radial completeness vs scipy dblquad over the disc."""
+    from scipy import integrate
+
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    _, stars = _mock_sample(n=50)
+    radii, comp = (0.0, 5.0, 17.0, 30.0), (0.4, 0.8, 1.0, 1.0)
+    s = DynamicsSettings(
+        cusp=False, completeness_radius=radii, completeness=comp, systemic_error=0.0
+    )
+    sp = parameter_space(s, 4.6, "none")
+    like = make_likelihood(stars, sp, s, 4.6)
+    a = 25.0
+    v = sp.as_dict(sp.from_scaled(np.zeros(len(sp))))
+    v.update(log_scale_radius=np.log10(a), x0=offset, y0=0.0)
+    _, _, ln_sig, ln_proj = like.model_on_grid(np.array([v[n] for n in sp.names]))
+    got = like.ln_field_norm(np.log(a), offset, ln_sig, ln_proj)
+
+    def f(r, phi):  # field-centred polar coordinates; Plummer Sigma about the model centre
+        Rm = np.hypot(r * np.cos(phi) - offset, r * np.sin(phi))
+        return r * (1 / np.pi / a**2) * (1 + (Rm / a) ** 2) ** -2 * np.interp(Rm, radii, comp)
+
+    ref = integrate.dblquad(f, 0, 2 * np.pi, 0, 17.0, epsrel=1e-9)[0]
+    assert got == pytest.approx(np.log(ref), abs=2e-4)
+
+
+def test_fused_stars_about_matches_numpy_reference():
+    """The numba kernel that moves the stars to the model centre equals the numpy path."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    _, stars = _mock_sample(n=300)
+    s = DynamicsSettings()
+    sp = parameter_space(s, 4.6, "none")
+    like = make_likelihood(stars, sp, s, 4.6)
+    v = sp.as_dict(sp.from_scaled(np.zeros(len(sp))))
+    v.update(x0=0.8, y0=-1.3, pm_x0=0.02, pm_y0=-0.04)
+    theta = np.array([v[n] for n in sp.names])
+    for a, b in zip(like._stars_about(theta), like._stars_about_numpy(theta)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)

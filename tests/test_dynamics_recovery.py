@@ -40,7 +40,7 @@ def test_map_without_imbh_finds_little_mass():
 
 
 def test_map_on_generator_catalogue_finds_imbh():
-    """Quick recovery check on a cluster-generator catalogue (King + cusp, 1500 Msun IMBH).
+    """Quick recovery check on a cluster-generator catalogue (King62 + cusp, 1500 Msun IMBH).
 
     ~2,000 stars inside 17", PM errors 20-100 microarcsec/yr, Dehnen tracer with
     free gamma: the best-fit M_bh is within 30% of the truth, the inner slope
@@ -50,7 +50,8 @@ def test_map_on_generator_catalogue_finds_imbh():
     assert 1800 < stars.R.size < 2200
     s = generator_fit_settings()
     dist = truth["distance"]
-    sp1, sp0 = parameter_space(s, dist, True), parameter_space(s, dist, False)
+    sp1 = parameter_space(s, dist, "imbh", positions=False)
+    sp0 = parameter_space(s, dist, "none", positions=False)
     l1, l0 = make_likelihood(stars, sp1, s, dist), make_likelihood(stars, sp0, s, dist)
     v1 = sp1.from_scaled(find_map(l1, sp1))
     v0 = sp0.from_scaled(find_map(l0, sp0))
@@ -64,8 +65,8 @@ def test_generator_recovery_coverage_and_bayes_factor():
     """10 generator seeds each: 68% coverage >= 60% and ln B > 3 with a 1500 Msun IMBH;
     95% upper limit < 1500 Msun and ln B < 1 without (emcee posterior, dynesty ln B)."""
     seeds = list(range(100, 110))
-    # "dehnen", "cusped_king", "king_influence", "king_influence_rc", "cusped_king_rc"
-    model = os.environ.get("DYN_GENERATOR_MODEL", "king_influence_rc")
+    # "dehnen", "cusped_king", "cusped_king_rc"
+    model = os.environ.get("DYN_GENERATOR_MODEL", "cusped_king_rc")
     steps = int(os.environ.get("DYN_STEPS", "2000"))
     jobs = [(s, bh) for s in seeds for bh in (1500.0, 0.0)]
     out = os.environ.get("DYN_RECOVERY_JSON")

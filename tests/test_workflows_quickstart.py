@@ -44,7 +44,9 @@ def test_all_shipped_workflows_are_valid():
     detect = load_workflow("imbh_detectability")
     masses = sorted({v.point.values["mass"] for v in detect.variants})
     assert masses == [0, 500, 1000, 1500, 3000]  # mass 0: the no-IMBH reference
-    assert len(detect.variants) == 10
+    # null cases: a black-hole subsystem and radial anisotropy, each at every mass
+    assert {v.study for v in detect.variants} == {"reference", "bh_subsystem", "radial_anisotropy"}
+    assert len(detect.variants) == 15
 
 
 def test_quickstart_end_to_end(tmp_path):

@@ -124,7 +124,16 @@ def test_report_tables_match_the_products_and_can_be_rebuilt(tmp_path, monkeypat
     n_calls = len(read_log(log))
     (result.rundir / "report.md").unlink()
     assert main(["report", str(result.rundir)]) == 0
-    assert (result.rundir / "report.md").read_text().count("##") == report.count("##")
+    rebuilt = (result.rundir / "report.md").read_text()
+    # the run's own sections come back; stage reports come from mavispm's trusted registry
+    # (the real stages' reports), not from this test's stand-in stages
+    run_sections = [h for h in report.splitlines() if h.startswith("## ")]
+    run_sections = (
+        run_sections[: run_sections.index("## stars report")]
+        if ("## stars report" in run_sections)
+        else run_sections
+    )
+    assert run_sections and all(h in rebuilt.splitlines() for h in run_sections)
     assert len(read_log(log)) == n_calls
     summary = json.loads((result.rundir / "summary.json").read_text())
     assert {n["status"] for n in summary["nodes"]} == {"ran"}

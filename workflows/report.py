@@ -25,6 +25,10 @@ Recipes
 ``model_comparison``
     The dynamics stage's model-comparison numbers (ln B, Delta ln L, AIC,
     BIC, M_BH) per study and sweep point.
+``fast_stars``
+    The fast-star test per study and sweep point: significant fast stars, the
+    expected false ones, the lower IMBH mass limit (with ln B), the fast stars
+    themselves, and against the swept parameters a plot.
 """
 
 from __future__ import annotations
@@ -625,12 +629,17 @@ def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: i
 KEY_DYNAMICS_METRICS = (
     "ln_bayes_factor",
     "ln_bayes_factor_err",
+    "ln_bayes_factor_kinematic",
+    "ln_b_dark_centre",
+    "ln_b_imbh_vs_extended",
     "delta_ln_likelihood",
     "delta_aic",
     "delta_bic",
     "bh_mass_median",
     "bh_mass_lo68",
     "bh_mass_hi68",
+    "bh_mass_lo95",
+    "bh_mass_hi95",
     "bh_mass_upper95",
     "n_stars",
     "tau_max_imbh",
@@ -687,12 +696,158 @@ def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
     return text
 
 
+def fast_stars(summary: Mapping, rundir: Path, outdir: Path) -> str:
+    """Recipe: the fast-star test per study and sweep point (dynamics ``fast_stars`` table).
+
+    One row per dynamics fit: significant fast stars, expected false ones (errors,
+    binaries, field), the expected number under the IMBH model, the Poisson
+    probability of the observed count without an IMBH, the lower mass limit and
+    the Jeans-model ln B; then the significant stars of every fit, and with a
+    sweep a plot of the lower limit and the number of fast stars against the first
+    swept parameter (one line per value of the others). The dynamics stage's
+    ``fast_stars.png`` plots are linked.
+    """
+    import matplotlib.pyplot as plt
+
+    from mavispm.core.products import read_product
+
+    nodes = _nodes(summary, "dynamics")
+    if not nodes:
+        return "No dynamics fits in this run.\n"
+    header = [
+        "fit",
+        "stars",
+        "fast (significant)",
+        "expected false",
+        "expected with IMBH",
+        "P(N >= n | no IMBH)",
+        "M_BH lower limit [Msun]",
+        "ln B",
+    ]
+    rows, star_rows, csv_rows, pngs, sweep_pts = [], [], [], [], []
+    for node in nodes:
+        label = (
+            " ".join(filter(None, (node["labels"].get(k) for k in ("study", "point", "scene"))))
+            or "fit"
+        )
+        prod = read_product(rundir / node["products"]["main"], "dynamics", load_arrays=False)
+        a = prod.attrs
+        if "fast_stars" not in prod.tables:
+            rows.append([label, "-", "not run (set [dynamics.fast_stars])", "", "", "", "", ""])
+            continue
+        if not a.get("fast_test_possible", False):
+            rows.append([label, "-", str(a.get("fast_test_note", "no test")), "", "", "", "", ""])
+            continue
+
+        def num(key, a=a):
+            v = a.get(key, math.nan)
+            return float(getattr(v, "value", v))
+
+        lim = num("bh_mass_lower_limit")
+        conf = num("bh_mass_lower_limit_confidence")
+        values = [
+            int(a["fast_n_stars"]),
+            int(a["fast_n_significant"]),
+            num("fast_expected_false"),
+            num("fast_expected_imbh"),
+            num("fast_p_count_ge_no_imbh"),
+            lim,
+            num("ln_bayes_factor"),
+        ]
+        rows.append(
+            [
+                label,
+                values[0],
+                values[1],
+                f"{values[2]:.2g}",
+                f"{values[3]:.2g}",
+                f"{values[4]:.2g}",
+                f"{lim:.0f} ({conf:.0%})" if values[1] else "-",
+                f"{values[6]:.1f}",
+            ]
+        )
+        csv_rows.append([label, *values, conf])
+        t = prod.tables["fast_stars"]
+        for r in t[np.asarray(t["fast"], bool)]:
+            star_rows.append(
+                [
+                    label,
+                    int(r["id"]),
+                    f"{_q_scalar(r['R'], 'arcsec'):.2f}",
+                    f"{_q_scalar(r['v_2d'], 'km/s'):.1f} +- {_q_scalar(r['v_2d_err'], 'km/s'):.1f}",
+                    f"{_q_scalar(r['v_esc'], 'km/s'):.1f}",
+                    f"{float(r['significance']):.1f}",
+                    f"{_q_scalar(r['m_min'], 'solMass'):.0f}",
+                ]
+            )
+        if node.get("sweep"):
+            sweep_pts.append((node["sweep"], lim, values[1]))
+        png = node["products"].get("plot_fast_stars")
+        if png:
+            pngs.append((label, png))
+    text = (
+        "Stars faster than the escape velocity of every mass model without an IMBH "
+        "(Häberle et al. 2024); see docs/dynamics.md.\n\n" + _md_table(header, rows)
+    )
+    csv_path = _write_csv(
+        outdir / "fast_stars.csv",
+        ["fit", "n_stars", "n_fast", "expected_false", "expected_imbh", "p_count_ge_no_imbh",
+         "bh_mass_lower_limit", "ln_bayes_factor", "confidence"],
+        csv_rows,
+    )  # fmt: skip
+    text += f"\nAs CSV: [{csv_path.name}]({_rel(csv_path, rundir)})\n"
+    if star_rows:
+        text += "\nSignificant fast stars:\n\n" + _md_table(
+            ["fit", "id", "R [arcsec]", "v_2D [km/s]", "v_esc [km/s]", "sigma", "M_min [Msun]"],
+            star_rows,
+        )
+    if sweep_pts:
+        axes = list(sweep_pts[0][0])
+        first = axes[0]
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.6))
+        series: dict[str, list] = {}
+        for sw, lim, n in sweep_pts:
+            key = ", ".join(f"{k}={sw[k]}" for k in axes[1:]) or "all"
+            series.setdefault(key, []).append((_sweep_number(sw.get(first)), lim, n))
+        for key, pts in series.items():
+            pts.sort()
+            ax1.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=key)
+            ax2.plot([p[0] for p in pts], [p[2] for p in pts], "o-", label=key)
+        ax1.set_xlabel(first)
+        ax1.set_ylabel("M_BH lower limit [Msun]")
+        ax1.set_title("Fast-star lower mass limit")
+        ax2.set_xlabel(first)
+        ax2.set_ylabel("significant fast stars")
+        ax2.set_title("Number of fast stars")
+        ax1.legend(fontsize=7)
+        fig.tight_layout()
+        png = _save(fig, outdir / "fast_stars_sweep.png")
+        text += f"\n![fast stars against {first}]({_rel(png, rundir)})\n"
+    text += "".join(f"\n![fast stars {lab}]({p})\n" for lab, p in pngs)
+    return text
+
+
+def _q_scalar(value, unit: str) -> float:
+    return float(value.to_value(unit)) if hasattr(value, "to_value") else float(value)
+
+
+def _sweep_number(value) -> float:
+    if isinstance(value, (list, tuple)) and value:
+        nums = [float(v) for v in value if isinstance(v, (int, float))]
+        return (max(nums) - min(nums)) if nums else 0.0
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return 0.0
+
+
 #: Report recipe name -> function(summary, rundir, outdir) -> Markdown text.
 RECIPES: dict[str, Callable[[Mapping, Path, Path], str]] = {
     "astrometry_by_magnitude": astrometry_by_magnitude,
     "pm_accuracy": pm_accuracy,
     "dispersion_profiles": dispersion_profiles,
     "model_comparison": model_comparison,
+    "fast_stars": fast_stars,
 }
 
 
@@ -701,6 +856,7 @@ RECIPE_TITLES = {
     "pm_accuracy": "Proper-motion accuracy",
     "dispersion_profiles": "Dispersion profiles",
     "model_comparison": "IMBH model comparison",
+    "fast_stars": "Fast stars (stars above the no-IMBH escape velocity)",
 }
 
 
