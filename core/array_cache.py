@@ -20,9 +20,26 @@ import numpy as np
 
 from mavispm.core.atomic import atomic_path
 
+__all__ = [
+    "content_key",
+    "load_arrays",
+    "save_arrays",
+]
+
 
 def content_key(*parts) -> str:
-    """Hash (20 hex digits) of arrays (dtype, shape and bytes) and JSON-able values."""
+    """Hash (20 hex digits) of arrays (dtype, shape and bytes) and JSON-able values.
+
+    Parameters
+    ----------
+    *parts : ndarray or JSON-able
+        What the key depends on, in order.
+
+    Returns
+    -------
+    str
+        20 hexadecimal digits (SHA-1 prefix).
+    """
     digest = hashlib.sha1()
     for part in parts:
         if isinstance(part, np.ndarray):
@@ -44,6 +61,15 @@ def load_arrays(path: Path) -> dict[str, np.ndarray] | None:
     Large members stored uncompressed (as :func:`save_arrays` writes them) are
     memory-mapped read-only instead of read through ``zipfile`` (which checks a CRC and copies every
     byte: ~1 s of CPU for the ~200 MB of stamp plans a frame loads); the others are read.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        An ``.npz`` cache file.
+
+    Returns
+    -------
+    dict of str to ndarray, or None
     """
     try:
         with zipfile.ZipFile(path) as zf, open(path, "rb") as fh:
@@ -88,7 +114,20 @@ def _mapped_member(path: Path, fh, info: zipfile.ZipInfo) -> np.ndarray | None:
 
 
 def save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> bool:
-    """Write ``arrays`` to ``path`` atomically; False (nothing written) if the folder is not writable."""
+    """Write ``arrays`` to ``path`` atomically; False (nothing written) if the folder is not writable.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The ``.npz`` cache file.
+    arrays : dict of str to ndarray
+        What to keep.
+
+    Returns
+    -------
+    bool
+        Whether the file was written.
+    """
     try:
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **arrays)

@@ -25,6 +25,14 @@ from astropy.table import QTable
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product, write_product
 
+__all__ = [
+    "Catalogue",
+    "CATALOGUE_KIND",
+    "CATALOGUE_SPEC",
+    "read_catalogue",
+    "write_catalogue",
+]
+
 CATALOGUE_KIND = "catalogue"
 #: Values of the optional catalogue column ``kind`` (what the object is).
 OBJECT_KINDS = ("star", "white_dwarf", "neutron_star", "black_hole", "imbh")
@@ -118,6 +126,16 @@ def _validate_epoch(table, path, name):
 
 def read_catalogue(path: str | os.PathLike) -> Catalogue:
     """Read and validate a catalogue product.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``catalogue`` product.
+
+    Returns
+    -------
+    Catalogue
+        Epoch tables in time order, root attributes, the path.
 
     Raises
     ------

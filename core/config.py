@@ -23,9 +23,30 @@ import astropy.units as u
 
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "check_known_keys",
+    "from_mapping",
+    "to_mapping",
+    "unit_field",
+]
+
 
 def unit_field(default, unit: str, doc: str = ""):
-    """A dataclass field holding a float in ``unit`` (documented in metadata)."""
+    """A dataclass field holding a float in ``unit`` (documented in metadata).
+
+    Parameters
+    ----------
+    default : float or None
+        Default value, in ``unit``.
+    unit : str
+        Astropy unit string; settings given as quantities ("1.5 mas") are converted to it.
+    doc : str
+        One-line description.
+
+    Returns
+    -------
+    dataclasses.Field
+    """
     return dataclasses.field(default=default, metadata={"unit": unit, "doc": doc})
 
 
@@ -133,6 +154,17 @@ def check_known_keys(mapping: Mapping, allowed, prefix: str = "", source=None) -
     """Raise :class:`ConfigError` for the first key of ``mapping`` not in ``allowed``.
 
     The message suggests the closest allowed key ("did you mean ...?") or lists them.
+
+    Parameters
+    ----------
+    mapping : mapping
+        Settings table.
+    allowed : iterable of str
+        Known keys.
+    prefix : str
+        Dotted prefix of the table, for messages.
+    source : str, optional
+        File name, for messages.
     """
     allowed = list(allowed)
     for key in mapping:
@@ -183,7 +215,17 @@ def from_mapping(cls, mapping: Mapping | None, prefix: str = "", source=None):
 
 
 def to_mapping(obj) -> dict:
-    """Plain-dict view of a settings dataclass (for provenance and hashing)."""
+    """Plain-dict view of a settings dataclass (for provenance and hashing).
+
+    Parameters
+    ----------
+    obj : dataclass instance
+        Settings (nested dataclasses become nested dicts).
+
+    Returns
+    -------
+    dict
+    """
     return dataclasses.asdict(obj)
 
 

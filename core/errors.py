@@ -6,6 +6,12 @@ was expected. The CLI prints these messages without a traceback.
 
 from __future__ import annotations
 
+__all__ = [
+    "ConfigError",
+    "InputError",
+    "MavispmError",
+]
+
 
 class MavispmError(Exception):
     """Base class for all errors mavispm reports to its users."""

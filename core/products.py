@@ -6,14 +6,17 @@ Every file mavispm writes between stages is an HDF5 *product* with this layout
     /                    attrs: format="mavispm", kind, format_version,
                                 mavispm_version, created (ISO 8601 UTC),
                                 seed, config (JSON text), plus kind-specific attrs
-    /<table>/            a group per table (names may be nested, "epochs/e0");
+    /<table>             one compound dataset per table (names may be nested,
+                         "epochs/e0"), written by astropy's HDF5 table writer with
+                         serialize_meta, so ``astropy.table.Table.read(file,
+                         path="<table>")`` reads it with its units;
                          attrs: mavispm_table=True, nrows, table metadata
-      <column>           one 1-D dataset per column; attr "unit" (astropy string,
-                         "" for dimensionless)
+    /<table>.__table_column_meta__   astropy's column description (units, YAML)
     /<array>             n-D dataset, attr "unit"
 
 Quantities in attributes are stored as the value plus an attribute
-``<name>__unit``. Writers are atomic (temporary file, then rename); readers
+``<name>__unit``. Products of format version 1 (a group per table, one dataset
+per column with a "unit" attribute) are still read. Writers are atomic (temporary file, then rename); readers
 validate what they read against a :class:`TableSpec` and raise
 :class:`~mavispm.core.errors.InputError` naming the file and column.
 """
@@ -37,8 +40,29 @@ from astropy.table import QTable, Table
 from mavispm.core.atomic import atomic_path
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "as_table",
+    "COLUMN_META_SUFFIX",
+    "EXPORT_FORMATS",
+    "export_table",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "open_product",
+    "Product",
+    "provenance_attrs",
+    "read_product",
+    "read_table",
+    "read_table_group",
+    "TableSpec",
+    "UNIT_SUFFIX",
+    "validate_table",
+    "write_product",
+]
+
 FORMAT_NAME = "mavispm"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Suffix of the dataset in which astropy describes a table's columns (units, YAML).
+COLUMN_META_SUFFIX = ".__table_column_meta__"
 UNIT_SUFFIX = "__unit"
 
 
@@ -231,27 +255,7 @@ def write_product(
         f.attrs["kind"] = kind
         _write_attrs(f, attrs or {})
         for name, table in (tables or {}).items():
-            grp = f.create_group(name)
-            grp.attrs["mavispm_table"] = True
-            meta = dict(getattr(table, "meta", {}) or {})
-            colnames = list(table.colnames) if hasattr(table, "colnames") else list(table)
-            nrows = None
-            for cname in colnames:
-                arr, unit = _column_values(table[cname])
-                if arr.ndim != 1:
-                    raise InputError(
-                        f"table '{name}' column must be 1-D, got shape {arr.shape}", column=cname
-                    )
-                if nrows is None:
-                    nrows = len(arr)
-                elif len(arr) != nrows:
-                    raise InputError(
-                        f"table '{name}' has columns of different lengths", column=cname
-                    )
-                ds = f[name].create_dataset(cname, data=arr)
-                ds.attrs["unit"] = unit
-            grp.attrs["nrows"] = 0 if nrows is None else nrows
-            _write_attrs(grp, {k: v for k, v in meta.items() if _attr_ok(v)})
+            _write_table(f, name, table)
         for name, arr in (arrays or {}).items():
             if isinstance(arr, u.Quantity):
                 data, unit = np.asarray(arr.value), str(arr.unit)
@@ -262,12 +266,58 @@ def write_product(
     return path
 
 
+def _write_table(f: h5py.File, name: str, table) -> None:
+    """Write one table as a compound dataset astropy reads (units in its column meta)."""
+    from astropy.io.misc.hdf5 import write_table_hdf5
+
+    meta = dict(getattr(table, "meta", {}) or {})
+    colnames = list(table.colnames) if hasattr(table, "colnames") else list(table)
+    columns = {}
+    nrows = None
+    for cname in colnames:
+        arr, unit = _column_values(table[cname])
+        if arr.ndim != 1:
+            raise InputError(
+                f"table '{name}' column must be 1-D, got shape {arr.shape}", column=cname
+            )
+        if nrows is None:
+            nrows = len(arr)
+        elif len(arr) != nrows:
+            raise InputError(f"table '{name}' has columns of different lengths", column=cname)
+        columns[cname] = (arr, unit)
+    if columns:
+        out = Table()
+        for cname, (arr, unit) in columns.items():
+            out[cname] = arr
+            if unit:
+                out[cname].unit = unit
+        write_table_hdf5(out, f, path=name, serialize_meta=True)
+        obj = f[name]
+    else:  # no columns: an empty group (astropy cannot store a table without columns)
+        obj = f.create_group(name)
+    obj.attrs["mavispm_table"] = True
+    obj.attrs["nrows"] = 0 if nrows is None else nrows
+    _write_attrs(obj, {k: v for k, v in meta.items() if _attr_ok(v)})
+
+
 def _attr_ok(value) -> bool:
     return isinstance(value, (str, int, float, bool, np.generic, u.Quantity, list, tuple, dict))
 
 
 def open_product(path: str | os.PathLike, kind: str | None = None) -> h5py.File:
     """Open a product for reading after checking that it is one.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The product file.
+    kind : str, optional
+        Required product kind.
+
+    Returns
+    -------
+    h5py.File
+        Open for reading; close it (use it as a context manager).
 
     Raises
     ------
@@ -301,10 +351,11 @@ def open_product(path: str | os.PathLike, kind: str | None = None) -> h5py.File:
 
 
 def _table_groups(f: h5py.File) -> list[str]:
+    """Names of the tables of a product (compound datasets or, version 1, groups)."""
     names: list[str] = []
 
     def visit(name, obj):
-        if isinstance(obj, h5py.Group) and obj.attrs.get("mavispm_table", False):
+        if obj.attrs.get("mavispm_table", False):
             names.append(name)
 
     f.visititems(visit)
@@ -317,15 +368,62 @@ def _array_datasets(f: h5py.File) -> list[str]:
     def visit(name, obj):
         if isinstance(obj, h5py.Dataset):
             parent = obj.parent
-            if not parent.attrs.get("mavispm_table", False):
+            table_part = (
+                obj.attrs.get("mavispm_table", False)
+                or name.endswith(COLUMN_META_SUFFIX)
+                or parent.attrs.get("mavispm_table", False)
+            )
+            if not table_part:
                 names.append(name)
 
     f.visititems(visit)
     return names
 
 
-def read_table_group(grp: h5py.Group, path=None) -> QTable:
-    """Read one table group into a QTable (columns with units become Quantities)."""
+def read_table_group(obj, path=None) -> QTable:
+    """Read one table (compound dataset or, format version 1, group) into a QTable.
+
+    Columns with units become Quantities; the table's attributes become ``meta``.
+
+    Parameters
+    ----------
+    obj : h5py.Dataset or h5py.Group
+        The table.
+    path : path, optional
+        File name, for messages.
+
+    Returns
+    -------
+    QTable
+    """
+    if isinstance(obj, h5py.Dataset):
+        table = _read_astropy_table(obj, path)
+    else:
+        table = _read_column_group(obj, path)
+    table.meta.update(_read_attrs(obj))
+    table.meta.pop("nrows", None)
+    return table
+
+
+def _read_astropy_table(ds: h5py.Dataset, path=None) -> QTable:
+    from astropy.io.misc.hdf5 import read_table_hdf5
+
+    try:
+        plain = read_table_hdf5(ds.file, path=ds.name, character_as_bytes=False)
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"table '{ds.name}' cannot be read ({exc})", path=path) from None
+    table = QTable()
+    for cname in plain.colnames:
+        col = plain[cname]
+        unit = col.unit
+        if unit is not None and str(unit) != "" and col.dtype.kind in "fiu":
+            table[cname] = u.Quantity(np.asarray(col), unit, copy=False)
+        else:
+            table[cname] = np.asarray(col)
+    return table
+
+
+def _read_column_group(grp: h5py.Group, path=None) -> QTable:
     table = QTable()
     for cname, ds in grp.items():
         if not isinstance(ds, h5py.Dataset):
@@ -345,9 +443,122 @@ def read_table_group(grp: h5py.Group, path=None) -> QTable:
                 ) from None
         else:
             table[cname] = data
-    table.meta.update(_read_attrs(grp))
-    table.meta.pop("nrows", None)
     return table
+
+
+def read_table(path: str | os.PathLike, name: str | None = None, kind: str | None = None) -> QTable:
+    """One table of a product as a QTable with units, its attributes in ``meta``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A mavispm product.
+    name : str, optional
+        Table name ("stars", "truth", "epochs/e0", ...); default: the product's
+        only table, or ``stars`` when there are several.
+    kind : str, optional
+        Required product kind.
+
+    Returns
+    -------
+    QTable
+        ``meta`` holds the table's attributes and, under keys not already
+        taken, the product's root attributes (epoch, distance, ...).
+
+    Raises
+    ------
+    InputError
+        Not a product, or no table of that name (the message lists the tables).
+    """
+    path = Path(path)
+    with open_product(path, kind) as f:
+        names = _table_groups(f)
+        if name is None:
+            if len(names) == 1:
+                name = names[0]
+            elif "stars" in names:
+                name = "stars"
+            else:
+                raise InputError(f"the product has tables {names}; choose one", path=path)
+        if name not in names:
+            raise InputError(f"no table '{name}'; the product has {names}", path=path)
+        table = read_table_group(f[name], path)
+        for key, value in _read_attrs(f).items():
+            table.meta.setdefault(key, value)
+    return table
+
+
+#: Formats of :func:`export_table` by file suffix.
+EXPORT_FORMATS = {".fits": "fits", ".fit": "fits", ".ecsv": "ascii.ecsv", ".csv": "ascii.csv"}
+
+
+def export_table(
+    path: str | os.PathLike, output: str | os.PathLike, name: str | None = None
+) -> Path:
+    """Write one table of a product as FITS, ECSV or CSV (by ``output``'s suffix), atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A mavispm product.
+    output : str or os.PathLike
+        ``.fits`` (units in TUNITn, root attributes as header cards where they
+        fit), ``.ecsv`` (units and attributes in the YAML header) or ``.csv``
+        (values only).
+    name : str, optional
+        Table name (see :func:`read_table`).
+
+    Returns
+    -------
+    pathlib.Path
+        ``output``.
+
+    Raises
+    ------
+    InputError
+        An unknown suffix, a missing table.
+    """
+    output = Path(output)
+    fmt = EXPORT_FORMATS.get(output.suffix.lower())
+    if fmt is None:
+        raise InputError(
+            f"unknown table format '{output.suffix}'; expected one of {sorted(EXPORT_FORMATS)}",
+            path=output,
+        )
+    table = read_table(path, name)
+    meta = {k: _export_meta(v) for k, v in table.meta.items() if v is not None}
+    if fmt == "fits":  # as "HIERARCH MAVISPM <KEY>" cards (no clash with EPOCH, DATE ...)
+        meta = {
+            f"MAVISPM {k.upper()}": v
+            for k, v in meta.items()
+            if isinstance(v, (int, float, bool)) or (isinstance(v, str) and len(v) <= 50)
+        }
+    table.meta = meta
+    with atomic_path(output) as tmp:
+        if fmt == "fits":
+            import warnings
+
+            from astropy.io.fits.verify import VerifyWarning
+
+            with warnings.catch_warnings():  # long keys become HIERARCH cards
+                warnings.simplefilter("ignore", VerifyWarning)
+                table.write(tmp, format=fmt, overwrite=True)
+        else:
+            table.write(tmp, format=fmt, overwrite=True)
+    return output
+
+
+def _export_meta(value):
+    """A metadata value as ECSV/FITS can hold it (quantities as "value unit" text)."""
+    if isinstance(value, u.Quantity):
+        return value.value.tolist() if value.ndim else f"{value.value.item()!r} {value.unit}"
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (dict, list, tuple)):
+        return json.dumps(_jsonable(value), sort_keys=True)
+    return value
 
 
 def read_product(
@@ -525,7 +736,17 @@ def _convert_column(col, unit: str, path, cname: str, where: str):
 
 
 def as_table(obj) -> Table:
-    """Return ``obj`` as an astropy Table (accepts mappings of columns)."""
+    """Return ``obj`` as an astropy Table (accepts mappings of columns).
+
+    Parameters
+    ----------
+    obj : Table or mapping of str to array-like
+        A table, or columns by name.
+
+    Returns
+    -------
+    astropy.table.Table
+    """
     if isinstance(obj, Table):
         return obj
     return QTable(dict(obj))

@@ -243,6 +243,69 @@ def _posterior_table(fit) -> QTable:
 MIN_FIT_STARS = 10
 
 
+@dataclasses.dataclass
+class DynamicsResult:
+    """What :func:`fit_dynamics` returns: the ``dynamics`` product in memory.
+
+    Attributes
+    ----------
+    tables : dict of str to QTable
+        ``profile``, ``summary``, ``posterior_<model>``, ... (docs/formats.md).
+    attrs : dict
+        Root attributes: model comparison, ``bh_mass_median`` ... [solMass], convergence.
+    """
+
+    tables: dict
+    attrs: dict
+
+    @property
+    def profile(self) -> QTable:
+        """Binned dispersion profile (radius [arcsec], dispersions [mas/yr])."""
+        return self.tables["profile"]
+
+    @property
+    def summary(self) -> QTable:
+        """Posterior summary per model and parameter."""
+        return self.tables["summary"]
+
+
+def fit_dynamics(propermotions: QTable, settings=None, seed: int = 0, **kwargs) -> DynamicsResult:
+    """The dynamics stage on a proper-motion table in memory.
+
+    The table (``meta`` = the product's root attributes, as
+    :func:`mavispm.proper_motions` returns it) goes through :func:`run_stage` in a
+    temporary folder, so the result is exactly the stage's product.
+
+    Parameters
+    ----------
+    propermotions : QTable
+        The ``stars`` table of a ``propermotions`` product; ``meta["distance"]``
+        [kpc] unless ``settings.distance`` is set.
+    settings : mapping or DynamicsSettings, optional
+        See :class:`~mavispm.dynamics.settings.DynamicsSettings`.
+    seed : int
+        Seed of the samplers and the bootstrap.
+    **kwargs
+        Passed to :func:`run_stage` (``truth``, ``truth_no_imbh``, ...).
+
+    Returns
+    -------
+    DynamicsResult
+    """
+    import tempfile
+
+    table = propermotions.copy(copy_data=False)
+    attrs = dict(table.meta)
+    table.meta.clear()
+    with tempfile.TemporaryDirectory() as tmp:
+        pm = write_product(
+            Path(tmp) / "pm.h5", "propermotions", tables={"stars": table}, attrs=attrs
+        )
+        out = run_stage(pm, settings, Path(tmp) / "dynamics.h5", seed, **kwargs)
+        prod = read_product(out, "dynamics")
+    return DynamicsResult(tables=prod.tables, attrs=prod.attrs)
+
+
 def run_stage(
     propermotions,
     settings,

@@ -51,11 +51,20 @@ def inputs(tmp_path_factory) -> Path:
     shutil.copy(cat, root / "nan.h5")
     with h5py.File(root / "nan.h5", "r+") as f:
         for _name, obj in _datasets(f):
-            if obj.dtype.kind == "f" and obj.size:
-                values = obj[()]
+            if not obj.size:
+                continue
+            values = obj[()]
+            if obj.dtype.kind == "f":
                 values.flat[0] = np.nan
                 values.flat[-1] = np.inf
-                obj[...] = values
+            elif obj.dtype.names:  # a table (compound dataset): every float column
+                for field in obj.dtype.names:
+                    if obj.dtype[field].kind == "f":
+                        values[field][0] = np.nan
+                        values[field][-1] = np.inf
+            else:
+                continue
+            obj[...] = values
     (root / "empty.toml").write_text("")
     (root / "text.toml").write_text("this = is = not toml\n[[[\n")
     (root / "binary.toml").write_bytes(b"\xff\xfe\x00junk" * 50)

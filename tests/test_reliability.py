@@ -471,22 +471,21 @@ def small_catalogue(tmp_path_factory):
 
 
 def _edited_catalogue(src, dst, column, func):
-    import shutil
+    import numpy as np
 
-    import h5py
+    from mavispm.core.products import read_product, write_product
 
-    shutil.copy(src, dst)
-    os.chmod(dst, 0o644)
-    with h5py.File(dst, "r+") as f:
-        hits = []
-        f.visititems(
-            lambda n, o: (
-                hits.append(o) if isinstance(o, h5py.Dataset) and n.endswith(column) else None
-            )
-        )
-        assert hits, column
-        for ds in hits:
-            ds[...] = func(ds[()])
+    prod = read_product(src)  # tables are compound datasets: edit them as tables
+    hits = []
+    for table in prod.tables.values():
+        if column in table.colnames:
+            col = table[column]
+            unit = getattr(col, "unit", None)
+            values = func(np.array(getattr(col, "value", col), dtype=float))
+            table[column] = values if unit is None else values * unit
+            hits.append(table)
+    assert hits, column
+    write_product(dst, prod.kind, tables=prod.tables, arrays=prod.arrays, attrs=prod.attrs)
     return dst
 
 

@@ -37,7 +37,7 @@ def test_isolated_star_flux_and_truth(optics):
     assert frame.truth["flux"].to_value(u.electron)[0] == pytest.approx(flux)
     assert _stars_only(frame, scene).sum() == pytest.approx(flux, rel=1e-4)
     assert frame.truth["x_pix"][0] == pytest.approx(0.0123 / 0.0075 + 31.5)
-    assert frame.image.dtype == np.float32
+    assert frame.adu.dtype == np.float32
 
 
 def test_halo_conserves_flux_when_inside_the_frame():
@@ -113,8 +113,8 @@ def test_extreme_fluxes_coincident_stars_and_empty(optics):
     )
     frame = render_frame(epoch_table([0.0], [0.0], [mag_1e10]), 0 * u.yr, scene, optics, rng())
     assert frame.saturated[31:33, 31:33].all()
-    assert np.isfinite(frame.image).all()
-    assert frame.image.max() == pytest.approx(2 * 65535.0)
+    assert np.isfinite(frame.adu).all()
+    assert frame.adu.max() == pytest.approx(2 * 65535.0)
     # a star too faint to matter and an empty catalogue give sky-only frames
     for t in (epoch_table([0.0], [0.0], [60.0]), epoch_table([], [], [])):
         f = render_frame(t, 0 * u.yr, scene, optics, rng())
@@ -191,7 +191,19 @@ def test_run_stage_writes_frames_product_and_fits(tmp_path, catalogue, fake_opti
     with fits.open(tmp_path / "f.fits") as hdul:
         hdr = hdul[0].header
         assert hdr["NCOMBINE"] == 3 and hdr["PIXSCALE"] == pytest.approx(0.0075)
-        assert hdr["EPOCH"] == 10.0
+        assert "EPOCH" not in hdr and hdr["EQUINOX"] == 2000.0 and hdr["RADESYS"] == "ICRS"
+        assert hdr["MVEPOCH"] == 10.0 and hdr["EXPTIME"] == pytest.approx(3 * 30.0)
+        assert hdr["TELESCOP"] == "ESO-VLT-U4" and hdr["INSTRUME"] == "MAVIS"
+        for key in ("FILTER", "OBJECT", "DATE", "ORIGIN"):
+            assert hdr[key]
+        # DATE-OBS and MJD-OBS: 10 Julian years after epoch zero
+        assert hdr["MJD-OBS"] == pytest.approx(62502.0 + 3652.5)  # MJD 62502 = 2030-01-01
+        assert hdr["DATE-OBS"] == "2040-01-01T12:00:00"
+        # the saturation mask carries the same WCS
+        mask_wcs = WCS(hdul["SATURATED"].header)
+        np.testing.assert_allclose(
+            mask_wcs.wcs_pix2world([[3.0, 7.0]], 0), WCS(hdr).wcs_pix2world([[3.0, 7.0]], 0)
+        )
         np.testing.assert_array_equal(hdul[0].data, prod.arrays["image"].value)
         wcs = WCS(hdr)
         ra, dec = wcs.wcs_pix2world([[31.5, 31.5]], 0)[0]
@@ -212,13 +224,14 @@ def test_bad_inputs_give_clear_errors_and_no_file(tmp_path, catalogue, fake_opti
     with pytest.raises(InputError, match="e7"):
         render_cli.run_stage(catalogue, "e7", SCENE, tmp_path / "x.h5", 1)
     nomag = tmp_path / "nomag.h5"
-    import shutil
+    from mavispm.core.products import read_product, write_product
 
-    import h5py
-
-    shutil.copy(catalogue, nomag)
-    with h5py.File(nomag, "a") as f:
-        del f["epochs/e0/mag"]
+    prod = read_product(catalogue, "catalogue")
+    tables = dict(prod.tables)
+    tables["epochs/e0"] = tables["epochs/e0"][
+        [c for c in tables["epochs/e0"].colnames if c != "mag"]
+    ]
+    write_product(nomag, "catalogue", tables=tables, attrs=prod.attrs)
     with pytest.raises(InputError, match="mag"):
         render_cli.run_stage(nomag, "e0", SCENE, tmp_path / "y.h5", 1)
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "y.h5").exists()
@@ -267,7 +280,7 @@ def test_sky_only_frame_variance_is_mean_plus_read_noise(optics):
             {"nexp": nexp, "detector": {"nx": 300, "ny": 300, "gain": gain, "read_noise": 3.0}}
         )
         frame = render_frame(epoch_table([], [], []), 0 * u.yr, scene, optics, rng())
-        e = frame.image.astype(float) * gain
+        e = frame.adu.astype(float) * gain
         sky = frame.attrs["sky"].to_value(u.electron)
         var = sky + nexp * 9.0
         assert e.mean() == pytest.approx(sky, abs=5 * np.sqrt(var / e.size))

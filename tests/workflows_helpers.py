@@ -23,6 +23,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -113,6 +114,8 @@ def _hooks(stage: str, detail: str, outdir: Path) -> None:
     if log:
         with open(log, "a") as fh:
             fh.write(f"{stage} {detail}\n")
+    if os.environ.get("WF_TEST_WARN") == stage:
+        warnings.warn(f"injected warning in {stage}", UserWarning, stacklevel=2)
     if os.environ.get("WF_TEST_FAIL") == stage:
         raise RuntimeError(f"injected failure in {stage}")
     if os.environ.get("WF_TEST_KILL") == stage:
@@ -229,7 +232,7 @@ def run_frames(inputs, settings, params, seed, outdir):
 
         with atomic_path(outdir / "frames.fits") as tmp:
             hdr = fits.Header(
-                {"EPOCH": float(attrs["epoch"].value), "PIXSCALE": s.pixel_scale / 1000}
+                {"MVEPOCH": float(attrs["epoch"].value), "PIXSCALE": s.pixel_scale / 1000}
             )
             fits.PrimaryHDU(image, header=hdr).writeto(tmp, output_verify="silentfix")
         products["fits"] = outdir / "frames.fits"

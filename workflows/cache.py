@@ -80,6 +80,33 @@ def file_digest(path: str | os.PathLike) -> str:
     return _DIGESTS[memo]
 
 
+def without_keys(settings: Mapping, dotted: tuple[str, ...]) -> dict:
+    """A copy of a nested settings mapping without the ``dotted`` keys ("render.threads").
+
+    Parameters
+    ----------
+    settings : mapping
+        A TOML table (nested mappings).
+    dotted : tuple of str
+        Keys to drop, sub-tables separated by dots.
+
+    Returns
+    -------
+    dict
+    """
+    out = dict(settings or {})
+    for key in dotted:
+        head, _, rest = key.partition(".")
+        if head not in out:
+            continue
+        if rest:
+            if isinstance(out[head], Mapping):
+                out[head] = without_keys(out[head], (rest,))
+        else:
+            del out[head]
+    return out
+
+
 def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, str]:
     """Key of every node (``nodes`` in topological order).
 
@@ -95,10 +122,11 @@ def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, s
             inputs[name] = [keys[r] for r in ref] if isinstance(ref, list) else keys[ref]
         for name, path in node.external.items():
             inputs[name] = "file:" + file_digest(path)
+        spec = registry[node.stage]
         record = {
             "stage": node.stage,
-            "code": registry[node.stage].code_version(),
-            "settings": node.settings,
+            "code": spec.code_version(),
+            "settings": without_keys(node.settings, spec.ui_keys),
             "params": node.params,
             "seed": node.seed,
             "inputs": inputs,

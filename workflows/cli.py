@@ -31,6 +31,7 @@ COMMAND_MODULES: list[tuple[str | None, str]] = [
     (None, "mavispm.dynamics.fast_stars_cli"),
     (None, "mavispm.workflows.runner_cli"),
     (None, "mavispm.workflows.cache_cli"),
+    (None, "mavispm.workflows.export_cli"),
 ]
 
 #: The command each module registers, by (group, name): running one command imports only
@@ -48,6 +49,7 @@ COMMANDS: dict[tuple[str | None, str], str] = {
     (None, "run"): "mavispm.workflows.runner_cli",
     (None, "report"): "mavispm.workflows.runner_cli",
     (None, "cache"): "mavispm.workflows.cache_cli",
+    (None, "export"): "mavispm.workflows.export_cli",
 }
 
 GROUP_HELP = {

@@ -71,12 +71,18 @@ class StageSpec:
         ``"module:function"`` writing the stage's accuracy report.
     code : tuple of str
         Glob patterns, relative to the package root, of the source files whose
-        content is part of every task key (editing them invalidates the cache).
+        content is part of every task key (editing them invalidates the cache);
+        a pattern starting with ``!`` removes the files it matches (for example
+        plotting code that no product depends on).
     version : str
         Extra version string folded into every task key.
     exclusive : bool
         Run at most one task of this stage at a time per process (for stages that
         are not thread-safe, such as those drawing with matplotlib's pyplot).
+    ui_keys : tuple of str
+        Dotted settings keys that change neither the results nor the products'
+        data (progress bars, thread counts); they are left out of the task key,
+        so toggling them reuses the cached products.
     """
 
     name: str
@@ -87,10 +93,35 @@ class StageSpec:
     code: tuple[str, ...] = ()
     version: str = ""
     exclusive: bool = False
+    ui_keys: tuple[str, ...] = ()
 
     def code_version(self) -> str:
         """Digest of the package version, ``version`` and the ``code`` files."""
         return _code_digest(self.code, self.version)
+
+
+def code_files(patterns: Iterable[str]) -> list[Path]:
+    """Source files matched by ``patterns`` (globs under the package root; ``!`` excludes).
+
+    Parameters
+    ----------
+    patterns : iterable of str
+        Glob patterns relative to the package root; one starting with ``!`` removes
+        the files it matches.
+
+    Returns
+    -------
+    list of pathlib.Path
+        Sorted absolute paths.
+    """
+
+    def matches(pattern):
+        return {p for p in PACKAGE_ROOT.glob(pattern) if p.is_file()}
+
+    patterns = tuple(patterns)
+    files = set().union(*(matches(pat) for pat in patterns if not pat.startswith("!")))
+    files -= set().union(*(matches(pat[1:]) for pat in patterns if pat.startswith("!")))
+    return sorted(files)
 
 
 @lru_cache(maxsize=64)
@@ -98,8 +129,8 @@ def _code_digest(patterns: tuple[str, ...], version: str) -> str:
     from mavispm import __version__
 
     h = hashlib.sha256(f"{__version__}|{version}".encode())
-    files = sorted({p for pat in patterns for p in PACKAGE_ROOT.glob(pat) if p.is_file()})
-    for path in files:
+
+    for path in code_files(patterns):
         h.update(str(path.relative_to(PACKAGE_ROOT)).encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:16]

@@ -41,10 +41,30 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
+from astropy.stats import mad_std
 
 from mavispm.core.atomic import atomic_path
 from mavispm.core.errors import InputError, MavispmError
 from mavispm.core.paths import NAME_PATTERN, contained
+
+__all__ = [
+    "astrometry_by_magnitude",
+    "BAD_FLAGS",
+    "bin_label",
+    "clipped_dispersion",
+    "dispersion_profile",
+    "dispersion_profiles",
+    "KEY_DYNAMICS_METRICS",
+    "model_comparison",
+    "panel_title",
+    "PAPER_BINS",
+    "pm_accuracy",
+    "read_summary",
+    "RECIPE_TITLES",
+    "RECIPES",
+    "warnings_section",
+    "write_report",
+]
 
 #: Magnitude bins of the paper's tab:simresults (lower, upper).
 PAPER_BINS = (
@@ -67,6 +87,16 @@ def read_summary(rundir: str | os.PathLike) -> dict:
 
     The file is data: its structure is checked (:func:`check_summary`) and
     nothing in it is ever imported or executed.
+
+    Parameters
+    ----------
+    rundir : str or os.PathLike
+        A run directory.
+
+    Returns
+    -------
+    dict
+        The parsed ``summary.json``.
 
     Raises
     ------
@@ -137,7 +167,17 @@ def check_summary(summary, path) -> None:
 
 
 def bin_label(lo: float, hi: float) -> str:
-    """Magnitude-bin label in the paper's style (``m<16``, ``[16,17)``, ``m>=26``)."""
+    """Magnitude-bin label in the paper's style (``m<16``, ``[16,17)``, ``m>=26``).
+
+    Parameters
+    ----------
+    lo, hi : float
+        Bin edges [mag] (infinite for open bins).
+
+    Returns
+    -------
+    str
+    """
     if math.isinf(lo):
         return f"m<{hi:g}"
     if math.isinf(hi):
@@ -148,23 +188,30 @@ def bin_label(lo: float, hi: float) -> str:
 def clipped_dispersion(
     values: np.ndarray, sigma: float = 2.0, iterations: int = 3
 ) -> tuple[float, int]:
-    """Standard deviation after ``iterations`` rounds of ``sigma`` clipping about the mean.
+    """Standard deviation after ``iterations`` rounds of ``sigma`` clipping about the mean
+    (:func:`astropy.stats.sigma_clip`, the paper's tab:simresults statistic).
+
+    Parameters
+    ----------
+    values : ndarray
+        Values (any unit; non-finite ones are dropped).
+    sigma : float
+        Clipping threshold [standard deviations].
+    iterations : int
+        Maximum clipping rounds.
 
     Returns
     -------
     (float, int)
         Dispersion (NaN for fewer than 2 values) and the number of values kept.
     """
+    from astropy.stats import sigma_clip
+
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
-    for _ in range(iterations):
-        if v.size < 2:
-            break
-        mean, std = v.mean(), v.std()
-        kept = v[(v >= mean - sigma * std) & (v <= mean + sigma * std)]
-        if kept.size == v.size:
-            break
-        v = kept
+    if v.size >= 2:
+        v = sigma_clip(v, sigma=sigma, maxiters=iterations, cenfunc="mean", stdfunc="std")
+        v = v.compressed()
     return (float(v.std()) if v.size >= 2 else math.nan), int(v.size)
 
 
@@ -175,6 +222,28 @@ def _nodes(summary: Mapping, stage: str) -> list[dict]:
 def _variant_label(node: Mapping) -> str:
     lab = node["labels"]
     return " ".join(p for p in (lab.get("study"), lab.get("point")) if p) or "-"
+
+
+def panel_title(node: Mapping, keys=("study", "point", "scene", "epoch")) -> str:
+    """A node's labels spelled out for a plot title or legend.
+
+    Parameters
+    ----------
+    node : mapping
+        A node of ``summary.json`` (its ``labels``: study, point, scene, epoch).
+    keys : tuple of str
+        Labels to name, in order.
+
+    Returns
+    -------
+    str
+        For example "study imbh, mass=1500, scene main, epoch e1" (labels absent
+        from the node are left out).
+    """
+    lab = node["labels"]
+    names = {"study": "study", "point": "", "scene": "scene", "epoch": "epoch"}
+    parts = [f"{names[k]} {lab[k]}".strip() for k in keys if lab.get(k)]
+    return ", ".join(parts) or "run"
 
 
 def _read_table(path: Path, kind: str, table: str):
@@ -214,7 +283,22 @@ def _rel(path: Path, rundir: Path) -> str:
 
 
 def astrometry_by_magnitude(summary: Mapping, rundir: Path, outdir: Path) -> str:
-    """Recipe: the paper's per-magnitude astrometric dispersion table (tab:simresults)."""
+    """Recipe: the paper's per-magnitude astrometric dispersion table (tab:simresults).
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     import matplotlib.pyplot as plt
 
     nodes = _nodes(summary, "stars")
@@ -249,13 +333,9 @@ def astrometry_by_magnitude(summary: Mapping, rundir: Path, outdir: Path) -> str
         csv_rows.append(
             [_variant_label(node), lab.get("scene", ""), lab.get("epoch", ""), *csv, *frac]
         )
-        _residual_panel(
-            ax,
-            mag[good],
-            dx[good],
-            " ".join(filter(None, (lab.get(k) for k in ("study", "point", "scene", "epoch")))),
-        )
-    axes[-1, 0].set_xlabel("V [mag] (truth)")
+        _residual_panel(ax, mag[good], dx[good], panel_title(node))
+    axes[-1, 0].set_xlabel("V (input) [mag]")
+    fig.suptitle("Astrometric residuals against magnitude, per scene and epoch", fontsize=10)
     fig.tight_layout()
     png = _save(fig, outdir / "astrometry_by_magnitude.png")
     csv_header = ["variant", "scene", "epoch"]
@@ -320,7 +400,7 @@ def _recovered(frames_node, rundir: Path, measured_mag: np.ndarray) -> list[floa
 
 
 def _residual_panel(ax, mag, dx, title):
-    ax.plot(mag, dx, ".", ms=2, color="tab:pink", alpha=0.6)
+    ax.plot(mag, dx, ".", ms=2, color="tab:pink", alpha=0.6, label="stars")
     edges = np.arange(
         math.floor(np.nanmin(mag, initial=14)), math.ceil(np.nanmax(mag, initial=27)) + 1
     )
@@ -331,15 +411,38 @@ def _residual_panel(ax, mag, dx, title):
         if kept >= 2:
             centres.append(lo + 0.5)
             disps.append(disp)
-    ax.errorbar(centres, np.zeros(len(centres)), yerr=disps, fmt="k_", capsize=3)
+    ax.errorbar(
+        centres,
+        np.zeros(len(centres)),
+        yerr=disps,
+        fmt="k_",
+        capsize=3,
+        label="clipped 1-sigma per magnitude",
+    )
     lim = 3 * np.nanmax(disps) if disps else 1000.0
     ax.set_ylim(-lim, lim)
-    ax.set_ylabel("dx [uas]")
+    ax.set_ylabel("x measured - input [uas]")
     ax.set_title(title, fontsize=8)
+    ax.legend(fontsize=6, loc="upper left")
 
 
 def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
-    """Recipe: proper-motion error against magnitude and radius, per variant."""
+    """Recipe: proper-motion error against magnitude and radius, per variant.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     import matplotlib.pyplot as plt
 
     nodes = _nodes(summary, "propermotions")
@@ -382,7 +485,7 @@ def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
             n = int(np.count_nonzero(sel))
             if n == 0:
                 continue
-            rms = 1.4826 * float(np.median(np.abs(d[sel] - np.median(d[sel]))))
+            rms = float(mad_std(d[sel]))
             f50 = float(np.mean(np.abs(d[sel]) < 50))
             f150 = float(np.mean(np.abs(d[sel]) < 150))
             name = "all" if (math.isinf(lo) and math.isinf(hi)) else bin_label(lo, hi)
@@ -390,14 +493,23 @@ def pm_accuracy(summary: Mapping, rundir: Path, outdir: Path) -> str:
                 [label, scene, name, n, f"{rms:.1f}", f"{100 * f50:.0f}%", f"{100 * f150:.0f}%"]
             )
             csv_rows.append([label, scene, name, n, rms, f50, f150])
-        for ax, xval, xlabel in ((ax_m, mag, "V [mag]"), (ax_r, radius, "R [arcsec]")):
-            ax.plot(xval[good], d[good], ".", ms=2, color="0.5")
+        xaxes = ((ax_m, mag, "V (input) [mag]"), (ax_r, radius, "R from the centre [arcsec]"))
+        for ax, xval, xlabel in xaxes:
             ok50 = good & (np.abs(d) < 50)
+            ax.plot(
+                xval[good & ~ok50], d[good & ~ok50], ".", ms=2, color="0.5", label=">= 50 uas/yr"
+            )
             ax.plot(xval[ok50], d[ok50], ".", ms=2, color="purple", label="< 50 uas/yr")
             ax.set_xlabel(xlabel)
-            ax.set_ylabel("dpm_x [uas/yr]")
+            ax.set_ylabel("pm_x measured - true [uas/yr]")
             ax.set_ylim(-500, 500)
-        ax_m.set_title(f"{label} {scene}", fontsize=8)
+            ax.legend(fontsize=6, loc="upper left", title="|error|", title_fontsize=6)
+        ax_m.set_title(panel_title(node, ("study", "point", "scene")), fontsize=8)
+        ax_r.set_title(panel_title(node, ("study", "point", "scene")), fontsize=8)
+    fig.suptitle(
+        "Proper-motion error (x) against magnitude and radius, median offset removed",
+        fontsize=10,
+    )
     fig.tight_layout()
     png = _save(fig, outdir / "pm_accuracy.png")
     _write_csv(
@@ -453,7 +565,24 @@ def dispersion_profile(radius: np.ndarray, pm_x: np.ndarray, pm_y: np.ndarray, p
 
 
 def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: int = 300) -> str:
-    """Recipe: measured and true PM dispersion profiles of every study (fig:imbhresults)."""
+    """Recipe: measured and true PM dispersion profiles of every study (fig:imbhresults).
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+    per_bin : int
+        Stars per radial bin.
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     import matplotlib.pyplot as plt
 
     nodes = _nodes(summary, "propermotions")
@@ -467,7 +596,7 @@ def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: i
         radius = _q(stars, "R", "arcsec")
         n = len(stars)
         nb = per_bin if n >= 2 * per_bin else max(10, n // 5)
-        label = f"{_variant_label(node)} {node['labels'].get('scene', '')}".strip()
+        label = panel_title(node, ("study", "point", "scene"))
         c = colours[i % len(colours)]
         r, s, e = dispersion_profile(
             radius, _q(stars, "pm_x", "mas/yr"), _q(stars, "pm_y", "mas/yr"), nb
@@ -482,8 +611,9 @@ def dispersion_profiles(summary: Mapping, rundir: Path, outdir: Path, per_bin: i
             ax.fill_between(r, s - e, s + e, color=c, alpha=0.25, label=f"{label} truth")
             for j in range(r.size):
                 rows.append([label, "truth", f"{r[j]:.2f}", f"{s[j]:.4f}", f"{e[j]:.4f}"])
-    ax.set_xlabel("R [arcsec]")
+    ax.set_xlabel("R from the centre [arcsec]")
     ax.set_ylabel("1-D PM dispersion [mas/yr]")
+    ax.set_title("Proper-motion dispersion profiles (errors not deconvolved)", fontsize=10)
     ax.legend(fontsize=7)
     fig.tight_layout()
     png = _save(fig, outdir / "dispersion_profiles.png")
@@ -522,6 +652,20 @@ def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
 
     One column per fit, one row per result (the key results of
     :data:`KEY_DYNAMICS_METRICS`); every scalar result goes to ``model_comparison.csv``.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
     """
     nodes = _nodes(summary, "dynamics")
     if not nodes:
@@ -878,10 +1022,39 @@ def write_report(rundir: str | os.PathLike, reports: Mapping[str, str] | None = 
         reports = stage_report_functions()
     names = [s for s in stage_report_names(summary, rundir / "summary.json") if s in reports]
     parts += _stage_reports(summary, rundir, outdir, {s: reports[s] for s in names})
+    parts.append(warnings_section(summary))
     path = rundir / "report.md"
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(parts))
     return path
+
+
+def warnings_section(summary: Mapping) -> str:
+    """The warnings the libraries raised while each node ran (from the node records).
+
+    Parameters
+    ----------
+    summary : mapping
+        A run's ``summary.json``.
+
+    Returns
+    -------
+    str
+        A Markdown section: one row per distinct warning with the nodes that raised it,
+        or a line saying there were none.
+    """
+    nodes_of: dict[str, list[str]] = {}
+    for node in summary["nodes"]:
+        for text in node.get("warnings", []):
+            nodes_of.setdefault(text, []).append(node["id"])
+    head = "\n## Warnings raised while the nodes ran\n\n"
+    if not nodes_of:
+        return head + "None.\n"
+    rows = []
+    for text, ids in nodes_of.items():
+        shown = ", ".join(ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
+        rows.append([text.replace("|", "\\|"), shown])
+    return head + _md_table(["warning", "nodes"], rows)
 
 
 def _safe(func, *args) -> str:

@@ -21,22 +21,27 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import logging
 import os
 import shutil
 import threading
 import time
 import traceback
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from mavispm.core.errors import ConfigError, MavispmError
 from mavispm.core.paths import check_name, contained
+from mavispm.workflows import node_warnings
 from mavispm.workflows.cache import Store, canonical_json, exclusive_lock, node_keys
 from mavispm.workflows.config import Workflow, load_workflow
 from mavispm.workflows.executors import make_executor
 from mavispm.workflows.graph import Node, expand
-from mavispm.workflows.registry import STAGE_NAMES, StageRegistry, StageSpec, resolve
+from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
+
+log = logging.getLogger(__name__)
 
 DEFAULT_WORKDIR = "mavispm-work"
 
@@ -117,7 +122,7 @@ def _run_in(outdir: Path, task: Task) -> dict:
     interrupted = _begin_attempt(outdir)
     try:
         run = resolve(task.stage.run)
-        with lock:
+        with lock, node_warnings.capture() as caught:
             products = run(inputs, dict(task.settings), dict(task.params), task.seed, outdir)
         rel = _relative_products(products, outdir, task)
         (outdir / RUNNING).unlink(missing_ok=True)
@@ -143,6 +148,7 @@ def _run_in(outdir: Path, task: Task) -> dict:
         "params": task.params,
         "finished": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "interrupted_attempts": interrupted,
+        "warnings": list(caught),
     }
 
 
@@ -241,7 +247,8 @@ def run_workflow(
     workers : int, optional
         Local pool size (default: ``[workflow] workers``, 0 = all CPUs).
     progress : bool
-        Show one progress bar per stage.
+        Show one progress bar per stage, each started when the stage's first task
+        starts (the command line shows them only on a terminal).
 
     Returns
     -------
@@ -273,7 +280,9 @@ def run_workflow(
         workflow.meta.workers if workers is None else workers,
     )
     start = time.perf_counter()
-    with executor:
+    with executor, warnings.catch_warnings():
+        warnings.simplefilter("always")  # every node records its own warnings
+        node_warnings.install()
         records, ran_keys, failures = _execute(
             nodes, keys, store, registry, executor, force, progress
         )
@@ -375,21 +384,24 @@ def _execute(nodes, keys, store: Store, registry, executor, force: bool, progres
             rec = store.lookup(n.stage, k)
             if rec is not None:
                 records[k] = rec
-    stages = [s for s in STAGE_NAMES if any(n.stage == s for n in by_key.values())]
-    stages += sorted({n.stage for n in by_key.values()} - set(stages))
-    bars = {}
-    for i, s in enumerate(stages):
-        total = sum(1 for n in by_key.values() if n.stage == s)
-        done = sum(1 for k, n in by_key.items() if n.stage == s and k in records)
-        bars[s] = tqdm(
-            total=total,
-            initial=done,
-            desc=f"{s:>13}",
-            unit="task",
-            position=i,
-            leave=True,
-            disable=not progress,
-        )
+    bars: dict = {}
+
+    def bar(stage: str):
+        """The stage's progress bar, started when its first task starts (terminal only)."""
+        if stage not in bars:
+            total = sum(1 for n in by_key.values() if n.stage == stage)
+            done = sum(1 for k, n in by_key.items() if n.stage == stage and k in records)
+            bars[stage] = tqdm(
+                total=total,
+                initial=done,
+                desc=f"{stage:>13}",
+                unit="task",
+                position=len(bars),
+                leave=True,
+                disable=not progress,
+            )
+        return bars[stage]
+
     todo = [k for k in by_key if k not in records]
     failures: dict[str, str] = {}
     blocked: set[str] = set()
@@ -404,6 +416,7 @@ def _execute(nodes, keys, store: Store, registry, executor, force: bool, progres
                 elif deps[k] <= set(records):
                     node = by_key[k]
                     task = _task(node, k, nodes, keys, records, store, registry)
+                    bar(node.stage)
                     running[executor.submit(execute_task, task)] = k
                     todo.remove(k)
             if not running:
@@ -415,13 +428,17 @@ def _execute(nodes, keys, store: Store, registry, executor, force: bool, progres
                 try:
                     records[k] = executor.outcome(fut)
                     ran.add(k)
+                    log.info("%s: done in %.1f s", node.id, records[k]["wall_s"])
+                    for text in records[k].get("warnings", []):
+                        log.debug("%s: %s", node.id, text)
                 except Exception as exc:  # recorded, dependants skipped, others continue
                     failures[k] = (
                         str(exc)
                         if isinstance(exc, MavispmError)
                         else f"{node.id}: {type(exc).__name__}: {exc}"
                     )
-                bars[node.stage].update(1)
+                    log.warning("failed: %s", failures[k])
+                bar(node.stage).update(1)
     finally:
         for bar in bars.values():
             bar.close()
@@ -477,6 +494,7 @@ def _summary(
                 name: f"products/{nid}/{Path(rel).name}" for name, rel in rec["products"].items()
             },
             "metrics": {} if rec is None else rec.get("metrics", {}),
+            "warnings": [] if rec is None else rec.get("warnings", []),
             "labels": node.labels,
             "sweep": node.sweep,
             "seed": node.seed,

@@ -3,14 +3,29 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
+import sys
 from pathlib import Path
 
 from mavispm.core.cliargs import non_negative_int
 from mavispm.workflows.runner import DEFAULT_WORKDIR
 
+__all__ = [
+    "configure_logging",
+    "parse_overrides",
+    "register",
+]
+
 
 def register(subparsers) -> None:
-    """Add the ``run`` and ``report`` commands to the top-level sub-parsers."""
+    """Add the ``run`` and ``report`` commands to the top-level sub-parsers.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     run = subparsers.add_parser(
         "run",
         help="run a workflow file (cached, resumable)",
@@ -54,7 +69,17 @@ def register(subparsers) -> None:
         action="store_true",
         help="validate and list the nodes (cached / to run); run nothing",
     )
-    run.add_argument("--quiet", action="store_true", help="no progress bars")
+    noise = run.add_mutually_exclusive_group()
+    noise.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress bars and no per-stage summary; only errors and the run directory",
+    )
+    noise.add_argument(
+        "--verbose",
+        action="store_true",
+        help="log every node as it finishes, with the warnings it raised",
+    )
     run.set_defaults(func=_run)
 
     report = subparsers.add_parser(
@@ -69,6 +94,16 @@ def register(subparsers) -> None:
 
 def parse_overrides(items: list[str]) -> dict:
     """``KEY=VALUE`` strings to a dict; values are TOML literals, else plain strings.
+
+    Parameters
+    ----------
+    items : list of str
+        ``--set`` arguments.
+
+    Returns
+    -------
+    dict
+        Dotted key to value.
 
     Raises
     ------
@@ -109,26 +144,70 @@ def _run(args: argparse.Namespace) -> int:
             f"identical node, {count['cached']} cached (nothing was run)"
         )
         return 0
-    result = run_workflow(
-        workflow,
-        registry=registry,
-        workdir=args.workdir,
-        scheduler=args.scheduler,
-        force=args.force,
-        workers=args.workers,
-        progress=not args.quiet,
-    )
-    stages = result.summary["stages"]
+    configure_logging(quiet=args.quiet, verbose=args.verbose)
+    progress = not args.quiet and sys.stderr.isatty()
+    redirect = contextlib.nullcontext()
+    if progress:  # log lines above the bars instead of through them
+        from tqdm.contrib.logging import logging_redirect_tqdm
+
+        redirect = logging_redirect_tqdm(loggers=[logging.getLogger("mavispm")])
+    with redirect:
+        result = run_workflow(
+            workflow,
+            registry=registry,
+            workdir=args.workdir,
+            scheduler=args.scheduler,
+            force=args.force,
+            workers=args.workers,
+            progress=progress,
+        )
     print(f"run directory: {result.rundir}")
-    for name, st in stages.items():
+    if args.quiet:
+        return 0
+    for name, st in result.summary["stages"].items():
         print(f"  {name:>13}: {st['ran']} ran, {st['cached']} cached, {st['wall_s']:.1f} s")
     lost = result.summary.get("interrupted_tasks") or []
     if lost:
         print(f"  {len(lost)} task(s) redone after an attempt died (killed run or lost worker)")
+    n_warn = sum(len(n.get("warnings", [])) for n in result.summary["nodes"])
     print(
         f"  total wall time {result.summary['wall_s']:.1f} s; report: {result.rundir / 'report.md'}"
+        + (
+            f"; {n_warn} library warning(s) recorded in summary.json and the report"
+            if n_warn
+            else ""
+        )
     )
     return 0
+
+
+def configure_logging(quiet: bool = False, verbose: bool = False) -> None:
+    """Send the ``mavispm`` loggers to stderr: errors only (``quiet``), warnings
+    (default) or every finished node with its warnings (``verbose``).
+
+    Parameters
+    ----------
+    quiet, verbose : bool
+        The ``--quiet`` and ``--verbose`` options.
+    """
+    logger = logging.getLogger("mavispm")
+    logger.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("mavispm: %(message)s"))
+        logger.addHandler(handler)
+
+
+class _StderrHandler(logging.StreamHandler):
+    """A stream handler writing to whatever ``sys.stderr`` is when a record comes."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):  # StreamHandler.__init__ sets it; the property wins
+        pass
 
 
 def _report(args: argparse.Namespace) -> int:

@@ -4,6 +4,27 @@ Each adapter turns the runner's uniform call
 ``run(inputs, settings, params, seed, outdir) -> {"main": path, ...}`` into the
 stage's documented ``run_stage`` signature, and :func:`product_metrics` reads a
 finished product's scalar attributes for summaries and sweep tables.
+
+Every ``run_<stage>`` adapter takes the same arguments (numpydoc, shared):
+
+Parameters
+----------
+inputs : dict of str to Path or list of Path
+    Upstream products by input name ("catalogue", "psf", "frames", "measured",
+    "propermotions", "truth", "truth_no_imbh").
+settings : mapping
+    The stage's TOML table.
+params : mapping
+    Node parameters (epoch, scene name, output switches).
+seed : int or None
+    The node's seed.
+outdir : pathlib.Path
+    Empty folder the products are written into.
+
+Returns
+-------
+dict of str to Path
+    Product name to path; "main" feeds the downstream stages.
 """
 
 from __future__ import annotations
@@ -15,17 +36,47 @@ import numpy as np
 
 from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
 
+__all__ = [
+    "STAGE_MODULES",
+    "UI_KEYS",
+    "default_registry",
+    "product_metrics",
+    "run_cluster",
+    "run_dynamics",
+    "run_frames",
+    "run_optics",
+    "run_propermotions",
+    "run_stars",
+]
+
 _THIS = "mavispm.workflows.stages"
 
 #: Stage -> (module of run_stage/validate_settings/write_report, code globs). The
-#: globs cover the stage's whole sub-package: conservative, since stages share helpers.
+#: globs cover the sub-packages the stage imports (each imports only core/ and,
+#: for frames, the optics model); "!" drops code no product depends on.
 STAGE_MODULES = {
-    "cluster": ("mavispm.simulate.cluster.cli", ("simulate/**/*.py",)),
-    "optics": ("mavispm.simulate.optics.cli", ("simulate/**/*.py",)),
-    "frames": ("mavispm.simulate.render.cli", ("simulate/**/*.py",)),
-    "stars": ("mavispm.measure.stars.cli", ("measure/**/*.py",)),
-    "propermotions": ("mavispm.measure.propermotions.cli", ("measure/**/*.py",)),
-    "dynamics": ("mavispm.dynamics.cli", ("dynamics/**/*.py",)),
+    "cluster": ("mavispm.simulate.cluster.cli", ("simulate/cluster/*.py",)),
+    "optics": (
+        "mavispm.simulate.optics.cli",
+        ("simulate/optics/*.py", "!simulate/optics/plots.py"),
+    ),
+    "frames": (
+        "mavispm.simulate.render.cli",
+        ("simulate/render/*.py", "simulate/optics/*.py", "!simulate/optics/plots.py"),
+    ),
+    "stars": ("mavispm.measure.stars.cli", ("measure/stars/*.py",)),
+    "propermotions": (
+        "mavispm.measure.propermotions.cli",
+        ("measure/propermotions/*.py", "!measure/propermotions/report.py"),
+    ),
+    "dynamics": ("mavispm.dynamics.cli", ("dynamics/*.py",)),
+}
+
+#: Settings keys per stage that change neither results nor product data (not in keys).
+UI_KEYS = {
+    "frames": ("render.threads",),
+    "stars": ("progress",),
+    "dynamics": ("progress",),
 }
 
 #: Files every stage's key depends on (the shared product format).
@@ -45,6 +96,7 @@ def default_registry() -> StageRegistry:
                 report=f"{module}:write_report",
                 code=COMMON_CODE + code,
                 exclusive=name == "dynamics",  # draws plots with pyplot
+                ui_keys=UI_KEYS.get(name, ()),
             )
         )
     return StageRegistry.of(specs)
@@ -66,26 +118,62 @@ def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:
 
 
 def run_optics(inputs, settings, params, seed, outdir: Path) -> dict:
-    """PSF grid of a scene's optics (``[scene.optics]``).
+    """PSF grid (and seeing halo) of a scene's optics (``[scene.optics]``).
 
-    The optics module keeps its own disk cache of PSF grids keyed by their
-    parameters; this node fills it once, before the scene's frames (one per
-    epoch) are rendered, and keeps the grid as a product of the run.
+    The grid comes from, or is computed into, the optics module's disk cache of
+    PSF grids keyed by their parameters, and is hard-linked (not copied) into the
+    node's folder as ``psfgrid-<key>.h5``; the halo profile is kept beside it. The
+    scene's frames nodes take this folder as their declared ``psf`` input.
     """
-    out = _stage("optics")(dict(settings), outdir / "psfgrid.h5", progress=False)
-    return {"main": out}
+    from mavispm.simulate.optics.cli import validate_settings
+    from mavispm.simulate.optics.model import build_optics
+
+    s = validate_settings(dict(settings))
+    source = build_optics(s, progress=False).cache_path
+    main = Path(outdir) / source.name
+    _link_or_copy(source, main)
+    build_optics(s, cache_dir=Path(outdir), progress=False)  # the halo beside the grid
+    return {"main": main}
+
+
+def _link_or_copy(source: Path, target: Path) -> None:
+    """Hard-link ``source`` to ``target`` (a copy across file systems)."""
+    import os
+    import shutil
+
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copyfile(source, target)
 
 
 def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
     """Frames of one epoch of one scene (HDF5, plus FITS when ``[outputs] fits``).
 
-    The scene's optics are built by the render stage from ``scene.optics``; the
-    PSF grid comes from the optics disk cache filled by the ``optics`` node.
+    The optics are read from the scene's ``optics`` node (the declared ``psf``
+    input: its PSF grid and halo); the stamp plans are cached in the optics
+    module's disk cache, shared by the scene's epochs.
     """
     scene = dict(settings)
     fits = outdir / "frames.fits" if params.get("fits", True) else None
+    kwargs = {}
+    if "psf" in inputs:
+        from mavispm.simulate.optics.psf_grid import default_cache_dir
+        from mavispm.simulate.render import cli as render_cli
+        from mavispm.simulate.render.frame import make_renderer
+
+        settings_obj = render_cli.scene_from_mapping(scene)
+        optics = render_cli.build_scene_optics(settings_obj, Path(inputs["psf"]).parent)
+        kwargs["optics"] = optics
+        kwargs["renderer"] = make_renderer(optics, settings_obj, default_cache_dir())
     out = _stage("frames")(
-        inputs["catalogue"], params["epoch"], scene, outdir / "frames.h5", seed, fits_path=fits
+        inputs["catalogue"],
+        params["epoch"],
+        scene,
+        outdir / "frames.h5",
+        seed,
+        fits_path=fits,
+        **kwargs,
     )
     products = {"main": out}
     if fits is not None and Path(fits).is_file():
@@ -182,7 +270,7 @@ def product_metrics(products: Mapping[str, Path]) -> dict:
                 out[key] = arr.item()
 
         def visit(name, obj):
-            if isinstance(obj, h5py.Group) and obj.attrs.get("mavispm_table", False):
+            if obj.attrs.get("mavispm_table", False):  # a table (dataset, or v1 group)
                 out[f"n_{name.replace('/', '_')}"] = int(obj.attrs.get("nrows", 0))
 
         f.visititems(visit)

@@ -130,7 +130,17 @@ class TransformModel:
         return a
 
     def basis(self, u_, v_) -> np.ndarray:
-        """Monomials ``u**i v**j`` in normalised coordinates, shape (n, n_terms)."""
+        """Monomials ``u**i v**j`` in normalised coordinates, shape (n, n_terms).
+
+        Parameters
+        ----------
+        u_, v_ : ndarray
+            Positions divided by the conditioning length ``length`` (dimensionless).
+
+        Returns
+        -------
+        ndarray (n, n_terms)
+        """
         up = [np.ones_like(u_), u_]
         vp = [np.ones_like(v_), v_]
         for _ in range(2, self.order + 1):
@@ -154,6 +164,11 @@ class TransformModel:
 
         Computing them once and passing them to :meth:`apply` and
         :meth:`normal_equations` avoids rebuilding the basis in iterative fits.
+
+        Parameters
+        ----------
+        x, y : array-like
+            Epoch-frame positions [arcsec].
         """
         u_ = np.asarray(x, float) / self.length
         v_ = np.asarray(y, float) / self.length
@@ -162,7 +177,22 @@ class TransformModel:
         return self.basis(u_, v_)
 
     def apply(self, params, x=None, y=None, features=None) -> tuple[np.ndarray, np.ndarray]:
-        """Map epoch-frame positions [arcsec] (or their :meth:`features`) to the reference frame."""
+        """Map epoch-frame positions [arcsec] (or their :meth:`features`) to the reference frame.
+
+        Parameters
+        ----------
+        params : array-like
+            Transformation parameters.
+        x, y : array-like, optional
+            Epoch-frame positions [arcsec].
+        features : ndarray, optional
+            Precomputed :meth:`features` (instead of x, y).
+
+        Returns
+        -------
+        X, Y : ndarray
+            Reference-frame positions [arcsec].
+        """
         params = np.asarray(params, float)
         f = self.features(x, y) if features is None else features
         if self.conformal:
@@ -201,7 +231,20 @@ class TransformModel:
         return gram, rhs
 
     def jacobian(self, params, x, y) -> np.ndarray:
-        """Jacobian ``d(X, Y) / d(x, y)`` at each position (analytic), shape (n, 2, 2)."""
+        """Jacobian ``d(X, Y) / d(x, y)`` at each position (analytic), shape (n, 2, 2).
+
+        Parameters
+        ----------
+        params : array-like
+            Transformation parameters.
+        x, y : array-like
+            Epoch-frame positions [arcsec].
+
+        Returns
+        -------
+        ndarray (n, 2, 2)
+            Dimensionless.
+        """
         params = np.asarray(params, float)
         u_ = np.asarray(x, float) / self.length
         v_ = np.asarray(y, float) / self.length
@@ -226,6 +269,13 @@ class TransformModel:
 
     def position_covariance(self, cov, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Variance of the mapped positions due to a parameter covariance.
+
+        Parameters
+        ----------
+        cov : ndarray (n_params, n_params)
+            Parameter covariance.
+        x, y : array-like
+            Epoch-frame positions [arcsec].
 
         Returns
         -------
@@ -294,7 +344,18 @@ class AlignmentFit:
     notes: list[str] = field(default_factory=list)
 
     def apply(self, x, y):
-        """Map epoch-frame positions [arcsec] onto the reference frame [arcsec]."""
+        """Map epoch-frame positions [arcsec] onto the reference frame [arcsec].
+
+        Parameters
+        ----------
+        x, y : array-like
+            Epoch-frame positions [arcsec].
+
+        Returns
+        -------
+        X, Y : ndarray
+            Reference-frame positions [arcsec].
+        """
         return self.model.apply(self.params, x, y)
 
     @property
@@ -332,7 +393,18 @@ class AlignmentFit:
 
 
 def clip_threshold(clip_sigma: float) -> float:
-    """Chi-square (2 dof) threshold with the two-sided tail probability of ``clip_sigma``."""
+    """Chi-square (2 dof) threshold with the two-sided tail probability of ``clip_sigma``.
+
+    Parameters
+    ----------
+    clip_sigma : float
+        Gaussian-equivalent clipping threshold [sigma].
+
+    Returns
+    -------
+    float
+        Chi-square threshold (2 degrees of freedom).
+    """
     return float(stats.chi2.isf(2.0 * stats.norm.sf(clip_sigma), df=2))
 
 
@@ -521,6 +593,19 @@ def higher_order_p_value(fit: AlignmentFit, x, y, x_ref, y_ref) -> float | None:
     the number of added parameters if the order is adequate. A tiny value means
     a distortion the chosen order cannot represent (it then inflates the
     jitter instead of being removed). None for cubic fits.
+
+    Parameters
+    ----------
+    fit : AlignmentFit
+        The final fit.
+    x, y : ndarray
+        Epoch-frame positions of all stars [arcsec].
+    x_ref, y_ref : ndarray
+        Their reference-epoch positions [arcsec].
+
+    Returns
+    -------
+    float or None
     """
     if fit.model.order >= 3:
         return None
@@ -541,7 +626,18 @@ def higher_order_p_value(fit: AlignmentFit, x, y, x_ref, y_ref) -> float | None:
 
 
 def normalisation_length(x, y) -> float:
-    """Conditioning length ``L`` [arcsec]: the largest distance of a star from the origin."""
+    """Conditioning length ``L`` [arcsec]: the largest distance of a star from the origin.
+
+    Parameters
+    ----------
+    x, y : array-like
+        Positions [arcsec].
+
+    Returns
+    -------
+    float
+        [arcsec], at least 1e-3.
+    """
     r = np.hypot(np.asarray(x, float), np.asarray(y, float))
     r = r[np.isfinite(r)]
     return float(max(np.max(r) if r.size else 1.0, 1e-3))
@@ -555,6 +651,17 @@ def project_displacements(fit: AlignmentFit, x, y, dx, dy, x_eval, y_eval):
     with the final reference stars and weights of ``fit``, and evaluates it at
     ``(x_eval, y_eval)``. Used to express true motions in the same relative frame
     as the measured ones.
+
+    Parameters
+    ----------
+    fit : AlignmentFit
+        Supplies the model, reference stars and weights.
+    x, y : ndarray
+        Epoch-frame positions of the stars [arcsec].
+    dx, dy : ndarray
+        Displacements at those positions (any unit).
+    x_eval, y_eval : ndarray
+        Where to evaluate the absorbed part [arcsec].
 
     Returns
     -------

@@ -15,31 +15,130 @@ from __future__ import annotations
 import argparse
 import json
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 import numpy as np
+from astropy.stats import mad_std
 
-from mavispm.core.catalogue import read_catalogue
+from mavispm.core.catalogue import Catalogue, read_catalogue
 from mavispm.core.config import to_mapping
 from mavispm.core.products import read_product, write_product
-from mavispm.measure.propermotions.inputs import read_measured
+from mavispm.measure.propermotions.inputs import EpochCatalogue, epoch_catalogue, read_measured
 from mavispm.measure.propermotions.pipeline import derive_proper_motions
 from mavispm.measure.propermotions.report import write_report
 from mavispm.measure.propermotions.settings import ProperMotionSettings, validate_settings
 
-__all__ = ["register", "run_stage", "validate_settings", "write_report", "ProperMotionSettings"]
+if TYPE_CHECKING:
+    from astropy.table import QTable
+
+__all__ = [
+    "ProperMotionSettings",
+    "proper_motions",
+    "register",
+    "run_stage",
+    "truth_from_catalogue",
+    "validate_settings",
+    "write_report",
+]
 
 
-def truth_from_catalogue(path: str | os.PathLike) -> dict:
-    """True proper motions ``{"id", "pm_x", "pm_y"}`` [mas/yr] from a catalogue product."""
-    cat = read_catalogue(path)
+def truth_from_catalogue(catalogue: Catalogue | str | os.PathLike) -> dict:
+    """True proper motions ``{"id", "pm_x", "pm_y"}`` [mas/yr] from a catalogue.
+
+    Parameters
+    ----------
+    catalogue : path or Catalogue
+        A ``catalogue`` product or one in memory (:func:`mavispm.simulate_cluster`).
+
+    Returns
+    -------
+    dict
+        ``id`` (int64), ``pm_x``, ``pm_y`` [mas/yr] of the first epoch's stars.
+    """
+    cat = catalogue if isinstance(catalogue, Catalogue) else read_catalogue(catalogue)
     first = next(iter(cat.epochs.values()))
     return {
         "id": np.asarray(first["id"], np.int64),
         "pm_x": first["pm_x"].to_value(u.mas / u.yr),
         "pm_y": first["pm_y"].to_value(u.mas / u.yr),
     }
+
+
+def proper_motions(
+    measured: Sequence,
+    settings: Mapping | ProperMotionSettings | None = None,
+    truth: Catalogue | str | os.PathLike | dict | None = None,
+) -> QTable:
+    """Match, align and fit proper motions of measured epochs in memory.
+
+    Parameters
+    ----------
+    measured : sequence of QTable or EpochCatalogue
+        Two or more epochs' measured ``stars`` tables (any order), each with
+        ``meta["epoch"]`` [yr] (what :func:`mavispm.measure_stars` returns).
+    settings : mapping or ProperMotionSettings, optional
+        See :class:`~mavispm.measure.propermotions.settings.ProperMotionSettings`.
+    truth : Catalogue, path or dict, optional
+        True motions for scoring: a catalogue (in memory or a product) or
+        ``{"id", "pm_x", "pm_y"}`` [mas/yr].
+
+    Returns
+    -------
+    QTable
+        The ``stars`` table of the ``propermotions`` product (docs/formats.md),
+        ``pm_x``, ``pm_y`` ... [mas/yr]; ``meta`` holds the product's root
+        attributes (epochs [yr], reference epoch, distance [kpc], transformation
+        summary, matching counts, accuracy summaries).
+
+    Examples
+    --------
+    Two epochs 10 yr apart of 40 stars moving by +-0.5 mas/yr along x; the
+    motions are measured relative to the frame the alignment defines:
+
+    >>> import numpy as np, astropy.units as u
+    >>> from astropy.table import QTable
+    >>> rng = np.random.default_rng(0)
+    >>> x, y = rng.uniform(-2, 2, (2, 40))
+    >>> pm_true = rng.choice([-0.5, 0.5], 40)
+    >>> def epoch(t):
+    ...     tab = QTable({"id": np.arange(40), "x": (x + pm_true * t / 1e3) * u.arcsec,
+    ...                   "y": y * u.arcsec, "x_err": np.full(40, 0.1) * u.mas,
+    ...                   "y_err": np.full(40, 0.1) * u.mas}, meta={"epoch": t * u.yr})
+    ...     return tab
+    >>> pm = proper_motions([epoch(0), epoch(10)], {"distance": "4.6 kpc"})
+    >>> len(pm), pm["pm_x"].unit, pm.meta["reference_epoch"]
+    (40, Unit("mas / yr"), <Quantity 0. yr>)
+    >>> bool(np.corrcoef(pm["pm_x"].value, pm_true)[0, 1] > 0.99)
+    True
+    """
+    cfg = validate_settings(settings)
+    epochs = [m if isinstance(m, EpochCatalogue) else epoch_catalogue(m) for m in measured]
+    truth_pm = truth if truth is None or isinstance(truth, dict) else truth_from_catalogue(truth)
+    result = derive_proper_motions(epochs, cfg, truth_pm=truth_pm)
+    frame_err = {
+        f"{t:g}": fit.frame_error() * 1e3 for t, fit in zip(result.epochs, result.fits) if fit
+    }
+    stars = result.stars
+    stars.meta.update(
+        {
+            "epochs": result.epochs * u.yr,
+            "reference_epoch": result.reference_epoch * u.yr,
+            "distance": None if result.distance is None else result.distance * u.kpc,
+            "transform": result.transform_summary(),
+            "match_method": result.match.method,
+            "n_stars": len(result.stars),
+            "n_unmatched": list(result.match.n_unmatched),
+            "n_ambiguous": int(np.count_nonzero(result.match.ambiguous)),
+            "n_dropped": result.n_dropped,
+            "frame_error_mas": frame_err,
+            "notes": "; ".join(result.notes),
+            **accuracy_attrs(result.stars),
+        }
+    )
+    return stars
 
 
 def run_stage(measured, settings, output, truth=None) -> Path:
@@ -62,36 +161,19 @@ def run_stage(measured, settings, output, truth=None) -> Path:
     """
     cfg = validate_settings(settings)
     epochs = [read_measured(p) for p in measured]
-    truth_pm = truth_from_catalogue(truth) if truth is not None else None
-    result = derive_proper_motions(epochs, cfg, truth_pm=truth_pm)
-    frame_err = {
-        f"{t:g}": fit.frame_error() * 1e3 for t, fit in zip(result.epochs, result.fits) if fit
-    }
-    attrs = {
-        "epochs": result.epochs * u.yr,
-        "reference_epoch": result.reference_epoch * u.yr,
-        "distance": None if result.distance is None else result.distance * u.kpc,
-        "transform": result.transform_summary(),
-        "match_method": result.match.method,
-        "n_stars": len(result.stars),
-        "n_unmatched": list(result.match.n_unmatched),
-        "n_ambiguous": int(np.count_nonzero(result.match.ambiguous)),
-        "n_dropped": result.n_dropped,
-        "frame_error_mas": frame_err,
-        "inputs": [str(p) for p in measured],
-        "notes": "; ".join(result.notes),
-        **accuracy_attrs(result.stars),
-    }
+    stars = proper_motions(epochs, cfg, truth=truth)
+    attrs = {**stars.meta, "inputs": [str(p) for p in measured]}
+    stars.meta.clear()
     return write_product(
         output,
         "propermotions",
-        tables={"stars": result.stars},
+        tables={"stars": stars},
         attrs=attrs,
         config={"propermotions": to_mapping(cfg)},
     )
 
 
-def accuracy_attrs(stars) -> dict:
+def accuracy_attrs(stars: QTable) -> dict:
     """Scalar accuracy summaries of a propermotions table (for sweep tables and plots).
 
     ``pm_err_median`` [mas/yr]: median per-axis reported PM error; with the truth
@@ -100,6 +182,16 @@ def accuracy_attrs(stars) -> dict:
     the cluster's mean motion), and ``pm_frac_50uas``, the fraction of stars with
     ``|pm - pm_true| <= 50 microarcsec/yr`` (the paper's statistic). Stars with
     non-finite values are left out; an empty selection gives NaN.
+
+    Parameters
+    ----------
+    stars : QTable
+        A propermotions ``stars`` table.
+
+    Returns
+    -------
+    dict
+        The summaries above (quantities).
     """
     mas_yr = u.mas / u.yr
     ex, ey = (stars[c].to_value(mas_yr) for c in ("pm_x_err", "pm_y_err"))
@@ -115,14 +207,23 @@ def accuracy_attrs(stars) -> dict:
     if d.shape[1] == 0:
         return {**out, "pm_rms_true": np.nan * mas_yr, "pm_frac_50uas": np.nan}
     d -= np.median(d, axis=1, keepdims=True)
-    mad = np.median(np.abs(d - np.median(d, axis=1, keepdims=True)), axis=1)
-    out["pm_rms_true"] = float(1.4826 * np.sqrt(np.mean(mad**2))) * mas_yr
+    out["pm_rms_true"] = float(np.sqrt(np.mean(mad_std(d, axis=1) ** 2))) * mas_yr
     out["pm_frac_50uas"] = float(np.mean(np.hypot(d[0], d[1]) <= 0.05))
     return out
 
 
 def summary_line(path) -> str:
-    """One-line summary of a propermotions product (stars, matching, clipping, notes)."""
+    """One-line summary of a propermotions product (stars, matching, clipping, notes).
+
+    Parameters
+    ----------
+    path : path
+        A propermotions product.
+
+    Returns
+    -------
+    str
+    """
     prod = read_product(path, "propermotions", load_arrays=False)
     a = prod.attrs
     transform = json.loads(a["transform"]) if isinstance(a.get("transform"), str) else {}
@@ -162,7 +263,13 @@ def _handler(args) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``propermotions`` sub-command."""
+    """Add the ``propermotions`` sub-command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     p = subparsers.add_parser(
         "propermotions",
         help="cross-match epochs, align them and fit proper motions",

@@ -57,7 +57,17 @@ class EpochMatch:
 
 
 def ids_are_shared(ids_list) -> bool:
-    """Whether every epoch shares most IDs with the first (so matching by ID is sound)."""
+    """Whether every epoch shares most IDs with the first (so matching by ID is sound).
+
+    Parameters
+    ----------
+    ids_list : sequence of ndarray
+        Star IDs of each epoch.
+
+    Returns
+    -------
+    bool
+    """
     first = np.asarray(ids_list[0])
     for ids in ids_list[1:]:
         common = np.intersect1d(first, np.asarray(ids)).size

@@ -3,21 +3,41 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 import numpy as np
 
 from mavispm.core.errors import InputError
-from mavispm.core.products import TableSpec, read_product
+from mavispm.core.products import TableSpec, read_product, validate_table
+
+if TYPE_CHECKING:
+    from astropy.table import Table
+
+__all__ = [
+    "check_epochs",
+    "epoch_catalogue",
+    "EPOCH_TOLERANCE",
+    "EpochCatalogue",
+    "MEASURED_PM_SPEC",
+    "read_measured",
+]
 
 #: Columns the proper-motion stage reads from a measured product's ``stars`` table.
 MEASURED_PM_SPEC = TableSpec(
     required={"id": "", "x": "arcsec", "y": "arcsec", "x_err": "arcsec", "y_err": "arcsec"},
-    optional={"flag": "", "mag": "mag", "x_true": "arcsec", "y_true": "arcsec"},
+    optional={
+        "flag": "",
+        "mag": "mag",
+        "mag_fit": "mag",
+        "x_true": "arcsec",
+        "y_true": "arcsec",
+    },
     id_column="id",
-    allow_nan=("x_err", "y_err", "x_true", "y_true", "mag"),
+    allow_nan=("x_err", "y_err", "x_true", "y_true", "mag", "mag_fit"),
 )
 
 #: Two epochs closer than this [yr] are the same epoch.
@@ -39,6 +59,8 @@ class EpochCatalogue:
         The measure stage's bitmask (0 = good).
     mag : ndarray or None
         Truth magnitude [mag].
+    mag_fit : ndarray or None
+        Measured magnitude [mag] (from the fitted flux).
     x_true, y_true : ndarray or None
         Truth positions [arcsec].
     distance : float or None
@@ -54,6 +76,7 @@ class EpochCatalogue:
     y_err: np.ndarray
     flag: np.ndarray
     mag: np.ndarray | None = None
+    mag_fit: np.ndarray | None = None
     x_true: np.ndarray | None = None
     y_true: np.ndarray | None = None
     distance: float | None = None
@@ -87,6 +110,15 @@ def _attr_quantity(attrs, key, unit, path, required):
 def read_measured(path: str | os.PathLike) -> EpochCatalogue:
     """Read one ``measured`` product into an :class:`EpochCatalogue`.
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``measured`` product.
+
+    Returns
+    -------
+    EpochCatalogue
+
     Raises
     ------
     InputError
@@ -95,9 +127,38 @@ def read_measured(path: str | os.PathLike) -> EpochCatalogue:
     """
     path = Path(path)
     prod = read_product(path, "measured", specs={"stars": MEASURED_PM_SPEC}, load_arrays=False)
-    stars = prod.tables["stars"]
-    epoch = _attr_quantity(prod.attrs, "epoch", "yr", path, required=True)
-    distance = _attr_quantity(prod.attrs, "distance", "kpc", path, required=False)
+    return epoch_catalogue(prod.tables["stars"], prod.attrs, path=path)
+
+
+def epoch_catalogue(
+    stars: Table, attrs: Mapping | None = None, path: str | os.PathLike | None = None
+) -> EpochCatalogue:
+    """One epoch's measured stars (a ``measured`` ``stars`` table) as an :class:`EpochCatalogue`.
+
+    Parameters
+    ----------
+    stars : Table or QTable
+        Columns of :data:`MEASURED_PM_SPEC` (``id``, ``x``, ``y``, ``x_err``,
+        ``y_err`` [arcsec], optional ``flag``, ``mag``, ``x_true``, ``y_true``).
+    attrs : mapping, optional
+        ``epoch`` [yr] (required) and optional ``distance`` [kpc]; default
+        ``stars.meta`` (what :func:`mavispm.measure_stars` returns).
+    path : path, optional
+        Source file, for messages.
+
+    Returns
+    -------
+    EpochCatalogue
+
+    Raises
+    ------
+    InputError
+        Missing or misspelled columns, units that do not convert, no ``epoch``.
+    """
+    attrs = stars.meta if attrs is None else attrs
+    stars = validate_table(stars, MEASURED_PM_SPEC, path=path, table_name="stars")
+    epoch = _attr_quantity(attrs, "epoch", "yr", path, required=True)
+    distance = _attr_quantity(attrs, "distance", "kpc", path, required=False)
 
     def col(name):
         if name not in stars.colnames:
@@ -119,10 +180,11 @@ def read_measured(path: str | os.PathLike) -> EpochCatalogue:
         y_err=col("y_err"),
         flag=flag,
         mag=col("mag"),
+        mag_fit=col("mag_fit"),
         x_true=col("x_true"),
         y_true=col("y_true"),
         distance=distance,
-        path=path,
+        path=None if path is None else Path(path),
     )
 
 

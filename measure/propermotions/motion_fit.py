@@ -55,7 +55,17 @@ class LinearMotion:
     dof: np.ndarray
 
     def poor_fit(self, p_min: float = 1e-3) -> np.ndarray:
-        """Stars whose motion is inconsistent with a straight line (chi-square p < ``p_min``)."""
+        """Stars whose motion is inconsistent with a straight line (chi-square p < ``p_min``).
+
+        Parameters
+        ----------
+        p_min : float
+            Chi-square probability below which a track is not straight.
+
+        Returns
+        -------
+        ndarray of bool
+        """
         p = np.ones_like(self.chi2)
         has = self.dof > 0
         p[has] = stats.chi2.sf(self.chi2[has], self.dof[has])
@@ -155,5 +165,18 @@ def radial_tangential(x, y, pm_x, pm_y, var_x, var_y, cov_xy, center=(0.0, 0.0))
 
 
 def pm_to_velocity(pm: u.Quantity, distance: u.Quantity) -> u.Quantity:
-    """Tangential velocity [km/s] of a proper motion at a distance (``v = mu d``)."""
+    """Tangential velocity [km/s] of a proper motion at a distance (``v = mu d``).
+
+    Parameters
+    ----------
+    pm : Quantity
+        Proper motion (angle/time).
+    distance : Quantity
+        Distance (length).
+
+    Returns
+    -------
+    Quantity
+        [km/s]
+    """
     return (pm * distance).to(u.km / u.s, equivalencies=u.dimensionless_angles())

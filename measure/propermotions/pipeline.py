@@ -176,11 +176,15 @@ def derive_proper_motions(
     flag_in = np.where(match.index >= 0, _gather(epochs, match, "flag"), 0).astype(np.int64)
     mag_all = _gather(epochs, match, "mag")
     mag = _row_median(mag_all)
+    mag_fit = _row_median(_gather(epochs, match, "mag_fit"))
+    # reference stars are chosen by what the observer measured (mag_fit) when the
+    # epochs have it; the input magnitudes only for catalogues without it
+    mag_ref = mag_fit if np.any(np.isfinite(mag_fit)) else mag
     valid = (match.index >= 0) & np.isfinite(x) & np.isfinite(y)
     valid &= np.isfinite(sx) & np.isfinite(sy) & (sx > 0) & (sy > 0)
     err = np.fmax(sx, sy)
-    if settings.ref_mag_max is not None and not np.any(np.isfinite(mag)):
-        raise InputError("ref_mag_max is set but no epoch has a 'mag' column")
+    if settings.ref_mag_max is not None and not np.any(np.isfinite(mag_ref)):
+        raise InputError("ref_mag_max is set but no epoch has a 'mag_fit' or 'mag' column")
 
     model = TransformModel(
         order=settings.order,
@@ -198,7 +202,9 @@ def derive_proper_motions(
     for k in range(n_ep):
         if k == ref:
             continue
-        cand = _reference_candidates(k, ref, valid, err, flag_in, mag, match.ambiguous, settings)
+        cand = _reference_candidates(
+            k, ref, valid, err, flag_in, mag_ref, match.ambiguous, settings
+        )
         ever_candidate |= cand
         fit = fit_transform(
             np.where(valid[:, k], x[:, k], 0.0),
@@ -244,6 +250,10 @@ def derive_proper_motions(
             notes.append(f"epochs disagree on the distance {sorted(found)} kpc; using the first")
         distance = next((e.distance for e in epochs if e.distance is not None), None)
     stars = _stars_table(match.ids[keep], motion, mag[keep], flag, settings, distance, notes)
+    if np.any(np.isfinite(mag_fit[keep])):  # measured magnitude: median over the epochs
+        stars.add_column(
+            mag_fit[keep] * u.mag, name="mag_fit", index=stars.colnames.index("flag") + 1
+        )
     truth = _truth_motion(
         epochs, match, keep, t, ref, fits, valid, x, y, truth_pm, motion, vx, vy, vxy
     )

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import astropy.units as u
 import numpy as np
+from astropy.stats import mad_std
 from astropy.table import QTable
 
 from mavispm.core.atomic import atomic_path
@@ -91,6 +92,16 @@ class AccuracyData:
 def load_accuracy(path: str | os.PathLike) -> AccuracyData:
     """Read a propermotions product and compute per-star errors against the truth.
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A propermotions product with truth columns.
+
+    Returns
+    -------
+    AccuracyData
+        Per-star errors [microarcsec/yr] and their normalised values.
+
     Raises
     ------
     InputError
@@ -153,7 +164,18 @@ def _bin_rows(data: AccuracyData, which: np.ndarray, edges) -> QTable:
 
 
 def accuracy_by_magnitude(data: AccuracyData) -> QTable | None:
-    """Error statistics in the paper's magnitude bins (None without magnitudes)."""
+    """Error statistics in the paper's magnitude bins (None without magnitudes).
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+
+    Returns
+    -------
+    QTable or None
+        One row per magnitude bin (``mag_lo``, ``mag_hi`` [mag]).
+    """
     if data.mag is None:
         return None
     table = _bin_rows(data, data.mag, MAG_EDGES)
@@ -163,7 +185,20 @@ def accuracy_by_magnitude(data: AccuracyData) -> QTable | None:
 
 
 def accuracy_by_radius(data: AccuracyData, n_bins: int = 8) -> QTable:
-    """Error statistics in equal-count bins of cluster-centric radius."""
+    """Error statistics in equal-count bins of cluster-centric radius.
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+    n_bins : int
+        Number of equal-count radial bins.
+
+    Returns
+    -------
+    QTable
+        One row per bin (``R_lo``, ``R_hi`` [arcsec]).
+    """
     edges = np.unique(np.quantile(data.radius, np.linspace(0, 1, n_bins + 1)))
     edges[-1] = np.nextafter(edges[-1], np.inf)
     table = _bin_rows(data, data.radius, edges)
@@ -173,7 +208,20 @@ def accuracy_by_radius(data: AccuracyData, n_bins: int = 8) -> QTable:
 
 
 def paper_statistic(data: AccuracyData, threshold: float = 50.0) -> dict:
-    """Stars with ``m <= 25`` and ``m > 25`` meeting ``threshold`` microarcsec(/yr)."""
+    """Stars with ``m <= 25`` and ``m > 25`` meeting ``threshold`` microarcsec(/yr).
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+    threshold : float
+        [microarcsec/yr]
+
+    Returns
+    -------
+    dict
+        ``bright``/``faint``: (meeting, total) star counts.
+    """
     if data.mag is None:
         return {}
     ok = data.dpm <= threshold
@@ -185,7 +233,18 @@ def paper_statistic(data: AccuracyData, threshold: float = 50.0) -> dict:
 
 
 def residual_summary(data: AccuracyData) -> dict:
-    """Mean, std, and outlier fractions of the normalised residuals."""
+    """Mean, std, and outlier fractions of the normalised residuals.
+
+    Parameters
+    ----------
+    data : AccuracyData
+        From :func:`load_accuracy`.
+
+    Returns
+    -------
+    dict
+        ``n``, ``mean``, ``std``, ``robust_std`` (MAD), ``frac_gt3``.
+    """
     z = data.z
     z = z[np.isfinite(z)]
     if z.size == 0:
@@ -194,7 +253,7 @@ def residual_summary(data: AccuracyData) -> dict:
         "n": int(z.size),
         "mean": float(np.mean(z)),
         "std": float(np.std(z)),
-        "robust_std": float(1.4826 * np.median(np.abs(z - np.median(z)))),
+        "robust_std": float(mad_std(z)),
         "frac_gt3": float(np.mean(np.abs(z) > 3)),
     }
 
@@ -265,9 +324,9 @@ def _plot_errors(data: AccuracyData, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("R [arcsec]", data.radius)]
+    panels = [("R from the centre [arcsec]", data.radius)]
     if data.mag is not None:
-        panels.insert(0, ("V [mag]", data.mag))
+        panels.insert(0, ("V (input) [mag]", data.mag))
     fig, axes = plt.subplots(len(panels), 1, figsize=(7, 3.2 * len(panels)), squeeze=False)
     dpm = data.dpm
     within = [dpm <= THRESHOLDS[0], (dpm > THRESHOLDS[0]) & (dpm <= THRESHOLDS[1])]
@@ -302,9 +361,10 @@ def _plot_residuals(data: AccuracyData, path: Path) -> None:
     ax.hist(np.clip(z, -5, 5), bins=bins, density=True, color="mediumpurple", label="measured")
     g = np.linspace(-5, 5, 400)
     ax.plot(g, np.exp(-0.5 * g**2) / np.sqrt(2 * np.pi), "k", label="N(0, 1)")
-    ax.set_xlabel(r"$(\mu - \mu_{\rm true}) / \sigma_\mu$")
+    ax.set_xlabel(r"$(\mu - \mu_{\rm true}) / \sigma_\mu$ (x and y)")
     ax.set_ylabel("density")
-    ax.legend()
+    ax.set_title(f"{data.name}: normalised PM residuals (baseline {data.baseline:g} yr)")
+    ax.legend(title="residuals", fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)

@@ -34,7 +34,8 @@ class ProperMotionSettings:
     ref_max_error : float or None
         Reference stars need per-axis position errors below this in both epochs [mas].
     ref_mag_max : float or None
-        Reference stars need ``mag`` at most this (needs a ``mag`` column) [mag].
+        Reference stars need a magnitude at most this [mag]: the measured ``mag_fit``
+        when the epochs have it (the observer's), else the input ``mag``.
     distance : float or None
         Cluster distance [kpc] for km/s columns; default: the products' ``distance`` attr.
     center_x, center_y : float

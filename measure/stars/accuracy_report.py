@@ -25,6 +25,7 @@ from astropy.table import QTable, vstack  # noqa: E402
 from mavispm.core.atomic import atomic_path  # noqa: E402
 from mavispm.core.errors import InputError  # noqa: E402
 from mavispm.core.products import read_product  # noqa: E402
+from mavispm.measure.stars.measured_table import MEASURED_SPEC  # noqa: E402
 
 #: Bin edges of the paper's results table [mag].
 MAG_BINS = (-np.inf, 16.0, 17.0, 18.0, 19.0, 20.0, 22.0, 24.0, 26.0, np.inf)
@@ -291,8 +292,6 @@ def write_report(measured_paths: Sequence, outdir) -> list[Path]:
         measured_paths = [measured_paths]
     if not measured_paths:
         raise InputError("no measured products given for the accuracy report")
-    from mavispm.measure.stars.measure_frame import MEASURED_SPEC
-
     products = [read_product(p, "measured", specs={"stars": MEASURED_SPEC}) for p in measured_paths]
     sections, frames, tables = [], [], []
     for path, prod in zip(measured_paths, products):

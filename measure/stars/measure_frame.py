@@ -24,7 +24,8 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.errors import InputError
-from mavispm.core.products import TableSpec, read_product, validate_table
+from mavispm.core.frame import Frame
+from mavispm.core.products import read_product
 from mavispm.measure.stars.accuracy_report import truth_bin_counts
 from mavispm.measure.stars.batched_fit import (
     FLAG_CROWDED,
@@ -44,164 +45,38 @@ from mavispm.measure.stars.error_model import (
     epsf_difference_shifts,
     estimate_error_model,
 )
+from mavispm.measure.stars.measured_table import MEASURED_SPEC
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
 from mavispm.measure.stars.settings import MeasureSettings
 from mavispm.measure.stars.start_list import EarlierEpoch, start_from_earlier
 from mavispm.measure.stars.truth_match import match_to_truth
 from mavispm.measure.stars.variable_psf import VariableEPSF
 
-#: Truth table of a frames product as this stage needs it.
-TRUTH_SPEC = TableSpec(
-    required={
-        "id": "",
-        "x_pix": "",
-        "y_pix": "",
-        "x": "arcsec",
-        "y": "arcsec",
-        "flux": "electron",
-        "mag": "mag",
-    },
-    optional={"x_cat": "arcsec", "y_cat": "arcsec"},
-)
-
-#: The measured ``stars`` table (docs/formats.md) plus this stage's optional columns.
-MEASURED_SPEC = TableSpec(
-    required={
-        "id": "",
-        "x_pix": "",
-        "y_pix": "",
-        "x": "arcsec",
-        "y": "arcsec",
-        "x_err": "arcsec",
-        "y_err": "arcsec",
-        "flux": "electron",
-        "flux_err": "electron",
-        "sky": "electron",
-        "chi2": "",
-        "flag": "",
-    },
-    optional={
-        "x_true": "arcsec",
-        "y_true": "arcsec",
-        "mag": "mag",
-        "match_dist": "arcsec",
-        "flux_true": "electron",
-        "crlb_x": "arcsec",
-        "crlb_y": "arcsec",
-        "x_err_fisher": "arcsec",
-        "y_err_fisher": "arcsec",
-        "flux_err_fisher": "electron",
-        "err_epsf": "arcsec",
-    },
-    allow_nan=(
-        "x_err",
-        "y_err",
-        "flux",
-        "flux_err",
-        "sky",
-        "chi2",
-        "x_true",
-        "y_true",
-        "mag",
-        "match_dist",
-        "flux_true",
-        "crlb_x",
-        "crlb_y",
-        "x_err_fisher",
-        "y_err_fisher",
-        "flux_err_fisher",
-        "err_epsf",
-    ),
-)
-
-_REQUIRED_ATTRS = {
-    "gain": "electron/adu",
-    "read_noise": "electron",
-    "sky": "electron",
-    "saturation": "adu",
-    "pixel_scale": "mas",
-    "epoch": "yr",
-}
-
-
-@dataclass
-class Frame:
-    """A frame in electrons with its detector description.
-
-    Attributes
-    ----------
-    path : Path
-    image : ndarray
-        Stacked frame [electron].
-    saturated, bad : ndarray of bool
-        Saturated pixels; all unusable pixels (saturated or non-finite).
-    sky : float
-        Sky [electron/pixel], whole stack.
-    read_noise_var : float
-        Read-noise variance of the stack per pixel [electron^2] (nexp RN^2).
-    pixel_scale : float
-        [arcsec/pixel].
-    truth : QTable or None
-    attrs : dict
-        The product's root attributes.
-    """
-
-    path: Path
-    image: np.ndarray
-    saturated: np.ndarray
-    bad: np.ndarray
-    sky: float
-    read_noise_var: float
-    pixel_scale: float
-    truth: QTable | None
-    attrs: dict
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.image.shape
-
-    def to_arcsec(self, xp, yp):
-        """Field-frame position [arcsec] of pixel coordinates."""
-        ny, nx = self.shape
-        return (np.asarray(xp) - (nx - 1) / 2) * self.pixel_scale, (
-            np.asarray(yp) - (ny - 1) / 2
-        ) * self.pixel_scale
-
-    def to_pixel(self, x, y):
-        """Pixel coordinates of field-frame positions [arcsec]."""
-        ny, nx = self.shape
-        return np.asarray(x) / self.pixel_scale + (nx - 1) / 2, np.asarray(y) / self.pixel_scale + (
-            ny - 1
-        ) / 2
-
-
-def _attr(attrs, key, unit, path):
-    if key not in attrs:
-        raise InputError(f"root attribute '{key}' [{unit}] missing", path=path)
-    value = attrs[key]
-    try:
-        return (
-            float(u.Quantity(value, unit).value)
-            if not isinstance(value, u.Quantity)
-            else float(value.to_value(unit))
-        )
-    except (TypeError, ValueError, u.UnitsError):
-        raise InputError(
-            f"root attribute '{key}' must be a number in {unit}, got {value!r}", path=path
-        ) from None
-
-
-def _plain_pixels(table: QTable) -> QTable:
-    for col in ("x_pix", "y_pix"):
-        if col in table.colnames and isinstance(table[col], u.Quantity):
-            table[col] = np.asarray(
-                table[col].to_value(u.pix) if table[col].unit == u.pix else table[col].value
-            )
-    return table
+__all__ = [
+    "Frame",
+    "FramePSF",
+    "MEASURED_SPEC",
+    "box_flux",
+    "build_psf",
+    "measure_frame",
+    "read_frame",
+]
 
 
 def read_frame(path, require_truth: bool = True) -> Frame:
     """Read and check a ``frames`` product.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``frames`` product (HDF5).
+    require_truth : bool
+        Whether the truth table (the input star list of forced photometry) must be there.
+
+    Returns
+    -------
+    Frame
+        The frame in electrons (:meth:`~mavispm.core.frame.Frame.from_attrs`).
 
     Raises
     ------
@@ -213,49 +88,22 @@ def read_frame(path, require_truth: bool = True) -> Frame:
     prod = read_product(path, "frames")
     if "image" not in prod.arrays:
         raise InputError("array 'image' missing", path=path)
-    image = prod.arrays["image"]
-    image = np.asarray(image.to_value(u.adu) if isinstance(image, u.Quantity) else image, float)
-    if image.ndim != 2 or min(image.shape) < 3:
-        raise InputError(f"array 'image' must be a 2-D frame, got shape {image.shape}", path=path)
-    vals = {k: _attr(prod.attrs, k, unit, path) for k, unit in _REQUIRED_ATTRS.items()}
-    nexp = int(prod.attrs.get("nexp", 1))
-    if nexp < 1 or vals["gain"] <= 0:
-        raise InputError("attributes 'nexp' and 'gain' must be positive", path=path)
-    if "saturated" in prod.arrays:
-        saturated = np.asarray(prod.arrays["saturated"], bool)
-        if saturated.shape != image.shape:
-            raise InputError(
-                f"array 'saturated' has shape {saturated.shape}, image has {image.shape}", path=path
-            )
-    else:
-        saturated = image >= 0.999 * vals["saturation"] * nexp
     truth = prod.tables.get("truth")
-    if truth is None:
-        if require_truth:
-            raise InputError(
-                "table 'truth' missing: forced photometry needs the input star list "
-                "(use blind mode to detect stars instead)",
-                path=path,
-            )
-    else:
-        truth = validate_table(_plain_pixels(truth), TRUTH_SPEC, path=path, table_name="truth")
-        if require_truth and len(truth) == 0:
-            raise InputError(
-                "table 'truth' is empty: no input stars to measure (forced photometry)", path=path
-            )
-    _check_usable_image(image, saturated, prod.attrs, path)
-    image_e = image * vals["gain"]
-    return Frame(
-        path=path,
-        image=image_e,
-        saturated=saturated,
-        bad=saturated | ~np.isfinite(image_e),
-        sky=vals["sky"],
-        read_noise_var=vals["read_noise"] ** 2 * nexp,
-        pixel_scale=vals["pixel_scale"] / 1000.0,
-        truth=truth,
-        attrs=prod.attrs,
+    if truth is None and require_truth:
+        raise InputError(
+            "table 'truth' missing: forced photometry needs the input star list "
+            "(use blind mode to detect stars instead)",
+            path=path,
+        )
+    frame = Frame.from_attrs(
+        prod.arrays["image"], prod.arrays.get("saturated"), prod.attrs, truth, path=path
     )
+    if require_truth and len(frame.truth) == 0:
+        raise InputError(
+            "table 'truth' is empty: no input stars to measure (forced photometry)", path=path
+        )
+    _check_usable_image(frame.image, frame.saturated, prod.attrs, path)
+    return frame
 
 
 def _check_usable_image(image: np.ndarray, saturated: np.ndarray, attrs, path) -> None:
@@ -553,7 +401,7 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
     few tenths of a pixel); an ePSF built on them is blurred and anchored to
     them, which doubled the bright-star scatter on the NGC 3201 frames.
     """
-    quick = replace(settings, neighbour_passes=0, error_model="fisher", progress=False)
+    quick = settings.replace(neighbour_passes=0, error_model="fisher", progress=False)
     psf = build_psf(frame, x0, y0, quick).psf
     fit = run_engine(frame, psf, x0, y0, quick, engine="fast", return_model=False)
     ok = ((fit.flag & FLAG_FAILED) == 0) & np.isfinite(fit.x) & np.isfinite(fit.y)

@@ -36,7 +36,7 @@ The functions take the frame and stage callables from
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -356,7 +356,7 @@ def detect_stars(frame, settings, build_psf, run_engine, options: DetectionOptio
     info = {"n_first": int(len(x)), "n_pass": []}
     if len(x) == 0:
         return x, y, info
-    quick = replace(settings, neighbour_passes=0, error_model="fisher", progress=False)
+    quick = settings.replace(neighbour_passes=0, error_model="fisher", progress=False)
     psf = build_psf(frame, x, y, quick).psf
     kernel = psf_kernel(psf, frame.shape[1] / 2, frame.shape[0] / 2)
     radius = int(np.floor(psf.radius_pix))

@@ -1,32 +1,51 @@
-"""Settings of the ``stars`` stage (ePSF building and PSF fitting), one dataclass.
+"""Settings of the ``stars`` stage (ePSF building and PSF fitting).
 
-All accuracy/speed knobs live here (GalSim GSParams style). Build it from a TOML
-table with :func:`mavispm.measure.stars.cli.validate_settings`.
+:class:`MeasureSettings` holds the method (engine, ePSF variation model, error
+model, forced or blind positions, flags); its ``knobs`` (:class:`MeasureKnobs`,
+GalSim's GSParams pattern, TOML table ``[measure.knobs]``) hold every accuracy
+and speed knob, each with a default that reaches the Cramer-Rao bound on the
+shipped scenes (docs/measure.md). Build them from a TOML table with
+:func:`mavispm.measure.stars.cli.validate_settings`, which also takes the knobs
+as top-level keys of the table (the older flat form).
+
+Example
+-------
+>>> from mavispm.measure.stars.cli import validate_settings
+>>> s = validate_settings({"psf_variation": "constant", "knobs": {"epsf_iterations": 4}})
+>>> s.knobs.epsf_iterations, s.epsf_iterations, s.knobs.stamp_radius
+(4, 4, 5)
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+import difflib
+from dataclasses import dataclass, field, fields
 from typing import Literal
 
 from mavispm.core.config import unit_field
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "KNOB_NAMES",
+    "MeasureKnobs",
+    "MeasureSettings",
+    "nest_knobs",
+]
+
+#: Names of the accuracy/speed knobs (fields of :class:`MeasureKnobs`).
+KNOB_NAMES: tuple[str, ...] = ()
+
 
 @dataclass(frozen=True)
-class MeasureSettings:
-    """Settings of ``mavispm measure stars``.
+class MeasureKnobs:
+    """Accuracy and speed knobs of the ``stars`` stage (``[measure.knobs]``).
+
+    None of them changes what is measured, only how well and how fast; the
+    defaults are the documented accuracy/speed trade-off (docs/measure.md).
 
     Attributes
     ----------
-    engine : {"fast", "photutils"}
-        "fast": the batched Gauss-Newton fitter; "photutils": PSFPhotometry.
-    psf_variation : {"constant", "grid", "polynomial"}
-        ePSF field variation model.
-    psf_grid : int
-        ePSF grid nodes per axis (also the sampling of a polynomial ePSF).
-    psf_poly_order : int
-        Order of the polynomial ePSF (3: DAOPhot's cubically variable PSF).
     oversampling : int or "auto"
         ePSF oversampling factor; "auto" (default): 4 with at least 200
         usable PSF stars per ePSF node, else 2
@@ -50,22 +69,93 @@ class MeasureSettings:
         stars in the wings of much brighter stars are not PSF stars. 0: no test.
     neighbour_passes : int
         Times the ePSF is rebuilt after subtracting fitted neighbours (0 = none).
-    error_model : {"epsf", "fisher"}
-        Reported errors: "epsf" (default) adds the ePSF model error measured
-        from two half-set ePSFs and inflates by the fit chi^2
-        (:mod:`mavispm.measure.stars.error_model`); "fisher": the Fisher (Cramér-Rao)
-        errors alone. The Fisher errors are always in ``x_err_fisher`` etc.
     stamp_radius : int
         Fit stamp half-width [pixel].
-    sky_gradient : bool
-        Fast engine: fit each star's local sky as a plane instead of a constant
-        (the wings of a much brighter star tilt the background of its stamp).
     iterations : int
         Maximum fitter sweeps.
     tolerance : float [pix]
         Convergence threshold on position steps.
     max_shift : float [pix]
         Largest allowed move from the forced position.
+    min_snr : float
+        Stars below this flux SNR have positions held fixed and are flagged 32.
+    chunk : int
+        Stars evaluated at once by the fast engine (memory knob).
+    photutils_fitter : {"levmar", "default"}
+        Fitter of the photutils engine.
+    group_separation : float [pix]
+        Grouping distance of the photutils engine.
+    """
+
+    oversampling: int | Literal["auto"] = "auto"
+    epsf_size: int = 25
+    epsf_iterations: int = 10
+    epsf_builder: Literal["fast", "photutils"] = "fast"
+    psf_stars_per_node: int = 150
+    psf_star_isolation: float = unit_field(12.0, "pix")
+    psf_star_min_snr: float = 100.0
+    psf_star_max_gradient: float = 0.01
+    neighbour_passes: int = 1
+    stamp_radius: int = 5
+    iterations: int = 10
+    tolerance: float = unit_field(1e-4, "pix")
+    max_shift: float = unit_field(2.0, "pix")
+    min_snr: float = 3.0
+    chunk: int = 512
+    photutils_fitter: Literal["levmar", "default"] = "levmar"
+    group_separation: float = unit_field(8.0, "pix")
+
+    def __post_init__(self):
+        positive_ints = {
+            "oversampling": 1 if self.oversampling == "auto" else self.oversampling,
+            "epsf_iterations": self.epsf_iterations,
+            "psf_stars_per_node": self.psf_stars_per_node,
+            "stamp_radius": self.stamp_radius,
+            "iterations": self.iterations,
+            "chunk": self.chunk,
+        }
+        for key, value in positive_ints.items():
+            if value < 1:
+                raise ConfigError(f"must be a positive integer, got {value}", key=f"knobs.{key}")
+        if self.epsf_size < 5 or self.epsf_size % 2 == 0:
+            raise ConfigError(
+                f"must be an odd integer >= 5, got {self.epsf_size}", key="knobs.epsf_size"
+            )
+        if self.neighbour_passes < 0:
+            raise ConfigError("must be >= 0", key="knobs.neighbour_passes")
+        for key in ("max_shift", "tolerance", "group_separation"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=f"knobs.{key}")
+        for key in ("min_snr", "psf_star_max_gradient"):
+            if not getattr(self, key) >= 0:
+                raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=f"knobs.{key}")
+
+
+KNOB_NAMES = tuple(f.name for f in fields(MeasureKnobs))
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """Settings of ``mavispm measure stars``: the method, and its knobs.
+
+    Attributes
+    ----------
+    engine : {"fast", "photutils"}
+        "fast": the batched Gauss-Newton fitter; "photutils": PSFPhotometry.
+    psf_variation : {"constant", "grid", "polynomial"}
+        ePSF field variation model.
+    psf_grid : int
+        ePSF grid nodes per axis (also the sampling of a polynomial ePSF).
+    psf_poly_order : int
+        Order of the polynomial ePSF (3: DAOPhot's cubically variable PSF).
+    error_model : {"epsf", "fisher"}
+        Reported errors: "epsf" (default) adds the ePSF model error measured
+        from two half-set ePSFs and inflates by the fit chi^2
+        (:mod:`mavispm.measure.stars.error_model`); "fisher": the Fisher (Cramér-Rao)
+        errors alone. The Fisher errors are always in ``x_err_fisher`` etc.
+    sky_gradient : bool
+        Fast engine: fit each star's local sky as a plane instead of a constant
+        (the wings of a much brighter star tilt the background of its stamp).
     perturbation : float [pix]
         Gaussian perturbation (sigma per axis) of the forced starting positions.
     forced_positions : {"rendered", "catalogue"}
@@ -88,14 +178,6 @@ class MeasureSettings:
         A neighbour closer than this ...
     crowding_ratio : float
         ... and at least this fraction as bright flags a star as crowded (8).
-    min_snr : float
-        Stars below this flux SNR have positions held fixed and are flagged 32.
-    chunk : int
-        Stars evaluated at once by the fast engine (memory knob).
-    photutils_fitter : {"levmar", "default"}
-        Fitter of the photutils engine.
-    group_separation : float [pix]
-        Grouping distance of the photutils engine.
     blind : bool
         Detect sources instead of using the truth list (forced positions).
     detection_threshold : float
@@ -114,27 +196,17 @@ class MeasureSettings:
         significant against this fraction of its neighbours' model light too.
     progress : bool
         Show progress bars.
+    knobs : MeasureKnobs
+        Accuracy and speed knobs; also readable as attributes of the settings
+        (``settings.stamp_radius`` is ``settings.knobs.stamp_radius``).
     """
 
     engine: Literal["fast", "photutils"] = "fast"
     psf_variation: Literal["constant", "grid", "polynomial"] = "grid"
     psf_grid: int = 3
     psf_poly_order: int = 2
-    oversampling: int | Literal["auto"] = "auto"
-    epsf_size: int = 25
-    epsf_iterations: int = 10
-    epsf_builder: Literal["fast", "photutils"] = "fast"
-    psf_stars_per_node: int = 150
-    psf_star_isolation: float = unit_field(12.0, "pix")
-    psf_star_min_snr: float = 100.0
-    psf_star_max_gradient: float = 0.01
-    neighbour_passes: int = 1
     error_model: Literal["epsf", "fisher"] = "epsf"
-    stamp_radius: int = 5
     sky_gradient: bool = True
-    iterations: int = 10
-    tolerance: float = unit_field(1e-4, "pix")
-    max_shift: float = unit_field(2.0, "pix")
     perturbation: float = unit_field(0.0, "pix")
     forced_positions: Literal["rendered", "catalogue"] = "rendered"
     later_epochs: Literal["measured", "truth"] = "measured"
@@ -142,10 +214,6 @@ class MeasureSettings:
     match_radius: float = unit_field(2.0, "pix")
     crowding_radius: float = unit_field(10.0, "pix")
     crowding_ratio: float = 0.1
-    min_snr: float = 3.0
-    chunk: int = 512
-    photutils_fitter: Literal["levmar", "default"] = "levmar"
-    group_separation: float = unit_field(8.0, "pix")
     blind: bool = False
     detection_threshold: float = 5.0
     detection_fwhm: float = unit_field(0.0, "pix")
@@ -153,49 +221,85 @@ class MeasureSettings:
     detection_passes: int = 3
     detection_model_error: float = 0.03
     progress: bool = field(default=False)
+    knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
+
+    def replace(self, **changes) -> MeasureSettings:
+        """A copy with ``changes`` applied; knob names go into :attr:`knobs`.
+
+        Parameters
+        ----------
+        **changes
+            Method settings and knobs by name (``neighbour_passes=0, progress=False``).
+
+        Returns
+        -------
+        MeasureSettings
+        """
+        knobs = {k: changes.pop(k) for k in list(changes) if k in KNOB_NAMES}
+        if knobs:
+            changes["knobs"] = dataclasses.replace(self.knobs, **knobs)
+        return dataclasses.replace(self, **changes)
+
+    def __getattr__(self, name):
+        # only called when normal lookup fails: the knobs read as settings attributes
+        if name in KNOB_NAMES:
+            return getattr(self.knobs, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def __post_init__(self):
-        positive_ints = {
-            "psf_grid": self.psf_grid,
-            "oversampling": 1 if self.oversampling == "auto" else self.oversampling,
-            "epsf_iterations": self.epsf_iterations,
-            "psf_stars_per_node": self.psf_stars_per_node,
-            "stamp_radius": self.stamp_radius,
-            "iterations": self.iterations,
-            "chunk": self.chunk,
-            "detection_passes": self.detection_passes,
-        }
-        for key, value in positive_ints.items():
-            if value < 1:
-                raise ConfigError(f"must be a positive integer, got {value}", key=key)
-        if self.epsf_size < 5 or self.epsf_size % 2 == 0:
-            raise ConfigError(f"must be an odd integer >= 5, got {self.epsf_size}", key="epsf_size")
+        for key in ("psf_grid", "detection_passes"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"must be a positive integer, got {getattr(self, key)}", key=key)
         if not 0 <= self.psf_poly_order <= 5:
             raise ConfigError(f"must be 0..5, got {self.psf_poly_order}", key="psf_poly_order")
-        if self.neighbour_passes < 0:
-            raise ConfigError("must be >= 0", key="neighbour_passes")
         nterms = (self.psf_poly_order + 1) * (self.psf_poly_order + 2) // 2
         if self.psf_variation == "polynomial" and self.psf_grid**2 < nterms:
             raise ConfigError(
                 f"a polynomial ePSF of order {self.psf_poly_order} needs psf_grid**2 >= {nterms}",
                 key="psf_grid",
             )
-        for key in (
-            "match_radius",
-            "crowding_radius",
-            "max_shift",
-            "tolerance",
-            "group_separation",
-        ):
+        for key in ("match_radius", "crowding_radius"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=key)
-        for key in (
-            "perturbation",
-            "detection_fwhm",
-            "crowding_ratio",
-            "min_snr",
-            "psf_star_max_gradient",
-            "detection_model_error",
-        ):
+        for key in ("perturbation", "detection_fwhm", "crowding_ratio", "detection_model_error"):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=key)
+
+
+def nest_knobs(mapping, source=None) -> dict:
+    """A ``[measure]`` table with its top-level knob keys moved into ``knobs``.
+
+    Parameters
+    ----------
+    mapping : mapping or None
+        The TOML table; knobs may be given flat (``epsf_iterations = 4``) or in
+        ``knobs`` (``[measure.knobs]``), not both for the same key.
+    source : str, optional
+        File name for messages.
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    ConfigError
+        A knob given both ways.
+    """
+    out = dict(mapping or {})
+    knobs = dict(out.get("knobs") or {})
+    for name in KNOB_NAMES:
+        if name in out:
+            if name in knobs:
+                raise ConfigError(
+                    "given both flat and in [knobs]; keep one", key=name, source=source
+                )
+            knobs[name] = out.pop(name)
+    known = {f.name for f in fields(MeasureSettings)}
+    for key in out:
+        close = difflib.get_close_matches(key, KNOB_NAMES, n=1, cutoff=0.8)
+        if key not in known and close:
+            raise ConfigError(f"unknown key; did you mean '{close[0]}'?", key=key, source=source)
+    if knobs or "knobs" in out:
+        out["knobs"] = knobs
+    return out

@@ -26,6 +26,17 @@ from mavispm.simulate.render.fits_output import write_frame_fits
 from mavispm.simulate.render.frame import Frame, make_renderer, render_frame
 from mavispm.simulate.render.scene import SceneSettings, scene_from_mapping
 
+__all__ = [
+    "build_scene_optics",
+    "epoch_rng",
+    "FRAMES_KIND",
+    "plan_cache_dir",
+    "register",
+    "run_stage",
+    "validate_settings",
+    "write_frame",
+]
+
 FRAMES_KIND = "frames"
 
 
@@ -44,6 +55,17 @@ def validate_settings(scene_mapping: Mapping | None, source=None) -> SceneSettin
     """Check a scene mapping (a TOML document) and return :class:`SceneSettings`.
 
     The ``optics`` sub-table is checked by ``mavispm.simulate.optics.model.validate_settings``.
+
+    Parameters
+    ----------
+    scene_mapping : mapping or None
+        The stage's TOML table (keys in docs/render.md); None: all defaults.
+    source : str, optional
+        File name, for messages.
+
+    Returns
+    -------
+    SceneSettings
 
     Raises
     ------
@@ -89,6 +111,17 @@ def plan_cache_dir(optics, cache_dir=None) -> Path | None:
     """Folder for the renderer's stamp-plan cache: ``cache_dir``, else the PSF-grid cache's.
 
     None (in memory only) when neither is known, e.g. for optics built in memory.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics (``cache_path``: its PSF-grid cache file, or None).
+    cache_dir : path, optional
+        An explicit cache folder.
+
+    Returns
+    -------
+    pathlib.Path or None
     """
     if cache_dir is not None:
         return Path(cache_dir)
@@ -97,7 +130,19 @@ def plan_cache_dir(optics, cache_dir=None) -> Path | None:
 
 
 def epoch_rng(seed: int | None, epoch: str) -> np.random.Generator:
-    """Noise generator of one epoch: independent per epoch name, reproducible per seed."""
+    """Noise generator of one epoch: independent per epoch name, reproducible per seed.
+
+    Parameters
+    ----------
+    seed : int or None
+        The run's noise seed (None: 0).
+    epoch : str
+        Epoch name ("e0", ...).
+
+    Returns
+    -------
+    numpy.random.Generator
+    """
     seed = 0 if seed is None else int(seed)
     return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(epoch.encode())]))
 
@@ -120,7 +165,28 @@ def _select_epoch(cat: Catalogue, epoch: str):
 def write_frame(
     frame: Frame, output, scene: SceneSettings, cat: Catalogue, seed, fits_path=None
 ) -> Path:
-    """Write a rendered frame as the ``frames`` product (and optionally FITS), atomically."""
+    """Write a rendered frame as the ``frames`` product (and optionally FITS), atomically.
+
+    Parameters
+    ----------
+    frame : Frame
+        From :func:`~mavispm.simulate.render.frame.render_frame`.
+    output : path
+        The HDF5 product.
+    scene : SceneSettings
+        Recorded as the product's ``scene`` attribute and configuration.
+    cat : Catalogue
+        Source of ``distance``, ``ra_center``, ``dec_center`` and the FITS ``OBJECT``.
+    seed : int
+        Recorded as the product's seed.
+    fits_path : path, optional
+        Also write the image as FITS here.
+
+    Returns
+    -------
+    pathlib.Path
+        ``output``.
+    """
     attrs = dict(frame.attrs)
     for key in ("distance", "ra_center", "dec_center"):
         if key in cat.attrs:
@@ -128,8 +194,9 @@ def write_frame(
     scene_map = to_mapping(scene)
     attrs["scene"] = scene_map
     if fits_path is not None:
-        write_frame_fits(fits_path, frame.image, attrs, scene_map, frame.saturated)
-    arrays = {"image": u.Quantity(frame.image, u.adu, copy=False), "saturated": frame.saturated}
+        fits_attrs = {**attrs, "config": cat.attrs.get("config") or {}}  # OBJECT from the preset
+        write_frame_fits(fits_path, frame.adu, fits_attrs, scene_map, frame.saturated)
+    arrays = {"image": u.Quantity(frame.adu, u.adu, copy=False), "saturated": frame.saturated}
     if scene.save_noiseless:
         arrays["noiseless"] = u.Quantity(frame.noiseless.astype(np.float32), u.electron)
     return write_product(
@@ -268,7 +335,13 @@ def _handle(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
-    """Add the ``frames`` sub-command (``mavispm simulate frames``)."""
+    """Add the ``frames`` sub-command (``mavispm simulate frames``).
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The sub-parsers of the ``mavispm`` parser (or of its command group).
+    """
     p = subparsers.add_parser(
         "frames",
         help="render catalogue epochs into stacked MAVIS frames",

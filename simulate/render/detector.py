@@ -248,6 +248,21 @@ def normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out) -> None:  # pragma:
     """Compiled :func:`skewed_normal` of ``lam = nexp * max(mu, 0)`` into ``out`` (float32).
 
     ``skew_limit = inf``: plain Gaussians with the exact mean and variance.
+
+    Parameters
+    ----------
+    mu : ndarray
+        Expected electrons per sub-exposure.
+    z : ndarray
+        Standard-normal deviates, one per pixel.
+    nexp : int
+        Sub-exposures in the stack.
+    var_rn : float
+        Read-noise variance of the stack [electron^2].
+    skew_limit : float
+        Skewness above which the skew correction applies (inf: none).
+    out : ndarray of float32
+        Receives the stacked electrons.
     """
     for i in range(mu.size):
         lam = max(mu[i], 0.0) * nexp

@@ -7,13 +7,12 @@ contract in ``docs/render.md``) and returns the stacked image with its truth.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.errors import InputError
+from mavispm.core.frame import Frame
 from mavispm.simulate.optics.refraction import star_displacement
 from mavispm.simulate.optics.telescope import telescope_displacement
 from mavispm.simulate.render.detector import expose_stack
@@ -21,42 +20,39 @@ from mavispm.simulate.render.halo_convolution import halo_field
 from mavispm.simulate.render.pixel_response import flat_field_residual
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
-from mavispm.simulate.render.zero_point import sky_electrons_per_pixel, star_electrons
+from mavispm.simulate.render.zero_point import (
+    photometric_zero_point,
+    sky_electrons_per_pixel,
+    star_electrons,
+)
+
+__all__ = [
+    "HALO_COARSE_PIXEL_MAS",
+    "make_renderer",
+    "noise_sigma_per_subexposure",
+    "render_frame",
+]
 
 #: Automatic halo down-sampling aims at coarse pixels of about this size (mas).
 HALO_COARSE_PIXEL_MAS = 60.0
 
 
-@dataclass
-class Frame:
-    """A rendered frame.
-
-    Attributes
-    ----------
-    image : ndarray (ny, nx) float32
-        Stacked frame, adu.
-    saturated : ndarray (ny, nx) bool
-        Pixels saturated in at least one sub-exposure.
-    noiseless : ndarray (ny, nx) float64
-        Expected stack in electrons (stars + halo + sky), before noise and saturation.
-    truth : QTable
-        Rendered stars: id, x_pix, y_pix, x, y, x_cat, y_cat, flux, mag.
-    attrs : dict
-        Root attributes of the frames product (quantities).
-    """
-
-    image: np.ndarray
-    saturated: np.ndarray
-    noiseless: np.ndarray
-    truth: QTable
-    attrs: dict
-
-
 def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
     """A star renderer for ``optics`` at the scene's pixel scale (reuse it across epochs).
 
-    ``cache_dir``: also keep its stamp plans (PSF-node transforms) in this folder
-    (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
+    Parameters
+    ----------
+    optics : Optics
+        Its ``psf_grid`` is rendered.
+    scene : SceneSettings
+        Pixel scale, render knobs and intra-pixel response.
+    cache_dir : path, optional
+        Also keep the stamp plans (PSF-node transforms) in this folder
+        (see :class:`~mavispm.simulate.render.stamps.StarRenderer`).
+
+    Returns
+    -------
+    StarRenderer
     """
     return StarRenderer(
         optics.psf_grid,
@@ -73,7 +69,18 @@ def _values(q, unit) -> np.ndarray:
 
 
 def noise_sigma_per_subexposure(scene: SceneSettings) -> float:
-    """Per-pixel noise sigma of the stack from sky and read noise, in electrons per sub-exposure."""
+    """Per-pixel noise sigma of the stack from sky and read noise, in electrons per sub-exposure.
+
+    Parameters
+    ----------
+    scene : SceneSettings
+        Exposure, detector and photometry.
+
+    Returns
+    -------
+    float
+        [electron] per sub-exposure.
+    """
     sky = sky_electrons_per_pixel(
         scene.photometry, scene.detector.pixel_scale * u.mas, scene.exptime * u.s
     ).value
@@ -157,6 +164,10 @@ def render_frame(
     Returns
     -------
     Frame
+        The stack in electrons (``frame.adu``: in adu, as written), its
+        saturation mask, the noise-free stack (``noiseless``), the truth table of
+        the rendered stars and the ``frames`` root attributes; the frame that
+        :func:`mavispm.measure.stars.measure_frame.measure_frame` measures.
     """
     for col in ("id", "x", "y", "mag"):
         if col not in stars.colnames:
@@ -269,14 +280,9 @@ def render_frame(
         "saturation": det.saturation_adu * u.adu,
         "sky": sky * scene.nexp * u.electron,
         "halo_fraction": (1.0 - core_fraction),
+        "zero_point": photometric_zero_point(phot),
     }
-    return Frame(
-        image=img_adu,
-        saturated=saturated,
-        noiseless=image,
-        truth=truth,
-        attrs=attrs,
-    )
+    return Frame.from_attrs(img_adu, saturated, attrs, truth, noiseless=image)
 
 
 def _refraction_shift(stars: QTable, optics, epoch: float) -> tuple[np.ndarray, np.ndarray] | None:

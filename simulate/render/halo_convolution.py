@@ -21,6 +21,15 @@ def deposit_cic(field: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndar
     """Add ``weight`` at sub-pixel positions (x, y) with cloud-in-cell weights (in place).
 
     Points whose 2x2 cell is partly outside ``field`` keep only the inside part.
+
+    Parameters
+    ----------
+    field : ndarray (ny, nx)
+        Grid added into.
+    x, y : ndarray
+        Positions [grid pixels].
+    weight : ndarray
+        Amount per point (any unit).
     """
     ny, nx = field.shape
     x0 = np.floor(x).astype(np.int64)
@@ -139,6 +148,17 @@ def add_bilinear(out, coarse, ylo, yfrac, xlo, xfrac) -> None:  # pragma: no cov
     """``out[i, j] += `` the bilinear interpolation of ``coarse`` at (ylo + yfrac, xlo + xfrac).
 
     One pass over ``out`` in row order (no full-size temporary).
+
+    Parameters
+    ----------
+    out : ndarray (ny, nx)
+        Fine grid, added into.
+    coarse : ndarray
+        Coarse grid.
+    ylo, xlo : ndarray of int
+        Lower coarse index per fine row / column.
+    yfrac, xfrac : ndarray
+        Fractional coarse offsets per fine row / column.
     """
     ny, nx = out.shape
     ncx = coarse.shape[1]

@@ -61,7 +61,19 @@ class SceneSettings:
 
 
 def scene_from_mapping(mapping: Mapping | None, source=None) -> SceneSettings:
-    """Build :class:`SceneSettings` from a TOML mapping (ConfigError naming bad keys)."""
+    """Build :class:`SceneSettings` from a TOML mapping (ConfigError naming bad keys).
+
+    Parameters
+    ----------
+    mapping : mapping, SceneSettings or None
+        The ``[scene]`` table (docs/render.md).
+    source : str, optional
+        File name, for messages.
+
+    Returns
+    -------
+    SceneSettings
+    """
     if isinstance(mapping, SceneSettings):
         return mapping
     return from_mapping(SceneSettings, mapping, source=source)

@@ -86,7 +86,17 @@ def mix_kernel_fold(
 
 @numba.njit(nogil=True, cache=True)
 def add_stamps(image, stamps, x0, y0) -> None:  # pragma: no cover
-    """Add ``stamps`` (S, m, m) into ``image`` at corners (x0, y0), clipped at the edges."""
+    """Add ``stamps`` (S, m, m) into ``image`` at corners (x0, y0), clipped at the edges.
+
+    Parameters
+    ----------
+    image : ndarray (ny, nx)
+        Added into [electron].
+    stamps : ndarray (S, m, m)
+        Stamps [electron].
+    x0, y0 : ndarray of int
+        Lower-left corner of each stamp [pixel].
+    """
     ny, nx = image.shape
     m = stamps.shape[1]
     for s in range(stamps.shape[0]):
@@ -107,6 +117,15 @@ def wrap_2d_into(a, period, out) -> None:  # pragma: no cover
 
     Wraps (sums) the last two axes of ``a`` (i, n, n) onto ``period`` x ``period``
     bins, the central sample at [0, 0], in one pass (``out`` zeroed by the caller).
+
+    Parameters
+    ----------
+    a : ndarray (i, n, n)
+        Samples to wrap.
+    period : int
+        Output period [samples].
+    out : ndarray (i, period, period)
+        Zeroed output, added into.
     """
     first = (-((a.shape[2] - 1) // 2)) % period
     for i in range(a.shape[0]):
@@ -125,7 +144,19 @@ def wrap_2d_into(a, period, out) -> None:  # pragma: no cover
 
 @numba.njit(nogil=True, cache=True)
 def binned_max(values, bins, n_bins, out) -> None:  # pragma: no cover
-    """``out[i, b] = max(values[i, p] for p with bins[p] == b)`` (``out`` pre-filled with 0)."""
+    """``out[i, b] = max(values[i, p] for p with bins[p] == b)`` (``out`` pre-filled with 0).
+
+    Parameters
+    ----------
+    values : ndarray (i, p)
+        Values.
+    bins : ndarray of int (p,)
+        Bin of each column.
+    n_bins : int
+        Number of bins.
+    out : ndarray (i, n_bins)
+        Filled with 0 by the caller; receives the maxima.
+    """
     for i in range(values.shape[0]):
         for p in range(values.shape[1]):
             b = bins[p]

@@ -306,7 +306,18 @@ class StarRenderer:
         return self._cube.shape[-1] * self.psf_pixel_scale / self.pixel_scale
 
     def max_stamp(self, max_sigma_mas: float = 0.0) -> int:
-        """Largest stamp side needed: the PSF extent plus the kernel, in pixels."""
+        """Largest stamp side needed: the PSF extent plus the kernel, in pixels.
+
+        Parameters
+        ----------
+        max_sigma_mas : float
+            Largest tip-tilt/blur kernel sigma [mas].
+
+        Returns
+        -------
+        int
+            Stamp side [pixel].
+        """
         if self.params.max_stamp:
             return self.params.max_stamp
         need = self.psf_extent_pixels + 2 * (5 * max_sigma_mas / self.pixel_scale + 1)
@@ -364,6 +375,11 @@ class StarRenderer:
         direct (matrix) DFT for any other sampling; only samples where
         some node exceeds ``spectrum_floor * 10**-PLAN_FLOOR_DECADES`` of its total are
         kept (the optical transfer function vanishes beyond D/lambda).
+
+        Parameters
+        ----------
+        m : int
+            Stamp side [pixel].
         """
         return self.plans([m])[m]
 
@@ -373,6 +389,15 @@ class StarRenderer:
         Plans missing from memory are loaded from ``cache_dir`` or computed; stamp
         periods that divide one another (same odd factor, e.g. 128, 64, 32 pixels)
         share one FFT per PSF node (see :func:`_node_transforms_fft`).
+
+        Parameters
+        ----------
+        sizes : iterable of int
+            Stamp sides [pixel].
+
+        Returns
+        -------
+        dict of int to StampPlan
         """
         missing = sorted({int(m) for m in sizes} - set(self._plans))
         todo = []
@@ -647,6 +672,11 @@ def stamp_centre(pix) -> np.ndarray:
     the half, so that such a star gets the same stamp, offset by the same whole
     number of pixels, in every frame (the stamp is periodic: its centre pixel only
     decides which copy of the wing is kept, not where the star is).
+
+    Parameters
+    ----------
+    pix : array-like
+        Star positions [pixel].
     """
     return np.floor(np.asarray(pix, dtype=np.float64) + (0.5 + STAMP_CENTRE_BIAS)).astype(np.int64)
 

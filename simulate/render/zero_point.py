@@ -23,6 +23,15 @@ import numpy as np
 
 from mavispm.core.config import unit_field
 
+__all__ = [
+    "collecting_area",
+    "electron_rate_zero_mag",
+    "photometric_zero_point",
+    "PhotometrySettings",
+    "sky_electrons_per_pixel",
+    "star_electrons",
+]
+
 
 @dataclass(frozen=True)
 class PhotometrySettings:
@@ -78,14 +87,36 @@ class PhotometrySettings:
 
 
 def collecting_area(settings: PhotometrySettings) -> u.Quantity:
-    """Unobscured collecting area of the telescope (cm^2)."""
+    """Unobscured collecting area of the telescope (cm^2).
+
+    Parameters
+    ----------
+    settings : PhotometrySettings
+        Telescope and obscuration diameters [m].
+
+    Returns
+    -------
+    Quantity
+        [cm^2]
+    """
     d_out = settings.telescope_diameter * 100.0
     d_in = settings.obscuration_diameter * 100.0
     return math.pi / 4.0 * (d_out**2 - d_in**2) * u.cm**2
 
 
 def electron_rate_zero_mag(settings: PhotometrySettings) -> u.Quantity:
-    """Detected electrons per second from a V = 0 source above the atmosphere (electron/s)."""
+    """Detected electrons per second from a V = 0 source above the atmosphere (electron/s).
+
+    Parameters
+    ----------
+    settings : PhotometrySettings
+        Vega zero point, bandwidth, collecting area, throughput and QE.
+
+    Returns
+    -------
+    Quantity
+        [electron/s]
+    """
     rate = (
         settings.zero_point
         * settings.bandwidth
@@ -94,6 +125,23 @@ def electron_rate_zero_mag(settings: PhotometrySettings) -> u.Quantity:
         * settings.qe
     )
     return rate * u.electron / u.s
+
+
+def photometric_zero_point(settings: PhotometrySettings) -> u.Quantity:
+    """Magnitude of a star that gives 1 detected electron per second (extinction included).
+
+    Parameters
+    ----------
+    settings : PhotometrySettings
+
+    Returns
+    -------
+    Quantity
+        ``ZP`` [mag] such that ``mag = ZP - 2.5 log10(flux / exposure)`` with the
+        flux in electrons and the exposure in seconds.
+    """
+    rate = electron_rate_zero_mag(settings).to_value(u.electron / u.s)
+    return (2.5 * math.log10(rate) - settings.extinction * settings.airmass) * u.mag
 
 
 def star_electrons(mag, settings: PhotometrySettings, exposure: u.Quantity) -> u.Quantity:
