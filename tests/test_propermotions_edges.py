@@ -247,3 +247,34 @@ def test_stars_missing_in_random_epochs_give_finite_flagged_motions(seed, n_ep, 
     partial = s["n_epochs"] < n_ep
     assert np.all((s["flag"][partial] & PMFlag.MISSING_EPOCHS) > 0)
     assert np.all((s["flag"][~partial] & PMFlag.MISSING_EPOCHS) == 0)
+
+
+def test_blind_epochs_are_matched_by_position_and_ignore_truth_flags(tmp_path):
+    """Blind detections carry truth-match ids and flag 16 (no truth match) only for
+    scoring: the PM stage must not use either (an observer has no truth)."""
+    import dataclasses
+
+    truth = make_cluster(n=600, seed=4)
+    e0, e1 = observe(truth, [0.0, 10.0], seed=5)
+    # the truth match gave the second epoch's detections wrong ids: matching by id
+    # would pair the wrong stars, matching by position pairs the right ones
+    rng = np.random.default_rng(0)
+    e1 = dataclasses.replace(e1, ids=rng.permutation(e1.ids))
+    flag = np.zeros(e0.ids.size, np.int64)
+    flag[::3] = 16  # "no match to truth" on a third of the stars
+    paths = []
+    for k, ep in enumerate((e0, e1)):
+        ep = dataclasses.replace(ep, flag=flag)
+        paths.append(write_measured(tmp_path / f"m{k}.h5", ep, extra_attrs={"blind": True}))
+    epochs = [read_measured(p) for p in paths]
+    assert all(e.blind for e in epochs) and not np.any(epochs[0].flag & 16)
+    result = derive_proper_motions(epochs, validate_settings({}))
+    stars = result.stars
+    # every pair is the same physical star: recovered motions match the injected ones
+    x0 = np.asarray(stars["pm_x"].to_value(u.mas / u.yr))
+    assert len(stars) > 500
+    assert np.nanstd(x0 - np.median(x0)) < 1.5 * np.std(truth.pm_x)
+    assert not np.any(np.asarray(stars["flag"]) & PMFlag.INPUT_FLAGGED)
+    # the same epochs matched by their (truth) ids pair the wrong stars
+    bad = derive_proper_motions(epochs, validate_settings({"match": "id"})).stars
+    assert np.nanstd(np.asarray(bad["pm_x"].to_value(u.mas / u.yr))) > 100 * np.std(truth.pm_x)

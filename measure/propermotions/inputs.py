@@ -44,6 +44,10 @@ MEASURED_PM_SPEC = TableSpec(
 EPOCH_TOLERANCE = 1e-6
 
 
+#: bits of the measure stage's flag that come from the truth match (scoring only)
+TRUTH_SCORING_FLAGS = 16
+
+
 @dataclass
 class EpochCatalogue:
     """One epoch's measured stars, plain arrays in fixed units.
@@ -66,6 +70,9 @@ class EpochCatalogue:
     distance : float or None
         [kpc], from the product's root attribute.
     path : pathlib.Path or None
+    blind : bool
+        The stars were found by blind detection: their ids come from the truth match
+        (for scoring) and must not be used to cross-match epochs.
     """
 
     epoch: float
@@ -81,6 +88,7 @@ class EpochCatalogue:
     y_true: np.ndarray | None = None
     distance: float | None = None
     path: Path | None = None
+    blind: bool = False
 
     @property
     def label(self) -> str:
@@ -171,6 +179,8 @@ def epoch_catalogue(
         if "flag" in stars.colnames
         else np.zeros(len(stars), np.int64)
     )
+    # the "no match to truth" bit is a score, not a measurement: an observer has no truth
+    flag = flag & ~np.int64(TRUTH_SCORING_FLAGS)
     return EpochCatalogue(
         epoch=epoch,
         ids=np.asarray(stars["id"], dtype=np.int64),
@@ -185,6 +195,7 @@ def epoch_catalogue(
         y_true=col("y_true"),
         distance=distance,
         path=None if path is None else Path(path),
+        blind=bool(attrs.get("blind", False)),
     )
 
 

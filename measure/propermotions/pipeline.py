@@ -163,12 +163,15 @@ def derive_proper_motions(
     ref = settings.reference if settings.reference >= 0 else n_ep + settings.reference
     if not 0 <= ref < n_ep:
         raise InputError(f"reference epoch index {settings.reference} out of range for {n_ep}")
+    method = settings.match
+    if method == "auto" and any(e.blind for e in epochs):
+        method = "position"  # blind ids are truth-match ids: an observer matches by position
     match = match_epochs(
         [e.ids for e in epochs],
         [(e.x, e.y) for e in epochs],
         reference=ref,
         radius=radius,
-        method=settings.match,
+        method=method,
     )
     notes = list(match.notes)
     x, y = _gather(epochs, match, "x"), _gather(epochs, match, "y")
