@@ -18,7 +18,7 @@ from cluster_helpers import (
     pm2_interpolators,
     sky_components,
 )
-from hypothesis import HealthCheck, given
+from hypothesis import HealthCheck, example, given
 from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 
@@ -297,20 +297,21 @@ SETTING_NAMES = (
     bhs=st.floats(0.0, 5000.0),
     imbh=st.sampled_from([0.0, 300.0, 3000.0, 30000.0]),
 )
+@example(mass=20000.0, ns=0.0, bh=0.0, ra=None, bhs=5e-324, imbh=0.0)
 def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, ra, bhs, imbh):
-    settings = ClusterSettings(
-        preset="ngc3201-nbody",
-        stellar_mass=mass,
-        ns_retention=ns,
-        bh_retention=bh,
-        anisotropy_radius=ra if ra is None or ra > 1 else None,
-        anisotropy_beta=ra if ra is not None and ra < 1 else 0.0,
-        bh_subsystem_mass=bhs,
-        imbh_mass=imbh,
-        n_stars=300,
-        resolution=FAST,
-    )
     try:
+        settings = ClusterSettings(
+            preset="ngc3201-nbody",
+            stellar_mass=mass,
+            ns_retention=ns,
+            bh_retention=bh,
+            anisotropy_radius=ra if ra is None or ra > 1 else None,
+            anisotropy_beta=ra if ra is not None and ra < 1 else 0.0,
+            bh_subsystem_mass=bhs,
+            imbh_mass=imbh,
+            n_stars=300,
+            resolution=FAST,
+        )
         model = build_cluster_model(settings)
     except (NoIsotropicDFError, ValueError) as exc:
         msg = str(exc)

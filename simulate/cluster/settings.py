@@ -154,7 +154,11 @@ class ClusterSettings:
                 "anisotropy_beta",
                 "cannot be combined with anisotropy_radius; give one of them",
             ),
-            (self.bh_subsystem_mass >= 0, "bh_subsystem_mass", "must be >= 0 solMass"),
+            (
+                self.bh_subsystem_mass == 0 or self.bh_subsystem_mass >= 10.0,
+                "bh_subsystem_mass",
+                "must be 0 (none) or at least one black hole (>= 10 solMass)",
+            ),
             (
                 self.bh_subsystem_radius is None or self.bh_subsystem_radius > 0,
                 "bh_subsystem_radius",
