@@ -123,12 +123,13 @@ def existing(tmp_path) -> Path:
 # ---------------------------------------------------------------- product readers
 
 
-@pytest.mark.parametrize("hostile", HOSTILE)
-@pytest.mark.parametrize("kind", KINDS)
+# a catalogue is the right kind for the catalogue reader: no "wrong_kind" case there
+@pytest.mark.parametrize(
+    ("hostile", "kind"),
+    [(h, k) for k in KINDS for h in HOSTILE if not (h == "wrong_kind" and k == "catalogue")],
+)
 def test_product_readers_refuse_hostile_files_with_input_errors(inputs, hostile, kind):
     path = hostile_file(inputs, hostile)
-    if hostile == "wrong_kind" and kind == "catalogue":
-        pytest.skip("a catalogue is the right kind here")
     if hostile == "nan":
         # NaN in a float column is data (NaN magnitudes of undetected stars are legal);
         # the reader must still return or refuse cleanly, never crash
@@ -177,16 +178,21 @@ def _argv(template, infile, out, cat):
     ]
 
 
-@pytest.mark.parametrize("hostile", HOSTILE)
+def _applies(hostile: str, label: str, suffix: str) -> bool:
+    """A catalogue is a valid star list and TOML inputs have no product kind; an empty
+    TOML file is valid (all settings at their defaults)."""
+    if hostile == "wrong_kind" and (label.startswith("cluster input") or suffix == ".toml"):
+        return False
+    return not (hostile == "empty" and suffix == ".toml")
+
+
 @pytest.mark.parametrize(
-    ("label", "template", "suffix"), FILE_INPUTS, ids=[f[0] for f in FILE_INPUTS]
+    ("hostile", "label", "template", "suffix"),
+    [(h, *f) for f in FILE_INPUTS for h in HOSTILE if _applies(h, f[0], f[2])],
+    ids=[f"{f[0]}-{h}" for f in FILE_INPUTS for h in HOSTILE if _applies(h, f[0], f[2])],
 )
 def test_hostile_input_files(inputs, capsys, out, existing, hostile, label, template, suffix):
     infile = hostile_file(inputs, hostile, suffix)
-    if hostile == "wrong_kind" and (label.startswith("cluster input") or suffix == ".toml"):
-        pytest.skip("a catalogue is a valid star list; TOML inputs have no product kind")
-    if hostile == "empty" and suffix == ".toml":
-        pytest.skip("an empty TOML file is valid: all settings at their defaults")
     for target in (out, existing):
         argv = _argv(template, infile, target, inputs / "catalogue.h5")
         check_refused(capsys, argv, infile.name, outputs=[target])
@@ -242,11 +248,10 @@ def test_bad_option_values_are_usage_errors(inputs, capsys, out, argv, option):
     check_refused(capsys, argv, option, outputs=[out])
 
 
-@pytest.mark.parametrize("hostile", HOSTILE)
+# a catalogue is the right kind for a workflow's catalogue path: no "wrong_kind" case
+@pytest.mark.parametrize("hostile", [h for h in HOSTILE if h != "wrong_kind"])
 def test_workflow_catalogue_path_to_hostile_files(inputs, capsys, tmp_path, hostile):
     infile = hostile_file(inputs, hostile)
-    if hostile == "wrong_kind":
-        pytest.skip("a catalogue is the right kind here")
     wf = tmp_path / "wf.toml"
     wf.write_text(
         f'[workflow]\nname = "w"\n[catalogue]\npath = "{infile}"\n[epochs]\ntimes = [0]\n'
