@@ -20,10 +20,42 @@ def _integer(text: str, minimum: int, what: str) -> int:
 
 
 def non_negative_int(text: str) -> int:
-    """An integer >= 0 (seeds, pool sizes where 0 means "all CPUs")."""
+    """Parse an integer >= 0 (seeds, pool sizes where 0 means "all CPUs").
+
+    Parameters
+    ----------
+    text : str
+        The command-line value.
+
+    Returns
+    -------
+    int
+        The value.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        When ``text`` is not an integer >= 0 (argparse turns it into a one-line usage error).
+    """
     return _integer(text, 0, "an integer >= 0")
 
 
 def positive_int(text: str) -> int:
-    """An integer >= 1 (counts)."""
+    """Parse an integer >= 1 (counts).
+
+    Parameters
+    ----------
+    text : str
+        The command-line value.
+
+    Returns
+    -------
+    int
+        The value.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        When ``text`` is not an integer >= 1.
+    """
     return _integer(text, 1, "an integer >= 1")

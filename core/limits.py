@@ -36,7 +36,24 @@ _UNITS = {
 
 
 def parse_bytes(text: str) -> float:
-    """``"64GB"``, ``"1.5 GiB"``, ``"inf"`` -> bytes (ValueError otherwise)."""
+    """Parse a memory size: ``"64GB"``, ``"1.5 GiB"``, ``"inf"`` -> bytes.
+
+    Parameters
+    ----------
+    text : str
+        A number with an optional unit (B, kB, MB, GB, TB in powers of 1000; KiB, MiB, GiB,
+        TiB in powers of 1024; case-insensitive), or ``inf``/``none``/``unlimited``.
+
+    Returns
+    -------
+    float
+        The size [byte]; ``inf`` for no limit.
+
+    Raises
+    ------
+    ValueError
+        When ``text`` is not such a size.
+    """
     text = str(text).strip().lower()
     if text in ("inf", "none", "unlimited"):
         return float("inf")
@@ -72,7 +89,18 @@ def memory_limit() -> float:
 
 
 def human_bytes(n: float) -> str:
-    """Bytes as a short string in powers of 1024 (``7.0 TiB``)."""
+    """Write a byte count as a short string in powers of 1024 (``7.0 TiB``).
+
+    Parameters
+    ----------
+    n : float
+        Size [byte].
+
+    Returns
+    -------
+    str
+        The size with one decimal in the largest unit below 1024 (whole bytes below 1 KiB).
+    """
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if n < 1024 or unit == "PiB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"

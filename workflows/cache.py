@@ -49,7 +49,19 @@ KEY_LENGTH = 24
 
 
 def canonical_json(obj) -> str:
-    """Deterministic JSON text of ``obj`` (sorted keys, no whitespace)."""
+    """Deterministic JSON text of ``obj`` (sorted keys, no whitespace).
+
+    Parameters
+    ----------
+    obj : object
+        JSON-serialisable data; paths become strings, numpy scalars and arrays Python numbers
+        and lists, anything else its ``repr``.
+
+    Returns
+    -------
+    str
+        The JSON text (equal objects give equal text, so it can be hashed).
+    """
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=_json_default)
 
 
@@ -67,7 +79,18 @@ _DIGESTS: dict[tuple, str] = {}
 
 
 def file_digest(path: str | os.PathLike) -> str:
-    """SHA-256 of a file's content (memoised on path, size and modification time)."""
+    """SHA-256 of a file's content (memoised on path, size and modification time).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+
+    Returns
+    -------
+    str
+        Hexadecimal SHA-256 digest of the bytes.
+    """
     path = Path(path)
     st = path.stat()
     memo = (str(path.resolve()), st.st_size, st.st_mtime_ns)
@@ -110,6 +133,13 @@ def without_keys(settings: Mapping, dotted: tuple[str, ...]) -> dict:
 def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, str]:
     """Key of every node (``nodes`` in topological order).
 
+    Parameters
+    ----------
+    nodes : mapping of str to Node
+        Node id to node, in topological order (inputs before users).
+    registry : StageRegistry
+        The stages (their code fingerprints enter the keys).
+
     Returns
     -------
     dict of str to str
@@ -141,6 +171,16 @@ def exclusive_lock(path: Path):
 
     A killed holder releases the lock with its death. Without POSIX ``fcntl`` the
     block runs unlocked.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The lock file.
+
+    Yields
+    ------
+    None
+        The lock is held while the block runs.
     """
     with open(path, "a+b") as fh:
         if fcntl is not None:
@@ -165,17 +205,55 @@ class Store:
         self.root = Path(root)
 
     def final_dir(self, stage: str, key: str) -> Path:
-        """Folder of a completed node."""
+        """Folder of a completed node.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
+
+        Returns
+        -------
+        pathlib.Path
+            ``root/stage/key``.
+        """
         return self.root / stage / key
 
     def partial_dir(self, stage: str, key: str) -> Path:
-        """Working folder of an unfinished node."""
+        """Working folder of an unfinished node.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
+
+        Returns
+        -------
+        pathlib.Path
+            ``root/stage/key`` plus the partial suffix.
+        """
         return self.root / stage / (key + PARTIAL_SUFFIX)
 
     def lookup(self, stage: str, key: str) -> dict | None:
         """The completion record of a node, or None if it is not complete.
 
         A record whose listed products are missing counts as not complete.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
+
+        Returns
+        -------
+        dict or None
+            The record read from the node's marker file.
         """
         final = self.final_dir(stage, key)
         marker = final / MARKER
@@ -198,7 +276,20 @@ class Store:
         return record
 
     def begin(self, stage: str, key: str) -> Path:
-        """Create (or reuse) the node's partial folder and return it."""
+        """Create (or reuse) the node's partial folder and return it.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
+
+        Returns
+        -------
+        pathlib.Path
+            The partial folder.
+        """
         part = self.partial_dir(stage, key)
         part.mkdir(parents=True, exist_ok=True)
         return part
@@ -212,6 +303,13 @@ class Store:
         left to do), else None. Two runs sharing a work directory therefore never
         write the same node at once; a killed holder releases the lock with its
         death.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
         """
         part = self.begin(stage, key)
         with exclusive_lock(part / LOCK_NAME):
@@ -225,6 +323,21 @@ class Store:
 
         Returns the final folder. When another worker finished the same key
         first, its result is kept and this partial folder is removed.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
+        record : mapping
+            The completion record (``products`` maps names to paths relative to the folder); the
+            products' digests are added before it is written.
+
+        Returns
+        -------
+        pathlib.Path
+            The final folder.
         """
         part = self.partial_dir(stage, key)
         final = self.final_dir(stage, key)
@@ -246,7 +359,15 @@ class Store:
         return final
 
     def invalidate(self, stage: str, key: str) -> None:
-        """Forget a completed node (``--force``): remove its marker and folder."""
+        """Forget a completed node (``--force``): remove its marker and folder.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        key : str
+            The node's cache key.
+        """
         final = self.final_dir(stage, key)
         with contextlib.suppress(FileNotFoundError):
             (final / MARKER).unlink()
@@ -290,6 +411,18 @@ def product_fingerprint(path: str | os.PathLike, ignore: tuple[str, ...] = ()) -
     ``time_*``, docs/formats.md) and the names in ``ignore`` (for example
     attributes recording input file paths) is hashed; for other files the bytes.
     Two products with the same fingerprint hold bitwise identical data.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The product (``.h5``/``.hdf5``) or any other file.
+    ignore : tuple of str
+        Further root attribute names left out of the hash.
+
+    Returns
+    -------
+    str
+        Hexadecimal SHA-256 digest.
     """
     path = Path(path)
     if path.suffix not in (".h5", ".hdf5"):

@@ -51,7 +51,19 @@ _AGE_UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400, "w": 7 * 86400}
 
 @dataclass
 class Entry:
-    """One removable cache entry: a file, or a store node folder."""
+    """One removable cache entry: a file, or a store node folder.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The file or folder.
+    size : int
+        Bytes it holds [byte] (for a folder, the sum over its files).
+    last_used : float
+        Latest modification or access time [s since the epoch].
+    kind : str
+        What it is (the cache pattern's name or ``store/<stage>``), for the listing.
+    """
 
     path: Path
     size: int
@@ -61,6 +73,19 @@ class Entry:
 
 def parse_size(text: str, option: str = "--max-size") -> int:
     """``"2GB"``, ``"500 MiB"``, ``"0"`` -> bytes.
+
+    Parameters
+    ----------
+    text : str
+        A number with an optional unit (B, kB/k, MB/M, GB/G, TB/T in powers of 1000;
+        KiB, MiB, GiB, TiB in powers of 1024).
+    option : str
+        The option named in the error message.
+
+    Returns
+    -------
+    int
+        The size [byte].
 
     Raises
     ------
@@ -75,6 +100,18 @@ def parse_size(text: str, option: str = "--max-size") -> int:
 
 def parse_age(text: str, option: str = "--older-than") -> float:
     """``"30d"``, ``"12h"``, ``"2w"``, ``"90m"``, ``"45s"`` -> seconds.
+
+    Parameters
+    ----------
+    text : str
+        A number followed by s, m, h, d or w.
+    option : str
+        The option named in the error message.
+
+    Returns
+    -------
+    float
+        The age [s].
 
     Raises
     ------
@@ -105,7 +142,19 @@ def _stat_entry(path: Path, kind: str) -> Entry | None:
 
 
 def disk_cache_entries(folder: Path) -> list[Entry]:
-    """The removable files of a disk cache folder."""
+    """The removable files of a disk cache folder.
+
+    Parameters
+    ----------
+    folder : pathlib.Path
+        The disk cache folder (``$MAVISPM_CACHE``).
+
+    Returns
+    -------
+    list of Entry
+        Files matching the cache's patterns (symbolic links skipped); empty when the folder
+        does not exist.
+    """
     if not folder.is_dir():
         return []
     seen: dict[Path, Entry] = {}
@@ -119,7 +168,18 @@ def disk_cache_entries(folder: Path) -> list[Entry]:
 
 
 def store_entries(workdir: Path) -> list[Entry]:
-    """The node folders (complete and partial) of a work directory's store."""
+    """The node folders (complete and partial) of a work directory's store.
+
+    Parameters
+    ----------
+    workdir : pathlib.Path
+        The work directory (its ``store/`` sub-folder is listed).
+
+    Returns
+    -------
+    list of Entry
+        One per node folder; empty without a store.
+    """
     store = workdir / "store"
     if not store.is_dir():
         return []
@@ -136,7 +196,25 @@ def store_entries(workdir: Path) -> list[Entry]:
 def select_for_removal(
     entries: list[Entry], older_than: float | None, max_size: int | None, now: float
 ) -> list[Entry]:
-    """Entries to remove: unused for ``older_than`` s, then oldest first down to ``max_size``."""
+    """Entries to remove: unused for ``older_than`` s, then oldest first down to ``max_size``.
+
+    Parameters
+    ----------
+    entries : list of Entry
+        Candidates.
+    older_than : float or None
+        Remove entries unused for longer than this [s]; None: no age limit.
+    max_size : int or None
+        Then remove the least recently used entries until the rest hold at most this [byte];
+        None: no size limit.
+    now : float
+        Current time [s since the epoch].
+
+    Returns
+    -------
+    list of Entry
+        The entries to remove.
+    """
     doomed = []
     keep = sorted(entries, key=lambda e: e.last_used)
     if older_than is not None:
@@ -152,7 +230,18 @@ def select_for_removal(
 
 
 def human(n: float) -> str:
-    """Bytes as a short human-readable string (powers of 1000)."""
+    """Bytes as a short human-readable string (powers of 1000).
+
+    Parameters
+    ----------
+    n : float
+        Size [byte].
+
+    Returns
+    -------
+    str
+        For example ``"1.5 GB"``.
+    """
     for unit in ("B", "kB", "MB", "GB", "TB"):
         if abs(n) < 1000 or unit == "TB":
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
@@ -161,7 +250,13 @@ def human(n: float) -> str:
 
 
 def register(subparsers) -> None:
-    """Add the ``cache`` command to the top-level sub-parsers."""
+    """Add the ``cache`` command to the top-level sub-parsers.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``mavispm`` parser's sub-parsers.
+    """
     p = subparsers.add_parser(
         "cache",
         help="show disk usage of the caches; clean them by age or size",

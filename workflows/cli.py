@@ -66,11 +66,29 @@ class OneLineParser(argparse.ArgumentParser):
     """
 
     def error(self, message: str):
+        """Exit with status 2 and a one-line usage error.
+
+        Parameters
+        ----------
+        message : str
+            argparse's message.
+        """
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
 def modules_for(argv: list[str] | None) -> list[tuple[str | None, str]]:
-    """The (group, module) pairs needed to parse ``argv``: one for a known command, else all."""
+    """The (group, module) pairs needed to parse ``argv``: one for a known command, else all.
+
+    Parameters
+    ----------
+    argv : list of str or None
+        Command-line words (None: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    list of tuple
+        ``(group or None, module name)`` pairs.
+    """
     words = list(sys.argv[1:] if argv is None else argv)
     if words and words[0] in GROUP_HELP and len(words) > 1:
         key = (words[0], words[1])
@@ -89,6 +107,18 @@ def build_parser(argv: list[str] | None = None, everything: bool = True) -> argp
 
     ``everything=False``: only the module of the command ``argv`` names (see
     :data:`COMMANDS`), so that running one stage does not import the others.
+
+    Parameters
+    ----------
+    argv : list of str or None
+        Command-line words (None: ``sys.argv[1:]``); only read when ``everything`` is False.
+    everything : bool
+        Register every command (for ``--help``); False: only the one ``argv`` names.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The ``mavispm`` parser.
     """
     parser = OneLineParser(
         prog="mavispm",
@@ -123,7 +153,18 @@ def _help_of(parser: argparse.ArgumentParser):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``mavispm`` console script."""
+    """Entry point of the ``mavispm`` console script.
+
+    Parameters
+    ----------
+    argv : list of str or None
+        Command-line words (None: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Exit status: 0 on success, 2 on bad input (one line on stderr).
+    """
     parser = build_parser(argv, everything=False)
     try:
         args = parser.parse_args(argv)

@@ -86,7 +86,23 @@ SECTION_STAGE = {
 
 @dataclass(frozen=True)
 class WorkflowSection:
-    """The ``[workflow]`` table."""
+    """The ``[workflow]`` table.
+
+    Attributes
+    ----------
+    name : str
+        Workflow name (run directory and report title).
+    description : str
+        Free text for the report.
+    seed : int
+        Base seed (>= 0); every node's seed is derived from it and the node's path.
+    sweep_mode : {"grid", "zip"}
+        How ``[[sweep]]`` axes combine: every combination, or element-wise.
+    executor : {"threads", "processes", "serial"}
+        Local executor (overridden by ``--scheduler``).
+    workers : int
+        Local pool size; 0 means all CPUs.
+    """
 
     name: str = ""
     description: str = ""
@@ -104,7 +120,21 @@ class WorkflowSection:
 
 @dataclass(frozen=True)
 class OutputsSection:
-    """The ``[outputs]`` table."""
+    """The ``[outputs]`` table.
+
+    Attributes
+    ----------
+    fits : bool
+        Also write FITS images of the frames.
+    plots : bool
+        Write the stage plots.
+    report : bool
+        Write ``report.md`` after the run.
+    link : {"hardlink", "copy", "symlink"}
+        How products appear in the run directory.
+    tables : tuple of str
+        Report recipes to run (docs/workflows.md, "Report recipes").
+    """
 
     fits: bool = True
     plots: bool = True
@@ -115,7 +145,17 @@ class OutputsSection:
 
 @dataclass(frozen=True)
 class SweepAxis:
-    """One ``[[sweep]]`` axis."""
+    """One ``[[sweep]]`` axis.
+
+    Attributes
+    ----------
+    parameter : str
+        Dotted workflow key swept, e.g. ``"dynamics.walkers"``.
+    values : tuple
+        The values it takes.
+    name : str
+        Axis name in tables and node paths (default: the key's last part).
+    """
 
     parameter: str = ""
     values: tuple[Any, ...] = ()
@@ -124,7 +164,19 @@ class SweepAxis:
 
 @dataclass(frozen=True)
 class SceneConfig:
-    """Effective settings of one scene: render scene (optics included), optics, measurement."""
+    """Effective settings of one scene: render scene (optics included), optics, measurement.
+
+    Attributes
+    ----------
+    name : str
+        Scene name (empty for the single ``[scene]``).
+    scene : dict
+        The render settings (``[scene]`` with the scene's overlay).
+    optics : dict or None
+        The optics settings of the scene.
+    measure : dict or None
+        The measurement settings of the scene.
+    """
 
     name: str
     scene: dict
@@ -134,7 +186,15 @@ class SceneConfig:
 
 @dataclass(frozen=True)
 class Epoch:
-    """An observing epoch: catalogue table name and time [yr]."""
+    """An observing epoch: catalogue table name and time [yr].
+
+    Attributes
+    ----------
+    name : str
+        Epoch (catalogue table) name.
+    time : float
+        Epoch time [yr].
+    """
 
     name: str
     time: float
@@ -217,6 +277,16 @@ def resolve_workflow_path(name: str | os.PathLike) -> Path:
     ``"quickstart"``, ``"quickstart.toml"`` and ``"workflows/quickstart.toml"``
     all find the shipped quickstart when no such file exists here.
 
+    Parameters
+    ----------
+    name : str or os.PathLike
+        A path, or the name of a shipped workflow.
+
+    Returns
+    -------
+    pathlib.Path
+        The workflow file.
+
     Raises
     ------
     ConfigError
@@ -236,7 +306,23 @@ def resolve_workflow_path(name: str | os.PathLike) -> Path:
 
 
 def read_toml(path: Path) -> dict:
-    """Parse a TOML file, turning syntax errors into :class:`ConfigError`."""
+    """Parse a TOML file, turning syntax errors into :class:`ConfigError`.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The TOML file.
+
+    Returns
+    -------
+    dict
+        Its tables.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file when it cannot be read or is not valid TOML.
+    """
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
@@ -283,7 +369,27 @@ def load_workflow(
 
 
 def parse_workflow(mapping: Mapping, source: Path, registry: StageRegistry) -> Workflow:
-    """Validate a workflow mapping read from ``source`` (see :func:`load_workflow`)."""
+    """Validate a workflow mapping read from ``source`` (see :func:`load_workflow`).
+
+    Parameters
+    ----------
+    mapping : mapping
+        The workflow's tables as read from TOML.
+    source : pathlib.Path
+        The file it came from (named in errors, base of relative paths).
+    registry : StageRegistry
+        The stages whose settings validators check the stage tables.
+
+    Returns
+    -------
+    Workflow
+        The validated workflow with its resolved variants.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file and key of the first bad setting.
+    """
     src = str(source)
     check_known_keys(mapping, TOP_SECTIONS, "", src)
     for key in TOP_SECTIONS:

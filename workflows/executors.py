@@ -37,15 +37,50 @@ class Executor(abc.ABC):
 
     @abc.abstractmethod
     def submit(self, fn: Callable, *args):
-        """Start ``fn(*args)``; return a future."""
+        """Start ``fn(*args)``; return a future.
+
+        Parameters
+        ----------
+        fn : callable
+            A picklable function (a process pool or dask pickles it).
+        *args
+            Its arguments.
+
+        Returns
+        -------
+        concurrent.futures.Future or distributed.Future
+            The running call.
+        """
 
     def wait(self, futures: Iterable) -> tuple[set, set]:
-        """Block until at least one future is done; return (done, not_done)."""
+        """Block until at least one future is done.
+
+        Parameters
+        ----------
+        futures : iterable of futures
+            Futures returned by :meth:`submit`.
+
+        Returns
+        -------
+        done, not_done : set
+            The finished futures and the others.
+        """
         return cf.wait(list(futures), return_when=cf.FIRST_COMPLETED)
 
     @staticmethod
     def outcome(future):
-        """The future's result (re-raising the task's exception)."""
+        """The future's result (re-raising the task's exception).
+
+        Parameters
+        ----------
+        future : future
+            A finished future of this executor.
+
+        Returns
+        -------
+        object
+            What the task returned.
+        """
         return future.result()
 
     def close(self) -> None:  # noqa: B027 - nothing to release by default
@@ -64,6 +99,21 @@ class SerialExecutor(Executor):
     name = "serial"
 
     def submit(self, fn, *args):
+        """Run ``fn(*args)`` now, in the calling thread.
+
+        Parameters
+        ----------
+        fn : callable
+            The function.
+        *args
+            Its arguments.
+
+        Returns
+        -------
+        concurrent.futures.Future
+            A finished future holding the result or the exception (KeyboardInterrupt and
+            SystemExit propagate at once).
+        """
         fut: cf.Future = cf.Future()
         try:
             fut.set_result(fn(*args))
@@ -75,7 +125,15 @@ class SerialExecutor(Executor):
 
 
 class PoolExecutor(Executor):
-    """A ``concurrent.futures`` thread or process pool on this machine."""
+    """A ``concurrent.futures`` thread or process pool on this machine.
+
+    Parameters
+    ----------
+    kind : {"threads", "processes"}
+        Pool type; processes start by forkserver where available, else spawn.
+    workers : int
+        Pool size (>= 1).
+    """
 
     def __init__(self, kind: str, workers: int):
         self.name = f"{kind}({workers})"
@@ -87,9 +145,24 @@ class PoolExecutor(Executor):
             self._pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
 
     def submit(self, fn, *args):
+        """Start ``fn(*args)`` in the pool.
+
+        Parameters
+        ----------
+        fn : callable
+            The function (picklable for a process pool).
+        *args
+            Its arguments.
+
+        Returns
+        -------
+        concurrent.futures.Future
+            The running call.
+        """
         return self._pool.submit(fn, *args)
 
     def close(self):
+        """Shut the pool down, cancelling tasks not yet started and waiting for running ones."""
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -123,15 +196,42 @@ class DaskExecutor(Executor):
 
     def submit(self, fn, *args):
         # pure=False: each call is a task of its own even with equal arguments.
+        """Start ``fn(*args)`` on the cluster (each call its own task, even with equal arguments).
+
+        Parameters
+        ----------
+        fn : callable
+            A picklable function.
+        *args
+            Its arguments.
+
+        Returns
+        -------
+        distributed.Future
+            The running call.
+        """
         return self.client.submit(fn, *args, pure=False)
 
     def wait(self, futures):
+        """Block until at least one future is done.
+
+        Parameters
+        ----------
+        futures : iterable of distributed.Future
+            Futures returned by :meth:`submit`.
+
+        Returns
+        -------
+        done, not_done : set
+            The finished futures and the others.
+        """
         import distributed
 
         done, not_done = distributed.wait(list(futures), return_when="FIRST_COMPLETED")
         return set(done), set(not_done)
 
     def close(self):
+        """Close the client when this executor opened it (a client passed in stays open)."""
         if self._own:
             self.client.close()
 

@@ -72,13 +72,31 @@ class Node:
 
 
 def derive_seed(base: int, *parts: str) -> int:
-    """A reproducible 31-bit seed from the workflow seed and a node's path parts."""
+    """A reproducible 31-bit seed from the workflow seed and a node's path parts.
+
+    Parameters
+    ----------
+    base : int
+        The workflow seed.
+    *parts : str
+        The node's path parts (study, point, scene, epoch, stage, ...).
+
+    Returns
+    -------
+    int
+        A seed in [0, 2**31), from the SHA-256 of the joined text.
+    """
     text = "|".join([str(int(base)), *map(str, parts)])
     return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "big") & 0x7FFFFFFF
 
 
 def expand(workflow: Workflow) -> dict[str, Node]:
     """All nodes of the workflow in a topological order (inputs before users).
+
+    Parameters
+    ----------
+    workflow : Workflow
+        The validated workflow.
 
     Returns
     -------
@@ -95,6 +113,16 @@ def expand(workflow: Workflow) -> dict[str, Node]:
 
 def topological(nodes: dict[str, Node]) -> dict[str, Node]:
     """The nodes reordered so every node follows its inputs (stable otherwise).
+
+    Parameters
+    ----------
+    nodes : dict of str to Node
+        Node id to node.
+
+    Returns
+    -------
+    dict of str to Node
+        The same nodes, inputs first.
 
     Raises
     ------
@@ -121,14 +149,36 @@ def topological(nodes: dict[str, Node]) -> dict[str, Node]:
 
 
 def catalogue_ref(v: Variant) -> tuple[str, str]:
-    """("node", id) of a variant's cluster node, or ("file", path) of its catalogue."""
+    """Where a variant's catalogue comes from.
+
+    Parameters
+    ----------
+    v : Variant
+        The variant.
+
+    Returns
+    -------
+    tuple of str
+        ``("node", id)`` of its cluster node, or ``("file", path)`` of its external catalogue.
+    """
     if v.cluster is not None:
         return "node", "/".join(p for p in (v.label, "cluster") if p)
     return "file", str(v.catalogue)
 
 
 def has_imbh(v: Variant) -> bool | None:
-    """Whether a variant's generated cluster has an IMBH (None for external catalogues)."""
+    """Whether a variant's generated cluster has an IMBH.
+
+    Parameters
+    ----------
+    v : Variant
+        The variant.
+
+    Returns
+    -------
+    bool or None
+        True when its ``imbh_mass`` is > 0 [solMass]; None for an external catalogue.
+    """
     if v.cluster is None:
         return None
     import astropy.units as u

@@ -42,7 +42,23 @@ PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 
 
 def resolve(ref: str | None) -> Callable | None:
-    """Import ``"module:function"`` and return the function (None for None)."""
+    """Import ``"module:function"`` and return the function.
+
+    Parameters
+    ----------
+    ref : str or None
+        ``"package.module:function"``.
+
+    Returns
+    -------
+    callable or None
+        The function; None when ``ref`` is None.
+
+    Raises
+    ------
+    ImportError
+        When the module or the function does not exist.
+    """
     if ref is None:
         return None
     module_name, _, func_name = ref.partition(":")
@@ -138,17 +154,40 @@ def _code_digest(patterns: tuple[str, ...], version: str) -> str:
 
 @dataclass
 class StageRegistry:
-    """Stage name to :class:`StageSpec`."""
+    """Stage name to :class:`StageSpec`.
+
+    Attributes
+    ----------
+    stages : dict of str to StageSpec
+        The registered stages.
+    """
 
     stages: dict[str, StageSpec] = field(default_factory=dict)
 
     @classmethod
     def of(cls, specs: Iterable[StageSpec]) -> StageRegistry:
-        """Registry holding ``specs``."""
+        """Registry holding ``specs``.
+
+        Parameters
+        ----------
+        specs : iterable of StageSpec
+            The stages.
+
+        Returns
+        -------
+        StageRegistry
+            Keyed by stage name.
+        """
         return cls({s.name: s for s in specs})
 
     def register(self, spec: StageSpec) -> None:
-        """Add or replace a stage."""
+        """Add or replace a stage.
+
+        Parameters
+        ----------
+        spec : StageSpec
+            The stage (replaces one of the same name).
+        """
         self.stages[spec.name] = spec
 
     def __contains__(self, name: str) -> bool:
@@ -158,6 +197,21 @@ class StageRegistry:
         return self.stages[name]
 
     def validate(self, name: str, settings: Mapping, source=None):
-        """Run the stage's settings validator (no-op when it has none)."""
+        """Run the stage's settings validator (no-op when it has none).
+
+        Parameters
+        ----------
+        name : str
+            Stage name.
+        settings : mapping
+            The stage's settings table.
+        source : str or None
+            File named in error messages.
+
+        Returns
+        -------
+        object or None
+            What the validator returns (the validated settings), None without a validator.
+        """
         func = resolve(self.stages[name].validate)
         return None if func is None else func(dict(settings), source=source)

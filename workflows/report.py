@@ -117,6 +117,13 @@ def read_summary(rundir: str | os.PathLike) -> dict:
 def check_summary(summary, path) -> None:
     """Check the structure of a summary.json mapping (see docs/workflows.md).
 
+    Parameters
+    ----------
+    summary : object
+        The parsed ``summary.json``.
+    path : pathlib.Path or str
+        The file, named in errors.
+
     Raises
     ------
     InputError
@@ -706,6 +713,20 @@ def fast_stars(summary: Mapping, rundir: Path, outdir: Path) -> str:
     sweep a plot of the lower limit and the number of fast stars against the first
     swept parameter (one line per value of the others). The dynamics stage's
     ``fast_stars.png`` plots are linked.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
     """
     import matplotlib.pyplot as plt
 
@@ -897,6 +918,18 @@ def stage_report_names(summary: Mapping, path=None) -> list[str]:
     ``stage_reports`` is a list of stage names. Run directories written before
     this check hold a mapping of stage name to ``"module:function"``; such an
     entry is accepted only when it names the registered function of that stage.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    path : pathlib.Path or str, optional
+        The file, named in errors.
+
+    Returns
+    -------
+    list of str
+        The stage names, in the summary's order.
 
     Raises
     ------

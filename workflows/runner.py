@@ -88,6 +88,11 @@ _EXCLUSIVE_LOCK = threading.Lock()
 def execute_task(task: Task) -> dict:
     """Run one node in a fresh (or resumed) partial folder and commit it.
 
+    Parameters
+    ----------
+    task : Task
+        The node to run.
+
     Returns
     -------
     dict
@@ -213,7 +218,25 @@ class RunResult:
     cached: list[str] = field(default_factory=list)
 
     def product(self, node_id: str, name: str = "main") -> Path:
-        """Path of a node's product in the run directory."""
+        """Path of a node's product in the run directory.
+
+        Parameters
+        ----------
+        node_id : str
+            The node id (as in ``summary.json``).
+        name : str
+            Product name (``"main"`` feeds downstream stages).
+
+        Returns
+        -------
+        pathlib.Path
+            The product's path.
+
+        Raises
+        ------
+        KeyError
+            When no node has that id.
+        """
         for node in self.summary["nodes"]:
             if node["id"] == node_id:
                 return self.rundir / node["products"][name]
@@ -312,6 +335,16 @@ def run_workflow(
 def check_workdir(workdir) -> Path:
     """The work directory as an absolute path; it must be a folder (or not exist yet).
 
+    Parameters
+    ----------
+    workdir : str or os.PathLike or None
+        The work directory (None: the default ``DEFAULT_WORKDIR``).
+
+    Returns
+    -------
+    pathlib.Path
+        Its absolute path.
+
     Raises
     ------
     ConfigError
@@ -337,6 +370,15 @@ def plan_workflow(
     registry: StageRegistry | None = None,
 ) -> list[dict]:
     """What a run would do, without doing it.
+
+    Parameters
+    ----------
+    workflow : Workflow or str or os.PathLike
+        A validated workflow or a workflow file (or shipped workflow name).
+    workdir : str or os.PathLike, optional
+        The work directory whose store is looked up.
+    registry : StageRegistry, optional
+        The stages (default: the shipped ones).
 
     Returns
     -------
@@ -581,7 +623,18 @@ def _materialize_locked(
 
 
 def canonical_json_pretty(obj) -> str:
-    """Indented JSON text (keys sorted) for files people read."""
+    """Indented JSON text (keys sorted) for files people read.
+
+    Parameters
+    ----------
+    obj : object
+        JSON-serialisable data (converted like :func:`canonical_json`).
+
+    Returns
+    -------
+    str
+        One-space-indented JSON ending in a newline.
+    """
     import json
 
     return json.dumps(json.loads(canonical_json(obj)), indent=1, sort_keys=True) + "\n"

@@ -111,6 +111,26 @@ def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:
 
     The ``[epochs]`` table owns the epochs (config refuses ``[cluster] epochs``);
     an external star list's path is already absolute and hashed as an input.
+
+    Inputs: none used (an external star list is a setting).
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
     """
     settings = {**settings, "epochs": [float(t) for _, t in params["epochs"]]}
     out = _stage("cluster")(settings, outdir / "catalogue.h5", seed)
@@ -124,6 +144,26 @@ def run_optics(inputs, settings, params, seed, outdir: Path) -> dict:
     PSF grids keyed by their parameters, and is hard-linked (not copied) into the
     node's folder as ``psfgrid-<key>.h5``; the halo profile is kept beside it. The
     scene's frames nodes take this folder as their declared ``psf`` input.
+
+    Inputs: none used.
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
     """
     from mavispm.simulate.optics.cli import validate_settings
     from mavispm.simulate.optics.model import build_optics
@@ -153,6 +193,26 @@ def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
     The optics are read from the scene's ``optics`` node (the declared ``psf``
     input: its PSF grid and halo); the stamp plans are cached in the optics
     module's disk cache, shared by the scene's epochs.
+
+    Inputs: ``catalogue``, ``psf`` (the optics node's grid); products: ``main``, ``fits``.
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
     """
     scene = dict(settings)
     fits = outdir / "frames.fits" if params.get("fits", True) else None
@@ -183,7 +243,28 @@ def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
 
 def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
     """Measured stars of one frame (observer mode: started from the ``earlier``
-    epochs' measured products when the graph gives them)."""
+    epochs' measured products when the graph gives them).
+
+    Inputs: ``frames``, optional ``earlier`` (list of measured products).
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
+    """
     earlier = list(inputs.get("earlier") or ())
     out = _stage("stars")(
         inputs["frames"], dict(settings), outdir / "measured.h5", seed, earlier=earlier
@@ -197,6 +278,26 @@ def run_propermotions(inputs, settings, params, seed, outdir: Path) -> dict:
     The true motions come from the catalogue (``truth``). When ``[propermotions]``
     sets no ``distance``, the catalogue's distance is used, so the product carries
     the distance the dynamics stage needs (measured products do not copy it).
+
+    Inputs: ``measured`` (list), ``truth`` (catalogue).
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
     """
     settings = dict(settings)
     if "truth" in inputs and settings.get("distance") is None:
@@ -219,7 +320,28 @@ def _catalogue_distance(path) -> str | None:
 
 
 def run_dynamics(inputs, settings, params, seed, outdir: Path) -> dict:
-    """Dynamical fit and IMBH model comparison (plots in ``plots/``)."""
+    """Dynamical fit and IMBH model comparison (plots in ``plots/``).
+
+    Inputs: ``propermotions``, optional ``truth``, ``truth_no_imbh``; products: ``main`` and ``plot_<name>`` per PNG.
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
+    """
     plots = outdir / "plots" if params.get("plots", True) else None
     out = _stage("dynamics")(
         inputs["propermotions"],

@@ -52,6 +52,18 @@ def deep_merge(base: Mapping, overlay: Mapping) -> dict:
 
     Neither argument is modified. Non-table values in ``overlay`` replace the
     values of ``base``.
+
+    Parameters
+    ----------
+    base : mapping
+        The settings overlaid.
+    overlay : mapping
+        The settings that win.
+
+    Returns
+    -------
+    dict
+        A new merged mapping.
     """
     out = copy.deepcopy(dict(base))
     for key, value in overlay.items():
@@ -63,7 +75,22 @@ def deep_merge(base: Mapping, overlay: Mapping) -> dict:
 
 
 def get_dotted(mapping: Mapping, key: str, default: Any = None) -> Any:
-    """Value of dotted ``key`` in nested ``mapping`` (``default`` when absent)."""
+    """Value of dotted ``key`` in nested ``mapping`` (``default`` when absent).
+
+    Parameters
+    ----------
+    mapping : mapping
+        Nested tables.
+    key : str
+        Dotted key, e.g. ``"dynamics.walkers"``.
+    default : object
+        Returned when a part of the key is missing.
+
+    Returns
+    -------
+    object
+        The value.
+    """
     node: Any = mapping
     for part in key.split("."):
         if not isinstance(node, Mapping) or part not in node:
@@ -74,6 +101,17 @@ def get_dotted(mapping: Mapping, key: str, default: Any = None) -> Any:
 
 def set_dotted(mapping: dict, key: str, value: Any, source=None) -> None:
     """Set dotted ``key`` in nested ``mapping`` in place, creating tables as needed.
+
+    Parameters
+    ----------
+    mapping : dict
+        Nested tables, modified in place.
+    key : str
+        Dotted key, e.g. ``"dynamics.walkers"``.
+    value : object
+        The value set.
+    source : str, optional
+        File named in errors.
 
     Raises
     ------
@@ -141,7 +179,22 @@ def expand_points(axes: Sequence[Any], mode: str = "grid") -> list[SweepPoint]:
 
 
 def apply_point(mapping: Mapping, point: SweepPoint, source=None) -> dict:
-    """Return a copy of the workflow ``mapping`` with the point's overrides set."""
+    """Return a copy of the workflow ``mapping`` with the point's overrides set.
+
+    Parameters
+    ----------
+    mapping : mapping
+        The workflow's tables.
+    point : SweepPoint
+        The sweep point (its ``overrides`` map dotted keys to values).
+    source : str, optional
+        File named in errors.
+
+    Returns
+    -------
+    dict
+        The overridden copy.
+    """
     out = copy.deepcopy(dict(mapping))
     for key, value in point.overrides.items():
         set_dotted(out, key, value, source=source)
@@ -154,6 +207,16 @@ def sweep_rows(summary: Mapping) -> list[dict]:
     Each row has ``study``, ``point``, the swept values, and every scalar metric
     of the variant's most downstream stage (the study's result, for example the
     dynamics fit) as ``<stage>[<scene>].<metric>``.
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+
+    Returns
+    -------
+    list of dict
+        The rows; empty when no node has metrics.
     """
     from mavispm.workflows.registry import STAGE_NAMES
 
@@ -176,9 +239,19 @@ def sweep_rows(summary: Mapping) -> list[dict]:
 
 
 def write_sweep_table(summary: Mapping, outdir: Path) -> list[Path]:
-    """Write the sweep table (Markdown and ECSV) and one plot per metric.
+    """Write the sweep table (Markdown and CSV) and one plot per metric.
 
-    Returns the written paths (empty when the run has no sweep).
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    outdir : pathlib.Path
+        The report folder.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The written paths (empty when the run has no sweep).
     """
     from astropy.table import Table
 
