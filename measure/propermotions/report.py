@@ -62,7 +62,23 @@ UAS_YR = u.microarcsecond / u.yr
 
 @dataclass
 class AccuracyData:
-    """Per-star accuracy quantities of one propermotions product (truth known)."""
+    """Per-star accuracy quantities of one propermotions product (truth known).
+
+    Attributes
+    ----------
+    name : str
+        Label of the product in plots and tables (its file name stem).
+    mag : ndarray or None
+        Magnitudes [mag] (None when the product has none).
+    radius : ndarray
+        Projected distance from the centre, the product's ``R`` column [arcsec].
+    dx, dy : ndarray
+        Measured minus true proper motion [microarcsec/yr].
+    err_x, err_y : ndarray
+        Reported proper-motion errors [microarcsec/yr].
+    baseline : float
+        Epoch baseline [yr].
+    """
 
     name: str
     mag: np.ndarray | None

@@ -81,6 +81,18 @@ class ProperMotionSettings:
 def validate_settings(settings=None, source=None) -> ProperMotionSettings:
     """Build :class:`ProperMotionSettings` from a mapping (a TOML table).
 
+    Parameters
+    ----------
+    settings : mapping or ProperMotionSettings, optional
+        The ``[propermotions]`` table (None: defaults); a settings object is returned as is.
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    ProperMotionSettings
+        The validated settings.
+
     Raises
     ------
     mavispm.core.errors.ConfigError

@@ -38,6 +38,18 @@ BYTES_PER_STAR_EPOCH = 160
 def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
     """Build :class:`ClusterSettings` from a mapping (TOML table ``[cluster]``).
 
+    Parameters
+    ----------
+    settings : mapping or None
+        The ``[cluster]`` table (None: defaults).
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    ClusterSettings
+        The validated settings.
+
     Raises
     ------
     ConfigError
@@ -82,7 +94,27 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
 
 
 def build_catalogue(settings: ClusterSettings, seed: int):
-    """Epoch tables and root attributes for validated settings (model or external input)."""
+    """Epoch tables and root attributes for validated settings (model or external input).
+
+    Parameters
+    ----------
+    settings : ClusterSettings
+        Validated settings.
+    seed : int
+        Random seed.
+
+    Returns
+    -------
+    tables : dict of str to astropy.table.QTable
+        Epoch name to star table.
+    attrs : dict
+        Root attributes of the catalogue product.
+
+    Raises
+    ------
+    ConfigError
+        For an impossible model or geometry.
+    """
     try:
         if settings.external.path:
             params = _external_params(settings)
@@ -216,7 +248,18 @@ def _as_option_error(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``cluster`` sub-command."""
+    """Add the ``cluster`` sub-command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``mavispm simulate`` sub-parsers.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The new sub-parser.
+    """
     p = subparsers.add_parser(
         "cluster",
         help="equilibrium cluster catalogue (with or without IMBH) or external star list",

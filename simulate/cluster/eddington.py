@@ -108,6 +108,15 @@ def _gauss_legendre(n: int):
 def check_isotropic_df_exists(cusp_gamma: float, bh_mass: float, beta: float = 0.0) -> None:
     """Refuse a cored tracer around a point mass, and too radial a centre.
 
+    Parameters
+    ----------
+    cusp_gamma : float
+        Inner logarithmic density slope of the tracer.
+    bh_mass : float
+        Central point mass [solMass].
+    beta : float
+        Constant velocity anisotropy (0: isotropic).
+
     Raises
     ------
     NoIsotropicDFError

@@ -33,6 +33,17 @@ def effective_temperature(initial_mass) -> np.ndarray:
     """T_eff [K] of luminous stars of ``initial_mass`` [solMass]; NaN beyond the RGB tip.
 
     Below the table's lowest mass the temperature is held at its first value.
+
+    Parameters
+    ----------
+    initial_mass : array_like
+        Initial masses [solMass].
+
+    Returns
+    -------
+    ndarray
+        Effective temperatures [K], interpolated in log mass; NaN for masses <= 0 or above
+        the table's last (RGB-tip) mass.
     """
     m = np.asarray(initial_mass, float)
     lm = np.log(MASS_TEFF_TABLE[:, 0])

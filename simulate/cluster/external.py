@@ -65,7 +65,25 @@ MAVISIM_COLUMNS = ("Star", "RA", "Dec", "X", "Y", "Flux", "PM_X", "PM_Y")
 
 
 def detect_format(path: Path, fmt: str) -> str:
-    """Resolve ``fmt="auto"`` from the file extension."""
+    """Resolve ``fmt="auto"`` from the file extension.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The external file.
+    fmt : str
+        ``"auto"`` or an explicit format (returned unchanged).
+
+    Returns
+    -------
+    str
+        The format.
+
+    Raises
+    ------
+    InputError
+        When ``fmt`` is ``"auto"`` and the extension is not a known one.
+    """
     if fmt != "auto":
         return fmt
     name = path.name.lower()
@@ -81,6 +99,11 @@ def detect_format(path: Path, fmt: str) -> str:
 
 def read_table(ext: ExternalInput) -> tuple[Table, str]:
     """Read the external file into an astropy Table (renames and units applied).
+
+    Parameters
+    ----------
+    ext : ExternalInput
+        The ``[cluster.external]`` settings (path, format, column renames, units).
 
     Returns
     -------

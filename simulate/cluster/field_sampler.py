@@ -94,9 +94,22 @@ def _alpha(radius: np.ndarray, half: float) -> np.ndarray:
 def arc_intervals(radius: np.ndarray, half: float, outer: float, region: Region):
     """Per-quadrant arcs of a circle inside a region.
 
-    Returns ``(start1, len1, start2, len2)``: angles [rad] measured within one
-    quadrant; the region holds ``[start1, start1+len1] U [start2, start2+len2]``
-    in each of the four quadrants.
+    Parameters
+    ----------
+    radius : ndarray
+        Circle radii [pc].
+    half : float
+        Half-size of the square field [pc].
+    outer : float
+        Half-size of the outer square (field plus margin) [pc].
+    region : {"field", "frame"}
+        The square field, or the frame between the two squares.
+
+    Returns
+    -------
+    start1, len1, start2, len2 : ndarray
+        Angles [rad] measured within one quadrant; the region holds
+        ``[start1, start1+len1] U [start2, start2+len2]`` in each of the four quadrants.
     """
     a_in = np.minimum(_alpha(radius, half), np.pi / 4)
     if region == "field":
@@ -108,13 +121,49 @@ def arc_intervals(radius: np.ndarray, half: float, outer: float, region: Region)
 
 
 def arc_measure(radius: np.ndarray, half: float, outer: float, region: Region) -> np.ndarray:
-    """Total angle [rad] of the circle of ``radius`` inside the region."""
+    """Total angle [rad] of the circle of ``radius`` inside the region.
+
+    Parameters
+    ----------
+    radius : ndarray
+        Circle radii [pc].
+    half : float
+        Half-size of the square field [pc].
+    outer : float
+        Half-size of the outer square [pc].
+    region : {"field", "frame"}
+        The region.
+
+    Returns
+    -------
+    ndarray
+        Angle in [0, 2 pi] [rad].
+    """
     _, l1, _, l2 = arc_intervals(radius, half, outer, region)
     return 4.0 * (l1 + l2)
 
 
 def sample_angle(radius, uniform, half: float, outer: float, region: Region) -> np.ndarray:
-    """Position angle uniform over the region's arcs at each radius (one uniform each)."""
+    """Position angle uniform over the region's arcs at each radius (one uniform each).
+
+    Parameters
+    ----------
+    radius : ndarray
+        Projected radii [pc].
+    uniform : ndarray
+        Uniform numbers in [0, 1), one per radius.
+    half : float
+        Half-size of the square field [pc].
+    outer : float
+        Half-size of the outer square [pc].
+    region : {"field", "frame"}
+        The region.
+
+    Returns
+    -------
+    ndarray
+        Position angles in [0, 2 pi) [rad].
+    """
     s1, l1, s2, l2 = arc_intervals(radius, half, outer, region)
     t = 4.0 * np.asarray(uniform)
     quadrant = np.minimum(np.floor(t), 3.0)

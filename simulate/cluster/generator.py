@@ -124,7 +124,18 @@ class ClusterModel:
         return self.components[0].df
 
     def total_density(self, r) -> np.ndarray:
-        """Density of all components [solMass/pc^3] at ``r`` [pc] (no IMBH)."""
+        """Density of all components [solMass/pc^3] at ``r`` [pc] (no IMBH).
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Summed mass density of the components [solMass/pc^3].
+        """
         return np.sum([c.mass.density(r) for c in self.components], axis=0)
 
 
@@ -180,6 +191,11 @@ def _population_groups(settings, preset, mf, total_mass: float) -> list[dict]:
 
 def resolve_model_params(settings: ClusterSettings) -> dict:
     """The model's true parameters from the settings and their preset.
+
+    Parameters
+    ----------
+    settings : ClusterSettings
+        Validated settings; values left None come from the preset.
 
     Returns
     -------
@@ -304,6 +320,11 @@ def _group_w0(kind: str, w0: float, scale: float, group_scale: float) -> float:
 def observed_params(settings: ClusterSettings) -> dict:
     """Preset-or-setting values that do not depend on the dynamical model.
 
+    Parameters
+    ----------
+    settings : ClusterSettings
+        Validated settings; values left None come from the preset.
+
     Returns
     -------
     dict
@@ -395,7 +416,18 @@ def model_from_params(params: dict, n_energy: int = 800) -> ClusterModel:
 
 
 def build_cluster_model(settings: ClusterSettings) -> ClusterModel:
-    """Model parameters, mass model and DF for ``settings``."""
+    """Model parameters, mass model and DF for ``settings``.
+
+    Parameters
+    ----------
+    settings : ClusterSettings
+        Validated settings (``resolution.n_energy`` sets the DF's energy grid).
+
+    Returns
+    -------
+    ClusterModel
+        The model (see :func:`resolve_model_params` for its ``params``).
+    """
     return model_from_params(resolve_model_params(settings), settings.resolution.n_energy)
 
 
@@ -590,7 +622,23 @@ def _group_masses(group: dict, mf: pop.MassFunction, uniform: np.ndarray) -> np.
 
 
 def with_imbh(stars: dict, settings: ClusterSettings, bh_mass: float) -> dict:
-    """Append the IMBH (kind ``imbh``, id :data:`IMBH_ID`) if it lies in the field or margin."""
+    """Append the IMBH (kind ``imbh``, id :data:`IMBH_ID`) if it lies in the field or margin.
+
+    Parameters
+    ----------
+    stars : dict of str to ndarray
+        Column name to per-star values.
+    settings : ClusterSettings
+        Field geometry (size, margin, offset, rotation).
+    bh_mass : float
+        IMBH mass [solMass]; nothing is added when it is not > 0.
+
+    Returns
+    -------
+    dict of str to ndarray
+        The columns with the IMBH row appended at the cluster centre (region 0 in the field,
+        1 in the margin), or ``stars`` unchanged.
+    """
     if not bh_mass > 0:
         return stars
     row = _imbh_row(bh_mass)
@@ -733,7 +781,24 @@ def stars_to_epoch_tables(stars: dict, settings: ClusterSettings, distance: floa
 
 
 def catalogue_attrs(settings: ClusterSettings, params: dict, model_name: str) -> dict:
-    """Root attributes of a catalogue product (``docs/formats.md`` + ``model_params``)."""
+    """Root attributes of a catalogue product (``docs/formats.md`` + ``model_params``).
+
+    Parameters
+    ----------
+    settings : ClusterSettings
+        The stage settings.
+    params : dict
+        The model parameters (:func:`resolve_model_params`, or the external input's).
+    model_name : str
+        Description stored as ``model``.
+
+    Returns
+    -------
+    dict
+        Attribute name to value: ``distance`` [kpc], ``ra_center``, ``dec_center`` [deg],
+        ``field_size``, ``margin`` [arcsec], ``imbh_mass`` [solMass], ``reference_epoch`` [yr]
+        as quantities, ``model``, ``model_params``, ``n_stars_field``.
+    """
     return {
         "distance": params["distance"] * u.kpc,
         "ra_center": params["ra_center"] * u.deg,

@@ -20,7 +20,20 @@ from scipy.integrate import cumulative_trapezoid
 
 
 def probability_levels(n: int) -> np.ndarray:
-    """The ``n`` probability levels ``(1 - cos(pi w)) / 2``, ``w = 0..1``."""
+    """The ``n`` probability levels ``(1 - cos(pi w)) / 2``, ``w = 0..1``.
+
+    Spaced densest near 0 and 1.
+
+    Parameters
+    ----------
+    n : int
+        Number of levels.
+
+    Returns
+    -------
+    ndarray
+        Levels from 0 to 1, ascending.
+    """
     w = np.linspace(0.0, 1.0, n)
     return 0.5 * (1.0 - np.cos(np.pi * w))
 

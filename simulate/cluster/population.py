@@ -98,7 +98,18 @@ class MassFunction:
         return segs
 
     def number_fraction(self, lo: float, hi: float) -> float:
-        """Fraction of all stars (mass_min..mass_max) with mass in [lo, hi]."""
+        """Fraction of all stars (mass_min..mass_max) with mass in [lo, hi].
+
+        Parameters
+        ----------
+        lo, hi : float
+            Mass range [solMass] (clipped to the mass function's limits).
+
+        Returns
+        -------
+        float
+            Number fraction in [0, 1].
+        """
         lo, hi = max(lo, self.mass_min), min(hi, self.mass_max)
         if hi <= lo:
             return 0.0
@@ -106,7 +117,20 @@ class MassFunction:
         return part / sum(s[3] for s in self._pieces(self.mass_min, self.mass_max))
 
     def sample(self, uniform: np.ndarray, lo: float | None = None, hi: float | None = None):
-        """Masses [solMass] by inverse CDF of the mass function truncated to [lo, hi]."""
+        """Masses [solMass] by inverse CDF of the mass function truncated to [lo, hi].
+
+        Parameters
+        ----------
+        uniform : ndarray
+            Uniform numbers in [0, 1], one per mass.
+        lo, hi : float, optional
+            Truncation [solMass] (default: the mass function's limits).
+
+        Returns
+        -------
+        ndarray
+            Initial masses [solMass].
+        """
         lo = self.mass_min if lo is None else max(lo, self.mass_min)
         hi = self.mass_max if hi is None else min(hi, self.mass_max)
         segs = self._pieces(lo, hi)
@@ -145,6 +169,16 @@ def absolute_v(mass: np.ndarray) -> np.ndarray:
 
     Below the table's lowest mass the main sequence is extrapolated linearly in
     log mass.
+
+    Parameters
+    ----------
+    mass : ndarray
+        Initial masses [solMass] (below the RGB tip).
+
+    Returns
+    -------
+    ndarray
+        M_V [mag], interpolated in log mass.
     """
     m = np.asarray(mass, float)
     lm = np.log(MASS_LUMINOSITY_TABLE[:, 0])
@@ -164,25 +198,70 @@ BH_SUBSYSTEM_RANGE = (10.0, 20.0)
 
 
 def white_dwarf_mass(initial) -> np.ndarray:
-    """White-dwarf mass [solMass] (Kalirai et al. 2008 IFMR, capped at 1.2 solMass)."""
+    """White-dwarf mass [solMass] (Kalirai et al. 2008 IFMR, capped at 1.2 solMass).
+
+    Parameters
+    ----------
+    initial : array_like
+        Progenitor masses [solMass].
+
+    Returns
+    -------
+    ndarray
+        ``min(0.109 m + 0.394, 1.2)`` [solMass].
+    """
     return np.minimum(0.109 * np.asarray(initial, float) + 0.394, 1.2)
 
 
 def neutron_star_mass(initial) -> np.ndarray:
-    """Neutron-star mass [solMass]: 1.3 at 8 solMass rising to 1.4 at 25 solMass."""
+    """Neutron-star mass [solMass]: 1.3 at 8 solMass rising to 1.4 at 25 solMass.
+
+    Parameters
+    ----------
+    initial : array_like
+        Progenitor masses [solMass].
+
+    Returns
+    -------
+    ndarray
+        Masses [solMass], linear in the progenitor mass and clipped to [1.3, 1.4].
+    """
     m = np.asarray(initial, float)
     t = (m - NS_PROGENITOR_MIN) / (BH_PROGENITOR_MIN - NS_PROGENITOR_MIN)
     return 1.3 + 0.1 * np.clip(t, 0.0, 1.0)
 
 
 def black_hole_mass(initial) -> np.ndarray:
-    """Black-hole mass [solMass]: 5 at 25 solMass rising linearly to 30 at 100 solMass."""
+    """Black-hole mass [solMass]: 5 at 25 solMass rising linearly to 30 at 100 solMass.
+
+    Parameters
+    ----------
+    initial : array_like
+        Progenitor masses [solMass].
+
+    Returns
+    -------
+    ndarray
+        Masses [solMass] clipped to [5, 30].
+    """
     m = np.asarray(initial, float)
     return np.clip(5.0 + (m - BH_PROGENITOR_MIN) / 3.0, 5.0, 30.0)
 
 
 def remnant_kind(initial) -> np.ndarray:
-    """Kind of the remnant of stars of initial ``mass`` above the RGB tip."""
+    """Kind of the remnant of stars of initial ``mass`` above the RGB tip.
+
+    Parameters
+    ----------
+    initial : array_like
+        Progenitor masses [solMass].
+
+    Returns
+    -------
+    ndarray of str
+        ``white_dwarf`` below the neutron-star progenitor mass, ``neutron_star`` below the
+        black-hole progenitor mass, else ``black_hole``.
+    """
     m = np.asarray(initial, float)
     return np.where(
         m < NS_PROGENITOR_MIN,
@@ -192,7 +271,18 @@ def remnant_kind(initial) -> np.ndarray:
 
 
 def remnant_mass(initial) -> np.ndarray:
-    """Remnant mass [solMass] of stars of initial mass ``initial`` (WD, NS or BH)."""
+    """Remnant mass [solMass] of stars of initial mass ``initial`` (WD, NS or BH).
+
+    Parameters
+    ----------
+    initial : array_like
+        Progenitor masses [solMass].
+
+    Returns
+    -------
+    ndarray
+        Remnant masses [solMass] from the relation of the remnant's kind.
+    """
     m = np.asarray(initial, float)
     return np.where(
         m < NS_PROGENITOR_MIN,
@@ -206,6 +296,18 @@ def kind_from_mass(mass, luminous) -> np.ndarray:
 
     Luminous objects are stars; dark ones are white dwarfs below 1.25 solMass,
     neutron stars up to 3 solMass and black holes above.
+
+    Parameters
+    ----------
+    mass : array_like
+        Present-day masses [solMass].
+    luminous : array_like of bool
+        Whether each object shines.
+
+    Returns
+    -------
+    ndarray of str
+        ``star``, ``white_dwarf``, ``neutron_star`` or ``black_hole``.
     """
     m = np.asarray(mass, float)
     dark = np.where(m < 1.25, "white_dwarf", np.where(m <= 3.0, "neutron_star", "black_hole"))
@@ -213,14 +315,45 @@ def kind_from_mass(mass, luminous) -> np.ndarray:
 
 
 def distance_modulus(distance_kpc: float) -> float:
-    """``5 log10(d / 10 pc)`` for a distance in kpc."""
+    """``5 log10(d / 10 pc)`` for a distance in kpc.
+
+    Parameters
+    ----------
+    distance_kpc : float
+        Distance [kpc] (> 0).
+
+    Returns
+    -------
+    float
+        Distance modulus [mag].
+
+    Raises
+    ------
+    ValueError
+        When the distance is not positive.
+    """
     if not distance_kpc > 0:
         raise ValueError(f"distance must be positive, got {distance_kpc} kpc")
     return 5.0 * np.log10(distance_kpc * 100.0)
 
 
 def apparent_v(mass: np.ndarray, distance_kpc: float, extinction_v: float) -> np.ndarray:
-    """Apparent V [mag] of luminous stars of initial ``mass`` at ``distance_kpc``."""
+    """Apparent V [mag] of luminous stars of initial ``mass`` at ``distance_kpc``.
+
+    Parameters
+    ----------
+    mass : ndarray
+        Initial masses [solMass].
+    distance_kpc : float
+        Distance [kpc].
+    extinction_v : float
+        V-band extinction A_V [mag].
+
+    Returns
+    -------
+    ndarray
+        V [mag].
+    """
     return absolute_v(mass) + distance_modulus(distance_kpc) + extinction_v
 
 
@@ -269,7 +402,21 @@ class MassGroup:
         return self.mass / self.number
 
     def sample_masses(self, mf: MassFunction, uniform: np.ndarray) -> np.ndarray:
-        """Present-day masses [solMass] of objects of this group from uniforms."""
+        """Present-day masses [solMass] of objects of this group from uniforms.
+
+        Parameters
+        ----------
+        mf : MassFunction
+            The population's initial mass function.
+        uniform : ndarray
+            Uniform numbers in [0, 1], one per object.
+
+        Returns
+        -------
+        ndarray
+            Masses [solMass]: uniform in [lo, hi] for a fixed-range group, else initial masses
+            drawn in [lo, hi] (remnant masses for dark groups).
+        """
         u = np.asarray(uniform, float)
         if self.fixed_range:
             return self.lo + (self.hi - self.lo) * u
@@ -305,6 +452,15 @@ def mass_groups(
     fractions ``ns_retention``, ``bh_retention``) form one group each. Empty
     groups are dropped.
 
+    Parameters
+    ----------
+    mf : MassFunction
+        The initial mass function.
+    include_remnants : bool
+        Add white-dwarf, neutron-star and black-hole groups.
+    ns_retention, bh_retention : float
+        Retained fractions of neutron stars and black holes, in [0, 1].
+
     Returns
     -------
     list of MassGroup
@@ -329,7 +485,18 @@ def mass_groups(
 
 
 def black_hole_subsystem(total_mass: float) -> MassGroup:
-    """A black-hole group of ``total_mass`` [solMass], masses uniform in 10-20 solMass."""
+    """A black-hole group of ``total_mass`` [solMass], masses uniform in 10-20 solMass.
+
+    Parameters
+    ----------
+    total_mass : float
+        Total mass of the subsystem [solMass].
+
+    Returns
+    -------
+    MassGroup
+        A fixed-range group with ``number = total_mass / 15``.
+    """
     lo, hi = BH_SUBSYSTEM_RANGE
     mean = 0.5 * (lo + hi)
     return MassGroup("black_hole", lo, hi, total_mass / mean, total_mass, fixed_range=True)

@@ -100,6 +100,16 @@ PRESETS = {p.name: p for p in (NGC3201, NGC3201_NBODY)}
 def get_preset(name: str) -> ClusterPreset:
     """Look up a preset by (case-insensitive) name.
 
+    Parameters
+    ----------
+    name : str
+        Preset name, e.g. ``"ngc3201"``.
+
+    Returns
+    -------
+    ClusterPreset
+        The preset's parameters.
+
     Raises
     ------
     ValueError

@@ -48,7 +48,18 @@ def _value(x, unit: str) -> float:
 
 # ---------------------------------------------------------------- shapes
 def plummer_shape(x: np.ndarray) -> np.ndarray:
-    """Unnormalised Plummer density ``(1 + x**2)**-2.5`` at ``x = r / a``."""
+    """Unnormalised Plummer density ``(1 + x**2)**-2.5`` at ``x = r / a``.
+
+    Parameters
+    ----------
+    x : array_like
+        Radius in units of the Plummer scale radius.
+
+    Returns
+    -------
+    ndarray
+        Density shape, 1 at the centre.
+    """
     return (1.0 + np.asarray(x, float) ** 2) ** -2.5
 
 
@@ -58,6 +69,16 @@ def king_density_of_w(w: np.ndarray) -> np.ndarray:
     ``rho(W) / rho_1 = exp(W) * gamma(5/2, W)`` (lower incomplete gamma
     function), written with the regularised ``gammainc`` so that it is stable
     for W -> 0 where it behaves as ``W**2.5``.
+
+    Parameters
+    ----------
+    w : array_like
+        Dimensionless potential W (negative values are clipped to 0).
+
+    Returns
+    -------
+    ndarray
+        ``rho(W) / rho_1`` (dimensionless).
     """
     w = np.clip(np.asarray(w, float), 0.0, None)
     return np.exp(w) * gammainc(2.5, w)
@@ -66,6 +87,11 @@ def king_density_of_w(w: np.ndarray) -> np.ndarray:
 @functools.lru_cache(maxsize=512)
 def king_solution(w0: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Solve King's Poisson equation for central potential ``w0``.
+
+    Parameters
+    ----------
+    w0 : float
+        Central dimensionless potential, in [0.1, 20].
 
     Returns
     -------
@@ -148,7 +174,19 @@ class TracerProfile:
         return PLUMMER_TRUNCATION * self.scale_radius
 
     def core_shape(self, r: np.ndarray) -> np.ndarray:
-        """Density shape without the cusp, 1 at the centre."""
+        """Density shape without the cusp, 1 at the centre.
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Plummer or King (1966) density relative to the centre (0 beyond the King tidal
+            radius).
+        """
         x = np.asarray(r, float) / self.scale_radius
         if self.kind == "plummer":
             return plummer_shape(x)
@@ -158,7 +196,18 @@ class TracerProfile:
         return king_density_of_w(w) / king_density_of_w(self.king_w0)
 
     def cusp_factor(self, r: np.ndarray) -> np.ndarray:
-        """Multiplicative inner cusp ``(1 + (r_cusp / r)^2)^(gamma/2)`` (1 without cusp)."""
+        """Multiplicative inner cusp ``(1 + (r_cusp / r)^2)^(gamma/2)`` (1 without cusp).
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc].
+
+        Returns
+        -------
+        ndarray
+            The factor (dimensionless, >= 1).
+        """
         r = np.asarray(r, float)
         if self.cusp_gamma == 0:
             return np.ones_like(r)
@@ -166,7 +215,18 @@ class TracerProfile:
             return (1.0 + (self.cusp_radius / r) ** 2) ** (0.5 * self.cusp_gamma)
 
     def shape(self, r: np.ndarray) -> np.ndarray:
-        """Unnormalised density (core shape times cusp factor)."""
+        """Unnormalised density (core shape times cusp factor).
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Density shape (dimensionless).
+        """
         return self.core_shape(r) * self.cusp_factor(r)
 
 
@@ -175,6 +235,18 @@ def king_w0_for_truncation(x_t: float, guess: float | None = None) -> float:
     """King W0 whose truncation radius is ``x_t`` King radii.
 
     ``guess`` (a nearby W0) narrows the first bracket to ``guess +- 1.5``.
+
+    Parameters
+    ----------
+    x_t : float
+        Truncation radius [King radii].
+    guess : float, optional
+        A nearby W0.
+
+    Returns
+    -------
+    float
+        W0.
 
     Raises
     ------
@@ -252,12 +324,34 @@ class MassModel:
         return float(self.r[-1])
 
     def density(self, r) -> np.ndarray:
-        """Stellar mass density [solMass/pc^3] at radius ``r`` [pc] (analytic shape)."""
+        """Stellar mass density [solMass/pc^3] at radius ``r`` [pc] (analytic shape).
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Density [solMass/pc^3]; 0 beyond the model's edge.
+        """
         r = np.asarray(r, float)
         return np.where(r <= self.r_max, self.norm * self.tracer.shape(r), 0.0)
 
     def enclosed_stellar_mass(self, r) -> np.ndarray:
-        """Stellar mass inside ``r`` [solMass] (interpolated in log-log)."""
+        """Stellar mass inside ``r`` [solMass] (interpolated in log-log).
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc] (clipped to the grid).
+
+        Returns
+        -------
+        ndarray
+            Enclosed stellar mass [solMass], without the point mass.
+        """
         r = np.clip(np.asarray(r, float), self.r[0], self.r_max)
         return np.exp(np.interp(np.log(r), np.log(self.r), np.log(self.mass)))
 
@@ -269,6 +363,22 @@ class MassModel:
         Half log-spaced in Psi, half at Psi(r) of log-spaced radii from ``r_lo``
         (default: the grid's first radius) to the edge, so that cores, where Psi is
         nearly flat, are resolved. Nodes closer than ``min_log_step`` in ln Psi are merged.
+
+        Parameters
+        ----------
+        psi_lo, psi_hi : float
+            Range of the grid [(km/s)^2], psi_lo > 0.
+        n : int
+            Number of nodes before merging.
+        min_log_step : float
+            Smallest step kept in ln Psi.
+        r_lo : float, optional
+            Innermost radius of the radius-spaced half [pc].
+
+        Returns
+        -------
+        ndarray
+            The nodes [(km/s)^2].
         """
         r_lo = self.r[0] if r_lo is None else r_lo
         radii = np.geomspace(r_lo, self.r_max, n - n // 2)
@@ -280,7 +390,18 @@ class MassModel:
         return nodes[keep]
 
     def relative_potential(self, r) -> np.ndarray:
-        """Relative potential Psi(r) [(km/s)^2] including the point mass."""
+        """Relative potential Psi(r) [(km/s)^2] including the point mass.
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [pc] (clipped to the grid).
+
+        Returns
+        -------
+        ndarray
+            Psi [(km/s)^2], interpolated in log-log.
+        """
         r = np.clip(np.asarray(r, float), self.r[0], self.r_max)
         return np.exp(np.interp(np.log(r), np.log(self.r), np.log(self.psi)))
 
@@ -312,6 +433,18 @@ def central_dispersion_cored(tracer: TracerProfile, stellar_mass: float) -> floa
     """Central 1-D dispersion [km/s] of the cored model without point mass.
 
     ``sigma_0^2 = (1/rho_0) int_0^inf rho G M(r) / r^2 dr`` (isotropic Jeans).
+
+    Parameters
+    ----------
+    tracer : TracerProfile
+        The tracer (its cusp is ignored).
+    stellar_mass : float
+        Total stellar mass [solMass].
+
+    Returns
+    -------
+    float
+        sigma_0 [km/s].
     """
     core = TracerProfile(tracer.kind, tracer.scale_radius, tracer.king_w0)
     r = np.geomspace(core.scale_radius * 1e-5, core.truncation_radius, 2000)
@@ -328,6 +461,20 @@ def influence_radius(tracer: TracerProfile, stellar_mass: float, bh_mass: float)
     Inside it the point mass dominates the potential gradient. (A cusp confined to
     the smaller radius ``G M_BH / sigma_0^2`` leaves a stretch where the flat core
     sits in a BH-dominated potential, which has no non-negative isotropic DF.)
+
+    Parameters
+    ----------
+    tracer : TracerProfile
+        The tracer (its cusp is ignored).
+    stellar_mass : float
+        Total stellar mass [solMass].
+    bh_mass : float
+        Point mass [solMass].
+
+    Returns
+    -------
+    float
+        The radius [pc] (at least 1e-9 scale radii).
     """
     core = TracerProfile(tracer.kind, tracer.scale_radius, tracer.king_w0)
     r = np.geomspace(core.scale_radius * 1e-7, core.truncation_radius, 3000)
@@ -343,6 +490,18 @@ def radial_grid(r_lo: float, r_hi: float, n: int) -> np.ndarray:
 
     The second part resolves the outer edge, where the relative potential goes
     to zero linearly and the low-energy end of the DF is decided.
+
+    Parameters
+    ----------
+    r_lo, r_hi : float
+        Inner and outer radius [pc].
+    n : int
+        Number of radii.
+
+    Returns
+    -------
+    ndarray
+        Ascending radii [pc].
     """
     n_edge = max(n // 5, 8)
     inner = np.geomspace(r_lo, 0.5 * r_hi, n - n_edge)
@@ -454,6 +613,18 @@ def projected_radii(tracer: TracerProfile, n: int = 200) -> tuple[float, float]:
 
     Computed from the tracer shape (cusp included) by line-of-sight integration
     on a grid; used to scale models to observed radii.
+
+    Parameters
+    ----------
+    tracer : TracerProfile
+        The tracer.
+    n : int
+        Number of projected radii of the grid.
+
+    Returns
+    -------
+    core, half : float
+        Core radius and projected half-mass radius [pc].
     """
     r_t = tracer.truncation_radius
     radii = np.geomspace(tracer.scale_radius * 1e-4, r_t * (1 - 1e-6), n)

@@ -29,27 +29,92 @@ ARCSEC_PER_PC_KPC = float(
 
 
 def pc_to_arcsec(length_pc, distance_kpc: float):
-    """Angle [arcsec] subtended by ``length_pc`` [pc] at ``distance_kpc`` (small angles)."""
+    """Angle [arcsec] subtended by ``length_pc`` [pc] at ``distance_kpc`` (small angles).
+
+    Parameters
+    ----------
+    length_pc : array_like
+        Lengths [pc].
+    distance_kpc : float
+        Distance [kpc].
+
+    Returns
+    -------
+    ndarray
+        Angles [arcsec].
+    """
     return np.asarray(length_pc) * ARCSEC_PER_PC_KPC / distance_kpc
 
 
 def arcsec_to_pc(angle_arcsec, distance_kpc: float):
-    """Length [pc] at ``distance_kpc`` subtending ``angle_arcsec``."""
+    """Length [pc] at ``distance_kpc`` subtending ``angle_arcsec``.
+
+    Parameters
+    ----------
+    angle_arcsec : array_like
+        Angles [arcsec].
+    distance_kpc : float
+        Distance [kpc].
+
+    Returns
+    -------
+    ndarray
+        Lengths [pc].
+    """
     return np.asarray(angle_arcsec) * distance_kpc / ARCSEC_PER_PC_KPC
 
 
 def velocity_to_pm(v_kms, distance_kpc: float):
-    """Proper motion [mas/yr] of a transverse velocity [km/s] at ``distance_kpc``."""
+    """Proper motion [mas/yr] of a transverse velocity [km/s] at ``distance_kpc``.
+
+    Parameters
+    ----------
+    v_kms : array_like
+        Velocities [km/s].
+    distance_kpc : float
+        Distance [kpc].
+
+    Returns
+    -------
+    ndarray
+        Proper motions [mas/yr].
+    """
     return np.asarray(v_kms) / (K_PM * distance_kpc)
 
 
 def pm_to_velocity(pm_masyr, distance_kpc: float):
-    """Transverse velocity [km/s] of a proper motion [mas/yr] at ``distance_kpc``."""
+    """Transverse velocity [km/s] of a proper motion [mas/yr] at ``distance_kpc``.
+
+    Parameters
+    ----------
+    pm_masyr : array_like
+        Proper motions [mas/yr].
+    distance_kpc : float
+        Distance [kpc].
+
+    Returns
+    -------
+    ndarray
+        Velocities [km/s].
+    """
     return np.asarray(pm_masyr) * K_PM * distance_kpc
 
 
 def rotate(x, y, angle_deg: float):
-    """Rotate vectors by ``angle_deg`` counter-clockwise."""
+    """Rotate vectors by ``angle_deg`` counter-clockwise.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Vector components (any unit, kept).
+    angle_deg : float
+        Rotation angle [deg].
+
+    Returns
+    -------
+    tuple of ndarray
+        The rotated components.
+    """
     c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     return c * x - s * y, s * x + c * y
 
@@ -81,11 +146,41 @@ def sky_to_field(x, y, pm_x, pm_y, offset=(0.0, 0.0), rotation: float = 0.0, pm_
 
 
 def propagate(x, y, pm_x, pm_y, epoch: float, reference_epoch: float = 0.0):
-    """Positions [arcsec] at ``epoch`` [yr] from positions at ``reference_epoch``."""
+    """Positions [arcsec] at ``epoch`` [yr] from positions at ``reference_epoch``.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Positions at the reference epoch [arcsec].
+    pm_x, pm_y : array_like
+        Proper motions [mas/yr].
+    epoch : float
+        Target epoch [yr].
+    reference_epoch : float
+        Epoch of ``x, y`` [yr].
+
+    Returns
+    -------
+    tuple of ndarray
+        Positions at ``epoch`` [arcsec].
+    """
     dt = (epoch - reference_epoch) / 1000.0  # mas -> arcsec
     return np.asarray(x) + np.asarray(pm_x) * dt, np.asarray(y) + np.asarray(pm_y) * dt
 
 
 def in_square(x, y, half_size: float):
-    """Mask of points inside the square ``|x|, |y| <= half_size``."""
+    """Mask of points inside the square ``|x|, |y| <= half_size``.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Positions (same unit as ``half_size``).
+    half_size : float
+        Half side of the square.
+
+    Returns
+    -------
+    ndarray of bool
+        True inside or on the edge.
+    """
     return (np.abs(x) <= half_size) & (np.abs(y) <= half_size)
