@@ -35,7 +35,18 @@ EXCLUDE_FLAGS = 16 | 32
 
 
 def truth_bin_counts(mags: np.ndarray) -> list[int]:
-    """Number of input stars per :data:`MAG_BINS` bin."""
+    """Number of input stars per :data:`MAG_BINS` bin.
+
+    Parameters
+    ----------
+    mags : ndarray
+        Input (truth) magnitudes [mag].
+
+    Returns
+    -------
+    list of int
+        Count per bin, bins half-open ``[lo, hi)``.
+    """
     mags = np.asarray(mags, float)
     return [
         int(np.count_nonzero((mags >= lo) & (mags < hi)))
@@ -44,7 +55,18 @@ def truth_bin_counts(mags: np.ndarray) -> list[int]:
 
 
 def bin_label(lo: float, hi: float) -> str:
-    """Human label of a magnitude bin ("m<16", "[16,17)", "m>=26")."""
+    """Human label of a magnitude bin ("m<16", "[16,17)", "m>=26").
+
+    Parameters
+    ----------
+    lo, hi : float
+        Bin edges [mag] (``-inf``/``inf`` for the open end bins).
+
+    Returns
+    -------
+    str
+        The label.
+    """
     if not np.isfinite(lo):
         return f"m<{hi:g}"
     if not np.isfinite(hi):
@@ -55,7 +77,27 @@ def bin_label(lo: float, hi: float) -> str:
 def clipped_std(
     values: np.ndarray, sigma: float = 2.0, iterations: int = 3
 ) -> tuple[float, float, int]:
-    """Mean, standard deviation and count after ``iterations`` of ``sigma`` clipping."""
+    """Mean, standard deviation and count after ``iterations`` of ``sigma`` clipping.
+
+    Clipping is about the median (``astropy.stats.sigma_clip``); non-finite values are dropped
+    first.
+
+    Parameters
+    ----------
+    values : ndarray
+        The values (any unit; the results share it).
+    sigma : float
+        Clipping threshold [standard deviations].
+    iterations : int
+        Maximum clipping iterations.
+
+    Returns
+    -------
+    mean, std : float
+        Of the kept values (``std`` with ddof = 1); NaN with fewer than two values.
+    n : int
+        Values kept.
+    """
     values = np.asarray(values, float)
     values = values[np.isfinite(values)]
     if len(values) < 2:
@@ -93,6 +135,11 @@ def frame_offset(stars: QTable) -> tuple[float, float, int]:
     The median of measured - true x and y of the unflagged stars brighter than
     :data:`OFFSET_MAG_LIMIT` (a frame-wide shift: the epoch alignment of the
     proper-motion stage absorbs it, so the accuracy table is computed about it).
+
+    Parameters
+    ----------
+    stars : astropy.table.QTable
+        The measured stars with their truth columns.
 
     Returns
     -------

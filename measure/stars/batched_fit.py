@@ -181,7 +181,26 @@ def crowding_flags(
     min_separation: float = UNRESOLVED_SEPARATION,
 ) -> np.ndarray:
     """True for stars with a neighbour within ``radius`` at least ``ratio`` times as bright,
-    and for both stars of every pair closer than ``min_separation`` [pixel]."""
+    and for both stars of every pair closer than ``min_separation`` [pixel].
+
+    Parameters
+    ----------
+    x, y : ndarray
+        Positions [pixel]; stars with non-finite positions are never flagged.
+    flux : ndarray
+        Fluxes [electron].
+    radius : float
+        Neighbour search radius [pixel].
+    ratio : float
+        Brightness ratio of a neighbour that flags a star.
+    min_separation : float
+        Pairs closer than this are flagged both [pixel].
+
+    Returns
+    -------
+    ndarray of bool
+        One flag per star.
+    """
     n = len(x)
     crowded = np.zeros(n, dtype=bool)
     good = np.isfinite(x) & np.isfinite(y)

@@ -24,7 +24,18 @@ PARAMETERS = ("x", "y", "flux", "sky")
 
 
 def sky_plane_basis(size: int) -> np.ndarray:
-    """Column and row offsets [pixel] of a ``size x size`` stamp from its centre, (2, size^2)."""
+    """Column and row offsets [pixel] of a ``size x size`` stamp from its centre, (2, size^2).
+
+    Parameters
+    ----------
+    size : int
+        Stamp side [pixel].
+
+    Returns
+    -------
+    ndarray, shape (2, size**2)
+        x offsets (fastest varying) and y offsets [pixel], row-major.
+    """
     off = np.arange(size, dtype=float) - (size - 1) / 2
     return np.stack([np.tile(off, size), np.repeat(off, size)])
 

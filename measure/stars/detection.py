@@ -60,6 +60,15 @@ def completeness(
 ) -> dict:
     """Completeness and false detections of a source list against the truth.
 
+    Parameters
+    ----------
+    x, y : ndarray
+        Detected positions [pixel].
+    x_true, y_true : ndarray
+        True positions [pixel].
+    radius : float
+        Match radius [pixel].
+
     Returns
     -------
     dict

@@ -191,6 +191,20 @@ def background_gradient(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: i
     for the true PSF; 0.110 without them, like the other nodes). Their median is
     0.08, that of the other PSF-star candidates 3e-4 (90 % below 0.005); the
     fitted position of a star moves by about this value in pixels.
+
+    Parameters
+    ----------
+    image : ndarray
+        Sky-subtracted frame [electron].
+    x, y : ndarray
+        Star positions [pixel].
+    size : int
+        Cut-out side [pixel].
+
+    Returns
+    -------
+    ndarray
+        ``(size // 2) |g| / F`` per star (dimensionless).
     """
     ny, nx = image.shape
     half = size // 2
@@ -231,6 +245,31 @@ def build_epsf(
 
     ``options.builder == "fast"`` uses :func:`build_epsf_fast` (ours, vectorised,
     ~100x faster), ``"photutils"`` uses :func:`build_epsf_photutils`.
+
+    Parameters
+    ----------
+    image : ndarray
+        Sky- (and neighbour-) subtracted frame [electron].
+    x, y : ndarray
+        PSF star positions [pixel].
+    options : EPSFOptions
+        Builder and its settings.
+    bad : ndarray of bool, optional
+        Unusable pixels (fast builder only).
+    noise_floor : float
+        Background variance per pixel [electron^2] (fast builder only).
+    others : ndarray, shape (M, 2), optional
+        Positions [pixel] of all other stars, masked near each PSF star (fast builder only).
+
+    Returns
+    -------
+    ndarray
+        The oversampled ePSF image.
+
+    Raises
+    ------
+    InputError
+        For an unknown builder.
     """
     if options.builder == "photutils":
         return build_epsf_photutils(image, x, y, options)
@@ -509,7 +548,20 @@ def build_epsf_photutils(
 
 
 def node_positions(shape: tuple[int, int], grid: int) -> tuple[np.ndarray, np.ndarray]:
-    """Centres of a ``grid x grid`` mesh of cells over the frame [pixel]."""
+    """Centres of a ``grid x grid`` mesh of cells over the frame [pixel].
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Frame shape ``(ny, nx)``.
+    grid : int
+        Cells per side.
+
+    Returns
+    -------
+    gx, gy : ndarray
+        Cell centres along x and y [pixel] (pixel centres at integers).
+    """
     ny, nx = shape
     gx = (np.arange(grid) + 0.5) * nx / grid - 0.5
     gy = (np.arange(grid) + 0.5) * ny / grid - 0.5

@@ -207,7 +207,20 @@ class ErrorModel:
 
     @classmethod
     def fisher_only(cls, n: int, chi2_ratio=None, chi2_inflation=None) -> ErrorModel:
-        """No model terms (the Fisher errors), optionally with chi^2 terms."""
+        """No model terms (the Fisher errors), optionally with chi^2 terms.
+
+        Parameters
+        ----------
+        n : int
+            Number of stars.
+        chi2_ratio, chi2_inflation : ndarray, optional
+            The chi^2 terms (default: ones).
+
+        Returns
+        -------
+        ErrorModel
+            Zero model errors; ``kind`` is ``"fisher"`` without chi^2 terms, else ``"chi2"``.
+        """
         ones = np.ones(n)
         plain = chi2_ratio is None and chi2_inflation is None
         return cls(
@@ -219,7 +232,22 @@ class ErrorModel:
         )
 
     def total(self, fisher_err: np.ndarray, model_err: np.ndarray) -> np.ndarray:
-        """Total 1-sigma error from a Fisher error and the matching model error."""
+        """Total 1-sigma error from a Fisher error and the matching model error.
+
+        ``sqrt(fisher_err^2 chi2_inflation + model_err^2 chi2_ratio)``.
+
+        Parameters
+        ----------
+        fisher_err : ndarray
+            Fisher (Cramer-Rao) errors of the fit.
+        model_err : ndarray
+            ePSF model errors of the same quantity, same unit.
+
+        Returns
+        -------
+        ndarray
+            Total errors, same unit.
+        """
         return np.sqrt(fisher_err**2 * self.chi2_inflation + model_err**2 * self.chi2_ratio)
 
 

@@ -163,6 +163,24 @@ def box_flux(
     frames every star within ~5" of the centre passed the PSF-star SNR cut, the
     central ePSF was built from m = 24-27 stars (box / true flux up to 14) and
     its peak came out 40 % low, leaving the m < 21 stars there ~1 mas off.
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    x, y : ndarray
+        Star positions [pixel] (rounded to the nearest pixel).
+    half : int
+        Half-size of the box [pixel].
+    ring : tuple of int or None
+        Inner and outer Chebyshev distance of the local-background ring [pixel].
+    chunk : int
+        Stars processed at once (memory bound only).
+
+    Returns
+    -------
+    ndarray
+        Box flux minus background [electron], one per star.
     """
     ny, nx = frame.shape
     x = np.rint(np.nan_to_num(np.asarray(x, float))).astype(int)
@@ -191,7 +209,18 @@ def box_flux(
 
 
 def epsf_options(settings: MeasureSettings) -> EPSFOptions:
-    """ePSF building options from the stage settings."""
+    """ePSF building options from the stage settings.
+
+    Parameters
+    ----------
+    settings : MeasureSettings
+        The stage settings.
+
+    Returns
+    -------
+    EPSFOptions
+        The ePSF builder's options.
+    """
     return EPSFOptions(
         variation=settings.psf_variation,
         grid=settings.psf_grid,
@@ -210,7 +239,18 @@ def epsf_options(settings: MeasureSettings) -> EPSFOptions:
 
 
 def fit_options(settings: MeasureSettings) -> FitOptions:
-    """Batched-fitter options from the stage settings."""
+    """Batched-fitter options from the stage settings.
+
+    Parameters
+    ----------
+    settings : MeasureSettings
+        The stage settings.
+
+    Returns
+    -------
+    FitOptions
+        The fast engine's options.
+    """
     return FitOptions(
         radius=settings.stamp_radius,
         iterations=settings.iterations,
@@ -232,8 +272,34 @@ def run_engine(
     engine=None,
     return_model: bool = True,
 ) -> FitResult:
-    """Fit all stars with the selected engine (``return_model``: the fast engine's
-    frame-sized model image, needed for neighbour subtraction only)."""
+    """Fit all stars with the selected engine.
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    psf : VariableEPSF
+        The ePSF.
+    x0, y0 : ndarray
+        Start positions [pixel].
+    settings : MeasureSettings
+        The stage settings.
+    engine : {"fast", "photutils"}, optional
+        Engine (default: ``settings.engine``).
+    return_model : bool
+        Whether the fast engine returns its frame-sized model image (needed for neighbour
+        subtraction only).
+
+    Returns
+    -------
+    FitResult
+        Per-star fit results.
+
+    Raises
+    ------
+    InputError
+        For an unknown engine.
+    """
     engine = engine or settings.engine
     common = dict(
         read_noise_var=frame.read_noise_var,
@@ -291,6 +357,20 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
 
     With ``settings.error_model == "epsf"`` the last build is repeated with each
     half of the PSF stars (the ePSF model-error estimate).
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    x0, y0 : ndarray
+        Star positions [pixel] from which the PSF stars are chosen.
+    settings : MeasureSettings
+        The stage settings.
+
+    Returns
+    -------
+    FramePSF
+        The ePSF, the number of PSF stars and the half-set ePSFs (or None).
     """
     opts = epsf_options(settings)
     data = frame.image - frame.sky
@@ -326,7 +406,23 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
 
 
 def starting_positions(frame: Frame, settings: MeasureSettings, rng: np.random.Generator):
-    """Forced starting positions [pixel] from the truth list, optionally perturbed."""
+    """Forced starting positions [pixel] from the truth list, optionally perturbed.
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame with its ``truth`` table.
+    settings : MeasureSettings
+        ``forced_positions`` (``"catalogue"``: the truth's ``x_cat``, ``y_cat`` [arcsec]
+        converted to pixels; else ``x_pix``, ``y_pix``) and ``perturbation`` [pixel].
+    rng : numpy.random.Generator
+        Draws the Gaussian perturbations.
+
+    Returns
+    -------
+    x0, y0 : ndarray
+        Start positions [pixel].
+    """
     truth = frame.truth
     if settings.forced_positions == "catalogue":
         if "x_cat" not in truth.colnames or "y_cat" not in truth.colnames:
@@ -352,6 +448,20 @@ def epsf_flux_fraction(fit: FitResult, flux_true: np.ndarray, usable: np.ndarray
     wings) is not in the fitted flux; the Cramer-Rao bound of the fit must use
     the flux the ePSF model describes. Estimated as the median of fitted / true
     flux of the well-measured stars (flux SNR >= 20, no flags); 1 if none.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit of the frame.
+    flux_true : ndarray
+        True fluxes [electron].
+    usable : ndarray of bool
+        Stars whose fit did not fail.
+
+    Returns
+    -------
+    float
+        The fraction, clipped to [1e-3, 2].
     """
     with np.errstate(all="ignore"):
         snr = fit.flux / fit.flux_err
@@ -365,7 +475,24 @@ def epsf_flux_fraction(fit: FitResult, flux_true: np.ndarray, usable: np.ndarray
 def error_terms(
     frame: Frame, frame_psf: FramePSF, fit: FitResult, settings: MeasureSettings
 ) -> ErrorModel:
-    """Error-model terms of every fitted star (:mod:`mavispm.measure.stars.error_model`)."""
+    """Error-model terms of every fitted star (:mod:`mavispm.measure.stars.error_model`).
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    frame_psf : FramePSF
+        The ePSF and its half-set ePSFs.
+    fit : FitResult
+        The fit.
+    settings : MeasureSettings
+        ``error_model`` and the fitter settings.
+
+    Returns
+    -------
+    ErrorModel
+        Per-star terms (Fisher only when ``error_model = "fisher"``).
+    """
     n = len(fit.x)
     if settings.error_model == "fisher":
         return ErrorModel.fisher_only(n)
@@ -400,6 +527,20 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
     Carried positions are off by each star's motion since the earlier epoch (a
     few tenths of a pixel); an ePSF built on them is blurred and anchored to
     them, which doubled the bright-star scatter on the NGC 3201 frames.
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    x0, y0 : ndarray
+        Carried start positions [pixel].
+    settings : MeasureSettings
+        The stage settings.
+
+    Returns
+    -------
+    x, y : ndarray
+        Refined positions [pixel].
     """
     quick = settings.replace(neighbour_passes=0, error_model="fisher", progress=False)
     psf = build_psf(frame, x0, y0, quick).psf
@@ -409,7 +550,23 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
 
 
 def blind_detection(frame: Frame, settings: MeasureSettings):
-    """Blind-mode start list [pixel] and detection attributes (``n_first``, passes)."""
+    """Blind-mode start list [pixel] and detection attributes (``n_first``, passes).
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    settings : MeasureSettings
+        ``detection_method`` (``"daofind"`` or the PSF-based detector), its threshold,
+        FWHM (default 2.5 pixels), passes and model error.
+
+    Returns
+    -------
+    x0, y0 : ndarray
+        Detected positions [pixel].
+    attrs : dict
+        ``first_pass`` and ``passes`` (JSON) for the PSF-based detector; empty for daofind.
+    """
     fwhm = settings.detection_fwhm or 2.5
     if settings.detection_method == "daofind":
         noise = np.sqrt(frame.sky + frame.read_noise_var)

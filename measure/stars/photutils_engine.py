@@ -63,7 +63,23 @@ class PhotutilsOptions:
 
 
 def to_photutils_model(psf: VariableEPSF, shape: tuple[int, int], grid: int = 5):
-    """The photutils model of an ePSF (``ImagePSF`` or ``GriddedPSFModel``)."""
+    """The photutils model of an ePSF (``ImagePSF`` or ``GriddedPSFModel``).
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+        The ePSF.
+    shape : tuple of int
+        Frame shape ``(ny, nx)``.
+    grid : int
+        Nodes per side of the ``GriddedPSFModel`` for a polynomial ePSF (a grid ePSF keeps
+        its own nodes).
+
+    Returns
+    -------
+    photutils.psf.ImagePSF or photutils.psf.GriddedPSFModel
+        ``ImagePSF`` for a constant ePSF, else the ePSF sampled at the nodes.
+    """
     if psf.kind == "constant":
         return ImagePSF(psf.basis[0], oversampling=psf.oversampling)
     if psf.kind == "grid":
@@ -96,6 +112,30 @@ def fit_stars_photutils(
     Parameters are those of :func:`mavispm.measure.stars.batched_fit.fit_stars`;
     ``sky0`` is only used for the pixel errors (the local sky comes from an
     annulus around each star).
+
+    Parameters
+    ----------
+    image : ndarray
+        The frame [electron].
+    psf : VariableEPSF
+        The ePSF.
+    x0, y0 : ndarray
+        Start positions [pixel].
+    read_noise_var : float
+        Read-noise variance per pixel [electron^2].
+    sky0 : float
+        Sky [electron/pixel] for the pixel errors.
+    flux0 : ndarray, optional
+        Start fluxes [electron].
+    bad, saturated : ndarray of bool, optional
+        Unusable and saturated pixels.
+    options : PhotutilsOptions, optional
+        Fitter, grouping and stamp settings.
+
+    Returns
+    -------
+    FitResult
+        Per-star fit results, as from the batched fitter.
     """
     opt = options or PhotutilsOptions()
     if opt.fitter not in ("levmar", "default"):

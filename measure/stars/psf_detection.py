@@ -100,7 +100,22 @@ def _gaussian_kernel(fwhm: float) -> np.ndarray:
 
 def sampled_epsf(psf, x: float, y: float, half: int) -> np.ndarray:
     """The ePSF at ``(x, y)`` sampled at integer pixel offsets, (2 half + 1)^2 (a star
-    centred on a pixel; values are fractions of the star's light)."""
+    centred on a pixel; values are fractions of the star's light).
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+        The ePSF.
+    x, y : float
+        Position in the frame [pixel].
+    half : int
+        Half-size [pixel] (limited to the ePSF footprint).
+
+    Returns
+    -------
+    ndarray
+        The samples (dimensionless).
+    """
     e = psf.epsf_at(x, y)
     os_ = psf.oversampling
     c = (e.shape[0] - 1) // 2
@@ -110,13 +125,43 @@ def sampled_epsf(psf, x: float, y: float, half: int) -> np.ndarray:
 
 
 def psf_kernel(psf, x: float, y: float, half: int = 3) -> np.ndarray:
-    """Matched-filter kernel: the ePSF core at ``(x, y)``, non-negative, sum 1."""
+    """Matched-filter kernel: the ePSF core at ``(x, y)``, non-negative, sum 1.
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+        The ePSF.
+    x, y : float
+        Position in the frame [pixel].
+    half : int
+        Half-size of the kernel [pixel].
+
+    Returns
+    -------
+    ndarray
+        The kernel (dimensionless).
+    """
     k = np.clip(sampled_epsf(psf, x, y, half), 0.0, None)
     return k / k.sum()
 
 
 def significance(residual: np.ndarray, variance: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """Matched-filter significance ``sum(K r) / sqrt(sum(K^2 var))`` at every pixel."""
+    """Matched-filter significance ``sum(K r) / sqrt(sum(K^2 var))`` at every pixel.
+
+    Parameters
+    ----------
+    residual : ndarray
+        Residual image [electron].
+    variance : ndarray
+        Per-pixel variance [electron^2].
+    kernel : ndarray
+        The kernel ``K``.
+
+    Returns
+    -------
+    ndarray
+        Significance [sigma]; 0 where the variance sum is 0.
+    """
     num = ndimage.correlate(residual, kernel, mode="constant")
     den = np.sqrt(ndimage.correlate(variance, kernel**2, mode="constant"))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -125,7 +170,26 @@ def significance(residual: np.ndarray, variance: np.ndarray, kernel: np.ndarray)
 
 def peaks(snr: np.ndarray, threshold: float, box: int, usable: np.ndarray):
     """Local maxima of ``snr`` (within ``box`` x ``box``) above ``threshold``, with
-    parabolic sub-pixel positions [pixel] and their significance."""
+    parabolic sub-pixel positions [pixel] and their significance.
+
+    Parameters
+    ----------
+    snr : ndarray
+        Significance map [sigma].
+    threshold : float
+        Detection threshold [sigma].
+    box : int
+        Side of the local-maximum window [pixel].
+    usable : ndarray of bool
+        Pixels where a peak may be.
+
+    Returns
+    -------
+    x, y : ndarray
+        Peak positions [pixel] (sub-pixel shifts limited to +-0.5).
+    snr : ndarray
+        Significance at each peak's pixel [sigma].
+    """
     is_max = (snr == ndimage.maximum_filter(snr, size=box, mode="constant")) & (snr > threshold)
     ys, xs = np.nonzero(is_max & usable)
     ny, nx = snr.shape
@@ -148,6 +212,18 @@ def local_background_subtracted(residual: np.ndarray, box: int) -> np.ndarray:
     The fit's local sky planes absorb part of a bright star's light (halo, the
     ePSF's normalisation), so the residual around a bright star sits on a
     pedestal that a matched filter would call a star.
+
+    Parameters
+    ----------
+    residual : ndarray
+        Residual image [electron].
+    box : int
+        Window side [pixel]; below 3 the residual is returned unchanged.
+
+    Returns
+    -------
+    ndarray
+        Residual minus its local median [electron].
     """
     if box < 3:
         return residual
@@ -166,6 +242,18 @@ def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
     beyond the ePSF footprint) makes the significance of empty places scatter
     more than 1; each tile's robust sigma (1.4826 MAD; stars are a small
     fraction of a tile's pixels) is that excess.
+
+    Parameters
+    ----------
+    snr : ndarray
+        Significance map [sigma].
+    tile : int
+        Tile side [pixel].
+
+    Returns
+    -------
+    ndarray
+        Scatter per pixel (dimensionless, >= 1).
     """
     ny, nx = snr.shape
     if tile < 4:
@@ -184,7 +272,20 @@ def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
 
 
 def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
-    """Significance divided by its :func:`noise_scale`."""
+    """Significance divided by its :func:`noise_scale`.
+
+    Parameters
+    ----------
+    snr : ndarray
+        Significance map [sigma].
+    tile : int
+        Tile side [pixel].
+
+    Returns
+    -------
+    ndarray
+        Normalised significance [sigma].
+    """
     return snr / noise_scale(snr, tile)
 
 
@@ -197,6 +298,23 @@ def model_error_profile(
     absolute residual in 1-pixel annuli (less its noise expectation
     ``sqrt(2 var / pi)`` per pixel) over the summed model light there; the median
     over the stars, at least ``floor``, at most 1.
+
+    Parameters
+    ----------
+    residual : ndarray
+        Residual image after the fit [electron].
+    psf : VariableEPSF
+        The ePSF of the fit.
+    x, y : ndarray
+        Fitted positions [pixel].
+    flux : ndarray
+        Fitted fluxes [electron].
+    noise_var : float
+        Per-pixel noise variance [electron^2].
+    floor : float
+        Smallest fractional error returned.
+    n_stars : int
+        Number of bright stars used.
 
     Returns
     -------
@@ -238,6 +356,13 @@ MAX_USEFUL_ERROR = 0.5
 def useful_psfs(psf, alpha: np.ndarray) -> tuple[VariableEPSF, VariableEPSF]:
     """The ePSF truncated where it stops being useful, and its model-error ePSF.
 
+    Parameters
+    ----------
+    psf : VariableEPSF
+        The ePSF.
+    alpha : ndarray
+        Fractional model error per 1-pixel annulus (:func:`model_error_profile`).
+
     Returns
     -------
     model : VariableEPSF
@@ -276,6 +401,21 @@ def prune(fit, psf, err_psf, shape, options: DetectionOptions, scale=None):
     the model error (``err_psf``) of its neighbours' light in its 3 x 3 core,
     divided by the local excess scatter ``scale`` (:func:`noise_scale`) of the
     significance map it was found in.
+
+    Parameters
+    ----------
+    fit : FitResult
+        Joint fit of the known stars and the candidates.
+    psf : VariableEPSF
+        The (truncated) ePSF of the residuals.
+    err_psf : VariableEPSF
+        Its model-error ePSF.
+    shape : tuple of int
+        Frame shape ``(ny, nx)``.
+    options : DetectionOptions
+        The detection threshold.
+    scale : ndarray, optional
+        Local excess scatter of the significance map.
 
     Returns
     -------

@@ -74,6 +74,16 @@ class EarlierEpoch:
 def read_earlier(path) -> EarlierEpoch:
     """Read an earlier epoch's ``measured`` product.
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The earlier epoch's ``measured`` product.
+
+    Returns
+    -------
+    EarlierEpoch
+        Its measured positions [pixel], fluxes, flags and epoch.
+
     Raises
     ------
     InputError
@@ -150,7 +160,18 @@ class EpochTransform:
     offset: tuple[float, float]
 
     def apply(self, x, y):
-        """Positions [pixel] in the new frame."""
+        """Positions [pixel] in the new frame.
+
+        Parameters
+        ----------
+        x, y : array_like
+            Positions in the earlier epoch's frame [pixel].
+
+        Returns
+        -------
+        tuple of ndarray
+            ``x', y'`` [pixel].
+        """
         x, y = np.asarray(x, float), np.asarray(y, float)
         return self.a[0] + self.a[1] * x + self.a[2] * y, self.b[0] + self.b[1] * x + self.b[2] * y
 
@@ -166,7 +187,20 @@ class EpochTransform:
 
 
 def reference_stars(earlier: EarlierEpoch, options: TransferOptions) -> np.ndarray:
-    """Indices of the brightest unflagged stars with no brighter star within ``isolation``."""
+    """Indices of the brightest unflagged stars with no brighter star within ``isolation``.
+
+    Parameters
+    ----------
+    earlier : EarlierEpoch
+        The earlier epoch's measurements.
+    options : TransferOptions
+        ``isolation`` [pixel] and the number wanted, ``n_reference``.
+
+    Returns
+    -------
+    ndarray of int
+        Indices into ``earlier``, brightest first.
+    """
     flux = np.nan_to_num(earlier.flux, nan=0.0)
     ok = ((earlier.flag & _BAD_REFERENCE) == 0) & (flux > 0)
     order = np.argsort(-flux)
@@ -185,7 +219,24 @@ def reference_stars(earlier: EarlierEpoch, options: TransferOptions) -> np.ndarr
 
 
 def bright_peaks(image: np.ndarray, sky: float, bad: np.ndarray, n: int):
-    """Positions [pixel] of the ``n`` highest local maxima (3 x 3) of a frame."""
+    """Positions [pixel] of the ``n`` highest local maxima (3 x 3) of a frame.
+
+    Parameters
+    ----------
+    image : ndarray
+        The frame [electron].
+    sky : float
+        Sky level subtracted first [electron/pixel].
+    bad : ndarray of bool
+        Pixels that cannot be a peak.
+    n : int
+        Number of peaks.
+
+    Returns
+    -------
+    x, y : ndarray
+        Integer pixel positions as floats, highest first.
+    """
     data = np.where(bad, -np.inf, np.asarray(image, float) - sky)
     data = np.where(np.isfinite(data), data, -np.inf)
     is_max = (data == ndimage.maximum_filter(data, size=3, mode="nearest")) & (data > 0)
@@ -199,6 +250,15 @@ def histogram_offset(x_ref, y_ref, x_new, y_new, search: float) -> tuple[float, 
     """Common offset [pixel] between two point lists: the peak of the histogram of
     pairwise differences within ``search`` (1-pixel bins summed 3 x 3, refined by the
     median, then the mean, of the differences within 1 and 0.5 pixel of the peak).
+
+    Parameters
+    ----------
+    x_ref, y_ref : ndarray
+        Reference positions [pixel].
+    x_new, y_new : ndarray
+        Positions in the other list [pixel].
+    search : float
+        Largest offset considered [pixel].
 
     Returns
     -------
@@ -234,6 +294,26 @@ def centroids(image, bad, sky: float, x, y, half: int, iterations: int = 2):
 
     Returns NaN where the box leaves the frame, holds an unusable pixel, or has
     no positive flux.
+
+    Parameters
+    ----------
+    image : ndarray
+        The frame [electron].
+    bad : ndarray of bool
+        Unusable pixels.
+    sky : float
+        Sky level [electron/pixel].
+    x, y : array_like
+        Start positions [pixel].
+    half : int
+        Box half-size [pixel].
+    iterations : int
+        Re-centred passes.
+
+    Returns
+    -------
+    x, y : ndarray
+        Centroids [pixel].
     """
     ny, nx = image.shape
     x, y = np.asarray(x, float).copy(), np.asarray(y, float).copy()
@@ -272,6 +352,24 @@ def fit_epoch_transform(
     options: TransferOptions = TransferOptions(),
 ) -> EpochTransform:
     """Affine transform from an earlier epoch's pixels to a new frame (no truth used).
+
+    Parameters
+    ----------
+    earlier : EarlierEpoch
+        The earlier epoch's measurements.
+    image : ndarray
+        The new frame [electron].
+    sky : float
+        Its sky [electron/pixel].
+    bad : ndarray of bool
+        Its unusable pixels.
+    options : TransferOptions
+        Reference-star choice, search radius and clipping.
+
+    Returns
+    -------
+    EpochTransform
+        The fitted affine transform.
 
     Raises
     ------

@@ -101,6 +101,7 @@ class StampGeometry:
 
     @property
     def size(self) -> int:
+        """Stamp side [pixel], ``2 radius + 1``."""
         return 2 * self.radius + 1
 
     def columns(self) -> np.ndarray:
@@ -164,6 +165,7 @@ class VariableEPSF:
     # ------------------------------------------------------------------ info
     @property
     def n_basis(self) -> int:
+        """Number of basis ePSF images."""
         return self.basis.shape[0]
 
     @property
@@ -172,13 +174,37 @@ class VariableEPSF:
         return (min(self.basis.shape[1:]) - 1) / 2.0 / self.oversampling
 
     def mixing(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Basis indices and weights for stars at pixel positions ``(x, y)``."""
+        """Basis indices and weights for stars at pixel positions ``(x, y)``.
+
+        Parameters
+        ----------
+        x, y : array_like
+            Star positions [pixel].
+
+        Returns
+        -------
+        idx : ndarray of int, shape (N, K)
+            Basis images used by each star.
+        weights : ndarray, shape (N, K)
+            Their weights; a star's ePSF is ``sum_k weights[:, k] * basis[idx[:, k]]``.
+        """
         x = np.atleast_1d(np.asarray(x, dtype=float))
         y = np.atleast_1d(np.asarray(y, dtype=float))
         return self._mixing(x, y)
 
     def epsf_at(self, x: float, y: float) -> np.ndarray:
-        """The oversampled ePSF image of a star at pixel position ``(x, y)``."""
+        """The oversampled ePSF image of a star at pixel position ``(x, y)``.
+
+        Parameters
+        ----------
+        x, y : float
+            Star position [pixel].
+
+        Returns
+        -------
+        ndarray
+            The ePSF image at the ePSF's oversampling.
+        """
         idx, w = self.mixing([x], [y])
         return np.tensordot(w[0], self.basis[idx[0]], axes=1)
 
@@ -265,7 +291,20 @@ class VariableEPSF:
 
 # ---------------------------------------------------------------- builders
 def constant_epsf(epsf: np.ndarray, oversampling: int) -> VariableEPSF:
-    """A field-constant ePSF."""
+    """A field-constant ePSF.
+
+    Parameters
+    ----------
+    epsf : ndarray
+        The oversampled ePSF image.
+    oversampling : int
+        Samples per detector pixel.
+
+    Returns
+    -------
+    VariableEPSF
+        An ePSF of kind ``"constant"`` (one basis image, weight 1 everywhere).
+    """
 
     def mixing(x, y):
         n = x.shape[0]
