@@ -97,6 +97,13 @@ def check_drawable(stars, scene) -> None:
 
     Cheap (no optics needed), so the frames stage calls it before building a PSF grid.
 
+    Parameters
+    ----------
+    stars : astropy.table.QTable
+        The epoch's star table (``x``, ``y`` [arcsec], ``mag`` [mag]).
+    scene : SceneSettings
+        Detector and noise settings.
+
     Raises
     ------
     InputError

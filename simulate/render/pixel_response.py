@@ -59,7 +59,29 @@ def pixel_transfer(frequency, pixel: float, amplitude: float = 0.0) -> np.ndarra
 
 
 def flat_field_residual(shape: tuple[int, int], rms: float, seed: int) -> np.ndarray | None:
-    """The fixed multiplicative pixel pattern ``1 + rms g`` (float32), or None for ``rms = 0``."""
+    """The fixed multiplicative pixel pattern ``1 + rms g`` (float32), or None for ``rms = 0``.
+
+    ``g`` is standard normal per pixel.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Detector shape ``(ny, nx)``.
+    rms : float
+        Relative RMS of the pattern, in [0, 0.2).
+    seed : int
+        Seed of the pattern (fixed per detector).
+
+    Returns
+    -------
+    ndarray of float32 or None
+        The pattern (dimensionless).
+
+    Raises
+    ------
+    ValueError
+        For ``rms`` outside [0, 0.2).
+    """
     if rms == 0.0:
         return None
     if not 0.0 < rms < 0.2:

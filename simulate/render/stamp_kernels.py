@@ -25,7 +25,29 @@ import scipy.sparse
 
 
 def mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, target, out):
-    """Reference implementation (adds into ``out`` (S, n_out)). ``coef`` (S, 3) = (a, b, c)."""
+    """Reference implementation (adds into ``out`` (S, n_out)). ``coef`` (S, 3) = (a, b, c).
+
+    Parameters
+    ----------
+    transforms : ndarray, shape (n_nodes, K), complex
+        PSF-node transfer functions at the retained spectrum samples.
+    node : ndarray of int, shape (S, J)
+        PSF nodes mixed for each star.
+    w : ndarray, shape (S, J)
+        The stars' bilinear node weights.
+    coef : ndarray, shape (S, 3)
+        ``(a, b, c)`` of each star's Gaussian OTF exponent.
+    u, v : ndarray, shape (K,)
+        Spatial frequencies of the samples (units matching ``coef``).
+    phx, phy : ndarray, shape (S, n_col), (S, n_row), complex
+        Sub-pixel phase ramps along x and y.
+    col, row : ndarray of int, shape (K,)
+        Column and row of each sample in the phase ramps.
+    target : ndarray of int, shape (K,)
+        Index of each sample's alias among the stamp's rfft2 frequencies.
+    out : ndarray, shape (S, n_out), complex
+        Folded spectra, added into in place.
+    """
     n_star = node.shape[0]
     indptr = np.arange(0, node.size + 1, node.shape[1])
     mix = scipy.sparse.csr_matrix(
@@ -50,6 +72,27 @@ def mix_kernel_fold(
 
     Real arithmetic on split real/imaginary buffers (measured ~2x faster than
     numba's complex products); ``transforms`` must be C-contiguous.
+
+    Parameters
+    ----------
+    transforms : ndarray, shape (n_nodes, K), complex
+        PSF-node transfer functions at the retained spectrum samples.
+    node : ndarray of int, shape (S, J)
+        PSF nodes mixed for each star.
+    w : ndarray, shape (S, J)
+        The stars' bilinear node weights.
+    coef : ndarray, shape (S, 3)
+        ``(a, b, c)`` of each star's Gaussian OTF exponent.
+    u, v : ndarray, shape (K,)
+        Spatial frequencies of the samples (units matching ``coef``).
+    phx, phy : ndarray, shape (S, n_col), (S, n_row), complex
+        Sub-pixel phase ramps along x and y.
+    col, row : ndarray of int, shape (K,)
+        Column and row of each sample in the phase ramps.
+    target : ndarray of int, shape (K,)
+        Index of each sample's alias among the stamp's rfft2 frequencies.
+    out : ndarray, shape (S, n_out), complex
+        Folded spectra, added into in place.
     """
     n_star, n_j = node.shape
     n_samp = u.shape[0]
