@@ -172,11 +172,33 @@ class AOSettings:
                 raise ValueError("fitting_rings entries must be [radius >= 0 arcsec, count >= 1]")
 
     def pitch(self, diameter: float) -> float:
-        """Actuator / sub-aperture pitch d = D / n_act (m)."""
+        """Actuator / sub-aperture pitch d = D / n_act (m).
+
+        Parameters
+        ----------
+        diameter : float
+            Telescope diameter D [m].
+
+        Returns
+        -------
+        float
+            Pitch [m].
+        """
         return diameter / self.n_actuators
 
     def control_frequency(self, diameter: float) -> float:
-        """Cut-off spatial frequency fc = 1 / (2 d) (m^-1)."""
+        """Cut-off spatial frequency fc = 1 / (2 d) (m^-1).
+
+        Parameters
+        ----------
+        diameter : float
+            Telescope diameter D [m].
+
+        Returns
+        -------
+        float
+            fc [1/m].
+        """
         return 1.0 / (2.0 * self.pitch(diameter))
 
 
@@ -211,7 +233,18 @@ def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> f
 
 
 def lgs_directions(settings: AOSettings) -> np.ndarray:
-    """LGS directions (rad), shape (n_lgs, 2), evenly spaced on the circle."""
+    """LGS directions (rad), shape (n_lgs, 2), evenly spaced on the circle.
+
+    Parameters
+    ----------
+    settings : AOSettings
+        ``n_lgs``, ``lgs_radius`` [arcsec] and ``lgs_angle`` [deg].
+
+    Returns
+    -------
+    ndarray, shape (n_lgs, 2)
+        Directions [rad].
+    """
     ang = 2 * np.pi * np.arange(settings.n_lgs) / settings.n_lgs + np.radians(settings.lgs_angle)
     r = settings.lgs_radius / ARCSEC_PER_RAD
     return np.stack([r * np.cos(ang), r * np.sin(ang)], axis=-1)
@@ -221,6 +254,17 @@ def fitting_directions(settings: AOSettings) -> np.ndarray:
     """DM optimisation directions (rad), shape (K, 2).
 
     Rings from ``fitting_rings`` when given, else a square grid cut to the circle.
+
+    Parameters
+    ----------
+    settings : AOSettings
+        ``fitting_rings`` (radius [arcsec], count), or ``fitting_field`` [arcsec] and
+        ``n_fitting``.
+
+    Returns
+    -------
+    ndarray, shape (K, 2)
+        Directions [rad].
     """
     if settings.fitting_rings:
         out = []
@@ -237,7 +281,18 @@ def fitting_directions(settings: AOSettings) -> np.ndarray:
 
 
 def fitting_weights(settings: AOSettings) -> np.ndarray:
-    """Weight of each fitting direction (sum 1), aligned with :func:`fitting_directions`."""
+    """Weight of each fitting direction (sum 1), aligned with :func:`fitting_directions`.
+
+    Parameters
+    ----------
+    settings : AOSettings
+        ``fitting_rings`` and their ``fitting_weights`` (per ring; equal when absent).
+
+    Returns
+    -------
+    ndarray, shape (K,)
+        Weights (equal for the square grid).
+    """
     if not settings.fitting_rings:
         n = fitting_directions(settings).shape[0]
         return np.full(n, 1.0 / n)
@@ -252,7 +307,22 @@ def fitting_weights(settings: AOSettings) -> np.ndarray:
 
 
 def control_mask(fx: np.ndarray, fy: np.ndarray, fc: float, shape: str = "square") -> np.ndarray:
-    """True inside the DM control region: ``|fx|, |fy| < fc`` ("square") or ``|f| < fc`` ("circle")."""
+    """True inside the DM control region: ``|fx|, |fy| < fc`` ("square") or ``|f| < fc`` ("circle").
+
+    Parameters
+    ----------
+    fx, fy : ndarray
+        Spatial frequencies [1/m].
+    fc : float
+        Cut-off frequency [1/m].
+    shape : {"square", "circle"}
+        Shape of the region.
+
+    Returns
+    -------
+    ndarray of bool
+        The mask.
+    """
     if shape == "circle":
         return fx**2 + fy**2 < fc**2
     return (np.abs(fx) < fc) & (np.abs(fy) < fc)
@@ -261,7 +331,26 @@ def control_mask(fx: np.ndarray, fy: np.ndarray, fc: float, shape: str = "square
 def fitting_psd(
     fx, fy, fc: float, r0: float, outer_scale: float, shape: str = "square"
 ) -> np.ndarray:
-    """Fitting-error PSD: the turbulence spectrum outside the control region."""
+    """Fitting-error PSD: the turbulence spectrum outside the control region.
+
+    Parameters
+    ----------
+    fx, fy : ndarray
+        Spatial frequencies [1/m].
+    fc : float
+        Cut-off frequency [1/m].
+    r0 : float
+        Fried parameter at the science wavelength [m].
+    outer_scale : float
+        Outer scale L0 [m].
+    shape : {"square", "circle"}
+        Shape of the control region.
+
+    Returns
+    -------
+    ndarray
+        Phase PSD [rad^2 m^2]; 0 inside the control region.
+    """
     w = von_karman_psd(fx**2 + fy**2, r0, outer_scale)
     return np.where(control_mask(fx, fy, fc, shape), 0.0, w)
 
@@ -326,6 +415,20 @@ def noise_psd(fx, fy, pitch: float, sigma_rad: float) -> np.ndarray:
     at the science wavelength); the white slope noise has density
     ``sigma^2 d^2`` and is divided by ``|Gx|^2 + |Gy|^2`` with
     ``Gx = 2 i sin(pi d fx) sinc(d fy)``.
+
+    Parameters
+    ----------
+    fx, fy : ndarray
+        Spatial frequencies [1/m].
+    pitch : float
+        Sub-aperture pitch d [m].
+    sigma_rad : float
+        RMS phase-difference noise of one sub-aperture [rad].
+
+    Returns
+    -------
+    ndarray
+        Noise PSD [rad^2 m^2].
     """
     gx2 = (2 * np.sin(np.pi * pitch * fx) * np.sinc(pitch * fy)) ** 2
     gy2 = (2 * np.sin(np.pi * pitch * fy) * np.sinc(pitch * fx)) ** 2
@@ -338,6 +441,18 @@ def closed_loop_transfer(nu: np.ndarray, settings: AOSettings) -> np.ndarray:
 
     ``OL(z) = g z^-delay / (1 - z^-1)``, ``z = exp(2 pi i nu / f_loop)``.
     H -> 1 at nu -> 0 (perfect tracking of slow turbulence).
+
+    Parameters
+    ----------
+    nu : ndarray
+        Temporal frequencies [Hz].
+    settings : AOSettings
+        ``loop_gain``, ``loop_delay`` [frames] and ``loop_frequency`` [Hz].
+
+    Returns
+    -------
+    ndarray, complex
+        H(nu).
     """
     nu = np.asarray(nu, float)
     zinv = np.exp(-2j * np.pi * nu / settings.loop_frequency)
@@ -353,6 +468,18 @@ def aliasing_temporal_gain(settings: AOSettings, atmosphere: Layers):
 
     Aliased turbulence at ``f`` moves with each layer's wind and reaches the DMs
     through the loop like the turbulence itself (not like white noise).
+
+    Parameters
+    ----------
+    settings : AOSettings
+        The loop (see :func:`closed_loop_transfer`).
+    atmosphere : Layers
+        Cn^2 fractions ``c_l`` and wind velocities ``v_l`` [m/s].
+
+    Returns
+    -------
+    callable
+        ``gain(fx, fy)`` of spatial frequencies [1/m], returning the dimensionless gain.
     """
 
     def gain(fx, fy):
@@ -365,7 +492,20 @@ def aliasing_temporal_gain(settings: AOSettings, atmosphere: Layers):
 
 
 def noise_gain(settings: AOSettings, n: int = 4096) -> float:
-    """Closed-loop noise gain: mean of |H|^2 over (0, f_loop/2) (white noise)."""
+    """Closed-loop noise gain: mean of |H|^2 over (0, f_loop/2) (white noise).
+
+    Parameters
+    ----------
+    settings : AOSettings
+        The loop.
+    n : int
+        Frequency samples (midpoints).
+
+    Returns
+    -------
+    float
+        The gain (dimensionless).
+    """
     nu = (np.arange(n) + 0.5) / n * settings.loop_frequency / 2
     return float(np.mean(np.abs(closed_loop_transfer(nu, settings)) ** 2))
 

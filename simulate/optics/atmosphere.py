@@ -103,18 +103,56 @@ class Layers:
 
 
 def airmass(settings: AtmosphereSettings) -> float:
-    """Airmass sec(z) of the observation (dimensionless)."""
+    """Airmass sec(z) of the observation (dimensionless).
+
+    Parameters
+    ----------
+    settings : AtmosphereSettings
+        ``zenith_angle`` [deg].
+
+    Returns
+    -------
+    float
+        sec(z).
+    """
     return 1.0 / np.cos(np.radians(settings.zenith_angle))
 
 
 def fried_parameter(settings: AtmosphereSettings, wavelength: float) -> float:
-    """Line-of-sight Fried parameter r0 (m) at ``wavelength`` (m)."""
+    """Line-of-sight Fried parameter r0 (m) at ``wavelength`` (m).
+
+    ``r0 = 0.98 lambda_ref / seeing`` at the reference wavelength and zenith, scaled as
+    ``lambda^1.2`` and ``airmass^-0.6``.
+
+    Parameters
+    ----------
+    settings : AtmosphereSettings
+        ``seeing`` [arcsec] and ``zenith_angle`` [deg].
+    wavelength : float
+        Wavelength [m].
+
+    Returns
+    -------
+    float
+        r0 [m].
+    """
     r0_zenith = 0.98 * REFERENCE_WAVELENGTH / (settings.seeing / ARCSEC_PER_RAD)
     return r0_zenith * (wavelength / REFERENCE_WAVELENGTH) ** 1.2 * airmass(settings) ** -0.6
 
 
 def layers(settings: AtmosphereSettings) -> Layers:
-    """The turbulent layers with airmass-stretched distances and wind vectors."""
+    """The turbulent layers with airmass-stretched distances and wind vectors.
+
+    Parameters
+    ----------
+    settings : AtmosphereSettings
+        Layer heights [m], Cn^2 weights, wind speeds [m/s] and directions [deg].
+
+    Returns
+    -------
+    Layers
+        Distances along the line of sight [m], normalised weights, velocities [m/s].
+    """
     w = np.asarray(settings.layer_weights, float)
     ang = np.radians(np.asarray(settings.wind_directions, float))
     speed = np.asarray(settings.wind_speeds, float)
@@ -149,6 +187,20 @@ def von_karman_variance_beyond(f_min: float, r0: float, outer_scale: float) -> f
     """Phase variance (rad^2) of the von Karman spectrum at |f| > ``f_min`` (m^-1).
 
     Closed form of 2 pi int_fmin^inf W(f) f df.
+
+    Parameters
+    ----------
+    f_min : float
+        Lower frequency limit [1/m].
+    r0 : float
+        Fried parameter [m].
+    outer_scale : float
+        Outer scale L0 [m].
+
+    Returns
+    -------
+    float
+        Phase variance [rad^2].
     """
     a = f_min**2 + outer_scale**-2
     return float(

@@ -39,7 +39,18 @@ class BlurSettings:
 
 
 def blur_sigma(settings: BlurSettings) -> float:
-    """Quadrature sum (mas) of the enabled blur sigmas; 0 when both are off."""
+    """Quadrature sum (mas) of the enabled blur sigmas; 0 when both are off.
+
+    Parameters
+    ----------
+    settings : BlurSettings
+        Charge-diffusion and vibration switches and sigmas [mas].
+
+    Returns
+    -------
+    float
+        Gaussian sigma [mas].
+    """
     terms = []
     if settings.charge_diffusion:
         terms.append(settings.charge_diffusion_sigma)

@@ -33,6 +33,18 @@ def load_mask_settings(path: str | Path | None, overrides: Mapping | None = None
     """The :class:`CalibrationMaskSettings` of a mask TOML file plus CLI overrides.
 
     The file holds a ``[calibration]`` table (or the keys at its top level).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path or None
+        The TOML file (None: defaults).
+    overrides : mapping, optional
+        Command-line values, overriding the file's.
+
+    Returns
+    -------
+    CalibrationMaskSettings
+        The validated mask settings.
     """
     table: dict = {}
     source = None
@@ -59,7 +71,24 @@ def run_calibration(
     output: str | Path,
     source=None,
 ) -> CalibrationResult:
-    """Simulate the calibration of ``distortion`` and write the product to ``output``."""
+    """Simulate the calibration of ``distortion`` and write the product to ``output``.
+
+    Parameters
+    ----------
+    distortion : mapping or DistortionSettings or None
+        The ``[scene.optics.distortion]`` table (None: defaults).
+    mask : CalibrationMaskSettings
+        The mask and the fit.
+    output : str or pathlib.Path
+        The ``calibration`` product written.
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    CalibrationResult
+        The measured holes and the recovered distortion.
+    """
     if not isinstance(distortion, DistortionSettings):
         distortion = from_mapping(
             DistortionSettings, distortion, prefix="scene.optics.distortion", source=source
@@ -90,7 +119,18 @@ def _handler(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``calibration`` sub-command."""
+    """Add the ``calibration`` sub-command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``mavispm simulate`` sub-parsers.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The new sub-parser.
+    """
     p = subparsers.add_parser(
         "calibration",
         help="image the astrometric calibration mask and recover the distortion",

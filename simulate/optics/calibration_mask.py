@@ -131,7 +131,18 @@ class CalibrationMaskSettings:
 
 
 def polynomial_terms(order: int) -> list[tuple[int, int]]:
-    """Powers ``(i, j)`` of ``u^i v^j`` with total degree 1 to ``order``, by degree."""
+    """Powers ``(i, j)`` of ``u^i v^j`` with total degree 1 to ``order``, by degree.
+
+    Parameters
+    ----------
+    order : int
+        Highest total degree.
+
+    Returns
+    -------
+    list of tuple of int
+        The powers, degree by degree.
+    """
     return [(d - j, j) for d in range(1, order + 1) for j in range(d + 1)]
 
 
@@ -163,7 +174,18 @@ class PolynomialDistortion:
     offset_y: float = 0.0
 
     def displacement_mas(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Displacement [mas] at field positions ``x, y`` [arcsec]."""
+        """Displacement [mas] at field positions ``x, y`` [arcsec].
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions [arcsec].
+
+        Returns
+        -------
+        dx, dy : ndarray
+            Displacements [mas], offsets included.
+        """
         a = _design(x, y, self.terms)
         return a @ self.coefficients_x + self.offset_x, a @ self.coefficients_y + self.offset_y
 
@@ -197,7 +219,18 @@ class CalibrationResult:
 
 
 def mask_holes(settings: CalibrationMaskSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Nominal hole positions [arcsec] on the sky, centred on the field (flattened)."""
+    """Nominal hole positions [arcsec] on the sky, centred on the field (flattened).
+
+    Parameters
+    ----------
+    settings : CalibrationMaskSettings
+        ``n_holes`` per side and ``pitch_arcsec``.
+
+    Returns
+    -------
+    x, y : ndarray
+        Positions [arcsec] of the square grid of holes.
+    """
     n = settings.n_holes
     axis = (np.arange(n) - (n - 1) / 2.0) * settings.pitch_arcsec
     xx, yy = np.meshgrid(axis, axis)
@@ -358,6 +391,16 @@ def write_calibration(path, result: CalibrationResult, distortion_config=None) -
 
 def read_recovered_distortion(path) -> PolynomialDistortion:
     """The recovered distortion of a ``calibration`` product.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``calibration`` product.
+
+    Returns
+    -------
+    PolynomialDistortion
+        The recovered distortion.
 
     Raises
     ------

@@ -23,7 +23,25 @@ from mavispm.simulate.optics.tiptilt import kernel_map
 
 
 def validate_settings(settings: Mapping | OpticsSettings | None, source=None) -> OpticsSettings:
-    """The :class:`OpticsSettings` of a ``[scene.optics]`` table (raises ConfigError)."""
+    """The :class:`OpticsSettings` of a ``[scene.optics]`` table.
+
+    Parameters
+    ----------
+    settings : mapping or OpticsSettings or None
+        The table (None: defaults); a settings object is returned as is.
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    OpticsSettings
+        The validated settings.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first bad key.
+    """
     if isinstance(settings, OpticsSettings):
         return settings
     return _validate(settings, source=source)
@@ -73,6 +91,13 @@ def _build_and_write(
 def tiptilt_product_fields(optics: Optics, grid) -> tuple[dict, dict]:
     """The TT kernel map on the grid nodes and the conditions, for the ``psfgrid`` product.
 
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    grid : PSFGrid
+        The PSF grid whose nodes [arcsec] are used.
+
     Returns
     -------
     arrays : dict
@@ -99,7 +124,28 @@ def tiptilt_product_fields(optics: Optics, grid) -> tuple[dict, dict]:
 
 
 def load_scene_optics(path: str | Path) -> Mapping:
-    """The ``[scene.optics]`` table of a scene TOML file (empty when absent)."""
+    """The ``[scene.optics]`` table of a scene TOML file (empty when absent).
+
+    The file's ``[scene]`` table is used when present, else its top level.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The scene TOML file.
+
+    Returns
+    -------
+    mapping
+        The optics table.
+
+    Raises
+    ------
+    InputError
+        When the file does not exist.
+    ConfigError
+        When it is not valid TOML, has unknown ``[scene]`` keys, or ``optics`` is not a
+        table.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError("scene file does not exist", path=path)
@@ -139,7 +185,18 @@ def _handler(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``optics`` sub-command."""
+    """Add the ``optics`` sub-command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``mavispm simulate`` sub-parsers.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The new sub-parser.
+    """
     p = subparsers.add_parser(
         "optics",
         help="build/cache the field-variable PSF grid and draw the optics plots",

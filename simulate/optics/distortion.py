@@ -104,6 +104,11 @@ class DistortionSettings:
 def read_distortion_map(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Read a static distortion grid file.
 
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        Text (whitespace-separated) or ``.csv`` file with columns x, y [arcsec], dx, dy [mas].
+
     Returns
     -------
     xs, ys : ndarray
@@ -220,7 +225,18 @@ class Distortion:
         return self.settings.enabled
 
     def static_displacement(self, x, y) -> tuple[np.ndarray, np.ndarray]:
-        """Static displacement (mas) at field positions (arcsec)."""
+        """Static displacement (mas) at field positions (arcsec).
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions [arcsec].
+
+        Returns
+        -------
+        dx, dy : ndarray
+            Displacements [mas]; zeros when disabled or ``static = "none"``.
+        """
         x, y = np.asarray(x, float), np.asarray(y, float)
         s = self.settings
         zero = np.zeros(np.broadcast(x, y).shape)
@@ -239,7 +255,18 @@ class Distortion:
         return self._grid[0](pts), self._grid[1](pts)
 
     def dynamic_coefficients(self, epoch: float) -> dict[str, float]:
-        """The per-epoch coefficients (mas RMS units) of the dynamic terms."""
+        """The per-epoch coefficients (mas RMS units) of the dynamic terms.
+
+        Parameters
+        ----------
+        epoch : float
+            Epoch [yr] (seeds the draw with ``dynamic_seed``).
+
+        Returns
+        -------
+        dict of str to float
+            Term name to coefficient [mas RMS]; zeros when dynamic distortion is off.
+        """
         s = self.settings
         if not (s.enabled and s.dynamic) or s.dynamic_amplitude == 0:
             return {t: 0.0 for t in s.dynamic_terms}
@@ -250,6 +277,24 @@ class Distortion:
         """Total displacement (arcsec) at field positions (arcsec) for ``epoch`` (yr).
 
         Exactly zero when disabled.
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions [arcsec], finite.
+        epoch : float
+            Epoch [yr].
+
+        Returns
+        -------
+        dx, dy : ndarray
+            Static plus dynamic displacement, less the recovered calibration when one is
+            given [arcsec].
+
+        Raises
+        ------
+        ValueError
+            For non-finite positions.
         """
         x, y = np.asarray(x, float), np.asarray(y, float)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):

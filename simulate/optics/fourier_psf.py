@@ -106,7 +106,20 @@ def fourier_sampling(
 
 
 def telescope_otf(pupil: PupilSettings, sampling: FourierSampling) -> np.ndarray:
-    """Telescope OTF (pupil autocorrelation) on the wrapped ``n_psd`` grid, 1 at r = 0."""
+    """Telescope OTF (pupil autocorrelation) on the wrapped ``n_psd`` grid, 1 at r = 0.
+
+    Parameters
+    ----------
+    pupil : PupilSettings
+        Diameter [m], obscuration and spiders.
+    sampling : FourierSampling
+        Grid size ``n_psd`` and pupil sampling ``dx`` [m].
+
+    Returns
+    -------
+    ndarray, shape (n_psd, n_psd)
+        The OTF (dimensionless), zero separation at index 0.
+    """
     p = pupil_mask(pupil, sampling.n_psd, sampling.dx)
     spec = scipy.fft.rfft2(np.fft.ifftshift(p))
     otf = scipy.fft.irfft2(np.abs(spec) ** 2, s=p.shape)
@@ -138,6 +151,18 @@ def psf_from_otf(otf: np.ndarray, sampling: FourierSampling) -> np.ndarray:
     The OTF (on the ``n_psd`` grid, zero separation at index 0) is embedded in
     an ``n_fft`` grid and transformed with a real FFT in float32; the stamp's
     centre pixel is the optical axis.
+
+    Parameters
+    ----------
+    otf : ndarray, shape (n_psd, n_psd)
+        The OTF (dimensionless).
+    sampling : FourierSampling
+        ``n_fft`` and the output stamp size ``n_stamp``.
+
+    Returns
+    -------
+    ndarray, shape (n_stamp, n_stamp)
+        The PSF (sums to 1).
     """
     n_psd, n_fft, n_out = otf.shape[0], sampling.n_fft, sampling.n_stamp
     h = (n_out - 1) // 2
@@ -162,5 +187,18 @@ def psf_from_otf(otf: np.ndarray, sampling: FourierSampling) -> np.ndarray:
 
 
 def strehl_ratio(otf_tel: np.ndarray, otf_ao: np.ndarray) -> float:
-    """Strehl ratio = sum(OTF_tel OTF_AO) / sum(OTF_tel) (peak of the long-exposure PSF)."""
+    """Strehl ratio = sum(OTF_tel OTF_AO) / sum(OTF_tel) (peak of the long-exposure PSF).
+
+    Parameters
+    ----------
+    otf_tel : ndarray
+        Telescope OTF.
+    otf_ao : ndarray
+        AO-residual OTF on the same grid.
+
+    Returns
+    -------
+    float
+        Strehl ratio (dimensionless).
+    """
     return float(np.sum(otf_tel * otf_ao) / np.sum(otf_tel))

@@ -101,7 +101,19 @@ class ImageMotionSettings:
 
 
 def mode_basis(x, y) -> np.ndarray:
-    """Displacements (mas) per unit coefficient, shape (N, 2, 6), at positions (arcsec)."""
+    """Displacements (mas) per unit coefficient, shape (N, 2, 6), at positions (arcsec).
+
+    Parameters
+    ----------
+    x, y : array_like
+        Field positions [arcsec].
+
+    Returns
+    -------
+    ndarray, shape (N, 2, 6)
+        Displacement [mas] along x and y of each of :data:`MOTION_MODES` for a coefficient of
+        1 mas.
+    """
     u = np.asarray(x, float) / SCIENCE_RADIUS
     v = np.asarray(y, float) / SCIENCE_RADIUS
     cols = [np.stack(_MODE_BASIS[m](u, v), -1) for m in MOTION_MODES]
@@ -109,7 +121,18 @@ def mode_basis(x, y) -> np.ndarray:
 
 
 def distortion_basis(x, y) -> np.ndarray:
-    """Unit-RMS dynamic-distortion terms (mas per unit coefficient), shape (N, 2, 3)."""
+    """Unit-RMS dynamic-distortion terms (mas per unit coefficient), shape (N, 2, 3).
+
+    Parameters
+    ----------
+    x, y : array_like
+        Field positions [arcsec].
+
+    Returns
+    -------
+    ndarray, shape (N, 2, 3)
+        Displacement [mas] of each of :data:`DISTORTION_TERMS` for a coefficient of 1 mas RMS.
+    """
     u = np.asarray(x, float) / SCIENCE_RADIUS
     v = np.asarray(y, float) / SCIENCE_RADIUS
     cols = [np.stack(_BASIS[t](u, v), -1) / _basis_rms(t) for t in DISTORTION_TERMS]
@@ -117,7 +140,20 @@ def distortion_basis(x, y) -> np.ndarray:
 
 
 def exposure_average_factor(tau: float, exptime: float) -> float:
-    """Variance of the T-average of a unit-variance signal with autocorrelation exp(-|t|/tau)."""
+    """Variance of the T-average of a unit-variance signal with autocorrelation exp(-|t|/tau).
+
+    Parameters
+    ----------
+    tau : float
+        Correlation time [s]; <= 0 gives 0 (white signal).
+    exptime : float
+        Averaging time T [s].
+
+    Returns
+    -------
+    float
+        ``2 (tau/T)^2 (T/tau - 1 + exp(-T/tau))`` (dimensionless, in [0, 1]).
+    """
     if tau <= 0:
         return 0.0
     r = exptime / tau
@@ -127,7 +163,20 @@ def exposure_average_factor(tau: float, exptime: float) -> float:
 
 
 def effective_wind_speed(weights, velocities) -> float:
-    """``(sum c_l |v_l|^(5/3))^(3/5)`` (m/s) of layers with Cn^2 fractions ``weights``."""
+    """``(sum c_l |v_l|^(5/3))^(3/5)`` (m/s) of layers with Cn^2 fractions ``weights``.
+
+    Parameters
+    ----------
+    weights : array_like
+        Cn^2 fractions (normalised here).
+    velocities : array_like, shape (L, 2)
+        Wind vectors [m/s].
+
+    Returns
+    -------
+    float
+        Effective wind speed [m/s].
+    """
     w = np.asarray(weights, float)
     speed = np.hypot(*np.asarray(velocities, float).T)
     return float((np.sum(w / w.sum() * speed ** (5 / 3))) ** 0.6)
@@ -139,6 +188,18 @@ def budget_mode_covariance(tiptilt, n_grid: int = 7) -> np.ndarray:
     Least-squares projection of the residual's cross-covariance on
     :data:`MOTION_MODES` over an ``n_grid`` x ``n_grid`` grid cut to the science
     circle; the NGS noise (white at the loop rate) is left out.
+
+    Parameters
+    ----------
+    tiptilt : TipTiltField
+        The tip-tilt residual model.
+    n_grid : int
+        Grid points per side.
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        Covariance [mas^2].
     """
     g = np.linspace(-SCIENCE_RADIUS, SCIENCE_RADIUS, n_grid)
     gx, gy = np.meshgrid(g, g)
@@ -164,6 +225,18 @@ def noise_free_covariance(tiptilt, xy) -> np.ndarray:
     ``r = t - W s_meas`` with ``W = K_as C_ss^-1`` (the loop's MMSE weights,
     noise included); the noise term ``W C_n W^T`` is removed, leaving
     ``K_ab - W_a K_sb - K_as W_b^T + W_a K_ss W_b^T``.
+
+    Parameters
+    ----------
+    tiptilt : TipTiltField
+        The tip-tilt residual model.
+    xy : array_like, shape (P, 2)
+        Field positions [arcsec].
+
+    Returns
+    -------
+    ndarray, shape (P, P, 2, 2)
+        Cross-covariance [mas^2].
     """
     from mavispm.simulate.optics.atmosphere import MAS_PER_RAD
 
@@ -221,13 +294,37 @@ class StackMotion:
     distortion: np.ndarray
 
     def displacements(self, x, y) -> np.ndarray:
-        """Per-exposure displacements (N_exp, N_star, 2) in mas at positions (arcsec)."""
+        """Per-exposure displacements (N_exp, N_star, 2) in mas at positions (arcsec).
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions of the stars [arcsec].
+
+        Returns
+        -------
+        ndarray, shape (N_exp, N_star, 2)
+            Displacements [mas].
+        """
         d = np.einsum("sjm,km->ksj", mode_basis(x, y), self.modes)
         return d + np.einsum("sjt,kt->ksj", distortion_basis(x, y), self.distortion)
 
     def stack_moments(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Mean displacement (N_star, 2) and its covariance over the exposures (N_star, 2, 2),
-        both in mas, computed from the coefficient moments (no per-exposure loop)."""
+        both in mas, computed from the coefficient moments (no per-exposure loop).
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions of the stars [arcsec].
+
+        Returns
+        -------
+        mean : ndarray, shape (N_star, 2)
+            Mean displacement [mas].
+        cov : ndarray, shape (N_star, 2, 2)
+            Covariance over the exposures [mas^2].
+        """
         bm = mode_basis(x, y)
         bd = distortion_basis(x, y)
         basis = np.concatenate([bm, bd], -1)  # (S, 2, 9)
@@ -264,7 +361,20 @@ class ImageMotion:
         return bool(self.settings.enabled)
 
     def exposure_covariance(self, exptime: float) -> np.ndarray:
-        """Covariance (6, 6) of the motion modes averaged over one sub-exposure (mas^2)."""
+        """Covariance (6, 6) of the motion modes averaged over one sub-exposure (mas^2).
+
+        Fixed ``tilt`` / ``plate_scale`` settings replace the budget's blocks.
+
+        Parameters
+        ----------
+        exptime : float
+            Sub-exposure time [s].
+
+        Returns
+        -------
+        ndarray, shape (6, 6)
+            Covariance [mas^2].
+        """
         s = self.settings
         cov = self.budget_covariance * exposure_average_factor(self.tau, exptime)
         if s.tilt is not None:
@@ -278,7 +388,24 @@ class ImageMotion:
         return cov
 
     def draw(self, nexp: int, exptime: float, epoch: float = 0.0) -> StackMotion:
-        """Coefficients of ``nexp`` sub-exposures of ``exptime`` s at ``epoch`` (yr)."""
+        """Coefficients of ``nexp`` sub-exposures of ``exptime`` s at ``epoch`` (yr).
+
+        Successive sub-exposures are AR(1)-correlated with the settings' correlation times.
+
+        Parameters
+        ----------
+        nexp : int
+            Number of sub-exposures.
+        exptime : float
+            Sub-exposure time [s].
+        epoch : float
+            Epoch [yr] (seeds the draw).
+
+        Returns
+        -------
+        StackMotion
+            The drawn coefficients.
+        """
         s = self.settings
         rng = _rng(s.seed, epoch)
         rho = np.exp(-exptime / s.correlation_time) if s.correlation_time > 0 else 0.0
@@ -292,7 +419,26 @@ class ImageMotion:
         return StackMotion(modes, dist)
 
     def stack(self, x, y, nexp: int, exptime: float, epoch: float = 0.0):
-        """Mean displacement (N, 2) and blur covariance (N, 2, 2), mas, of a stack's stars."""
+        """Mean displacement (N, 2) and blur covariance (N, 2, 2), mas, of a stack's stars.
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions [arcsec].
+        nexp : int
+            Number of sub-exposures.
+        exptime : float
+            Sub-exposure time [s].
+        epoch : float
+            Epoch [yr].
+
+        Returns
+        -------
+        mean : ndarray, shape (N, 2)
+            Mean displacement [mas].
+        cov : ndarray, shape (N, 2, 2)
+            Covariance over the sub-exposures [mas^2].
+        """
         return self.draw(nexp, exptime, epoch).stack_moments(x, y)
 
 

@@ -76,6 +76,18 @@ class OpticsSettings:
 def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
     """Build :class:`OpticsSettings` from the ``[scene.optics]`` table.
 
+    Parameters
+    ----------
+    mapping : mapping or None
+        The ``[scene.optics]`` table (None: defaults).
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    OpticsSettings
+        The validated settings (the PSF grid's memory checked against the limit).
+
     Raises
     ------
     ConfigError
@@ -91,6 +103,18 @@ def psf_grid_memory(settings: OpticsSettings) -> tuple[float, str]:
 
     The stamp cube (``n_nodes^2`` stamps, held twice) and, in Fourier mode, the
     complex FFT work arrays of one chunk of directions.
+
+    Parameters
+    ----------
+    settings : OpticsSettings
+        The optics settings.
+
+    Returns
+    -------
+    nbytes : float
+        Estimated peak memory [byte].
+    key : str
+        Dotted settings key named when the estimate is over the limit.
     """
     from mavispm.simulate.optics.fourier_psf import fourier_sampling
 
@@ -117,7 +141,20 @@ def psf_grid_memory(settings: OpticsSettings) -> tuple[float, str]:
 
 
 def check_psf_grid_memory(settings: OpticsSettings, source=None) -> None:
-    """Refuse PSF-grid settings beyond the memory limit (:mod:`mavispm.core.limits`)."""
+    """Refuse PSF-grid settings beyond the memory limit (:mod:`mavispm.core.limits`).
+
+    Parameters
+    ----------
+    settings : OpticsSettings
+        The optics settings.
+    source : str, optional
+        File named in the error.
+
+    Raises
+    ------
+    ConfigError
+        Naming the key that drives the estimate and the memory it needs.
+    """
     from mavispm.core.limits import check_memory
 
     nbytes, key = psf_grid_memory(settings)
@@ -161,12 +198,34 @@ class Optics:
     image_motion: ImageMotion | None = None
 
     def kernel_covariance(self, x, y) -> np.ndarray:
-        """TT covariance plus isotropic blur, (N, 2, 2) in mas^2, at field positions (arcsec)."""
+        """TT covariance plus isotropic blur, (N, 2, 2) in mas^2, at field positions (arcsec).
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions [arcsec].
+
+        Returns
+        -------
+        ndarray, shape (N, 2, 2)
+            Covariance [mas^2].
+        """
         return self.tiptilt.covariance(x, y) + self.blur_sigma**2 * np.eye(2)
 
 
 def control_radius_mas(settings: OpticsSettings) -> float:
-    """AO control radius lambda n_act / (2 D) in mas at the PSF wavelength."""
+    """AO control radius lambda n_act / (2 D) in mas at the PSF wavelength.
+
+    Parameters
+    ----------
+    settings : OpticsSettings
+        PSF wavelength [nm], actuators across the pupil and pupil diameter [m].
+
+    Returns
+    -------
+    float
+        Control radius [mas].
+    """
     lam = settings.psf.wavelength * 1e-9
     return lam * settings.ao.n_actuators / (2 * settings.pupil.diameter) * MAS_PER_RAD
 
@@ -182,7 +241,21 @@ def _fitting_profile(settings: OpticsSettings) -> tuple[np.ndarray, np.ndarray]:
 
 
 def make_halo(settings: OpticsSettings, result: GridResult) -> Halo:
-    """The halo for a computed grid (uses its on-axis PSD profile)."""
+    """The halo for a computed grid (uses its on-axis PSD profile).
+
+    Parameters
+    ----------
+    settings : OpticsSettings
+        The optics settings.
+    result : GridResult
+        The computed grid with its on-axis PSD profile (the fitting-error profile is used
+        when the grid has none, as in ``file`` mode).
+
+    Returns
+    -------
+    Halo
+        The seeing-halo kernel.
+    """
     lam = settings.psf.wavelength * 1e-9
     f, psd = result.psd_frequency, result.psd_profile
     if f.size == 0:
@@ -208,6 +281,20 @@ def cached_halo(settings: OpticsSettings, result: GridResult, grid_path: Path | 
     The halo profile is a pure function of the grid's parameters (its cache key,
     part of the file name) and the halo settings; its Hankel transforms take ~2 s,
     which every epoch of a scene would otherwise repeat.
+
+    Parameters
+    ----------
+    settings : OpticsSettings
+        The optics settings.
+    result : GridResult
+        The computed grid.
+    grid_path : pathlib.Path or None
+        The grid's cache file; None: no caching.
+
+    Returns
+    -------
+    Halo
+        The seeing-halo kernel.
     """
     if grid_path is None:
         return make_halo(settings, result)
@@ -228,7 +315,20 @@ def cached_halo(settings: OpticsSettings, result: GridResult, grid_path: Path | 
 
 
 def taper_grid(grid: PSFGrid, halo: Halo) -> PSFGrid:
-    """Multiply every stamp by ``1 - ramp`` and renormalise to unit sum."""
+    """Multiply every stamp by ``1 - ramp`` and renormalise to unit sum.
+
+    Parameters
+    ----------
+    grid : PSFGrid
+        The core PSF grid.
+    halo : Halo
+        The halo whose ramp tapers the cores.
+
+    Returns
+    -------
+    PSFGrid
+        A new grid with tapered stamps.
+    """
     cube = grid.cube * halo.core_taper(grid.n, grid.pixel_scale)
     cube /= cube.sum(axis=(-2, -1), keepdims=True)
     return dataclasses.replace(grid, cube=cube)

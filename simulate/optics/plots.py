@@ -33,7 +33,22 @@ def _save(fig, path: Path) -> Path:
 
 
 def plot_psf_grid(optics, path: Path, crop_arcsec: float = 0.4) -> Path:
-    """Mosaic of log-intensity thumbnails of the grid PSFs."""
+    """Mosaic of log-intensity thumbnails of the grid PSFs.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    path : pathlib.Path
+        The PNG written.
+    crop_arcsec : float
+        Side of each thumbnail [arcsec] (limited to the stamp).
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     g = optics.psf_grid
     half = min(int(crop_arcsec * 500 / g.pixel_scale), (g.n - 1) // 2)
     c = (g.n - 1) // 2
@@ -66,7 +81,22 @@ def _diagonal_slice(psf: np.ndarray, pixel_scale: float):
 
 
 def plot_psf_profile(optics, path: Path, positions=((-15.0, -15.0), (-9.0, -9.0))) -> Path:
-    """Radial (diagonal) slices of off-axis PSFs over the central PSF."""
+    """Radial (diagonal) slices of off-axis PSFs over the central PSF.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    path : pathlib.Path
+        The PNG written.
+    positions : sequence of (float, float)
+        Field positions of the off-axis PSFs [arcsec].
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     g = optics.psf_grid
     centre = g.psf_at(0.0, 0.0)
     fig, axes = plt.subplots(
@@ -106,7 +136,24 @@ def plot_psf_profile(optics, path: Path, positions=((-15.0, -15.0), (-9.0, -9.0)
 
 
 def plot_tiptilt_map(optics, path: Path, half_width: float = 15.0, step: float = 3.0) -> Path:
-    """Tip-tilt kernel ellipses (1 sigma, magnified) on a grid, with the NGS."""
+    """Tip-tilt kernel ellipses (1 sigma, magnified) on a grid, with the NGS.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    path : pathlib.Path
+        The PNG written.
+    half_width : float
+        Half-width of the grid [arcsec].
+    step : float
+        Grid step [arcsec].
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     tt = optics.tiptilt
     g = np.arange(-half_width, half_width + 1e-9, step)
     gx, gy = np.meshgrid(g, g)
@@ -143,7 +190,20 @@ def plot_tiptilt_map(optics, path: Path, half_width: float = 15.0, step: float =
 
 
 def plot_tiptilt_kernel_map(optics, path: Path) -> Path:
-    """The psfgrid product's TT kernel map: semi-major / semi-minor sigma and angle at the nodes."""
+    """The psfgrid product's TT kernel map: semi-major / semi-minor sigma and angle at the nodes.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    path : pathlib.Path
+        The PNG written.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     from mavispm.simulate.optics.tiptilt import kernel_map
 
     g = optics.psf_grid
@@ -191,7 +251,24 @@ def plot_tiptilt_kernel_map(optics, path: Path) -> Path:
 
 
 def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 61) -> Path:
-    """Static distortion amplitude map and its x / y projections."""
+    """Static distortion amplitude map and its x / y projections.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    path : pathlib.Path
+        The PNG written.
+    half_width : float
+        Half-width of the map [arcsec].
+    n : int
+        Samples per side.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
+    """
     g = np.linspace(-half_width, half_width, n)
     gx, gy = np.meshgrid(g, g)
     dx, dy = optics.distortion.static_displacement(gx, gy)  # mas
@@ -216,7 +293,20 @@ def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 6
 
 
 def draw_all(optics, outdir: Path) -> list[Path]:
-    """Draw every optics plot into ``outdir``; returns the PNG paths."""
+    """Draw every optics plot into ``outdir``.
+
+    Parameters
+    ----------
+    optics : Optics
+        The scene's optics.
+    outdir : pathlib.Path
+        Folder (created if needed).
+
+    Returns
+    -------
+    list of pathlib.Path
+        The PNG paths.
+    """
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     return [

@@ -186,7 +186,18 @@ class PSFGrid:
         return iy, ix, w
 
     def psf_at(self, x: float, y: float) -> np.ndarray:
-        """Bilinearly interpolated PSF (n, n) at field position (x, y) arcsec; sums to 1."""
+        """Bilinearly interpolated PSF (n, n) at field position (x, y) arcsec; sums to 1.
+
+        Parameters
+        ----------
+        x, y : float
+            Field position [arcsec] (clipped to the grid edges).
+
+        Returns
+        -------
+        ndarray, shape (n, n)
+            The PSF stamp (pixels of ``pixel_scale`` mas).
+        """
         iy, ix, w = self.bilinear_weights([x], [y])
         psf = np.tensordot(w[0], self.cube[iy[0], ix[0]], axes=1)
         return psf / psf.sum()
@@ -221,7 +232,25 @@ class GridResult:
 
 
 def grid_key(psf: PSFSettings, pupil, atmosphere, ao) -> str:
-    """Hash of every parameter that changes the grid (cache key)."""
+    """Hash of every parameter that changes the grid (cache key).
+
+    Parameters
+    ----------
+    psf : PSFSettings
+        PSF settings (``chunk``, which only sets memory use, is left out).
+    pupil : PupilSettings
+        Pupil settings.
+    atmosphere : AtmosphereSettings
+        Atmosphere settings.
+    ao : AOSettings
+        AO settings.
+
+    Returns
+    -------
+    str
+        Hexadecimal key (includes the algorithm version and, in ``file`` mode, the file's
+        size and modification time).
+    """
     payload = {
         "version": ALGORITHM_VERSION,
         "psf": {k: v for k, v in asdict(psf).items() if k != "chunk"},
@@ -243,7 +272,24 @@ def default_cache_dir() -> Path:
 
 
 def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
-    """Azimuthal average of a centred 2-D PSD in rings of width df."""
+    """Azimuthal average of a centred 2-D PSD in rings of width df.
+
+    Parameters
+    ----------
+    fx, fy : ndarray
+        Spatial frequencies [1/m].
+    psd : ndarray
+        The PSD on the same grid (any unit; the profile shares it).
+    df : float
+        Ring width [1/m].
+
+    Returns
+    -------
+    f : ndarray
+        Ring radii [1/m] (non-empty rings only).
+    profile : ndarray
+        Mean PSD per ring.
+    """
     r = np.hypot(fx, fy).ravel()
     idx = np.floor(r / df + 0.5).astype(int)
     n = idx.max() + 1
@@ -255,8 +301,19 @@ def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class ConeGeometry:
-    """What the cone effect needs: LGS directions (rad, (G, 2)), LGS range along the
-    line of sight (m), pupil diameter (m) and obstruction ratio."""
+    """What the cone effect needs.
+
+    Attributes
+    ----------
+    lgs_directions : ndarray, shape (G, 2)
+        LGS directions [rad].
+    lgs_range : float
+        LGS range along the line of sight [m].
+    diameter : float
+        Pupil diameter [m].
+    obscuration : float
+        Central obstruction ratio (dimensionless).
+    """
 
     lgs_directions: np.ndarray
     lgs_range: float
@@ -303,7 +360,18 @@ class ResidualPSDModel:
     cone: ConeGeometry | None = None
 
     def cone_psd(self, direction: np.ndarray) -> np.ndarray:
-        """Cone-effect PSD on the control-region frequencies ``sel`` for one direction (rad)."""
+        """Cone-effect PSD on the control-region frequencies ``sel`` for one direction (rad).
+
+        Parameters
+        ----------
+        direction : ndarray, shape (2,)
+            Science direction [rad].
+
+        Returns
+        -------
+        ndarray
+            PSD [rad^2 m^2] on the control-region frequencies; zeros without cone geometry.
+        """
         if self.cone is None or self.operator is None:
             return np.zeros(int(self.sel.sum()))
         c = self.cone
@@ -316,7 +384,21 @@ class ResidualPSDModel:
         )
 
     def psds(self, directions: np.ndarray, chunk: int):
-        """Yield the full PSD for each direction (rad), computing ``chunk`` at a time."""
+        """Yield the full PSD for each direction (rad), computing ``chunk`` at a time.
+
+        Parameters
+        ----------
+        directions : ndarray, shape (K, 2)
+            Science directions [rad].
+        chunk : int
+            Directions whose correction residual is computed at once.
+
+        Yields
+        ------
+        ndarray
+            Residual phase PSD [rad^2 m^2] of one direction: fitting, aliasing, and on the
+            control region the correction residual and the cone effect.
+        """
         base = self.fitting + self.aliasing
         for start in range(0, directions.shape[0], chunk):
             part = directions[start : start + chunk]
@@ -332,7 +414,19 @@ class ResidualPSDModel:
                 yield psd
 
     def budget(self, position_arcsec=(0.0, 0.0)) -> dict[str, float]:
-        """RMS wavefront error (nm) of each term in one direction."""
+        """RMS wavefront error (nm) of each term in one direction.
+
+        Parameters
+        ----------
+        position_arcsec : tuple of float
+            Field position [arcsec].
+
+        Returns
+        -------
+        dict of str to float
+            ``fitting``, ``aliasing``, ``servo_tomography``, ``noise``, ``cone`` and their
+            quadrature sum ``total`` [nm].
+        """
         df2 = self.sampling.df**2
         to_nm = self.wavelength * 1e9 / (2 * np.pi)
         out = {
@@ -360,6 +454,25 @@ def residual_psd_model(
     residual: bool = True,
 ) -> ResidualPSDModel:
     """Set up the PSD grid and the direction-independent terms.
+
+    Parameters
+    ----------
+    psf : PSFSettings
+        Wavelength [nm], pixel scale [mas], stamp size and pupil sampling.
+    pupil : PupilSettings
+        Pupil geometry.
+    atmosphere : AtmosphereSettings
+        Turbulence profile and seeing.
+    ao : AOSettings
+        AO system.
+    residual : bool
+        Include the AO residual terms the settings switch on (fitting, aliasing,
+        tomography, servo, noise, cone); False: none (the diffraction-limited PSF).
+
+    Returns
+    -------
+    ResidualPSDModel
+        The PSD model.
 
     Raises
     ------
@@ -471,7 +584,26 @@ def compute_grid(
     ao: AOSettings,
     progress: bool = True,
 ) -> GridResult:
-    """Compute the PSF grid for ``psf.mode`` (no cache)."""
+    """Compute the PSF grid for ``psf.mode`` (no cache).
+
+    Parameters
+    ----------
+    psf : PSFSettings
+        PSF settings (``mode``: Fourier model or a file of PSFs).
+    pupil : PupilSettings
+        Pupil geometry.
+    atmosphere : AtmosphereSettings
+        Turbulence profile and seeing.
+    ao : AOSettings
+        AO system.
+    progress : bool
+        Show a progress bar (on a terminal only).
+
+    Returns
+    -------
+    GridResult
+        The grid and the on-axis PSD profile.
+    """
     if psf.mode == "file":
         from mavispm.simulate.optics.psf_fits import read_mavisim_psfs
 
@@ -525,6 +657,24 @@ def write_grid(
 
     ``extra_arrays`` / ``extra_attrs`` add datasets and root attributes (quantities
     allowed), e.g. the TT kernel map of :func:`mavispm.simulate.optics.cli.run_stage`.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The product written.
+    result : GridResult
+        The grid.
+    key : str
+        Its cache key (stored).
+    config : dict, optional
+        Settings recorded as provenance.
+    extra_arrays, extra_attrs : dict, optional
+        More datasets and root attributes.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``.
     """
     g = result.grid
     return write_product(
@@ -551,7 +701,18 @@ def write_grid(
 
 
 def read_grid(path: Path) -> GridResult:
-    """Read a ``psfgrid`` product written by :func:`write_grid`."""
+    """Read a ``psfgrid`` product written by :func:`write_grid`.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The product.
+
+    Returns
+    -------
+    GridResult
+        The grid and its PSD profile.
+    """
     with open_product(path, "psfgrid") as f:
         try:
             cube = np.asarray(f["cube"], float)
@@ -578,6 +739,21 @@ def cached_grid(
     progress: bool = True,
 ) -> tuple[GridResult, Path]:
     """The grid for these settings, from the disk cache or computed and cached.
+
+    Parameters
+    ----------
+    psf : PSFSettings
+        PSF settings.
+    pupil : PupilSettings
+        Pupil geometry.
+    atmosphere : AtmosphereSettings
+        Turbulence profile and seeing.
+    ao : AOSettings
+        AO system.
+    cache_dir : pathlib.Path, optional
+        Cache folder (default: :func:`default_cache_dir`).
+    progress : bool
+        Show a progress bar (on a terminal only).
 
     Returns
     -------

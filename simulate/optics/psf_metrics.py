@@ -26,12 +26,40 @@ def fwhm(psf: np.ndarray, pixel_scale: float) -> float:
 
 def peak_strehl(psf: np.ndarray, reference: np.ndarray) -> float:
     """Strehl ratio as the peak of ``psf`` over the peak of the diffraction-limited
-    ``reference`` (both normalised to the same total flux)."""
+    ``reference`` (both normalised to the same total flux).
+
+    Parameters
+    ----------
+    psf : ndarray
+        The PSF stamp.
+    reference : ndarray
+        The diffraction-limited PSF on the same pixels, same total.
+
+    Returns
+    -------
+    float
+        Strehl ratio (dimensionless).
+    """
     return float(np.max(psf) / np.max(reference))
 
 
 def encircled_energy(psf: np.ndarray, pixel_scale: float, radius: float) -> float:
-    """Fraction of the stamp's flux within ``radius`` of the centre pixel."""
+    """Fraction of the stamp's flux within ``radius`` of the centre pixel.
+
+    Parameters
+    ----------
+    psf : ndarray, shape (n, n)
+        The PSF stamp (odd size, centred).
+    pixel_scale : float
+        Pixel size, in the unit of ``radius`` (e.g. [mas]).
+    radius : float
+        Radius, same unit.
+
+    Returns
+    -------
+    float
+        Encircled fraction of the stamp's total.
+    """
     n = psf.shape[0]
     c = (n - 1) / 2
     y, x = np.indices(psf.shape)

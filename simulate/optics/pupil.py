@@ -51,6 +51,17 @@ def pupil_mask(settings: PupilSettings, n: int, dx: float, supersample: int = 3)
     symmetric under index reversal modulo ``n`` (a real, even OTF follows).
     Edge pixels hold the covered area fraction (``supersample``^2 sub-samples).
 
+    Parameters
+    ----------
+    settings : PupilSettings
+        Diameter [m], obscuration ratio and spiders.
+    n : int
+        Grid size.
+    dx : float
+        Grid pitch [m].
+    supersample : int
+        Sub-samples per pixel side for the edge fractions.
+
     Returns
     -------
     ndarray, shape (n, n), float64 in [0, 1]

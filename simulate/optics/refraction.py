@@ -137,7 +137,18 @@ class RefractionSettings:
 
 
 def saturation_vapour_pressure(temperature: float) -> float:
-    """Saturation vapour pressure of water over liquid [hPa] at ``temperature`` [deg_C] (Magnus)."""
+    """Saturation vapour pressure of water over liquid [hPa] at ``temperature`` [deg_C] (Magnus).
+
+    Parameters
+    ----------
+    temperature : float
+        Air temperature [deg_C].
+
+    Returns
+    -------
+    float
+        ``6.1094 exp(17.625 T / (T + 243.04))`` [hPa].
+    """
     return 6.1094 * np.exp(17.625 * temperature / (temperature + 243.04))
 
 
@@ -166,7 +177,20 @@ def air_refractivity(wavelength, temperature: float, pressure: float, humidity: 
 
 
 def refraction(wavelength, settings: RefractionSettings):
-    """Refraction ``R = (n - 1) tan z`` [arcsec] at ``wavelength`` [nm]."""
+    """Refraction ``R = (n - 1) tan z`` [arcsec] at ``wavelength`` [nm].
+
+    Parameters
+    ----------
+    wavelength : float or ndarray
+        Vacuum wavelength [nm].
+    settings : RefractionSettings
+        Temperature [deg_C], pressure [hPa], relative humidity and zenith angle [deg].
+
+    Returns
+    -------
+    float or ndarray
+        Refraction [arcsec].
+    """
     n1 = air_refractivity(
         wavelength, settings.temperature, settings.pressure, settings.relative_humidity
     )
@@ -212,7 +236,20 @@ def band_refraction(teff, settings: RefractionSettings) -> tuple[np.ndarray, np.
 
 
 def at_epoch(settings: RefractionSettings, epoch: float | None) -> RefractionSettings:
-    """The settings with the pointing of ``epoch`` [yr] from ``settings.epochs``, if listed."""
+    """The settings with the pointing of ``epoch`` [yr] from ``settings.epochs``, if listed.
+
+    Parameters
+    ----------
+    settings : RefractionSettings
+        The refraction settings with their per-epoch pointings.
+    epoch : float or None
+        Epoch [yr] (matched to 1e-9 yr).
+
+    Returns
+    -------
+    RefractionSettings
+        A copy with that epoch's zenith angle and direction, or ``settings`` unchanged.
+    """
     import dataclasses
 
     for t, z, direction in settings.epochs:

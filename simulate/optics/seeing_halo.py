@@ -50,7 +50,20 @@ class HaloSettings:
 
 
 def ramp(radius, start: float, end: float) -> np.ndarray:
-    """Raised-cosine ramp: 0 below ``start``, 1 above ``end`` (same units as radius)."""
+    """Raised-cosine ramp: 0 below ``start``, 1 above ``end`` (same units as radius).
+
+    Parameters
+    ----------
+    radius : array_like
+        Radii.
+    start, end : float
+        Ramp limits, same unit; ``end <= start`` gives a step at ``start``.
+
+    Returns
+    -------
+    ndarray
+        Ramp values in [0, 1].
+    """
     r = np.asarray(radius, float)
     if end <= start:
         return (r >= start).astype(float)
@@ -138,7 +151,20 @@ class Halo:
         return k * (self.fraction / s) if s > 0 else k
 
     def core_taper(self, n: int, pixel_scale_mas: float) -> np.ndarray:
-        """``1 - ramp`` on an ``n`` x ``n`` stamp grid (applied to the core PSFs)."""
+        """``1 - ramp`` on an ``n`` x ``n`` stamp grid (applied to the core PSFs).
+
+        Parameters
+        ----------
+        n : int
+            Stamp size [pixel] (centred on the middle pixel).
+        pixel_scale_mas : float
+            Stamp pixel [mas].
+
+        Returns
+        -------
+        ndarray, shape (n, n)
+            Taper in [0, 1].
+        """
         return 1.0 - ramp(_radius_grid(n, pixel_scale_mas), self.ramp_start, self.ramp_end)
 
 

@@ -64,7 +64,20 @@ class TelescopeSettings:
 
 
 def plate_scale_change(settings: TelescopeSettings, epoch: float) -> float:
-    """The relative plate-scale change ``epsilon`` of ``epoch`` [yr] (dimensionless)."""
+    """The relative plate-scale change ``epsilon`` of ``epoch`` [yr] (dimensionless).
+
+    Parameters
+    ----------
+    settings : TelescopeSettings
+        ``plate_scale_rms`` [ppm] and ``seed``.
+    epoch : float
+        Epoch [yr] (with the seed, it fixes the draw).
+
+    Returns
+    -------
+    float
+        ``epsilon`` (Gaussian with RMS ``plate_scale_rms`` 1e-6); 0 when the RMS is 0.
+    """
     if settings.plate_scale_rms == 0.0:
         return 0.0
     digest = hashlib.sha256(f"{settings.seed}:{float(epoch)!r}".encode()).digest()
@@ -73,7 +86,25 @@ def plate_scale_change(settings: TelescopeSettings, epoch: float) -> float:
 
 
 def telescope_displacement(x, y, epoch: float, settings: TelescopeSettings):
-    """Displacement [arcsec] of images at field positions ``x, y`` [arcsec] at ``epoch`` [yr]."""
+    """Displacement [arcsec] of images at field positions ``x, y`` [arcsec] at ``epoch`` [yr].
+
+    Plate-scale change ``epsilon r`` plus a cubic field distortion ``k r^2 r`` that reaches
+    ``field_distortion_corner`` at the field corner.
+
+    Parameters
+    ----------
+    x, y : array_like
+        Field positions [arcsec].
+    epoch : float
+        Epoch [yr].
+    settings : TelescopeSettings
+        The telescope terms.
+
+    Returns
+    -------
+    dx, dy : ndarray
+        Displacements [arcsec].
+    """
     x, y = np.asarray(x, float), np.asarray(y, float)
     eps = plate_scale_change(settings, epoch)
     k = settings.field_distortion_corner / 1000.0 / _CORNER**3  # arcsec per arcsec^3

@@ -114,14 +114,45 @@ class TipTiltSettings:
 
 
 def ngs_positions(settings: TipTiltSettings) -> tuple[np.ndarray, np.ndarray]:
-    """NGS Cartesian positions (arcsec), shape (n, 2), and H magnitudes (n,)."""
+    """NGS Cartesian positions (arcsec), shape (n, 2), and H magnitudes (n,).
+
+    Parameters
+    ----------
+    settings : TipTiltSettings
+        The asterism (a preset, or ``ngs`` as radius [arcsec], angle [deg], H [mag]).
+
+    Returns
+    -------
+    xy : ndarray, shape (n, 2)
+        NGS positions [arcsec].
+    mag : ndarray, shape (n,)
+        H magnitudes [mag].
+    """
     s = np.asarray(settings.stars(), float).reshape(-1, 3)
     ang = np.radians(s[:, 1])
     return np.stack([s[:, 0] * np.cos(ang), s[:, 0] * np.sin(ang)], -1), s[:, 2]
 
 
 def ngs_noise_variance(settings: TipTiltSettings, magnitudes: np.ndarray) -> np.ndarray:
-    """Closed-loop centroid noise variance per axis (mas^2) for NGS of H ``magnitudes``."""
+    """Closed-loop centroid noise variance per axis (mas^2) for NGS of H ``magnitudes``.
+
+    Photon and read noise of a Gaussian spot per frame, times the integrator's noise gain
+    ``g / (2 - g)``.
+
+    Parameters
+    ----------
+    settings : TipTiltSettings
+        Zero point [photon/s at H = 0], frame rate [Hz], spot FWHM [mas], window pixels, read
+    noise [electron per pixel per frame],
+        WFS pixel [mas] and loop gain.
+    magnitudes : ndarray
+        NGS H magnitudes [mag].
+
+    Returns
+    -------
+    ndarray
+        Variance per axis [mas^2].
+    """
     photons = (
         settings.zeropoint * 10 ** (-0.4 * np.asarray(magnitudes, float)) / settings.frame_rate
     )
@@ -243,6 +274,21 @@ class TipTiltField:
         """TT residual covariance (N, 2, 2) in mas^2 at field positions (arcsec).
 
         Symmetric positive semi-definite; zeros when disabled.
+
+        Parameters
+        ----------
+        x, y : array_like
+            Field positions [arcsec], 1-D, equal length, finite.
+
+        Returns
+        -------
+        ndarray, shape (N, 2, 2)
+            Covariance [mas^2].
+
+        Raises
+        ------
+        ValueError
+            For positions of different shapes or non-finite positions.
         """
         x = np.atleast_1d(np.asarray(x, float))
         y = np.atleast_1d(np.asarray(y, float))
@@ -273,6 +319,20 @@ def atmospheric_cross_covariance(field: TipTiltField, xy1, xy2) -> np.ndarray:
     (N, M, 2, 2), for positions ``xy1`` (N, 2) and ``xy2`` (M, 2) in arcsec. The
     diagonal ``a = b`` is :meth:`TipTiltField.covariance` without windshake and
     scale factor (the NGS noise enters through ``C_ss``). Zeros when disabled.
+
+    Parameters
+    ----------
+    field : TipTiltField
+        The tip-tilt model.
+    xy1 : array_like, shape (N, 2)
+        First positions [arcsec].
+    xy2 : array_like, shape (M, 2)
+        Second positions [arcsec].
+
+    Returns
+    -------
+    ndarray, shape (N, M, 2, 2)
+        Cross-covariance [mas^2].
     """
     xy1 = np.atleast_2d(np.asarray(xy1, float))
     xy2 = np.atleast_2d(np.asarray(xy2, float))
@@ -289,7 +349,22 @@ def atmospheric_cross_covariance(field: TipTiltField, xy1, xy2) -> np.ndarray:
 
 
 def field_average_sigma(field: TipTiltField, half_width: float = 15.0, n: int = 11) -> float:
-    """Mean semi-major sigma (mas) over an n x n grid of the field (the paper's sigma_TT_ave)."""
+    """Mean semi-major sigma (mas) over an n x n grid of the field (the paper's sigma_TT_ave).
+
+    Parameters
+    ----------
+    field : TipTiltField
+        The tip-tilt model.
+    half_width : float
+        Half-width of the grid [arcsec].
+    n : int
+        Grid points per side.
+
+    Returns
+    -------
+    float
+        Mean semi-major 1-sigma axis [mas].
+    """
     g = np.linspace(-half_width, half_width, n)
     gx, gy = np.meshgrid(g, g)
     cov = field.covariance(gx.ravel(), gy.ravel())
@@ -317,6 +392,23 @@ def kernel_map(field: TipTiltField, x, y) -> KernelMap:
     """Semi-axes (mas) and major-axis angle (deg) of the TT kernels at positions (arcsec).
 
     ``x`` and ``y`` may have any equal shape; the outputs have that shape.
+
+    Parameters
+    ----------
+    field : TipTiltField
+        The tip-tilt model.
+    x, y : array_like
+        Field positions [arcsec].
+
+    Returns
+    -------
+    KernelMap
+        Semi-axes [mas] and major-axis angle [deg] at each position.
+
+    Raises
+    ------
+    ValueError
+        When ``x`` and ``y`` differ in shape.
     """
     x = np.asarray(x, float)
     y = np.asarray(y, float)
