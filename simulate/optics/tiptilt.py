@@ -142,9 +142,8 @@ def ngs_noise_variance(settings: TipTiltSettings, magnitudes: np.ndarray) -> np.
     Parameters
     ----------
     settings : TipTiltSettings
-        Zero point [photon/s at H = 0], frame rate [Hz], spot FWHM [mas], window pixels, read
-    noise [electron per pixel per frame],
-        WFS pixel [mas] and loop gain.
+        Zero point [photon/s at H = 0], frame rate [Hz], spot FWHM [mas], window pixels,
+        read noise [electron per pixel per frame], WFS pixel [mas] and loop gain.
     magnitudes : ndarray
         NGS H magnitudes [mag].
 
