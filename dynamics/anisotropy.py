@@ -53,14 +53,39 @@ class Anisotropy:
         return self.beta_0 == self.beta_inf
 
     def beta(self, r):
-        """``beta(r)``."""
+        """``beta(r)``.
+
+        Parameters
+        ----------
+        r : array_like
+            Radii [scale radii].
+
+        Returns
+        -------
+        ndarray
+            Anisotropy (dimensionless, < 1).
+        """
         r2 = np.asarray(r, dtype=float) ** 2
         if self.constant:
             return np.full_like(r2, self.beta_0)
         return self.beta_0 + (self.beta_inf - self.beta_0) * r2 / (r2 + self.r_a**2)
 
     def ln_factor(self, ln_r):
-        """``ln g(r)`` of the integrating factor at ``ln r``."""
+        """``ln g(r)`` of the integrating factor at ``ln r``.
+
+        ``g(r) = r^(2 beta_0) (r^2 + r_a^2)^(beta_inf - beta_0)``, the solution of
+        ``d ln g / d ln r = 2 beta(r)``.
+
+        Parameters
+        ----------
+        ln_r : array_like
+            Natural log of the radius [scale radii].
+
+        Returns
+        -------
+        ndarray
+            ``ln g``.
+        """
         ln_r = np.asarray(ln_r, dtype=float)
         out = 2.0 * self.beta_0 * ln_r
         if not self.constant:
@@ -75,6 +100,23 @@ class Anisotropy:
         Exact for constant beta; for a radius-dependent beta, ``g`` is taken as the
         power law ``g(x_max) (r / x_max)^(2 beta_inf)`` (relative error ``~ (r_a /
         x_max)^2``, negligible for ``r_a << x_max``). Zero for a truncated profile.
+
+        Parameters
+        ----------
+        x_max : float
+            Radius where the tail starts [scale radii].
+        outer_slope : float
+            Outer logarithmic density slope ``n`` (inf: truncated profile).
+
+        Returns
+        -------
+        float
+            The integral (in units of the scale radius, G = M = 1).
+
+        Raises
+        ------
+        ValueError
+            When ``n + 1 - 2 beta_inf <= 0`` (the integral diverges).
         """
         n = outer_slope
         if not np.isfinite(n):
@@ -87,10 +129,32 @@ class Anisotropy:
 
 
 def constant(beta: float) -> Anisotropy:
-    """Constant anisotropy ``beta`` (< 1)."""
+    """Constant anisotropy ``beta`` (< 1).
+
+    Parameters
+    ----------
+    beta : float
+        The anisotropy.
+
+    Returns
+    -------
+    Anisotropy
+        ``beta_0 = beta_inf = beta``.
+    """
     return Anisotropy(beta, beta, 1.0)
 
 
 def osipkov_merritt(r_a: float) -> Anisotropy:
-    """Osipkov-Merritt anisotropy, isotropic inside ``r_a`` and radial outside."""
+    """Osipkov-Merritt anisotropy, isotropic inside ``r_a`` and radial outside.
+
+    Parameters
+    ----------
+    r_a : float
+        Anisotropy radius [scale radii] (> 0).
+
+    Returns
+    -------
+    Anisotropy
+        ``beta(r) = r^2 / (r^2 + r_a^2)``.
+    """
     return Anisotropy(0.0, 1.0, r_a)

@@ -45,7 +45,25 @@ PM_SPEC = TableSpec(
 
 
 def validate_settings(settings=None, source=None) -> DynamicsSettings:
-    """Build :class:`DynamicsSettings` from a mapping (TOML table), raising ConfigError."""
+    """Build :class:`DynamicsSettings` from a mapping (TOML table).
+
+    Parameters
+    ----------
+    settings : mapping, optional
+        The ``[dynamics]`` table (None: defaults).
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    DynamicsSettings
+        The validated settings.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first bad key.
+    """
     return from_mapping(DynamicsSettings, settings or {}, prefix="dynamics", source=source)
 
 
@@ -55,6 +73,20 @@ def load_stars(path, settings: DynamicsSettings):
     Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
     error are dropped; stars outside the field radius are dropped. Errors become
     ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``propermotions`` product.
+    settings : DynamicsSettings
+        ``use_flagged``, the field radius and the error scale and floor.
+
+    Returns
+    -------
+    stars : StarSample
+        The usable stars.
+    distance : float
+        Distance [kpc].
 
     Raises
     ------
@@ -183,7 +215,24 @@ def load_catalogue_stars(path, settings: DynamicsSettings, epoch=None, pm_error:
 
 
 def truth_profile(path, field_radius: float, settings: DynamicsSettings, seed: int) -> QTable:
-    """Dispersion profile of a truth catalogue (first epoch, luminous stars, no errors)."""
+    """Dispersion profile of a truth catalogue (first epoch, luminous stars, no errors).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``catalogue`` product.
+    field_radius : float
+        Stars beyond this projected radius are left out [arcsec].
+    settings : DynamicsSettings
+        ``bin_size`` and ``n_bootstrap`` of the profile.
+    seed : int
+        Seed of the bootstrap.
+
+    Returns
+    -------
+    astropy.table.QTable
+        The binned radial and tangential dispersion profile [mas/yr].
+    """
     cat = read_catalogue(path)
     t = next(iter(cat.epochs.values()))
     keep = np.ones(len(t), bool)
@@ -514,7 +563,18 @@ def _handler(args) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the top-level ``dynamics`` command."""
+    """Add the top-level ``dynamics`` command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``mavispm`` sub-parsers.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The new sub-parser.
+    """
     p = subparsers.add_parser(
         "dynamics",
         help="fit Jeans mass models (no dark centre, IMBH, extended dark, both) to proper motions",

@@ -172,12 +172,34 @@ class ProfileComponent:
     scale_radius: float
 
     def enclosed_mass(self, r):
-        """Mass inside ``r`` [pc] in solMass."""
+        """Mass inside ``r`` [pc] in solMass.
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass [solMass].
+        """
         x = np.asarray(r, dtype=float) / self.scale_radius
         return self.mass * np.asarray(self.profile.enclosed(x), dtype=float)
 
     def potential(self, r):
-        """``Phi(r)`` [(km/s)^2], zero at infinity."""
+        """``Phi(r)`` [(km/s)^2], zero at infinity.
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Potential [(km/s)^2].
+        """
         x = np.asarray(r, dtype=float) / self.scale_radius
         return (
             G_PC_KMS2_MSUN
@@ -189,41 +211,109 @@ class ProfileComponent:
 
 @dataclass(frozen=True)
 class PointMass:
-    """A central point mass [solMass] (the IMBH)."""
+    """A central point mass [solMass] (the IMBH).
+
+    Parameters
+    ----------
+    mass : float
+        Mass [solMass].
+    """
 
     mass: float
 
     def enclosed_mass(self, r):
-        """``mass`` at every ``r`` > 0 [solMass]."""
+        """``mass`` at every ``r`` > 0 [solMass].
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass [solMass], ``r``'s shape.
+        """
         return np.full(np.shape(r), float(self.mass))
 
     def potential(self, r):
-        """``-G M / r`` [(km/s)^2] (r clipped to 1e-12 pc)."""
+        """``-G M / r`` [(km/s)^2] (r clipped to 1e-12 pc).
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Potential [(km/s)^2].
+        """
         r = np.maximum(np.asarray(r, dtype=float), 1e-12)
         return -G_PC_KMS2_MSUN * self.mass / r
 
 
 @dataclass(frozen=True)
 class SphericalMassModel:
-    """Sum of spherical components (see the module docstring for the interface)."""
+    """Sum of spherical components (see the module docstring for the interface).
+
+    Parameters
+    ----------
+    components : tuple
+        Components with ``enclosed_mass(r)`` [solMass] and ``potential(r)`` [(km/s)^2] of
+        radii [pc] (:class:`ProfileComponent`, :class:`PointMass`).
+    """
 
     components: tuple
 
     def enclosed_mass(self, r):
-        """Total mass inside ``r`` [pc] in solMass."""
+        """Total mass inside ``r`` [pc] in solMass.
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass [solMass].
+        """
         return sum(
             (np.asarray(c.enclosed_mass(r), float) for c in self.components),
             np.zeros(np.shape(r)),
         )
 
     def potential(self, r):
-        """``Phi(r)`` [(km/s)^2], zero at infinity."""
+        """``Phi(r)`` [(km/s)^2], zero at infinity.
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Potential [(km/s)^2].
+        """
         return sum(
             (np.asarray(c.potential(r), float) for c in self.components), np.zeros(np.shape(r))
         )
 
     def escape_speed(self, r):
-        """``sqrt(-2 Phi(r))`` [km/s] at 3-D radii ``r`` [pc] (floats)."""
+        """``sqrt(-2 Phi(r))`` [km/s] at 3-D radii ``r`` [pc] (floats).
+
+        Parameters
+        ----------
+        r : array_like
+            3-D radii [pc].
+
+        Returns
+        -------
+        ndarray
+            Escape speed [km/s].
+        """
         return np.sqrt(np.maximum(-2.0 * self.potential(r), 0.0))
 
 
@@ -252,7 +342,20 @@ def escape_velocity(model, r) -> u.Quantity:
 
 
 def escape_velocity_samples(models, r_pc) -> np.ndarray:
-    """Escape speeds [km/s] of every model at radii ``r_pc``: shape ``(n_models, n_radii)``."""
+    """Escape speeds [km/s] of every model at radii ``r_pc``: shape ``(n_models, n_radii)``.
+
+    Parameters
+    ----------
+    models : sequence of SphericalMassModel
+        The mass models.
+    r_pc : array_like
+        3-D radii [pc].
+
+    Returns
+    -------
+    ndarray, shape (n_models, n_radii)
+        Escape speeds [km/s].
+    """
     r_pc = np.atleast_1d(np.asarray(r_pc, dtype=float))
     return np.stack([np.sqrt(np.maximum(-2.0 * m.potential(r_pc), 0.0)) for m in models])
 
@@ -299,7 +402,21 @@ class PosteriorMassModel:
     distance: float
 
     def escape_speed_at(self, R_arcsec):
-        """Escape speed [km/s] at 3-D radius ``r = R`` for projected radii [arcsec]."""
+        """Escape speed [km/s] at 3-D radius ``r = R`` for projected radii [arcsec].
+
+        ``r = R`` is the smallest 3-D radius a star at projected radius ``R`` can have, so the
+        escape speed is the largest possible there.
+
+        Parameters
+        ----------
+        R_arcsec : array_like
+            Projected radii [arcsec], converted with this sample's distance.
+
+        Returns
+        -------
+        ndarray
+            Escape speed [km/s].
+        """
         from mavispm.dynamics.likelihood import PC_PER_ARCSEC_KPC
 
         r_pc = np.asarray(R_arcsec, dtype=float) * self.distance * PC_PER_ARCSEC_KPC

@@ -85,12 +85,40 @@ def run_dynesty(
 
 
 def bayes_factor(imbh: EvidenceResult, no_imbh: EvidenceResult):
-    """``ln B`` (IMBH over no-IMBH) and its error."""
+    """``ln B`` (IMBH over no-IMBH) and its error.
+
+    Parameters
+    ----------
+    imbh, no_imbh : EvidenceResult
+        Nested-sampling evidences of the two models.
+
+    Returns
+    -------
+    ln_b : float
+        ``ln Z_imbh - ln Z_no_imbh``.
+    ln_b_err : float
+        The two evidence errors in quadrature.
+    """
     return imbh.log_z - no_imbh.log_z, float(np.hypot(imbh.log_z_err, no_imbh.log_z_err))
 
 
 def information_criteria(max_log_like: float, n_params: int, n_data: int) -> dict:
-    """AIC and BIC from the maximum ln L (smaller is better)."""
+    """AIC and BIC from the maximum ln L (smaller is better).
+
+    Parameters
+    ----------
+    max_log_like : float
+        Maximum log likelihood.
+    n_params : int
+        Free parameters.
+    n_data : int
+        Data points (stars).
+
+    Returns
+    -------
+    dict
+        ``aic`` and ``bic``.
+    """
     return {
         "aic": 2.0 * n_params - 2.0 * max_log_like,
         "bic": n_params * np.log(n_data) - 2.0 * max_log_like,
@@ -103,6 +131,15 @@ def savage_dickey(bh_samples, prior_max: float, min_samples: int = 50):
     The posterior density at zero is the fraction of samples in ``[0, h]``
     divided by ``h`` (a one-sided histogram at the boundary of a uniform prior
     on ``[0, prior_max]``), with ``h`` 5 % of the 95 % upper quantile.
+
+    Parameters
+    ----------
+    bh_samples : array_like
+        Posterior samples of the IMBH mass [solMass].
+    prior_max : float
+        Upper end of the uniform prior [solMass].
+    min_samples : int
+        Fewest samples in ``[0, h]`` for a valid estimate.
 
     Returns
     -------

@@ -158,7 +158,18 @@ class PMStars:
         return len(self.R)
 
     def select(self, keep) -> PMStars:
-        """The stars where ``keep`` is true."""
+        """The stars where ``keep`` is true.
+
+        Parameters
+        ----------
+        keep : ndarray of bool or int
+            Mask or indices.
+
+        Returns
+        -------
+        PMStars
+            The selected rows (optional columns stay None).
+        """
         out = {}
         for name in self.__dataclass_fields__:
             val = getattr(self, name)
@@ -167,7 +178,20 @@ class PMStars:
 
 
 def usable_stars(stars: PMStars) -> tuple[PMStars, int]:
-    """Stars with finite motions, positive finite errors and |corr| < 1; number dropped."""
+    """Stars with finite motions, positive finite errors and |corr| < 1; number dropped.
+
+    Parameters
+    ----------
+    stars : PMStars
+        The stars.
+
+    Returns
+    -------
+    stars : PMStars
+        The usable ones.
+    n_dropped : int
+        How many were dropped.
+    """
     ok = np.ones(len(stars), bool)
     for name in ("R", "pm_x", "pm_y", "pm_x_err", "pm_y_err", "pm_xy_corr"):
         ok &= np.isfinite(np.asarray(getattr(stars, name), float))
@@ -207,7 +231,18 @@ def _error_along(stars: PMStars, dx, dy):
 
 
 def largest_error(stars: PMStars):
-    """Square root of the largest eigenvalue of the PM error covariance [mas/yr]."""
+    """Square root of the largest eigenvalue of the PM error covariance [mas/yr].
+
+    Parameters
+    ----------
+    stars : PMStars
+        The stars (errors [mas/yr] and their correlation).
+
+    Returns
+    -------
+    ndarray
+        Largest 1-sigma error per star [mas/yr].
+    """
     a, c = stars.pm_x_err**2, stars.pm_y_err**2
     b = stars.pm_xy_corr * stars.pm_x_err * stars.pm_y_err
     return np.sqrt(0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b))
@@ -218,12 +253,41 @@ def rice_sf(t, nu, sigma):
 
     Computed as the non-central chi-square survival function (accurate far in the
     tail, unlike ``scipy.stats.rice.sf``).
+
+    Parameters
+    ----------
+    t : array_like
+        Threshold modulus.
+    nu : array_like
+        Modulus of the mean, same unit.
+    sigma : array_like
+        1-D standard deviation, same unit.
+
+    Returns
+    -------
+    ndarray
+        Tail probability.
     """
     return stats.ncx2.sf((t / sigma) ** 2, 2, (nu / sigma) ** 2)
 
 
 def distance_nodes(distance: float, distance_error: float):
-    """Gauss-Hermite nodes [kpc] and weights (sum 1) of the Gaussian distance prior."""
+    """Gauss-Hermite nodes [kpc] and weights (sum 1) of the Gaussian distance prior.
+
+    Parameters
+    ----------
+    distance : float
+        Prior mean [kpc].
+    distance_error : float
+        Prior sd [kpc]; <= 0: the distance alone, weight 1.
+
+    Returns
+    -------
+    nodes : ndarray
+        Distances [kpc] (at least 5 % of ``distance``).
+    weights : ndarray
+        Weights, sum 1.
+    """
     if distance_error <= 0:
         return np.array([distance]), np.array([1.0])
     z, w = np.polynomial.hermite_e.hermegauss(_N_DISTANCE_NODES)
@@ -250,7 +314,26 @@ def p_value(mu, sigma, v_esc, d_nodes, d_weights):
 
 
 def threshold(sigma, v_esc, d_nodes, d_weights, alpha, iterations: int = 60):
-    """PM modulus [mas/yr] above which a star is fast at level ``alpha`` (bisection)."""
+    """PM modulus [mas/yr] above which a star is fast at level ``alpha`` (bisection).
+
+    Parameters
+    ----------
+    sigma : ndarray
+        Largest PM error of each star [mas/yr].
+    v_esc : ndarray
+        Escape speed at each star [km/s].
+    d_nodes, d_weights : ndarray
+        Distance prior nodes [kpc] and weights.
+    alpha : float
+        One-sided p-value threshold.
+    iterations : int
+        Bisection steps.
+
+    Returns
+    -------
+    ndarray
+        Threshold modulus per star [mas/yr].
+    """
     mu_esc = v_esc / (KMS_PER_MASYR_KPC * np.min(d_nodes))
     lo = v_esc / (KMS_PER_MASYR_KPC * np.max(d_nodes))
     hi = mu_esc + 50.0 * sigma
@@ -301,14 +384,38 @@ class PullTails:
         return stats.norm.ppf(0.75) / stats.t.ppf(0.75, self.dof)
 
     def sf(self, z):
-        """One-sided tail probability beyond ``z`` robust sigma."""
+        """One-sided tail probability beyond ``z`` robust sigma.
+
+        Parameters
+        ----------
+        z : array_like
+            Threshold [robust sigma].
+
+        Returns
+        -------
+        ndarray
+            Gaussian tail, or the fitted Student t's when ``dof`` is finite.
+        """
         if not math.isfinite(self.dof):
             return stats.norm.sf(z)
         return stats.t.sf(z / self.t_scale, self.dof)
 
 
 def measure_tails(pulls, source: str) -> PullTails:
-    """Robust width, tail fractions and a Student-t fit of a pull sample."""
+    """Robust width, tail fractions and a Student-t fit of a pull sample.
+
+    Parameters
+    ----------
+    pulls : array_like
+        Pulls (dimensionless); non-finite values are dropped.
+    source : str
+        Where the pulls come from (``"truth"`` or ``"kinematic"``), recorded.
+
+    Returns
+    -------
+    PullTails
+        The measured tails; Gaussian defaults with fewer than 20 pulls or zero width.
+    """
     pulls = np.asarray(pulls, dtype=float)
     pulls = pulls[np.isfinite(pulls)]
     if pulls.size < 20:
@@ -375,6 +482,24 @@ def binary_kicks(n, rng, baseline, settings: FastStarSettings):
     semi-major axis is ``a (q / (1 + q) - L2 / (L1 + L2))``; its displacement
     between two epochs ``baseline`` apart over the baseline is the apparent extra
     velocity (what a two-epoch proper motion measures).
+
+    Parameters
+    ----------
+    n : int
+        Number of binaries.
+    rng : numpy.random.Generator
+        Random numbers.
+    baseline : float
+        Epoch baseline [yr].
+    settings : FastStarSettings
+        The binary population (period distribution, primary mass [solMass], widest
+        separation [AU]).
+
+    Returns
+    -------
+    ndarray
+        Apparent speed [km/s] per binary; 0 for binaries wider than
+        ``binary_max_separation``.
     """
     m1 = settings.binary_primary_mass
     mean, sd = settings.binary_log_period
@@ -411,6 +536,28 @@ def expected_flags(t, sigma, s, v_max, tails: PullTails | None, kicks=None, k=64
     ``v_max`` (stratified, ``k`` per star); errors: isotropic Gaussian ``sigma``
     (Rice), or the pulls' Student t along the motion when ``tails`` is given;
     ``kicks`` (n, k) [mas/yr] are added as vectors at random angles.
+
+    Parameters
+    ----------
+    t : ndarray
+        Threshold per star [mas/yr].
+    sigma : ndarray
+        PM error per star [mas/yr].
+    s : ndarray
+        1-D model dispersion per star [mas/yr].
+    v_max : ndarray
+        Truncation of the true speeds per star [mas/yr].
+    tails : PullTails or None
+        Measured error tails (None: Gaussian errors).
+    kicks : ndarray, shape (n, k), optional
+        Binary kicks [mas/yr].
+    k : int
+        Stratified draws per star.
+
+    Returns
+    -------
+    ndarray
+        Probability per star.
     """
     nu = _truncated_rayleigh(s, v_max, k)
     if kicks is not None:
@@ -472,7 +619,20 @@ def lower_mass_limit(
 
 
 def poisson_probabilities(n_obs: int, expected: float) -> tuple[float, float]:
-    """``P(N = n_obs)`` and ``P(N >= n_obs)`` for a Poisson mean ``expected``."""
+    """``P(N = n_obs)`` and ``P(N >= n_obs)`` for a Poisson mean ``expected``.
+
+    Parameters
+    ----------
+    n_obs : int
+        Observed count.
+    expected : float
+        Poisson mean (negative values are taken as 0).
+
+    Returns
+    -------
+    p_equal, p_at_least : float
+        The two probabilities.
+    """
     lam = max(float(expected), 0.0)
     if lam == 0.0:
         return float(n_obs == 0), float(n_obs == 0)
@@ -538,7 +698,22 @@ def _escape(models, R_arcsec, distance):
 
 
 def no_test(reason: str, settings: FastStarSettings, n_dropped: int = 0) -> FastStarResult:
-    """An explicit "no test possible" result: no fast star, no limit, the reason."""
+    """An explicit "no test possible" result: no fast star, no limit, the reason.
+
+    Parameters
+    ----------
+    reason : str
+        Why no test was possible (stored as the note).
+    settings : FastStarSettings
+        The settings (``alpha`` and ``confidence`` are recorded in the attributes).
+    n_dropped : int
+        Stars dropped as unusable.
+
+    Returns
+    -------
+    FastStarResult
+        An empty result with ``possible`` False.
+    """
     empty = {k: np.zeros(0, dtype=np.int64 if k == "id" else float) for k in _TABLE_UNITS}
     empty["fast"] = np.zeros(0, bool)
     attrs = {
@@ -815,6 +990,15 @@ def read_pm_stars(path, field_radius: float | None = None, use_flagged: bool = F
     [arcsec] are dropped. NaN motions or errors are kept here (the test drops and
     counts them).
 
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``propermotions`` product.
+    field_radius : float, optional
+        Largest projected radius kept [arcsec].
+    use_flagged : bool
+        Keep flagged stars.
+
     Returns
     -------
     stars : PMStars
@@ -873,7 +1057,20 @@ def read_pm_stars(path, field_radius: float | None = None, use_flagged: bool = F
 
 
 def model_dispersion(likelihood, theta):
-    """``R [arcsec] -> 1-D PM dispersion [mas/yr]`` (rms of radial and tangential) of a model."""
+    """``R [arcsec] -> 1-D PM dispersion [mas/yr]`` (rms of radial and tangential) of a model.
+
+    Parameters
+    ----------
+    likelihood : DiscreteLikelihood
+        The model's likelihood (its ``dispersion_at``).
+    theta : array_like
+        Physical parameter vector.
+
+    Returns
+    -------
+    callable
+        ``dispersion(R)`` of projected radii [arcsec] (at least 1e-3), in [mas/yr].
+    """
     theta = np.asarray(theta, dtype=float)
 
     def dispersion(R):
@@ -888,6 +1085,16 @@ def stars_from_sample(sample) -> PMStars:
 
     The modulus of the motion and its errors are frame invariant; the sample's
     radial/tangential errors are independent (no x/y correlation).
+
+    Parameters
+    ----------
+    sample : StarSample
+        The dynamics stage's stars.
+
+    Returns
+    -------
+    PMStars
+        The same stars (ids are row numbers).
     """
     n = len(sample.R)
     return PMStars(
@@ -911,6 +1118,17 @@ def about_fitted_centre(stars: PMStars, samples, names, n_sigma: float = 2.0):
     motion, whose posterior sd is added to the PM errors; radii are measured from the
     median centre and reduced by ``n_sigma`` times its larger posterior sd (clipped
     at 0): a smaller radius means a higher escape velocity and a lower mass limit.
+
+    Parameters
+    ----------
+    stars : PMStars
+        Stars with positions about the field centre.
+    samples : array_like, shape (n_samples, n_params)
+        Posterior samples.
+    names : sequence of str
+        Parameter names of the sample columns.
+    n_sigma : float
+        Radii are reduced by this many posterior sd of the centre.
 
     Returns
     -------

@@ -90,7 +90,36 @@ def stored_fits(product, settings, stars, distance):
 
 
 def run(dynamics, output, settings_mapping=None, propermotions=None, plots_dir=None, seed=0):
-    """Add the fast-star test to a dynamics product; returns the output path."""
+    """Add the fast-star test to a dynamics product; returns the output path.
+
+    The stored fits are reused (no refit); the settings are the product's own, with the
+    ``[dynamics.fast_stars]`` table replaced by ``settings_mapping`` when given.
+
+    Parameters
+    ----------
+    dynamics : str or os.PathLike
+        The ``dynamics`` product.
+    output : str or os.PathLike
+        The new ``dynamics`` product with the ``fast_stars`` table.
+    settings_mapping : mapping, optional
+        A ``[dynamics.fast_stars]`` table.
+    propermotions : str or os.PathLike, optional
+        The ``propermotions`` product (default: the one the product names).
+    plots_dir : str or os.PathLike, optional
+        Folder for ``fast_stars.png`` (no plot when None or no test was possible).
+    seed : int
+        Random seed.
+
+    Returns
+    -------
+    pathlib.Path
+        ``output``.
+
+    Raises
+    ------
+    InputError
+        When the product names no proper-motion product and none is given.
+    """
     import dataclasses
 
     from mavispm.core.products import read_product, write_product
@@ -169,7 +198,18 @@ def _handler(args) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    """Add the top-level ``fast-stars`` command."""
+    """Add the top-level ``fast-stars`` command.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The ``mavispm`` sub-parsers.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The new sub-parser.
+    """
     p = subparsers.add_parser(
         "fast-stars",
         help="fast-star test (stars above the no-IMBH escape velocity) on a dynamics product",

@@ -122,6 +122,24 @@ def make_likelihood(
     """The discrete likelihood for one model's parameter order.
 
     ``star_counts`` overrides ``settings.star_counts`` (False: kinematics only).
+
+    Parameters
+    ----------
+    stars : StarSample
+        The stars.
+    space : ParameterSpace
+        The model's parameters (their order sets the vector ``theta``).
+    settings : DynamicsSettings
+        Tracer, completeness, star counts and quadrature settings.
+    distance : float
+        Distance [kpc].
+    star_counts : bool, optional
+        Override of ``settings.star_counts``.
+
+    Returns
+    -------
+    DiscreteLikelihood
+        The likelihood.
     """
     s = settings
     completeness = None
@@ -147,7 +165,27 @@ def make_likelihood(
 
 @dataclass
 class ModelFit:
-    """One model's fit: space, likelihood, chain, summary and evidences."""
+    """One model's fit: space, likelihood, chain, summary and evidences.
+
+    Attributes
+    ----------
+    name : str
+        Model name (``none``, ``imbh``, ``dark``, ``imbh_dark``).
+    space : ParameterSpace
+        Its parameters and priors.
+    likelihood : DiscreteLikelihood
+        Its likelihood.
+    chain : ChainResult
+        Posterior samples and diagnostics.
+    summary : dict
+        Posterior quantiles per parameter.
+    evidence, evidence_kinematic : EvidenceResult or None
+        Nested-sampling evidences with and without the star counts.
+    criteria : dict
+        ``max_log_like``, ``aic``, ``bic``.
+    wall_s : dict
+        Wall-clock times of the emcee run and the nested sampling [s].
+    """
 
     name: str
     space: ParameterSpace
@@ -171,6 +209,24 @@ def backend_key(stars, settings, distance, model, seed) -> str:
 
     Stored with the chain in its backend so that a chain is resumed only for the
     same data and settings, never continued for other data.
+
+    Parameters
+    ----------
+    stars : StarSample
+        The stars.
+    settings : DynamicsSettings
+        The settings.
+    distance : float
+        Distance [kpc].
+    model : str
+        Model name.
+    seed : int
+        Random seed.
+
+    Returns
+    -------
+    str
+        Hexadecimal key.
     """
     from dataclasses import asdict
 
@@ -190,7 +246,28 @@ def backend_key(stars, settings, distance, model, seed) -> str:
 
 
 def fit_model(stars, settings, distance, model, seed, backend_path=None) -> ModelFit:
-    """Sample one model with emcee (and its evidences with dynesty if enabled)."""
+    """Sample one model with emcee (and its evidences with dynesty if enabled).
+
+    Parameters
+    ----------
+    stars : StarSample
+        The stars.
+    settings : DynamicsSettings
+        The settings (``posterior``, sampler and evidence switches).
+    distance : float
+        Distance [kpc].
+    model : str
+        Model name.
+    seed : int
+        Random seed.
+    backend_path : str or os.PathLike, optional
+        HDF5 file where the emcee chain is kept (and resumed from).
+
+    Returns
+    -------
+    ModelFit
+        The model's fit.
+    """
     name = _model_name(model)
     space = parameter_space(settings, distance, name, positions=stars.x is not None)
     like = make_likelihood(stars, space, settings, distance)
@@ -245,6 +322,18 @@ def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:
 
     The run stopped at its ``dlogz`` criterion, so it counts as converged; tau and
     acceptance are NaN, the MAP is the highest-likelihood point.
+
+    Parameters
+    ----------
+    evid : EvidenceResult
+        The nested-sampling result with its equal-weight samples.
+    space : ParameterSpace
+        The model's parameters.
+
+    Returns
+    -------
+    ChainResult
+        The samples as a chain.
     """
     ndim = len(space)
     return ChainResult(
@@ -262,7 +351,35 @@ def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:
 
 @dataclass
 class Comparison:
-    """Model comparison (``ln B > 0`` favours an IMBH) and the verdict."""
+    """Model comparison (``ln B > 0`` favours an IMBH) and the verdict.
+
+    Attributes
+    ----------
+    ln_bayes_factor, ln_bayes_factor_err : float
+        ln Z of the best model with an IMBH minus that of the best without, and its error.
+    ln_bayes_factor_kinematic, ln_bayes_factor_kinematic_err : float
+        The same from the kinematics-only evidences.
+    best_model, best_model_with_imbh, best_model_without_imbh : str
+        Highest-evidence models overall, with and without an IMBH.
+    ln_b_dark_centre : float
+        Best model with any dark centre against ``none``.
+    ln_b_imbh_vs_extended : float
+        ``imbh`` against ``dark``.
+    imbh_extended_indistinguishable : bool
+        A dark centre is favoured but an IMBH and an extended one are not told apart.
+    delta_ln_likelihood, delta_aic, delta_bic : float
+        Best with minus best without an IMBH.
+    savage_dickey_ln_b : float
+        Savage-Dickey ln B of the ``imbh`` model (NaN when not valid).
+    savage_dickey_note : str
+        Why it is (not) valid.
+    converged : bool
+        Whether every model's chains converged.
+    verdict : str
+        ``imbh``, ``no_imbh``, ``undecided``, ``no_evidence`` or ``not_converged``.
+    verdict_text : str
+        The verdict in words.
+    """
 
     ln_bayes_factor: float = np.nan
     ln_bayes_factor_err: float = np.nan
@@ -309,6 +426,18 @@ def marginal_bh_samples(fits, seed: int = 0) -> np.ndarray:
     """M_BH posterior samples marginalised over the IMBH models (evidence-weighted mixture).
 
     Without evidences the IMBH models are weighted equally.
+
+    Parameters
+    ----------
+    fits : sequence of ModelFit
+        All fitted models (those without a point mass are skipped).
+    seed : int
+        Seed of the resampling.
+
+    Returns
+    -------
+    ndarray
+        M_BH samples [solMass]; empty without an IMBH model.
     """
     bh_fits = [f for f in fits if f.has_bh]
     if not bh_fits:

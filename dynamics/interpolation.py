@@ -35,5 +35,20 @@ def cubic_weights(lnx_grid_start: float, step: float, n: int, lnq):
 
 
 def interpolate(values, idx, weights):
-    """Apply :func:`cubic_weights` to grid ``values`` (..., n) -> (..., N)."""
+    """Apply :func:`cubic_weights` to grid ``values`` (..., n) -> (..., N).
+
+    Parameters
+    ----------
+    values : ndarray, shape (..., n)
+        Values on the grid.
+    idx : ndarray of int, shape (4, N)
+        Grid indices from :func:`cubic_weights`.
+    weights : ndarray, shape (4, N)
+        Their weights.
+
+    Returns
+    -------
+    ndarray, shape (..., N)
+        Interpolated values.
+    """
     return np.sum(values[..., idx] * weights, axis=-2)

@@ -265,6 +265,23 @@ def projected_dispersion(
     -------
     sigma_R, sigma_T : Quantity
         km/s (length radii) or mas/yr (angular radii with a distance).
+
+    Examples
+    --------
+    An isotropic self-consistent Plummer sphere has the closed form
+    ``sigma_p^2(R) = 3 pi G M / (64 sqrt(R^2 + a^2))`` for every projected component:
+
+    >>> import astropy.units as u
+    >>> import numpy as np
+    >>> R = [0.5, 1.0, 2.0] * u.pc
+    >>> sigma_R, sigma_T = projected_dispersion(R, 1e5 * u.Msun, 1.0 * u.pc)
+    >>> sigma_R.round(3)
+    <Quantity [7.527, 6.692, 5.322] km / s>
+    >>> closed = np.sqrt(3 * np.pi / 64 * G_PC_KMS2_MSUN * 1e5 / np.hypot(R.value, 1.0))
+    >>> bool(np.allclose(sigma_R.value, closed, rtol=1e-6))
+    True
+    >>> bool(np.allclose(sigma_T.value, closed, rtol=1e-6))
+    True
     """
     tracer = tracer or Plummer()
     R = u.Quantity(R)

@@ -199,7 +199,19 @@ class DiscreteLikelihood:
         return default if i is None else theta[i]
 
     def tracer_of(self, theta):
-        """Tracer profile (scale radius 1) of parameter vector ``theta``."""
+        """Tracer profile (scale radius 1) of parameter vector ``theta``.
+
+        Parameters
+        ----------
+        theta : array_like
+            Physical parameter vector.
+
+        Returns
+        -------
+        tracer profile
+            The cusped tracer (free cusp radius and slope), a Dehnen profile (free slope) or
+            the fixed tracer.
+        """
         if "log_cusp_radius" in self._idx:
             a = 10.0 ** theta[self._idx["log_scale_radius"]]
             x_c = 10.0 ** theta[self._idx["log_cusp_radius"]] / a
@@ -210,7 +222,18 @@ class DiscreteLikelihood:
         return self._fixed_tracer
 
     def anisotropy_of(self, theta):
-        """Anisotropy profile (radii in scale radii) of ``theta``."""
+        """Anisotropy profile (radii in scale radii) of ``theta``.
+
+        Parameters
+        ----------
+        theta : array_like
+            Physical parameter vector.
+
+        Returns
+        -------
+        Anisotropy
+            Constant ``beta``, Osipkov-Merritt with the fitted radius, or isotropic.
+        """
         if "beta" in self._idx:
             return constant_anisotropy(theta[self._idx["beta"]])
         if "log_anisotropy_radius" not in self._idx:
@@ -220,6 +243,11 @@ class DiscreteLikelihood:
 
     def model_on_grid(self, theta):
         """Grid quantities for physical parameter vector ``theta``.
+
+        Parameters
+        ----------
+        theta : array_like
+            Physical parameter vector.
 
         Returns
         -------
@@ -258,7 +286,20 @@ class DiscreteLikelihood:
         )
 
     def dispersion_at(self, theta, R):
-        """Model radial and tangential PM dispersions [mas/yr] at radii ``R`` [arcsec]."""
+        """Model radial and tangential PM dispersions [mas/yr] at radii ``R`` [arcsec].
+
+        Parameters
+        ----------
+        theta : array_like
+            Physical parameter vector.
+        R : array_like
+            Projected radii [arcsec].
+
+        Returns
+        -------
+        ndarray, shape (2, len(R))
+            Radial and tangential dispersion [mas/yr].
+        """
         lnX, s2, _, _ = self.model_on_grid(theta)
         ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
         idx, w = cubic_weights(lnX[0], self.step, lnX.size, np.log(np.asarray(R)) - ln_a)

@@ -88,14 +88,36 @@ class MassModel:
         )
 
     def enclosed_mass(self, r) -> u.Quantity:
-        """``M(<r)`` [solMass] at 3-D radii ``r`` (length)."""
+        """``M(<r)`` [solMass] at 3-D radii ``r`` (length).
+
+        Parameters
+        ----------
+        r : Quantity
+            3-D radii (length).
+
+        Returns
+        -------
+        Quantity
+            Cluster, point and dark mass inside ``r`` [solMass].
+        """
         r = u.Quantity(r).to_value(u.pc)
         m, a, mb, md, b = self._parts()
         dark = md * Plummer().enclosed(r / b) if md > 0 else 0.0
         return (m * self.tracer.enclosed(r / a) + mb + dark) * u.Msun
 
     def potential(self, r) -> u.Quantity:
-        """``Phi(r)`` [(km/s)^2], zero at infinity (the point mass diverges at r = 0)."""
+        """``Phi(r)`` [(km/s)^2], zero at infinity (the point mass diverges at r = 0).
+
+        Parameters
+        ----------
+        r : Quantity
+            3-D radii (length).
+
+        Returns
+        -------
+        Quantity
+            Potential [km2 / s2].
+        """
         r = np.asarray(u.Quantity(r).to_value(u.pc), dtype=float)
         m, a, mb, md, b = self._parts()
         with np.errstate(divide="ignore"):
@@ -107,7 +129,18 @@ class MassModel:
         return phi * (u.km / u.s) ** 2
 
     def escape_speed(self, r) -> u.Quantity:
-        """``sqrt(-2 Phi(r))`` [km/s]."""
+        """``sqrt(-2 Phi(r))`` [km/s].
+
+        Parameters
+        ----------
+        r : Quantity
+            3-D radii (length).
+
+        Returns
+        -------
+        Quantity
+            Escape speed [km/s].
+        """
         return np.sqrt(-2.0 * self.potential(r))
 
 

@@ -57,25 +57,72 @@ class Parameter:
             raise ValueError(f"parameter {self.name}: unknown prior {self.prior!r}")
 
     def from_scaled(self, z):
-        """Physical value from the order-unity scaled value."""
+        """Physical value from the order-unity scaled value.
+
+        Uniform prior: ``z`` in [-1, 1] maps to [lo, hi]; Gaussian: ``mean + sd z``.
+
+        Parameters
+        ----------
+        z : array_like
+            Scaled value(s).
+
+        Returns
+        -------
+        ndarray or float
+            Physical value(s), in the parameter's unit.
+        """
         if self.prior == "uniform":
             return 0.5 * (self.hi + self.lo) + 0.5 * (self.hi - self.lo) * z
         return self.mean + self.sd * z
 
     def to_scaled(self, v):
-        """Order-unity scaled value from the physical value."""
+        """Order-unity scaled value from the physical value.
+
+        Parameters
+        ----------
+        v : array_like
+            Physical value(s), in the parameter's unit.
+
+        Returns
+        -------
+        ndarray or float
+            Scaled value(s) (inverse of :meth:`from_scaled`).
+        """
         if self.prior == "uniform":
             return (v - 0.5 * (self.hi + self.lo)) / (0.5 * (self.hi - self.lo))
         return (v - self.mean) / self.sd
 
     def log_prior_scaled(self, z):
-        """Log prior density in the scaled space (-inf outside the support)."""
+        """Log prior density in the scaled space (-inf outside the support).
+
+        Parameters
+        ----------
+        z : array_like
+            Scaled value(s).
+
+        Returns
+        -------
+        ndarray or float
+            ``ln(1/2)`` inside [-1, 1] for a uniform prior; the standard normal log density for a
+            Gaussian.
+        """
         if self.prior == "uniform":
             return np.where(np.abs(z) <= 1.0, -np.log(2.0), -np.inf)
         return -0.5 * z * z - 0.5 * np.log(2 * np.pi)
 
     def from_unit(self, q):
-        """Physical value from the unit cube (dynesty prior transform)."""
+        """Physical value from the unit cube (dynesty prior transform).
+
+        Parameters
+        ----------
+        q : array_like
+            Value(s) in [0, 1].
+
+        Returns
+        -------
+        ndarray or float
+            Physical value(s): ``lo + (hi - lo) q`` or the Gaussian quantile.
+        """
         if self.prior == "uniform":
             return self.lo + (self.hi - self.lo) * q
         return self.mean + self.sd * ndtri(q)
@@ -97,27 +144,98 @@ class ParameterSpace:
         return len(self.params)
 
     def index(self, name: str) -> int:
-        """Position of parameter ``name``."""
+        """Position of parameter ``name``.
+
+        Parameters
+        ----------
+        name : str
+            Parameter name.
+
+        Returns
+        -------
+        int
+            Its index in the parameter vector.
+
+        Raises
+        ------
+        ValueError
+            When the model has no such parameter.
+        """
         return self.names.index(name)
 
     def from_scaled(self, z):
-        """Physical vector(s) from scaled vector(s) (last axis = parameters)."""
+        """Physical vector(s) from scaled vector(s) (last axis = parameters).
+
+        Parameters
+        ----------
+        z : array_like, shape (..., n_params)
+            Scaled vector(s).
+
+        Returns
+        -------
+        ndarray, shape (..., n_params)
+            Physical vector(s).
+        """
         z = np.asarray(z, dtype=float)
         return np.stack([p.from_scaled(z[..., i]) for i, p in enumerate(self.params)], axis=-1)
 
     def to_scaled(self, v):
-        """Scaled vector(s) from physical vector(s)."""
+        """Scaled vector(s) from physical vector(s).
+
+        Parameters
+        ----------
+        v : array_like, shape (..., n_params)
+            Physical vector(s).
+
+        Returns
+        -------
+        ndarray, shape (..., n_params)
+            Scaled vector(s).
+        """
         v = np.asarray(v, dtype=float)
         return np.stack([p.to_scaled(v[..., i]) for i, p in enumerate(self.params)], axis=-1)
 
     def log_prior_scaled(self, z) -> float:
-        """Sum of the log prior densities of a scaled vector."""
+        """Sum of the log prior densities of a scaled vector.
+
+        Parameters
+        ----------
+        z : array_like, shape (n_params,)
+            Scaled vector.
+
+        Returns
+        -------
+        float
+            Log prior density (-inf outside the support).
+        """
         return float(sum(p.log_prior_scaled(z[i]) for i, p in enumerate(self.params)))
 
     def from_unit(self, q):
-        """Physical vector from a unit-cube vector (dynesty)."""
+        """Physical vector from a unit-cube vector (dynesty).
+
+        Parameters
+        ----------
+        q : array_like, shape (n_params,)
+            Unit-cube vector.
+
+        Returns
+        -------
+        ndarray, shape (n_params,)
+            Physical vector.
+        """
         return np.array([p.from_unit(q[i]) for i, p in enumerate(self.params)])
 
     def as_dict(self, v) -> dict:
-        """Physical vector as {name: value}."""
+        """Physical vector as {name: value}.
+
+        Parameters
+        ----------
+        v : array_like, shape (n_params,)
+            Physical vector.
+
+        Returns
+        -------
+        dict of str to float
+            Parameter name to value.
+        """
         return {n: float(x) for n, x in zip(self.names, v)}

@@ -29,6 +29,17 @@ _NAMES = {
 def model_band(fit, R, n_draws: int = 200, seed: int = 0):
     """16/50/84 % posterior quantiles of the model dispersions at radii ``R`` [arcsec].
 
+    Parameters
+    ----------
+    fit : ModelFit
+        The model's fit.
+    R : array_like
+        Projected radii [arcsec].
+    n_draws : int
+        Posterior samples drawn.
+    seed : int
+        Seed of the draws.
+
     Returns
     -------
     ndarray, shape (3, 2, len(R))
@@ -102,6 +113,15 @@ def corner_plot(fit, path, bins: int | None = None):
     """A small corner plot (histograms and smoothed 2-D 68/95% contours) of one model's chain.
 
     ``bins`` defaults to ``sqrt(n) / 2`` clipped to [10, 40] for ``n`` samples.
+
+    Parameters
+    ----------
+    fit : ModelFit
+        The model's fit.
+    path : str or os.PathLike
+        The PNG written.
+    bins : int, optional
+        Histogram bins per parameter.
     """
     from scipy.ndimage import gaussian_filter
 

@@ -76,7 +76,23 @@ def ml_dispersion(v, e, n_iter: int = 500, tol: float = 1e-10):
 
 
 def fisher_error(sigma, e):
-    """Analytic 1-sigma error of the ML dispersion (inf when sigma = 0)."""
+    """Analytic 1-sigma error of the ML dispersion (inf when sigma = 0).
+
+    The dispersion maximises ``prod N(v; 0, sigma^2 + e_i^2)``; its Fisher information is
+    ``sum 2 sigma^2 / (sigma^2 + e_i^2)^2``.
+
+    Parameters
+    ----------
+    sigma : float
+        ML dispersion.
+    e : array_like
+        Per-star errors, same unit.
+
+    Returns
+    -------
+    float
+        1-sigma error, same unit.
+    """
     s2 = sigma**2
     info = np.sum(2.0 * s2 / (s2 + np.asarray(e) ** 2) ** 2)
     return 1.0 / np.sqrt(info) if info > 0 else np.inf
@@ -172,6 +188,20 @@ def radial_tangential(x, y, pm_x, pm_y):
     """Rotate proper motions into radial / tangential components about (0, 0).
 
     Stars exactly at the centre get the x/y components (any direction is radial).
+
+    Parameters
+    ----------
+    x, y : ndarray
+        Positions about the centre [arcsec].
+    pm_x, pm_y : ndarray
+        Proper motions (any unit, kept).
+
+    Returns
+    -------
+    R : ndarray
+        Projected radius [arcsec].
+    v_r, v_t : ndarray
+        Radial and tangential components, same unit as the motions.
     """
     R = np.hypot(x, y)
     safe = np.where(R > 0, R, 1.0)

@@ -67,7 +67,20 @@ BACKEND_KEY_ATTR = "mavispm_key"
 
 
 def checkpoints(max_steps: int, check_every: int) -> list[int]:
-    """Chain lengths at which convergence is checked: every ``check_every`` steps and at the end."""
+    """Chain lengths at which convergence is checked: every ``check_every`` steps and at the end.
+
+    Parameters
+    ----------
+    max_steps : int
+        Longest chain [steps].
+    check_every : int
+        Steps between checks (at least 1).
+
+    Returns
+    -------
+    list of int
+        Ascending chain lengths, ending at ``max_steps`` (empty when it is 0).
+    """
     every = max(1, int(check_every))
     out = list(range(every, max_steps + 1, every))
     if max_steps > 0 and (not out or out[-1] != max_steps):
@@ -109,7 +122,18 @@ def _open_backend(path, name: str, walkers: int, ndim: int, key: str | None):
 
 
 def h5py_readable(path) -> bool:
-    """Whether ``path`` opens as an HDF5 file."""
+    """Whether ``path`` opens as an HDF5 file.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+
+    Returns
+    -------
+    bool
+        True when h5py can open it for reading.
+    """
     import h5py
 
     try:

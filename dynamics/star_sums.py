@@ -47,7 +47,27 @@ def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
 
 @numba.njit(nogil=True, cache=True)
 def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compiled
-    """Fused :func:`star_sums_numpy` (same arguments, same clamping at the grid ends)."""
+    """Fused :func:`star_sums_numpy` (same arguments, same clamping at the grid ends).
+
+    Parameters
+    ----------
+    u : ndarray (N,)
+        ``ln(R / a)`` of the stars.
+    x0, step : float
+        Start and step of the uniform ``ln X`` grid.
+    ln_s2 : ndarray (2, n)
+        ln model dispersion squared (radial, tangential) on the grid.
+    ln_sig : ndarray (n,)
+        ln surface density on the grid.
+    v2, e2 : ndarray (2, N)
+        Squared proper-motion components and squared errors.
+
+    Returns
+    -------
+    chi, lsig : float
+        ``sum(v2 / var + ln var)`` over stars and components (``var`` = model dispersion
+        squared plus error squared), and the sum of the interpolated ln surface density.
+    """
     n = ln_sig.size
     chi = 0.0
     lsig = 0.0
@@ -82,6 +102,32 @@ def stars_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  #
     field centre, directions ``cx, sy``) are rotated by the angle ``d`` between the
     old and new radial directions: ``e_R'^2 = e_R^2 cos^2 d + e_T^2 sin^2 d``.
     Reference: :meth:`mavispm.dynamics.likelihood.DiscreteLikelihood._stars_about_numpy`.
+
+    Parameters
+    ----------
+    x, y : ndarray (N,)
+        Positions about the field centre [arcsec].
+    pm_x, pm_y : ndarray (N,)
+        Proper motions [mas/yr].
+    cx, sy : ndarray (N,)
+        Cosine and sine of each star's radial direction about the field centre.
+    er2, et2 : ndarray (N,)
+        Squared radial and tangential errors about the field centre [(mas/yr)^2].
+    x0, y0 : float
+        New centre [arcsec].
+    mx0, my0 : float
+        Mean motion subtracted [mas/yr].
+    min_r : float
+        Smallest radius used [arcsec] (stars closer are put at it).
+
+    Returns
+    -------
+    ln_r : ndarray (N,)
+        ln of the radius about the new centre.
+    v2 : ndarray (2, N)
+        Squared radial and tangential motions [(mas/yr)^2].
+    e2 : ndarray (2, N)
+        Rotated squared errors [(mas/yr)^2].
     """
     n = x.size
     ln_r = np.empty(n)

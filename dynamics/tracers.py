@@ -62,22 +62,66 @@ class Plummer(_ClosedFormEnclosedMass):
     outer_slope = 5.0
 
     def density(self, x):
-        """3-D density ``nu(x)`` (unit mass, unit scale radius)."""
+        """3-D density ``nu(x)`` (unit mass, unit scale radius).
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Density (unit total mass, per unit volume in scale radiuss cubed).
+        """
         x = np.asarray(x, dtype=float)
         return 3.0 / _FOUR_PI * (1.0 + x * x) ** -2.5
 
     def enclosed(self, x):
-        """Mass fraction inside 3-D radius ``x``."""
+        """Mass fraction inside 3-D radius ``x``.
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass fraction in [0, 1].
+        """
         x = np.asarray(x, dtype=float)
         return x**3 * (1.0 + x * x) ** -1.5
 
     def surface_density(self, X):
-        """Projected density ``Sigma(X)`` (unit mass, per unit area in a**2)."""
+        """Projected density ``Sigma(X)`` (unit mass, per unit area in a**2).
+
+        Parameters
+        ----------
+        X : array_like
+            Projected radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Surface density (unit total mass, per unit area in scale radiuss squared).
+        """
         X = np.asarray(X, dtype=float)
         return 1.0 / np.pi * (1.0 + X * X) ** -2
 
     def projected_enclosed(self, X):
-        """Mass fraction inside projected radius ``X``."""
+        """Mass fraction inside projected radius ``X``.
+
+        Parameters
+        ----------
+        X : array_like
+            Projected radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Projected mass fraction in [0, 1].
+        """
         X = np.asarray(X, dtype=float)
         return X * X / (1.0 + X * X)
 
@@ -105,13 +149,35 @@ class Dehnen:
             raise ValueError(f"Dehnen gamma must be in [0, 2.5), got {self.gamma}")
 
     def density(self, x):
-        """3-D density ``nu(x)`` (unit mass, unit scale radius)."""
+        """3-D density ``nu(x)`` (unit mass, unit scale radius).
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Density (unit total mass, per unit volume in scale radiuss cubed).
+        """
         x = np.asarray(x, dtype=float)
         g = self.gamma
         return (3.0 - g) / _FOUR_PI * x**-g * (1.0 + x) ** (g - 4.0)
 
     def enclosed(self, x):
-        """Mass fraction inside 3-D radius ``x``."""
+        """Mass fraction inside 3-D radius ``x``.
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass fraction in [0, 1].
+        """
         x = np.asarray(x, dtype=float)
         return (x / (1.0 + x)) ** (3.0 - self.gamma)
 
@@ -121,7 +187,20 @@ class Dehnen:
         return ("dehnen",)
 
     def at_points(self, points, mass_points=None):
-        """Evaluator of ``(nu, m)`` at fixed points for any Dehnen ``gamma``."""
+        """Evaluator of ``(nu, m)`` at fixed points for any Dehnen ``gamma``.
+
+        Parameters
+        ----------
+        points : array_like
+            Radii where the density is needed [scale radii] (> 0).
+        mass_points : array_like, optional
+            Radii where the enclosed mass is needed (default: ``points``).
+
+        Returns
+        -------
+        DehnenAtPoints
+            Callable on a profile of the family, giving ``(nu, m)``.
+        """
         return DehnenAtPoints(points, mass_points)
 
     # surface density and projected mass: numerical (see jeans.JeansProjector)
@@ -166,11 +245,33 @@ class King62(_ClosedFormEnclosedMass):
         return np.where(inside, val, 0.0)
 
     def density(self, x):
-        """3-D density ``nu(x)`` (unit mass, unit core radius)."""
+        """3-D density ``nu(x)`` (unit mass, unit core radius).
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [core radiuss].
+
+        Returns
+        -------
+        ndarray
+            Density (unit total mass, per unit volume in core radiuss cubed).
+        """
         return self._raw_density(x) / _king_table(self.concentration)[2]
 
     def enclosed(self, x):
-        """Mass fraction inside 3-D radius ``x`` (tabulated, cached)."""
+        """Mass fraction inside 3-D radius ``x`` (tabulated, cached).
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [core radiuss].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass fraction in [0, 1].
+        """
         lx, lm, _ = _king_table(self.concentration)
         x = np.asarray(x, dtype=float)
         with np.errstate(divide="ignore"):
@@ -180,7 +281,18 @@ class King62(_ClosedFormEnclosedMass):
         return np.where(small, np.exp(lm[0] + 3.0 * (lnx - lx[0])), out)
 
     def surface_density(self, X):
-        """Projected density (unit mass), zero beyond the tidal radius."""
+        """Projected density (unit mass), zero beyond the tidal radius.
+
+        Parameters
+        ----------
+        X : array_like
+            Projected radii [core radiuss].
+
+        Returns
+        -------
+        ndarray
+            Surface density (unit total mass, per unit area in core radiuss squared).
+        """
         X = np.asarray(X, dtype=float)
         c = 1.0 / np.sqrt(1.0 + self.tidal_radius**2)
         shape = np.where(X < self.tidal_radius, (1.0 / np.sqrt(1.0 + X * X) - c) ** 2, 0.0)
@@ -193,7 +305,18 @@ class King62(_ClosedFormEnclosedMass):
         return np.pi * (np.log(q) - 4.0 * c * (np.sqrt(q) - 1.0) + c * c * (q - 1.0))
 
     def projected_enclosed(self, X):
-        """Mass fraction inside projected radius ``X``."""
+        """Mass fraction inside projected radius ``X``.
+
+        Parameters
+        ----------
+        X : array_like
+            Projected radii [core radiuss].
+
+        Returns
+        -------
+        ndarray
+            Projected mass fraction in [0, 1].
+        """
         return self._projected_raw(X) / self._projected_raw(self.tidal_radius)
 
     def _inverse_enclosed(self, q: float) -> float:
@@ -235,7 +358,22 @@ _CUSP_NODES = 4
 
 
 def cusp_factor(cusp_radius: float, gamma: float, inv_x2):
-    """Cusp multiplier ``(1 + (x_c / x)^2)^(gamma / 2)`` from precomputed ``1 / x^2``."""
+    """Cusp multiplier ``(1 + (x_c / x)^2)^(gamma / 2)`` from precomputed ``1 / x^2``.
+
+    Parameters
+    ----------
+    cusp_radius : float
+        Cusp radius ``x_c`` [scale radii].
+    gamma : float
+        Inner logarithmic slope added.
+    inv_x2 : array_like
+        ``1 / x^2`` [scale radii^-2].
+
+    Returns
+    -------
+    ndarray
+        The multiplier (>= 1 for gamma >= 0).
+    """
     return np.exp(0.5 * gamma * np.log1p(cusp_radius * cusp_radius * inv_x2))
 
 
@@ -332,7 +470,15 @@ class AtPoints:
 
 
 class DehnenAtPoints(AtPoints):
-    """Dehnen profiles of any ``gamma`` at fixed points (ln x and ln(1 + x) cached)."""
+    """Dehnen profiles of any ``gamma`` at fixed points (ln x and ln(1 + x) cached).
+
+    Parameters
+    ----------
+    points : array_like
+        Radii where the density is needed [scale radii] (> 0).
+    mass_points : array_like, optional
+        Radii where the enclosed mass is needed (default: ``points``).
+    """
 
     def __init__(self, points, mass_points=None):
         super().__init__(points, mass_points)
@@ -442,7 +588,20 @@ class Cusped:
         return ("cusped", self.base)
 
     def at_points(self, points, mass_points=None) -> CuspedAtPoints:
-        """Evaluator of ``(nu, m)`` at fixed points for every profile of this family."""
+        """Evaluator of ``(nu, m)`` at fixed points for every profile of this family.
+
+        Parameters
+        ----------
+        points : array_like
+            Radii where the density is needed [scale radii] (> 0).
+        mass_points : array_like, optional
+            Radii where the enclosed mass is needed (default: ``points``).
+
+        Returns
+        -------
+        CuspedAtPoints
+            Callable on a profile of the family, giving ``(nu, m)``.
+        """
         return CuspedAtPoints(self.base, points, mass_points)
 
     def _evaluate(self, x):
@@ -451,11 +610,33 @@ class Cusped:
         return nu.reshape(x.shape), m.reshape(x.shape)
 
     def density(self, x):
-        """3-D density ``nu(x)`` (unit mass, unit scale radius)."""
+        """3-D density ``nu(x)`` (unit mass, unit scale radius).
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Density (unit total mass, per unit volume in scale radiuss cubed).
+        """
         return self._evaluate(x)[0]
 
     def enclosed(self, x):
-        """Mass fraction inside 3-D radius ``x``."""
+        """Mass fraction inside 3-D radius ``x``.
+
+        Parameters
+        ----------
+        x : array_like
+            3-D radii [scale radiuss].
+
+        Returns
+        -------
+        ndarray
+            Enclosed mass fraction in [0, 1].
+        """
         return self._evaluate(x)[1]
 
     surface_density = None
