@@ -18,6 +18,8 @@ Rules
 - A callable without arguments is covered when it has any docstring.
 - Type hints: the share of arguments (besides ``self``/``cls``) of public functions and methods
   that carry an annotation.
+- ``__all__``: every public module that defines (or, for a package ``__init__``, re-exports)
+  a public name must list its public names in ``__all__``.
 
 Run ``python benchmarks/doc_coverage.py`` (add ``--missing`` to list what lacks a section,
 ``--by-package`` for a per-package table).
@@ -210,14 +212,21 @@ def scan_module(path: Path, root: Path = ROOT) -> tuple[str, list[Callable], boo
     callables : list of Callable
         The public callables it defines.
     has_all : bool
-        Whether the module defines ``__all__``.
+        Whether the module defines ``__all__`` (True also for a module that defines no
+        public name, such as a docstring-only package ``__init__``: it has nothing to
+        list).
     """
     rel = path.relative_to(root).with_suffix("")
     module = ".".join(rel.parts)
     tree = ast.parse(path.read_text(), filename=str(path))
     out: list[Callable] = []
     has_all = False
+    exports = False  # defines or re-exports a public name (else it needs no __all__)
     for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            exports = exports or not node.name.startswith("_")
+        elif isinstance(node, ast.ImportFrom) and path.name == "__init__.py":
+            exports = exports or node.module != "__future__"
         if isinstance(node, (ast.Assign, ast.AnnAssign)):
             targets = node.targets if isinstance(node, ast.Assign) else [node.target]
             if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
@@ -227,7 +236,7 @@ def scan_module(path: Path, root: Path = ROOT) -> tuple[str, list[Callable], boo
                 out.append(_function(module, node.name, node, False))
         elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
             out.extend(_class(module, node))
-    return module, out, has_all
+    return module, out, has_all or not exports
 
 
 def public_modules(root: Path = ROOT) -> list[Path]:
@@ -315,7 +324,10 @@ def main(argv: list[str] | None = None) -> int:
         f"({cov.percent:.1f}%); with arguments: {cov.percent_with_args:.1f}%"
     )
     print(f"type hints: {cov.percent_hinted:.1f}% of arguments")
-    print(f"__all__: {len(cov.modules_with_all)}/{len(cov.modules)} public modules")
+    print(
+        f"__all__: {len(cov.modules_with_all)}/{len(cov.modules)} public modules "
+        "(a module defining no public name needs none)"
+    )
     return 0
 
 

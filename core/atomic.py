@@ -17,6 +17,11 @@ from pathlib import Path
 
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "atomic_path",
+    "current_umask",
+]
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:

@@ -8,6 +8,11 @@ from __future__ import annotations
 
 import argparse
 
+__all__ = [
+    "non_negative_int",
+    "positive_int",
+]
+
 
 def _integer(text: str, minimum: int, what: str) -> int:
     try:

@@ -18,6 +18,15 @@ import re
 
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "ENV_VAR",
+    "check_memory",
+    "human_bytes",
+    "memory_limit",
+    "parse_bytes",
+    "physical_memory",
+]
+
 #: Environment variable overriding the memory limit.
 ENV_VAR = "MAVISPM_MAX_MEMORY"
 

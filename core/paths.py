@@ -15,6 +15,12 @@ from pathlib import Path
 
 from mavispm.core.errors import ConfigError, InputError
 
+__all__ = [
+    "NAME_PATTERN",
+    "check_name",
+    "contained",
+]
+
 #: Characters allowed in a name that becomes a folder or file name.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=,-]{0,99}")
 

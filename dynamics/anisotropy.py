@@ -23,6 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = [
+    "Anisotropy",
+    "constant",
+    "osipkov_merritt",
+]
+
 
 @dataclass(frozen=True)
 class Anisotropy:

@@ -26,6 +26,19 @@ from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
 from mavispm.dynamics.settings import DynamicsSettings
 
+__all__ = [
+    "DynamicsResult",
+    "MIN_FIT_STARS",
+    "PM_SPEC",
+    "fit_dynamics",
+    "load_catalogue_stars",
+    "load_stars",
+    "register",
+    "run_stage",
+    "truth_profile",
+    "validate_settings",
+]
+
 #: What the dynamics stage needs from a propermotions product.
 PM_SPEC = TableSpec(
     required={

@@ -46,6 +46,21 @@ from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN
 from mavispm.dynamics.tracers import Plummer
 
+__all__ = [
+    "PointMass",
+    "PosteriorMassModel",
+    "ProfileComponent",
+    "SphericalMassModel",
+    "dimensionless_potential",
+    "escape_speed_at_projected",
+    "escape_velocity",
+    "escape_velocity_quantile",
+    "escape_velocity_samples",
+    "mass_model_from_sample",
+    "posterior_mass_models",
+    "potential_table",
+]
+
 #: Potential grid: panels uniform in ln x from _X_IN to the profile's outer radius.
 _X_IN = 1e-7
 _X_OUT = 1e6

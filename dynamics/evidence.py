@@ -16,6 +16,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = [
+    "EvidenceResult",
+    "bayes_factor",
+    "information_criteria",
+    "run_dynesty",
+    "savage_dickey",
+]
+
 
 @dataclass
 class EvidenceResult:

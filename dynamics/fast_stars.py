@@ -57,6 +57,35 @@ from mavispm.core.config import unit_field
 from mavispm.core.errors import InputError
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC
 
+__all__ = [
+    "FastStarResult",
+    "FastStarSettings",
+    "KMS_PER_AU_YR",
+    "PC_PER_ARCSEC_KPC",
+    "PMStars",
+    "PullTails",
+    "about_fitted_centre",
+    "binary_kicks",
+    "distance_nodes",
+    "expected_flags",
+    "fast_star_test",
+    "largest_error",
+    "lower_mass_limit",
+    "measure_tails",
+    "model_dispersion",
+    "no_test",
+    "p_value",
+    "poisson_probabilities",
+    "pulls_of",
+    "read_pm_stars",
+    "rice_sf",
+    "run_on_fits",
+    "stars_from_sample",
+    "threshold",
+    "usable_stars",
+    "velocity_2d",
+]
+
 #: parsec per (arcsec * kpc)
 PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 #: km/s per (AU / yr)

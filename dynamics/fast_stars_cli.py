@@ -25,6 +25,12 @@ import numpy as np
 
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "register",
+    "run",
+    "stored_fits",
+]
+
 
 @dataclass
 class _Chain:

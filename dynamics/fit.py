@@ -28,6 +28,18 @@ from mavispm.dynamics.parameters import Parameter, ParameterSpace
 from mavispm.dynamics.sampling import ChainResult, run_emcee, summarise
 from mavispm.dynamics.settings import MODELS, DynamicsSettings
 
+__all__ = [
+    "Comparison",
+    "ModelFit",
+    "backend_key",
+    "compare",
+    "fit_model",
+    "make_likelihood",
+    "marginal_bh_samples",
+    "nested_chain",
+    "parameter_space",
+]
+
 LABELS = {
     "log_mass": r"$\log_{10} M/M_\odot$",
     "log_scale_radius": r"$\log_{10} a/''$",

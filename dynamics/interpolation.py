@@ -5,6 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = [
+    "cubic_weights",
+    "interpolate",
+]
+
 
 def cubic_weights(lnx_grid_start: float, step: float, n: int, lnq):
     """Indices and 4-point Lagrange weights for cubic interpolation on a uniform grid.

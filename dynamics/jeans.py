@@ -42,6 +42,14 @@ from mavispm.dynamics.anisotropy import Anisotropy
 from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.tracers import Plummer
 
+__all__ = [
+    "G_PC_KMS2_MSUN",
+    "JeansProjector",
+    "KMS_PER_MASYR_KPC",
+    "ProjectedMoments",
+    "projected_dispersion",
+]
+
 #: Gravitational constant in pc (km/s)^2 / Msun.
 G_PC_KMS2_MSUN = 4.300917270e-3
 #: km/s per (mas/yr * kpc).

@@ -41,6 +41,12 @@ from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProje
 from mavispm.dynamics.star_sums import star_sums, stars_about
 from mavispm.dynamics.tracers import make_tracer
 
+__all__ = [
+    "DiscreteLikelihood",
+    "PC_PER_ARCSEC_KPC",
+    "StarSample",
+]
+
 #: parsec per (arcsec * kpc)
 PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 _LN_2PI = np.log(2.0 * np.pi)

@@ -27,6 +27,13 @@ import numpy as np
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN
 from mavispm.dynamics.tracers import Plummer, make_tracer
 
+__all__ = [
+    "MassModel",
+    "PC_PER_ARCSEC_KPC",
+    "mass_model",
+    "posterior_mass_models",
+]
+
 #: parsec per (arcsec * kpc)
 PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 _X_FAR = 1.0e6

@@ -19,6 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtri
 
+__all__ = [
+    "Parameter",
+    "ParameterSpace",
+]
+
 
 @dataclass(frozen=True)
 class Parameter:

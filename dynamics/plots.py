@@ -10,6 +10,13 @@ import numpy as np  # noqa: E402
 
 from mavispm.core.atomic import atomic_path  # noqa: E402
 
+__all__ = [
+    "corner_plot",
+    "fast_star_plot",
+    "model_band",
+    "profile_plot",
+]
+
 _COLOURS = {
     "imbh": "tab:blue",
     "no_imbh": "tab:red",

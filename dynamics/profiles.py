@@ -23,6 +23,14 @@ from astropy.table import QTable
 from mavispm.core.errors import InputError
 from mavispm.dynamics.jeans import KMS_PER_MASYR_KPC
 
+__all__ = [
+    "dispersion_profile",
+    "equal_count_bins",
+    "fisher_error",
+    "ml_dispersion",
+    "radial_tangential",
+]
+
 
 def equal_count_bins(n: int, bin_size: int) -> list[slice]:
     """Slices of a sorted array into bins of ``bin_size`` (remainder merged if small).

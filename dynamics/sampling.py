@@ -24,6 +24,16 @@ import emcee
 import numpy as np
 from scipy.optimize import minimize
 
+__all__ = [
+    "BACKEND_KEY_ATTR",
+    "ChainResult",
+    "checkpoints",
+    "find_map",
+    "h5py_readable",
+    "run_emcee",
+    "summarise",
+]
+
 
 @dataclass
 class ChainResult:

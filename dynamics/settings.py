@@ -13,6 +13,11 @@ from mavispm.core.config import unit_field
 from mavispm.dynamics.fast_stars import FastStarSettings
 from mavispm.dynamics.tracers import TRACERS
 
+__all__ = [
+    "DynamicsSettings",
+    "MODELS",
+]
+
 #: Mass models of the comparison: which dark central components each one has.
 MODELS = {
     "none": {"bh": False, "dark": False},

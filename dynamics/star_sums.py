@@ -19,6 +19,12 @@ import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 
+__all__ = [
+    "star_sums",
+    "star_sums_numpy",
+    "stars_about",
+]
+
 
 def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
     """Reference implementation of :func:`star_sums` (numpy).

@@ -30,6 +30,19 @@ import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights
 
+__all__ = [
+    "AtPoints",
+    "Cusped",
+    "CuspedAtPoints",
+    "Dehnen",
+    "DehnenAtPoints",
+    "King62",
+    "Plummer",
+    "TRACERS",
+    "cusp_factor",
+    "make_tracer",
+]
+
 _FOUR_PI = 4.0 * np.pi
 
 

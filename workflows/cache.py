@@ -42,6 +42,16 @@ import numpy as np
 from mavispm.workflows.graph import Node
 from mavispm.workflows.registry import StageRegistry
 
+__all__ = [
+    "Store",
+    "canonical_json",
+    "exclusive_lock",
+    "file_digest",
+    "node_keys",
+    "product_fingerprint",
+    "without_keys",
+]
+
 MARKER = "complete.json"
 LOCK_NAME = ".lock"
 PARTIAL_SUFFIX = ".partial"

@@ -27,6 +27,18 @@ from pathlib import Path
 
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "CACHE_PATTERNS",
+    "Entry",
+    "disk_cache_entries",
+    "human",
+    "parse_age",
+    "parse_size",
+    "register",
+    "select_for_removal",
+    "store_entries",
+]
+
 #: File patterns of the disk cache (nothing else there is ever removed).
 CACHE_PATTERNS = ("psfgrid-*.h5", "halo-*.npz", "stampplan-*.npz", ".*.tmp")
 

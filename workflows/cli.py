@@ -18,6 +18,15 @@ import sys
 from mavispm import __version__
 from mavispm.core.errors import MavispmError
 
+__all__ = [
+    "COMMANDS",
+    "COMMAND_MODULES",
+    "OneLineParser",
+    "build_parser",
+    "main",
+    "modules_for",
+]
+
 #: (group, module) pairs. ``group`` is None for top-level commands, otherwise
 #: the name of the command group the module's parser is added under.
 COMMAND_MODULES: list[tuple[str | None, str]] = [

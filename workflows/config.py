@@ -54,6 +54,25 @@ from mavispm.core.paths import check_name
 from mavispm.workflows.registry import StageRegistry
 from mavispm.workflows.sweeps import SweepPoint, apply_point, deep_merge, expand_points
 
+__all__ = [
+    "Epoch",
+    "OutputsSection",
+    "RESERVED_NAMES",
+    "SECTION_STAGE",
+    "SHIPPED_DIR",
+    "STUDY_SECTIONS",
+    "SceneConfig",
+    "SweepAxis",
+    "Variant",
+    "Workflow",
+    "WorkflowSection",
+    "load_workflow",
+    "parse_workflow",
+    "read_toml",
+    "resolve_workflow_path",
+    "shipped_workflows",
+]
+
 #: Folder of the workflow files shipped with mavispm.
 SHIPPED_DIR = Path(__file__).resolve().parent
 

@@ -27,6 +27,15 @@ from collections.abc import Callable, Iterable
 
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "DaskExecutor",
+    "Executor",
+    "PoolExecutor",
+    "SerialExecutor",
+    "default_workers",
+    "make_executor",
+]
+
 LOCAL_KINDS = ("threads", "processes", "serial")
 
 

@@ -27,6 +27,15 @@ from dataclasses import dataclass, field
 
 from mavispm.workflows.config import Variant, Workflow
 
+__all__ = [
+    "Node",
+    "catalogue_ref",
+    "derive_seed",
+    "expand",
+    "has_imbh",
+    "topological",
+]
+
 
 @dataclass(frozen=True)
 class Node:

@@ -35,6 +35,14 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
+__all__ = [
+    "STAGE_NAMES",
+    "StageRegistry",
+    "StageSpec",
+    "code_files",
+    "resolve",
+]
+
 #: The stage names of the workflow graph, in pipeline order.
 STAGE_NAMES = ("cluster", "optics", "frames", "stars", "propermotions", "dynamics")
 

@@ -41,6 +41,19 @@ from mavispm.workflows.executors import make_executor
 from mavispm.workflows.graph import Node, expand
 from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
 
+__all__ = [
+    "RUNNING",
+    "RunResult",
+    "Task",
+    "TaskError",
+    "WorkflowError",
+    "canonical_json_pretty",
+    "check_workdir",
+    "execute_task",
+    "plan_workflow",
+    "run_workflow",
+]
+
 log = logging.getLogger(__name__)
 
 DEFAULT_WORKDIR = "mavispm-work"

@@ -26,6 +26,18 @@ from typing import Any
 
 from mavispm.core.errors import ConfigError
 
+__all__ = [
+    "MAX_PLOTS",
+    "SweepPoint",
+    "apply_point",
+    "deep_merge",
+    "expand_points",
+    "get_dotted",
+    "set_dotted",
+    "sweep_rows",
+    "write_sweep_table",
+]
+
 
 @dataclass(frozen=True)
 class SweepPoint:

@@ -44,6 +44,19 @@ from scipy import linalg, optimize, stats
 
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "AlignmentFit",
+    "DEGENERATE_RCOND",
+    "GEOMETRY_RCOND",
+    "JITTER_RTOL",
+    "TransformModel",
+    "clip_threshold",
+    "fit_transform",
+    "higher_order_p_value",
+    "normalisation_length",
+    "project_displacements",
+]
+
 #: Smallest ratio of singular values of the (column-scaled) weighted design matrix
 #: accepted (numerical rank; the normal equations square it).
 DEGENERATE_RCOND = 1e-7

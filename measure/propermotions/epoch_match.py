@@ -20,6 +20,15 @@ from scipy.spatial import cKDTree
 from mavispm.core.errors import InputError
 from mavispm.measure.propermotions.alignment import TransformModel, normalisation_length
 
+__all__ = [
+    "EpochMatch",
+    "ID_SHARE_FRACTION",
+    "ids_are_shared",
+    "match_by_id",
+    "match_by_position",
+    "match_epochs",
+]
+
 #: Fraction of the smaller catalogue's IDs that must be shared for ``auto`` to match by ID.
 ID_SHARE_FRACTION = 0.5
 

@@ -19,6 +19,14 @@ import astropy.units as u
 import numpy as np
 from scipy import stats
 
+__all__ = [
+    "LinearMotion",
+    "MIN_RADIUS",
+    "fit_linear_motion",
+    "pm_to_velocity",
+    "radial_tangential",
+]
+
 #: Radii below this [arcsec] have no defined radial direction.
 MIN_RADIUS = 1e-9
 

@@ -32,6 +32,13 @@ from mavispm.measure.propermotions.motion_fit import (
 )
 from mavispm.measure.propermotions.settings import ProperMotionSettings
 
+__all__ = [
+    "ORDER_NOTE_P",
+    "PMFlag",
+    "ProperMotionResult",
+    "derive_proper_motions",
+]
+
 MAS = 1e3  # mas per arcsec
 
 

@@ -33,6 +33,19 @@ from mavispm.core.atomic import atomic_path
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product
 
+__all__ = [
+    "AccuracyData",
+    "MAG_EDGES",
+    "PAPER_MAG_SPLIT",
+    "THRESHOLDS",
+    "accuracy_by_magnitude",
+    "accuracy_by_radius",
+    "load_accuracy",
+    "paper_statistic",
+    "residual_summary",
+    "write_report",
+]
+
 #: Magnitude bin edges of the paper's Table (tab:simresults).
 MAG_EDGES = (-np.inf, 16, 17, 18, 19, 20, 22, 24, 26, np.inf)
 #: Accuracy thresholds [microarcsec] (and microarcsec/yr).

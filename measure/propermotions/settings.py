@@ -7,6 +7,11 @@ from typing import Literal
 
 from mavispm.core.config import from_mapping, unit_field
 
+__all__ = [
+    "ProperMotionSettings",
+    "validate_settings",
+]
+
 
 @dataclass(frozen=True)
 class ProperMotionSettings:

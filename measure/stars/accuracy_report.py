@@ -27,6 +27,18 @@ from mavispm.core.errors import InputError  # noqa: E402
 from mavispm.core.products import read_product  # noqa: E402
 from mavispm.measure.stars.measured_table import MEASURED_SPEC  # noqa: E402
 
+__all__ = [
+    "EXCLUDE_FLAGS",
+    "MAG_BINS",
+    "OFFSET_MAG_LIMIT",
+    "accuracy_table",
+    "bin_label",
+    "clipped_std",
+    "frame_offset",
+    "truth_bin_counts",
+    "write_report",
+]
+
 #: Bin edges of the paper's results table [mag].
 MAG_BINS = (-np.inf, 16.0, 17.0, 18.0, 19.0, 20.0, 22.0, 24.0, 26.0, np.inf)
 

@@ -29,6 +29,17 @@ from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import fisher_matrix, jacobian, safe_inverse, sky_plane_basis
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
+__all__ = [
+    "FitOptions",
+    "FitResult",
+    "UNRESOLVED_SEPARATION",
+    "colour_stars",
+    "crowding_flags",
+    "fit_stars",
+    "marginalise_neighbours",
+    "render_model",
+]
+
 FLAG_NOT_CONVERGED = 1
 FLAG_SATURATED = 2
 FLAG_EDGE = 4

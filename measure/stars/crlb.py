@@ -19,6 +19,15 @@ import numpy as np
 
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
+__all__ = [
+    "PARAMETERS",
+    "crlb",
+    "fisher_matrix",
+    "jacobian",
+    "safe_inverse",
+    "sky_plane_basis",
+]
+
 #: Parameter order of the Fisher matrices and covariances.
 PARAMETERS = ("x", "y", "flux", "sky")
 

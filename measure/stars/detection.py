@@ -9,6 +9,15 @@ from photutils.detection import DAOStarFinder
 
 from mavispm.measure.stars.truth_match import match_to_truth
 
+__all__ = [
+    "FALSE_MAG_LIMIT",
+    "SCORE_MAG_EDGES",
+    "SCORE_RADIUS_EDGES",
+    "completeness",
+    "detect_sources",
+    "detection_scores",
+]
+
 
 def detect_sources(
     image: np.ndarray, sky: float, noise: float, fwhm: float, threshold: float, bad: np.ndarray

@@ -34,6 +34,20 @@ from mavispm.measure.stars.variable_psf import (
     polynomial_epsf,
 )
 
+__all__ = [
+    "AUTO_OVERSAMPLING_X4",
+    "EPSFOptions",
+    "background_gradient",
+    "build_epsf",
+    "build_epsf_fast",
+    "build_epsf_photutils",
+    "build_field_epsf",
+    "node_positions",
+    "node_psf_stars",
+    "resolve_oversampling",
+    "select_psf_stars",
+]
+
 
 @dataclass(frozen=True)
 class EPSFOptions:

@@ -39,6 +39,13 @@ import numpy as np
 from mavispm.measure.stars.crlb import fisher_matrix, jacobian, safe_inverse
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
+__all__ = [
+    "ErrorModel",
+    "epsf_difference_shifts",
+    "estimate_error_model",
+    "flux_trend",
+]
+
 #: MAD to Gaussian sigma.
 _MAD = 1.4826
 

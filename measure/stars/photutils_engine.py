@@ -33,6 +33,12 @@ from mavispm.measure.stars.batched_fit import (
 from mavispm.measure.stars.epsf import node_positions
 from mavispm.measure.stars.variable_psf import VariableEPSF
 
+__all__ = [
+    "PhotutilsOptions",
+    "fit_stars_photutils",
+    "to_photutils_model",
+]
+
 
 @dataclass(frozen=True)
 class PhotutilsOptions:

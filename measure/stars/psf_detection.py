@@ -45,6 +45,22 @@ from scipy.spatial import cKDTree
 from mavispm.measure.stars.batched_fit import FLAG_FAILED, render_model
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
+__all__ = [
+    "DetectionOptions",
+    "MAX_USEFUL_ERROR",
+    "detect_stars",
+    "local_background_subtracted",
+    "locally_normalised",
+    "model_error_profile",
+    "noise_scale",
+    "peaks",
+    "prune",
+    "psf_kernel",
+    "sampled_epsf",
+    "significance",
+    "useful_psfs",
+]
+
 
 @dataclass(frozen=True)
 class DetectionOptions:

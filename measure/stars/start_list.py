@@ -34,6 +34,20 @@ from scipy.spatial import cKDTree
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product
 
+__all__ = [
+    "EarlierEpoch",
+    "EpochTransform",
+    "PREVIOUS_SPEC",
+    "TransferOptions",
+    "bright_peaks",
+    "centroids",
+    "fit_epoch_transform",
+    "histogram_offset",
+    "read_earlier",
+    "reference_stars",
+    "start_from_earlier",
+]
+
 #: Columns of an earlier ``measured`` product that the start list needs.
 PREVIOUS_SPEC = TableSpec(
     required={"id": "", "x_pix": "", "y_pix": "", "flux": "electron", "flag": ""},

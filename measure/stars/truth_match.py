@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+__all__ = [
+    "match_to_truth",
+]
+
 
 def match_to_truth(
     x: np.ndarray, y: np.ndarray, x_true: np.ndarray, y_true: np.ndarray, radius: float

@@ -32,6 +32,15 @@ from scipy import ndimage
 
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "StampGeometry",
+    "VariableEPSF",
+    "constant_epsf",
+    "gridded_epsf",
+    "polynomial_epsf",
+    "sample_epsf",
+]
+
 #: Zero padding (oversampled samples) added around each basis ePSF so that
 #: stamps reaching beyond the ePSF read zeros.
 _PAD = 4

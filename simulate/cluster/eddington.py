@@ -47,6 +47,17 @@ from scipy.interpolate import CubicSpline
 
 from mavispm.simulate.cluster.profiles import G_PC, MassModel
 
+__all__ = [
+    "DistributionFunction",
+    "MIN_GAMMA_WITH_BH",
+    "MIN_LOG_ENERGY_STEP",
+    "NEGATIVE_TOLERANCE",
+    "NoIsotropicDFError",
+    "RISE_TOLERANCE",
+    "check_isotropic_df_exists",
+    "eddington_df",
+]
+
 #: Minimum inner slope for an isotropic DF around a point mass (An & Evans 2006).
 MIN_GAMMA_WITH_BH = 0.5
 #: Negative DF values below this fraction of max(f) are numerical noise and clipped.

@@ -36,6 +36,12 @@ from mavispm.simulate.cluster import population as pop
 from mavispm.simulate.cluster.projection import in_square, pc_to_arcsec, sky_to_field
 from mavispm.simulate.cluster.settings import ExternalInput
 
+__all__ = [
+    "detect_format",
+    "read_external_stars",
+    "read_table",
+]
+
 _FORMATS = {
     ".csv": "csv",
     ".ecsv": "ecsv",

@@ -47,6 +47,15 @@ from mavispm.simulate.cluster.inverse_cdf import (
 )
 from mavispm.simulate.cluster.profiles import MassModel
 
+__all__ = [
+    "FieldSampler",
+    "SamplerResolution",
+    "arc_intervals",
+    "arc_measure",
+    "build_field_sampler",
+    "sample_angle",
+]
+
 Region = Literal["field", "frame"]
 
 

@@ -18,6 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
 
+__all__ = [
+    "QuantileTable",
+    "probability_levels",
+    "quantiles_from_pdf",
+]
+
 
 def probability_levels(n: int) -> np.ndarray:
     """The ``n`` probability levels ``(1 - cos(pi w)) / 2``, ``w = 0..1``.

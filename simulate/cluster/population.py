@@ -26,6 +26,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
+__all__ = [
+    "BH_SUBSYSTEM_RANGE",
+    "DARK_MAGNITUDE",
+    "MASS_LUMINOSITY_TABLE",
+    "MassFunction",
+    "MassGroup",
+    "NS_PROGENITOR_MIN",
+    "STAR_GROUP_EDGES",
+    "WD_GROUP_SPLIT",
+    "absolute_v",
+    "apparent_v",
+    "black_hole_mass",
+    "black_hole_subsystem",
+    "distance_modulus",
+    "kind_from_mass",
+    "mass_groups",
+    "neutron_star_mass",
+    "remnant_kind",
+    "remnant_mass",
+    "tip_mass",
+    "white_dwarf_mass",
+]
+
 #: Magnitude stored for dark remnants (never rendered; fainter than anything real).
 DARK_MAGNITUDE = 99.0
 

@@ -12,6 +12,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+__all__ = [
+    "ClusterPreset",
+    "NGC3201",
+    "NGC3201_NBODY",
+    "get_preset",
+]
+
 
 @dataclass(frozen=True)
 class ClusterPreset:

@@ -30,6 +30,24 @@ from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
 from scipy.special import gammainc
 
+__all__ = [
+    "G_PC",
+    "MassModel",
+    "N_RADIAL_GRID",
+    "PLUMMER_TRUNCATION",
+    "TracerProfile",
+    "build_mass_model",
+    "build_multi_mass_model",
+    "central_dispersion_cored",
+    "influence_radius",
+    "king_density_of_w",
+    "king_solution",
+    "king_w0_for_truncation",
+    "plummer_shape",
+    "projected_radii",
+    "radial_grid",
+]
+
 #: Newton's constant in pc (km/s)^2 / solMass.
 G_PC = float(const.G.to_value(u.pc * u.km**2 / u.s**2 / u.solMass))
 

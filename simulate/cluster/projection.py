@@ -18,6 +18,19 @@ from __future__ import annotations
 import astropy.units as u
 import numpy as np
 
+__all__ = [
+    "ARCSEC_PER_PC_KPC",
+    "K_PM",
+    "arcsec_to_pc",
+    "in_square",
+    "pc_to_arcsec",
+    "pm_to_velocity",
+    "propagate",
+    "rotate",
+    "sky_to_field",
+    "velocity_to_pm",
+]
+
 #: km/s per (mas/yr * kpc): v = K_PM * mu * d
 K_PM = float(
     (1 * u.mas / u.yr * u.kpc).to_value(u.km / u.s, equivalencies=u.dimensionless_angles())

@@ -14,6 +14,13 @@ from mavispm.core.config import unit_field
 from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.population import MassFunction
 
+__all__ = [
+    "ClusterSettings",
+    "DEFAULT_MARGIN",
+    "ExternalInput",
+    "MAX_SEGREGATION",
+]
+
 PM_CONVENTIONS = ("mas_per_yr", "arcsec_per_baseline")
 #: Default margin around the field [arcsec] for simulated clusters and for MAVISIM lists
 #: (MAVISIM's own buffer is 10.005").

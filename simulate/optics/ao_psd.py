@@ -31,6 +31,25 @@ import numpy as np
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import ARCSEC_PER_RAD, Layers, von_karman_psd
 
+__all__ = [
+    "AOSettings",
+    "MAVIS_FITTING_RINGS",
+    "TomographicOperator",
+    "aliasing_psd",
+    "aliasing_temporal_gain",
+    "closed_loop_transfer",
+    "control_mask",
+    "correction_residual_psd",
+    "fitting_directions",
+    "fitting_psd",
+    "fitting_weights",
+    "lgs_directions",
+    "noise_gain",
+    "noise_psd",
+    "shack_hartmann_noise",
+    "tomographic_operator",
+]
+
 #: DM optimisation directions and weights of TIPTOP's MAVIS.ini ([DM] OptimizationZenith /
 #: Azimuth / Weight): the centre, and rings of 8 at 5", 15", 37.5" and 60".
 MAVIS_FITTING_RINGS = ((0.0, 1), (5.0, 8), (15.0, 8), (37.5, 8), (60.0, 8))

@@ -13,6 +13,20 @@ import numpy as np
 
 from mavispm.core.config import unit_field
 
+__all__ = [
+    "ARCSEC_PER_RAD",
+    "AtmosphereSettings",
+    "Layers",
+    "MAS_PER_RAD",
+    "REFERENCE_WAVELENGTH",
+    "VON_KARMAN_CONSTANT",
+    "airmass",
+    "fried_parameter",
+    "layers",
+    "von_karman_psd",
+    "von_karman_variance_beyond",
+]
+
 #: arcseconds per radian
 ARCSEC_PER_RAD = 180.0 / np.pi * 3600.0
 #: milli-arcseconds per radian

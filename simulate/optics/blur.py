@@ -11,6 +11,11 @@ import numpy as np
 
 from mavispm.core.config import unit_field
 
+__all__ = [
+    "BlurSettings",
+    "blur_sigma",
+]
+
 
 @dataclass(frozen=True)
 class BlurSettings:

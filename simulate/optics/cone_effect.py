@@ -40,6 +40,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import j1
 
+__all__ = [
+    "cone_psd",
+    "footprint_coverage",
+    "pupil_coherence",
+]
+
 
 def pupil_coherence(q, diameter: float, obscuration: float = 0.0) -> np.ndarray:
     """Normalised Fourier transform of the annular pupil, ``<exp(2 pi i q.x)>_pupil``.

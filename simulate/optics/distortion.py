@@ -29,6 +29,13 @@ import numpy as np
 from mavispm.core.config import unit_field
 from mavispm.core.errors import InputError
 
+__all__ = [
+    "Distortion",
+    "DistortionSettings",
+    "SCIENCE_RADIUS",
+    "read_distortion_map",
+]
+
 #: radius of the MAVIS science field (arcsec)
 SCIENCE_RADIUS = 15.0
 

@@ -20,6 +20,15 @@ import scipy.fft
 from mavispm.simulate.optics.atmosphere import MAS_PER_RAD
 from mavispm.simulate.optics.pupil import PupilSettings, pupil_mask
 
+__all__ = [
+    "FourierSampling",
+    "fourier_sampling",
+    "psf_from_otf",
+    "strehl_ratio",
+    "structure_function",
+    "telescope_otf",
+]
+
 
 @dataclass(frozen=True)
 class FourierSampling:

@@ -41,6 +41,21 @@ import numpy as np
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.distortion import _BASIS, SCIENCE_RADIUS, _basis_rms
 
+__all__ = [
+    "DISTORTION_TERMS",
+    "ImageMotion",
+    "ImageMotionSettings",
+    "MOTION_MODES",
+    "StackMotion",
+    "budget_mode_covariance",
+    "build_image_motion",
+    "distortion_basis",
+    "effective_wind_speed",
+    "exposure_average_factor",
+    "mode_basis",
+    "noise_free_covariance",
+]
+
 #: low-order motion modes: common tilt and the linear plate-scale modes
 MOTION_MODES = ("tilt_x", "tilt_y", "scale", "rotation", "shear1", "shear2")
 #: per-exposure dynamic-distortion terms (unit RMS over the science field)

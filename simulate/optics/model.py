@@ -52,6 +52,20 @@ from mavispm.simulate.optics.seeing_halo import Halo, HaloSettings, build_halo
 from mavispm.simulate.optics.telescope import TelescopeSettings
 from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings
 
+__all__ = [
+    "HALO_CACHE_VERSION",
+    "Optics",
+    "OpticsSettings",
+    "build_optics",
+    "cached_halo",
+    "check_psf_grid_memory",
+    "control_radius_mas",
+    "make_halo",
+    "psf_grid_memory",
+    "taper_grid",
+    "validate_settings",
+]
+
 #: Version of the halo computation (part of its disk-cache key).
 HALO_CACHE_VERSION = 1
 

@@ -24,6 +24,15 @@ from matplotlib.patches import Circle, Ellipse  # noqa: E402
 from mavispm.core.atomic import atomic_path  # noqa: E402
 from mavispm.simulate.optics.distortion import SCIENCE_RADIUS  # noqa: E402
 
+__all__ = [
+    "draw_all",
+    "plot_distortion_map",
+    "plot_psf_grid",
+    "plot_psf_profile",
+    "plot_tiptilt_kernel_map",
+    "plot_tiptilt_map",
+]
+
 
 def _save(fig, path: Path) -> Path:
     with atomic_path(path) as tmp:

@@ -35,6 +35,11 @@ from mavispm.core.errors import InputError
 from mavispm.simulate.optics.atmosphere import MAS_PER_RAD
 from mavispm.simulate.optics.psf_metrics import fwhm
 
+__all__ = [
+    "MIN_FWHM_LAMBDA_OVER_D",
+    "read_mavisim_psfs",
+]
+
 _SCALE_KEYS = ("PIXSCALE", "PIXSIZE")
 _UNIT_KEYS = ("PIXUNIT", "CUNIT1")
 #: mas per unit, by the names accepted in headers and settings

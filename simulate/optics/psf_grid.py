@@ -47,6 +47,24 @@ from mavispm.simulate.optics.fourier_psf import (
 )
 from mavispm.simulate.optics.pupil import PupilSettings
 
+__all__ = [
+    "ALGORITHM_VERSION",
+    "ConeGeometry",
+    "GridResult",
+    "PSFGrid",
+    "PSFSettings",
+    "ResidualPSDModel",
+    "cached_grid",
+    "compute_fourier_grid",
+    "compute_grid",
+    "default_cache_dir",
+    "grid_key",
+    "radial_average",
+    "read_grid",
+    "residual_psd_model",
+    "write_grid",
+]
+
 #: bump when the algorithm changes so stale cache entries are not reused
 ALGORITHM_VERSION = 2  # 2: LGS cone effect, weighted fitting directions, LGS position angle
 

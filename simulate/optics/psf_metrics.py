@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = [
+    "encircled_energy",
+    "fwhm",
+    "peak_strehl",
+]
+
 
 def fwhm(psf: np.ndarray, pixel_scale: float) -> float:
     """Equivalent-circle FWHM: diameter of the disc with the area above half maximum.

@@ -8,6 +8,11 @@ import numpy as np
 
 from mavispm.core.config import unit_field
 
+__all__ = [
+    "PupilSettings",
+    "pupil_mask",
+]
+
 
 @dataclass(frozen=True)
 class PupilSettings:

@@ -20,6 +20,13 @@ from scipy.special import j0
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import ARCSEC_PER_RAD, MAS_PER_RAD, von_karman_psd
 
+__all__ = [
+    "Halo",
+    "HaloSettings",
+    "build_halo",
+    "ramp",
+]
+
 
 @dataclass(frozen=True)
 class HaloSettings:

@@ -38,6 +38,20 @@ from mavispm.simulate.optics.atmosphere import (
 )
 from mavispm.simulate.optics.pupil import PupilSettings
 
+__all__ = [
+    "KernelMap",
+    "PRESETS",
+    "TiltCovariance",
+    "TipTiltField",
+    "TipTiltSettings",
+    "atmospheric_cross_covariance",
+    "field_average_sigma",
+    "kernel_map",
+    "ngs_noise_variance",
+    "ngs_positions",
+    "tilt_covariance_function",
+]
+
 #: NGS constellations of the paper's table tab:ttjitter: (radius arcsec, angle deg, H mag)
 PRESETS: dict[str, tuple[tuple[float, float, float], ...]] = {
     "good": ((10.0, 0.0, 15.0), (10.0, 120.0, 15.0), (10.0, 240.0, 15.0)),

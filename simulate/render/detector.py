@@ -24,6 +24,15 @@ import numpy as np
 
 from mavispm.core.config import unit_field
 
+__all__ = [
+    "DetectorSettings",
+    "NOISE_CHUNK",
+    "SATURATION_SAFETY_SIGMA",
+    "expose_stack",
+    "normal_stack_draws",
+    "skewed_normal",
+]
+
 #: Pixels per chunk of the vectorised noise draw (fits in cache; fixes the random streams).
 NOISE_CHUNK = 1 << 18
 

@@ -16,6 +16,12 @@ import numba
 import numpy as np
 import scipy.fft
 
+__all__ = [
+    "add_bilinear",
+    "deposit_cic",
+    "halo_field",
+]
+
 
 def deposit_cic(field: np.ndarray, x: np.ndarray, y: np.ndarray, weight: np.ndarray) -> None:
     """Add ``weight`` at sub-pixel positions (x, y) with cloud-in-cell weights (in place).

@@ -21,6 +21,11 @@ from mavispm.simulate.render.detector import DetectorSettings
 from mavispm.simulate.render.stamps import RenderParams
 from mavispm.simulate.render.zero_point import PhotometrySettings
 
+__all__ = [
+    "SceneSettings",
+    "scene_from_mapping",
+]
+
 
 @dataclass(frozen=True)
 class SceneSettings:

@@ -23,6 +23,14 @@ import numba
 import numpy as np
 import scipy.sparse
 
+__all__ = [
+    "add_stamps",
+    "binned_max",
+    "mix_kernel_fold",
+    "mix_kernel_fold_numpy",
+    "wrap_2d_into",
+]
+
 
 def mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, target, out):
     """Reference implementation (adds into ``out`` (S, n_out)). ``coef`` (S, 3) = (a, b, c).

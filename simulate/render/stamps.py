@@ -48,6 +48,18 @@ from mavispm.simulate.render.stamp_kernels import (
     wrap_2d_into,
 )
 
+__all__ = [
+    "FLOAT32_ROUNDOFF",
+    "PLAN_CACHE_VERSION",
+    "PLAN_FLOOR_DECADES",
+    "RenderParams",
+    "STAMP_CENTRE_BIAS",
+    "STAMP_SIZES",
+    "StampPlan",
+    "StarRenderer",
+    "stamp_centre",
+]
+
 #: Round-off of a float32 stamp relative to its flux (measured: ~1e-7 of the peak).
 FLOAT32_ROUNDOFF = 3e-8
 
