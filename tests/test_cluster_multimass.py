@@ -24,13 +24,12 @@ from hypothesis import strategies as st
 
 from mavispm.simulate.cluster import population as pop
 from mavispm.simulate.cluster.eddington import NoIsotropicDFError
-from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.generator import (
     build_cluster_model,
     sample_stars,
     simulate_catalogue,
 )
-from mavispm.simulate.cluster.settings import ClusterSettings
+from mavispm.simulate.cluster.settings import ClusterKnobs, ClusterSettings
 
 N_BINS = 15
 #: Osipkov-Merritt radius used in the tests [arcsec] (6.7 pc at 4.6 kpc).
@@ -269,7 +268,7 @@ def test_core_collapse_cusp_has_the_post_collapse_projected_slope():
     assert slope[0] == pytest.approx(-0.8, abs=max(0.1, 4 * np.sqrt(cov[0, 0])))
 
 
-FAST = SamplerResolution(n_energy=300, n_rows=40, n_levels=129, n_los=128, n_speed=128)
+FAST = ClusterKnobs(n_energy=300, n_rows=40, n_levels=129, n_los=128, n_speed=128)
 
 
 # ---------------------------------------------------------------- stress and bad input
@@ -310,7 +309,7 @@ def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, 
             bh_subsystem_mass=bhs,
             imbh_mass=imbh,
             n_stars=300,
-            resolution=FAST,
+            knobs=FAST,
         )
         model = build_cluster_model(settings)
     except (NoIsotropicDFError, ValueError) as exc:

@@ -14,6 +14,7 @@ from mavispm.core.catalogue import write_catalogue
 from mavispm.core.cliargs import non_negative_int, positive_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.knobs import gather_knobs
 from mavispm.simulate.cluster.eddington import NoIsotropicDFError, check_isotropic_df_exists
 from mavispm.simulate.cluster.external import read_external_stars
 from mavispm.simulate.cluster.generator import (
@@ -24,7 +25,7 @@ from mavispm.simulate.cluster.generator import (
     stars_to_epoch_tables,
 )
 from mavispm.simulate.cluster.presets import get_preset
-from mavispm.simulate.cluster.settings import ClusterSettings
+from mavispm.simulate.cluster.settings import CLUSTER_KNOB_HOMES, ClusterSettings
 
 #: Largest IMBH mass accepted, as a fraction of the cluster's stellar mass (observed
 #: candidates are a few per cent; above this the "cluster" is a galaxy nucleus).
@@ -41,7 +42,8 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
     Parameters
     ----------
     settings : mapping or None
-        The ``[cluster]`` table (None: defaults).
+        The ``[cluster]`` table (None: defaults); the knobs may be given in ``knobs`` or in
+        the earlier ``resolution`` table, not both for one knob.
     source : str, optional
         File named in error messages.
 
@@ -56,7 +58,8 @@ def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
         Unknown keys, wrong types or units, impossible values, an unknown preset,
         or a cored tracer around an IMBH.
     """
-    obj = from_mapping(ClusterSettings, settings, source=source)
+    mapping = gather_knobs(settings, CLUSTER_KNOB_HOMES, ("resolution",), source=source)
+    obj = from_mapping(ClusterSettings, mapping, source=source)
     from mavispm.core.limits import check_memory
 
     check_memory(

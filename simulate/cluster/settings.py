@@ -1,7 +1,19 @@
 """Settings of the ``simulate cluster`` stage (one frozen dataclass, TOML table ``[cluster]``).
 
 Every key is documented in ``docs/cluster.md``. Values left ``None`` take the
-preset's value (or an automatic one, as noted per key).
+preset's value (or an automatic one, as noted per key). The accuracy and speed knobs (the
+sampler's table sizes) are one object apart from the model, :class:`ClusterKnobs`
+(``settings.knobs``, TOML table ``[cluster.knobs]``; the earlier ``[cluster.resolution]``
+table is still accepted, see :mod:`mavispm.core.knobs`).
+
+Example
+-------
+>>> from mavispm.simulate.cluster.cli import validate_settings
+>>> s = validate_settings({"n_stars": 100, "knobs": {"n_rows": 64}})
+>>> s.knobs.n_rows, s.knobs.n_energy, s.resolution is s.knobs
+(64, 800, True)
+>>> validate_settings({"resolution": {"n_rows": 64}, "n_stars": 100}) == s
+True
 """
 
 from __future__ import annotations
@@ -15,6 +27,8 @@ from mavispm.simulate.cluster.field_sampler import SamplerResolution
 from mavispm.simulate.cluster.population import MassFunction
 
 __all__ = [
+    "CLUSTER_KNOB_HOMES",
+    "ClusterKnobs",
     "ClusterSettings",
     "DEFAULT_MARGIN",
     "ExternalInput",
@@ -28,6 +42,36 @@ DEFAULT_MARGIN = 1.0
 MAVISIM_MARGIN = 10.0
 #: Largest mass-segregation exponent accepted (scale radius ~ mass^-segregation).
 MAX_SEGREGATION = 1.5
+
+
+@dataclass(frozen=True)
+class ClusterKnobs(SamplerResolution):
+    """Accuracy and speed knobs of the cluster stage (``[cluster.knobs]``).
+
+    The table sizes of the DF and of the field sampler's inverse-CDF tables: none changes
+    the model, only how closely the drawn stars follow it and how fast they are drawn
+    (``benchmarks/bench_cluster.py`` tabulates the Jeans agreement against them). Every
+    value must be at least 8.
+
+    Attributes
+    ----------
+    n_energy : int
+        Energy grid of the Eddington DF table.
+    n_rows : int
+        Rows (conditioning values) of the line-of-sight and speed quantile tables.
+    n_levels : int
+        Probability levels per row.
+    n_los : int
+        Line-of-sight grid points per row used to build the z table.
+    n_speed : int
+        Speed grid points per row used to build the speed table.
+    n_radius : int
+        Points of the projected-radius CDF.
+    """
+
+
+#: Knob -> its home before ``[cluster.knobs]`` existed (the ``[cluster.resolution]`` table).
+CLUSTER_KNOB_HOMES = {f.name: ("resolution",) for f in dataclasses.fields(ClusterKnobs)}
 
 
 @dataclass(frozen=True)
@@ -80,7 +124,78 @@ class ExternalInput:
 
 @dataclass(frozen=True)
 class ClusterSettings:
-    """Settings of the cluster catalogue stage (see ``docs/cluster.md``)."""
+    """Settings of the cluster catalogue stage (see ``docs/cluster.md``, which gives every
+    default and where the preset supplies a value left None).
+
+    Attributes
+    ----------
+    preset : str
+        Cluster preset (``"ngc3201"``, ``"ngc3201-nbody"``, ...).
+    imbh_mass : float
+        Central IMBH mass [solMass] (0: none).
+    n_stars : int
+        Luminous stars inside the field square.
+    field_size : float
+        Side of the square field [arcsec].
+    margin : float or None
+        Width of the populated frame around the field [arcsec] (None: 1, or 10 for MAVISIM
+        lists).
+    epochs : list of float
+        Epochs written [yr].
+    reference_epoch : float
+        Epoch of the sampled positions [yr].
+    tracer : {"plummer", "king"} or None
+        Density profile of the stars.
+    king_w0 : float or None
+        King (1966) central potential W0, in [0.1, 20].
+    stellar_mass : float or None
+        Total stellar mass [solMass].
+    half_light_radius : float or None
+        Projected half-mass radius that sets the scale radius [arcmin].
+    scale_radius : float or None
+        Plummer ``a`` / King ``r0`` [pc]; overrides ``half_light_radius``.
+    cusp_gamma : float or None
+        Inner cusp slope, in [0, 2.5).
+    cusp_radius : float or None
+        Radius of the cusp [pc].
+    distance : float or None
+        Heliocentric distance [kpc].
+    extinction_v : float or None
+        V-band extinction A_V [mag].
+    ra_center, dec_center : float or None
+        Cluster centre [deg].
+    offset_x, offset_y : float
+        Field centre relative to the cluster centre, sky frame [arcsec].
+    rotation : float
+        Field rotation, counter-clockwise [deg].
+    pm_sys_x, pm_sys_y : float
+        Systemic proper motion added, field frame [mas/yr].
+    include_remnants : bool
+        Add dark remnants (white dwarfs, neutron stars, black holes).
+    mass_min, mass_break, mass_max : float
+        IMF lower limit, break and upper limit [solMass].
+    alpha_low, alpha_high : float or None
+        Mass-function slopes ``dN/dm ~ m^-alpha`` below and above the break, in [-1, 4].
+    ns_retention, bh_retention : float or None
+        Retained fractions of neutron stars and IMF black holes, in [0, 1].
+    segregation : float or None
+        Mass-segregation exponent (group scale radius ``~ m^-segregation``), in [0, 1.5].
+    anisotropy_radius : float or None
+        Osipkov-Merritt anisotropy radius [arcsec] (None: isotropic).
+    anisotropy_beta : float
+        Constant anisotropy, in (-0.5, 0.5); not with ``anisotropy_radius``.
+    bh_subsystem_mass : float
+        Total mass of a 10-20 solMass black-hole subsystem [solMass] (0 or >= 10).
+    bh_subsystem_radius : float or None
+        Scale radius of the black-hole subsystem [pc].
+    core_collapse : bool
+        Core-collapse-like cusp without IMBH.
+    knobs : ClusterKnobs
+        Accuracy and speed knobs (the sampler's table sizes); also readable as
+        ``resolution``, their earlier name.
+    external : ExternalInput
+        An external star list used instead of the model.
+    """
 
     preset: str = "ngc3201"
     imbh_mass: float = unit_field(0.0, "solMass")
@@ -119,8 +234,13 @@ class ClusterSettings:
     bh_subsystem_mass: float = unit_field(0.0, "solMass")
     bh_subsystem_radius: float | None = unit_field(None, "pc")
     core_collapse: bool = False
-    resolution: SamplerResolution = field(default_factory=SamplerResolution)
+    knobs: ClusterKnobs = field(default_factory=ClusterKnobs)
     external: ExternalInput = field(default_factory=ExternalInput)
+
+    @property
+    def resolution(self) -> ClusterKnobs:
+        """The knobs under their earlier name (``[cluster.resolution]``)."""
+        return self.knobs
 
     def __post_init__(self):
         if self.margin is None:  # MAVISIM lists carry a 10" buffer whose light reaches the field
@@ -197,5 +317,18 @@ class ClusterSettings:
                 raise ValueError(f"'{key}' {what}")
 
     def replace(self, **changes) -> ClusterSettings:
-        """Copy with some values changed."""
+        """Copy with some values changed.
+
+        Parameters
+        ----------
+        **changes
+            Field values by name (``resolution=`` is taken as ``knobs=``).
+
+        Returns
+        -------
+        ClusterSettings
+            The new settings (validated again).
+        """
+        if "resolution" in changes:
+            changes["knobs"] = changes.pop("resolution")
         return dataclasses.replace(self, **changes)
