@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from mavispm.workflows.graph import Node
-from mavispm.workflows.registry import StageRegistry
+from mavispm.workflows.registry import StageRegistry, resolve
 
 __all__ = [
     "Store",
@@ -163,10 +163,12 @@ def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, s
         for name, path in node.external.items():
             inputs[name] = "file:" + file_digest(path)
         spec = registry[node.stage]
+        canonical = resolve(spec.canonical)
+        settings = node.settings if canonical is None else canonical(node.settings)
         record = {
             "stage": node.stage,
             "code": spec.code_version(),
-            "settings": without_keys(node.settings, spec.ui_keys),
+            "settings": without_keys(settings, spec.ui_keys),
             "params": node.params,
             "seed": node.seed,
             "inputs": inputs,

@@ -107,6 +107,10 @@ class StageSpec:
         Dotted settings keys that change neither the results nor the products'
         data (progress bars, thread counts); they are left out of the task key,
         so toggling them reuses the cached products.
+    canonical : str or None
+        ``"module:function"`` mapping the stage's settings table to one canonical
+        spelling before it is hashed (the knobs moved to their home keys, so that
+        ``[x.knobs] k = 1`` and ``[x] k = 1`` share a key); None: hashed as given.
     """
 
     name: str
@@ -118,6 +122,7 @@ class StageSpec:
     version: str = ""
     exclusive: bool = False
     ui_keys: tuple[str, ...] = ()
+    canonical: str | None = None
 
     def code_version(self) -> str:
         """Digest of the package version, ``version`` and the ``code`` files."""

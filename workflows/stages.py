@@ -37,8 +37,15 @@ import numpy as np
 from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
 
 __all__ = [
+    "KNOB_STAGES",
     "STAGE_MODULES",
     "UI_KEYS",
+    "canonical_cluster",
+    "canonical_frames",
+    "canonical_optics",
+    "canonical_propermotions",
+    "canonical_settings",
+    "canonical_stars",
     "default_registry",
     "product_metrics",
     "run_cluster",
@@ -79,6 +86,10 @@ UI_KEYS = {
     "dynamics": ("progress",),
 }
 
+#: Stages whose settings tables hold accuracy/speed knobs: their canonical spelling
+#: (:func:`canonical_settings`) is hashed, so where a knob is written does not matter.
+KNOB_STAGES = ("cluster", "optics", "frames", "stars", "propermotions")
+
 #: Files every stage's key depends on (the shared product format).
 COMMON_CODE = ("core/*.py",)
 
@@ -97,6 +108,7 @@ def default_registry() -> StageRegistry:
                 code=COMMON_CODE + code,
                 exclusive=name == "dynamics",  # draws plots with pyplot
                 ui_keys=UI_KEYS.get(name, ()),
+                canonical=f"{_THIS}:canonical_{name}" if name in KNOB_STAGES else None,
             )
         )
     return StageRegistry.of(specs)
@@ -104,6 +116,132 @@ def default_registry() -> StageRegistry:
 
 def _stage(name: str):
     return resolve(f"{STAGE_MODULES[name][0]}:run_stage")
+
+
+def _scatter(settings: Mapping, stage: str) -> dict:
+    from mavispm.core.knobs import scatter_knobs
+
+    if stage == "cluster":
+        from mavispm.simulate.cluster.settings import CLUSTER_KNOB_HOMES as homes
+    elif stage == "optics":
+        from mavispm.simulate.optics.model import OPTICS_KNOB_HOMES as homes
+    elif stage == "stars":
+        from mavispm.measure.stars.settings import KNOB_NAMES
+
+        homes = {name: () for name in KNOB_NAMES}
+    else:
+        from mavispm.measure.propermotions.settings import PM_KNOB_HOMES as homes
+    return scatter_knobs(settings, homes)
+
+
+def canonical_settings(settings: Mapping, stage: str) -> dict:
+    """A stage's settings table with its knobs at their home keys (for cache keys).
+
+    ``[cluster.knobs]`` entries go to ``[cluster.resolution]``, ``[scene.optics.knobs]``
+    to ``[scene.optics.psf]`` (also inside a frames node's scene table), and those of
+    ``[measure.knobs]`` and ``[propermotions.knobs]`` to flat keys: the spelling of
+    workflows written before the knobs tables, whose keys therefore stay the same.
+
+    Parameters
+    ----------
+    settings : mapping
+        The stage's settings table, as written.
+    stage : str
+        Stage name (``cluster``, ``optics``, ``frames``, ``stars``, ``propermotions``).
+
+    Returns
+    -------
+    dict
+        The canonical table (a copy; other stages' tables are returned as given).
+    """
+    if stage == "frames":
+        out = dict(settings)
+        if isinstance(out.get("optics"), Mapping):
+            out["optics"] = _scatter(out["optics"], "optics")
+        return out
+    if stage not in KNOB_STAGES:
+        return dict(settings)
+    return _scatter(settings, stage)
+
+
+def canonical_cluster(settings: Mapping) -> dict:
+    """:func:`canonical_settings` of a ``[cluster]`` table.
+
+    Parameters
+    ----------
+    settings : mapping
+        The table.
+
+    Returns
+    -------
+    dict
+        Its canonical spelling.
+    """
+    return canonical_settings(settings, "cluster")
+
+
+def canonical_optics(settings: Mapping) -> dict:
+    """:func:`canonical_settings` of a ``[scene.optics]`` table.
+
+    Parameters
+    ----------
+    settings : mapping
+        The table.
+
+    Returns
+    -------
+    dict
+        Its canonical spelling.
+    """
+    return canonical_settings(settings, "optics")
+
+
+def canonical_frames(settings: Mapping) -> dict:
+    """:func:`canonical_settings` of a ``[scene]`` table (its ``optics`` sub-table).
+
+    Parameters
+    ----------
+    settings : mapping
+        The table.
+
+    Returns
+    -------
+    dict
+        Its canonical spelling.
+    """
+    return canonical_settings(settings, "frames")
+
+
+def canonical_stars(settings: Mapping) -> dict:
+    """:func:`canonical_settings` of a ``[measure]`` table.
+
+    Parameters
+    ----------
+    settings : mapping
+        The table.
+
+    Returns
+    -------
+    dict
+        Its canonical spelling.
+    """
+    return canonical_settings(settings, "stars")
+
+
+def canonical_propermotions(settings: Mapping) -> dict:
+    """:func:`canonical_settings` of a ``[propermotions]`` table.
+
+    Parameters
+    ----------
+    settings : mapping
+        The table.
+
+    Returns
+    -------
+    dict
+        Its canonical spelling.
+    """
+    return canonical_settings(settings, "propermotions")
 
 
 def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:

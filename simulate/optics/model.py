@@ -16,7 +16,20 @@ blur       charge diffusion and vibration         ``simulate.optics.blur``
 distortion static and dynamic distortion          ``simulate.optics.distortion``
 image_     per-exposure image motion and dynamic  ``simulate.optics.image_motion``
 motion     distortion of stacks
+knobs      accuracy and speed knobs (below)
 ========== ===================================== ==========================
+
+The accuracy and speed knobs (:class:`OpticsKnobs`, GalSim's GSParams pattern) are one
+object apart from the optical model: set them in ``[scene.optics.knobs]`` or, as before,
+in ``[scene.optics.psf]`` (not both for one knob), and read them as ``settings.knobs``.
+They are stored in the ``psf`` term that uses them, so the PSF-grid cache key does not
+depend on where they were given.
+
+Example
+-------
+>>> s = validate_settings({"knobs": {"pupil_sampling": 64}, "psf": {"n_nodes": 5}})
+>>> s.knobs.pupil_sampling, s.knobs.n_nodes, s.psf.pupil_sampling
+(64, 5, 64)
 """
 
 from __future__ import annotations
@@ -30,6 +43,7 @@ import numpy as np
 
 from mavispm.core.array_cache import content_key, load_arrays, save_arrays
 from mavispm.core.config import from_mapping
+from mavispm.core.knobs import gather_knobs, scatter_knobs
 from mavispm.simulate.optics.ao_psd import AOSettings
 from mavispm.simulate.optics.atmosphere import (
     MAS_PER_RAD,
@@ -53,6 +67,8 @@ from mavispm.simulate.optics.telescope import TelescopeSettings
 from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings
 
 __all__ = [
+    "OPTICS_KNOB_HOMES",
+    "OpticsKnobs",
     "HALO_CACHE_VERSION",
     "Optics",
     "OpticsSettings",
@@ -71,8 +87,64 @@ HALO_CACHE_VERSION = 1
 
 
 @dataclass(frozen=True)
+class OpticsKnobs:
+    """Accuracy and speed knobs of the optics (``[scene.optics.knobs]``).
+
+    None changes the optical model, only how finely the PSF grid samples it and the memory
+    it takes; the defaults are those of :class:`~mavispm.simulate.optics.psf_grid.PSFSettings`
+    (docs/optics.md gives the accuracy against each).
+
+    Attributes
+    ----------
+    n_nodes : int
+        PSF-grid nodes per side over ``psf.field_size`` (field sampling of the PSF).
+    pupil_sampling : int
+        Pupil-plane samples across the diameter.
+    psd_padding : float
+        PSD grid period over the pupil diameter.
+    chunk : int
+        Directions per vectorised PSD batch (memory only; not part of the PSF-grid key).
+    """
+
+    n_nodes: int = PSFSettings.n_nodes
+    pupil_sampling: int = PSFSettings.pupil_sampling
+    psd_padding: float = PSFSettings.psd_padding
+    chunk: int = PSFSettings.chunk
+
+
+#: Knob -> its home table in ``[scene.optics]`` (where the optics model reads it).
+OPTICS_KNOB_HOMES = {f.name: ("psf",) for f in dataclasses.fields(OpticsKnobs)}
+
+
+@dataclass(frozen=True)
 class OpticsSettings:
-    """All optics settings (TOML table ``[scene.optics]``), one sub-table per term."""
+    """All optics settings (TOML table ``[scene.optics]``), one sub-table per term.
+
+    Attributes
+    ----------
+    atmosphere : AtmosphereSettings
+        Seeing, Cn^2 profile, winds, outer scale.
+    pupil : PupilSettings
+        Telescope pupil.
+    ao : AOSettings
+        MCAO system and its error terms.
+    psf : PSFSettings
+        PSF-grid mode, wavelength, sampling and field (holds the knobs).
+    halo : HaloSettings
+        Seeing-wing kernel.
+    tiptilt : TipTiltSettings
+        NGS asterism and tip-tilt residual.
+    blur : BlurSettings
+        Charge diffusion and vibration.
+    distortion : DistortionSettings
+        Static and dynamic distortion.
+    refraction : RefractionSettings
+        Differential atmospheric refraction.
+    telescope : TelescopeSettings
+        Plate-scale changes and telescope field distortion.
+    image_motion : ImageMotionSettings
+        Per-exposure image motion and dynamic distortion of stacks.
+    """
 
     atmosphere: AtmosphereSettings = field(default_factory=AtmosphereSettings)
     pupil: PupilSettings = field(default_factory=PupilSettings)
@@ -86,6 +158,11 @@ class OpticsSettings:
     telescope: TelescopeSettings = field(default_factory=TelescopeSettings)
     image_motion: ImageMotionSettings = field(default_factory=ImageMotionSettings)
 
+    @property
+    def knobs(self) -> OpticsKnobs:
+        """The accuracy and speed knobs as one object (read from the ``psf`` term)."""
+        return OpticsKnobs(**{name: getattr(self.psf, name) for name in OPTICS_KNOB_HOMES})
+
 
 def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
     """Build :class:`OpticsSettings` from the ``[scene.optics]`` table.
@@ -93,7 +170,8 @@ def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
     Parameters
     ----------
     mapping : mapping or None
-        The ``[scene.optics]`` table (None: defaults).
+        The ``[scene.optics]`` table (None: defaults); the knobs may be given in
+        ``knobs`` or in ``psf``, not both for one knob.
     source : str, optional
         File named in error messages.
 
@@ -107,6 +185,11 @@ def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
     ConfigError
         Unknown keys, wrong types or units, impossible values (naming the key).
     """
+    mapping = dict(mapping or {})
+    gathered = gather_knobs(mapping, OPTICS_KNOB_HOMES, prefix="scene.optics", source=source)
+    if mapping.get("knobs") is not None:  # names a bad knob key or value where it was given
+        from_mapping(OpticsKnobs, mapping["knobs"], prefix="scene.optics.knobs", source=source)
+    mapping = scatter_knobs(gathered, OPTICS_KNOB_HOMES)
     settings = from_mapping(OpticsSettings, mapping, prefix="scene.optics", source=source)
     check_psf_grid_memory(settings, source)
     return settings
