@@ -36,6 +36,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -56,6 +57,7 @@ __all__ = [
     "dispersion_profiles",
     "KEY_DYNAMICS_METRICS",
     "model_comparison",
+    "nest_headings",
     "panel_title",
     "PAPER_BINS",
     "pm_accuracy",
@@ -1098,6 +1100,51 @@ def _safe(func, *args) -> str:
         return f"*This section could not be produced: {type(exc).__name__}: {exc}*\n"
 
 
+def nest_headings(markdown: str, levels: int) -> str:
+    r"""Markdown with every ATX heading moved ``levels`` levels down (at most ``######``).
+
+    A stage report is a standalone page with its own ``#`` title; inside the run report it
+    sits below ``## <stage> report`` and ``### <group>``, so its headings are demoted to keep
+    one ``#`` per document and the levels nested. Lines inside fenced code blocks are left
+    as they are.
+
+    Parameters
+    ----------
+    markdown : str
+        The page.
+    levels : int
+        Levels added to every heading (>= 0).
+
+    Returns
+    -------
+    str
+        The page with demoted headings.
+
+    Examples
+    --------
+    >>> print(nest_headings("# Title\n\n## Part\n```\n# code\n```", 3))
+    #### Title
+    <BLANKLINE>
+    ##### Part
+    ```
+    # code
+    ```
+    """
+    out, fence = [], None
+    for line in markdown.split("\n"):
+        stripped = line.lstrip()
+        marker = stripped[:3]
+        if marker in ("```", "~~~"):
+            fence = None if fence == marker else (fence or marker)
+        elif fence is None:
+            m = re.match(r"^( {0,3})(#{1,6})(?=\s|$)", line)
+            if m:
+                depth = min(len(m.group(2)) + levels, 6)
+                line = m.group(1) + "#" * depth + line[m.end() :]
+        out.append(line)
+    return "\n".join(out)
+
+
 def _stage_reports(
     summary: Mapping, rundir: Path, outdir: Path, reports: Mapping[str, str]
 ) -> list[str]:
@@ -1137,8 +1184,8 @@ def _stage_reports(
                 rel = _rel(f, rundir)
                 if f.suffix == ".png":
                     parts.append(f"![{f.stem}]({rel})\n")
-                elif f.suffix == ".md":
-                    parts.append(f.read_text() + "\n")
+                elif f.suffix == ".md":  # a standalone page: its headings go below ### name
+                    parts.append(nest_headings(f.read_text(), 3) + "\n")
                 else:
                     parts.append(f"- [{f.name}]({rel})\n")
     return parts
