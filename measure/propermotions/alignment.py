@@ -112,7 +112,7 @@ class TransformModel:
             return "shift+scale+rotation"
         return {1: "linear", 2: "quadratic", 3: "cubic"}[self.order]
 
-    def design(self, x, y) -> np.ndarray:
+    def design(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Stacked design matrix: rows ``[X equations; Y equations]``.
 
         Parameters
@@ -142,7 +142,7 @@ class TransformModel:
         a[n:, m:] = basis
         return a
 
-    def basis(self, u_, v_) -> np.ndarray:
+    def basis(self, u_: np.ndarray, v_: np.ndarray) -> np.ndarray:
         """Monomials ``u**i v**j`` in normalised coordinates, shape (n, n_terms).
 
         Parameters
@@ -172,7 +172,7 @@ class TransformModel:
         p[m + self.terms.index((0, 1))] = self.length
         return p
 
-    def features(self, x, y) -> np.ndarray:
+    def features(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Precomputed position features: the basis (n, n_terms), or (n, 2) ``u, v`` if conformal.
 
         Computing them once and passing them to :meth:`apply` and
@@ -189,7 +189,13 @@ class TransformModel:
             return np.column_stack([u_, v_])
         return self.basis(u_, v_)
 
-    def apply(self, params, x=None, y=None, features=None) -> tuple[np.ndarray, np.ndarray]:
+    def apply(
+        self,
+        params: np.ndarray,
+        x: np.ndarray | None = None,
+        y: np.ndarray | None = None,
+        features: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Map epoch-frame positions [arcsec] (or their :meth:`features`) to the reference frame.
 
         Parameters
@@ -214,7 +220,9 @@ class TransformModel:
         m = f.shape[1]
         return f @ params[:m], f @ params[m:]
 
-    def normal_equations(self, features, wx, wy, bx, by) -> tuple[np.ndarray, np.ndarray]:
+    def normal_equations(
+        self, features: np.ndarray, wx: np.ndarray, wy: np.ndarray, bx: np.ndarray, by: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Weighted normal equations ``A^T W A`` and ``A^T W b`` of the stacked problem.
 
         Parameters
@@ -243,7 +251,7 @@ class TransformModel:
         rhs = np.concatenate([features.T @ (wx * bx), features.T @ (wy * by)])
         return gram, rhs
 
-    def jacobian(self, params, x, y) -> np.ndarray:
+    def jacobian(self, params: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Jacobian ``d(X, Y) / d(x, y)`` at each position (analytic), shape (n, 2, 2).
 
         Parameters
@@ -280,7 +288,9 @@ class TransformModel:
         jac[:, 1, 1] = d_dv @ params[m:]
         return jac
 
-    def position_covariance(self, cov, x, y) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def position_covariance(
+        self, cov: np.ndarray, x: np.ndarray, y: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Variance of the mapped positions due to a parameter covariance.
 
         Parameters
@@ -356,7 +366,7 @@ class AlignmentFit:
     iterations: int = 0
     notes: list[str] = field(default_factory=list)
 
-    def apply(self, x, y):
+    def apply(self, x: np.ndarray, y: np.ndarray):
         """Map epoch-frame positions [arcsec] onto the reference frame [arcsec].
 
         Parameters
@@ -478,14 +488,14 @@ def _weighted_solve(gram, rhs, what):
 
 
 def fit_transform(
-    x,
-    y,
-    x_ref,
-    y_ref,
-    var_x,
-    var_y,
+    x: np.ndarray,
+    y: np.ndarray,
+    x_ref: np.ndarray,
+    y_ref: np.ndarray,
+    var_x: np.ndarray,
+    var_y: np.ndarray,
     model: TransformModel,
-    candidates=None,
+    candidates: np.ndarray | None = None,
     clip_sigma: float = 4.0,
     max_iter: int = 10,
     what: str = "alignment",
@@ -598,7 +608,9 @@ def fit_transform(
     )
 
 
-def higher_order_p_value(fit: AlignmentFit, x, y, x_ref, y_ref) -> float | None:
+def higher_order_p_value(
+    fit: AlignmentFit, x: np.ndarray, y: np.ndarray, x_ref: np.ndarray, y_ref: np.ndarray
+) -> float | None:
     """Probability that the next polynomial order improves the fit only by chance.
 
     Refits the final reference stars with the same weights (the jitter
@@ -638,7 +650,7 @@ def higher_order_p_value(fit: AlignmentFit, x, y, x_ref, y_ref) -> float | None:
     return float(stats.chi2.sf(fit.chi2 - chi2, higher.n_params - fit.model.n_params))
 
 
-def normalisation_length(x, y) -> float:
+def normalisation_length(x: np.ndarray, y: np.ndarray) -> float:
     """Conditioning length ``L`` [arcsec]: the largest distance of a star from the origin.
 
     Parameters
@@ -656,7 +668,15 @@ def normalisation_length(x, y) -> float:
     return float(max(np.max(r) if r.size else 1.0, 1e-3))
 
 
-def project_displacements(fit: AlignmentFit, x, y, dx, dy, x_eval, y_eval):
+def project_displacements(
+    fit: AlignmentFit,
+    x: np.ndarray,
+    y: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    x_eval: np.ndarray,
+    y_eval: np.ndarray,
+):
     """The part of a displacement field a transformation fit with ``fit``'s weights absorbs.
 
     Fits the model's linear part (the transformation minus identity has the same

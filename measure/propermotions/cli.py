@@ -141,7 +141,12 @@ def proper_motions(
     return stars
 
 
-def run_stage(measured, settings, output, truth=None) -> Path:
+def run_stage(
+    measured: Sequence[str | os.PathLike],
+    settings: Mapping | ProperMotionSettings | None,
+    output: str | os.PathLike,
+    truth: str | os.PathLike | None = None,
+) -> Path:
     """Match, align and fit proper motions; write the propermotions product.
 
     Parameters
@@ -212,7 +217,7 @@ def accuracy_attrs(stars: QTable) -> dict:
     return out
 
 
-def summary_line(path) -> str:
+def summary_line(path: str | os.PathLike) -> str:
     """One-line summary of a propermotions product (stars, matching, clipping, notes).
 
     Parameters
@@ -262,7 +267,7 @@ def _handler(args) -> int:
     return 0
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``propermotions`` sub-command.
 
     Parameters

@@ -12,6 +12,7 @@ stars claiming the same star) and unmatched stars are reported.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,7 +66,7 @@ class EpochMatch:
         return np.count_nonzero(self.index >= 0, axis=1)
 
 
-def ids_are_shared(ids_list) -> bool:
+def ids_are_shared(ids_list: Sequence[np.ndarray]) -> bool:
     """Whether every epoch shares most IDs with the first (so matching by ID is sound).
 
     Parameters
@@ -85,7 +86,7 @@ def ids_are_shared(ids_list) -> bool:
     return True
 
 
-def match_by_id(ids_list) -> EpochMatch:
+def match_by_id(ids_list: Sequence[np.ndarray]) -> EpochMatch:
     """Match stars by ID: one row per ID present in any epoch.
 
     Parameters
@@ -131,7 +132,9 @@ def _nearest_unique(tree: cKDTree, x, y, radius):
     return nearest, ambiguous, dup
 
 
-def match_by_position(xy_list, reference: int, radius: float) -> EpochMatch:
+def match_by_position(
+    xy_list: Sequence[tuple[np.ndarray, np.ndarray]], reference: int, radius: float
+) -> EpochMatch:
     """Match each epoch to the reference epoch by position.
 
     Parameters
@@ -189,7 +192,13 @@ def match_by_position(xy_list, reference: int, radius: float) -> EpochMatch:
     )
 
 
-def match_epochs(ids_list, xy_list, reference: int, radius: float, method: str = "auto"):
+def match_epochs(
+    ids_list: Sequence[np.ndarray],
+    xy_list: Sequence[tuple[np.ndarray, np.ndarray]],
+    reference: int,
+    radius: float,
+    method: str = "auto",
+):
     """Match stars over epochs by ID or by position.
 
     Parameters

@@ -96,7 +96,16 @@ def _axis_fit(t, pos, var, valid, t_ref):
     return mu, 1.0 / s, x0, chi2, coef
 
 
-def fit_linear_motion(t, x, y, var_x, var_y, cov_xy, valid, t_ref: float) -> LinearMotion:
+def fit_linear_motion(
+    t: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    var_x: np.ndarray,
+    var_y: np.ndarray,
+    cov_xy: np.ndarray,
+    valid: np.ndarray,
+    t_ref: float,
+) -> LinearMotion:
     """Weighted least-squares proper motions of many stars at once.
 
     Parameters
@@ -138,7 +147,16 @@ def fit_linear_motion(t, x, y, var_x, var_y, cov_xy, valid, t_ref: float) -> Lin
     )
 
 
-def radial_tangential(x, y, pm_x, pm_y, var_x, var_y, cov_xy, center=(0.0, 0.0)):
+def radial_tangential(
+    x: np.ndarray,
+    y: np.ndarray,
+    pm_x: np.ndarray,
+    pm_y: np.ndarray,
+    var_x: np.ndarray,
+    var_y: np.ndarray,
+    cov_xy: np.ndarray,
+    center: tuple[float, float] = (0.0, 0.0),
+):
     """Radial and tangential proper-motion components about a centre.
 
     ``pm_r = (dx pm_x + dy pm_y) / R`` (positive outwards), ``pm_t = (dx pm_y - dy pm_x) / R``

@@ -21,6 +21,7 @@ error against magnitude and radius and of the normalised residuals.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -405,7 +406,9 @@ def _write_ecsv(table: QTable, path: Path) -> None:
         table.write(tmp, format="ascii.ecsv", overwrite=True)
 
 
-def write_report(pm_paths, outdir) -> list[Path]:
+def write_report(
+    pm_paths: str | os.PathLike | Sequence[str | os.PathLike], outdir: str | os.PathLike
+) -> list[Path]:
     """Write the accuracy report of one or more propermotions products.
 
     Parameters

@@ -18,6 +18,7 @@ True
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -149,7 +150,9 @@ class ProperMotionSettings:
             raise ValueError("poor_fit_p must be in [0, 1)")
 
 
-def validate_settings(settings=None, source=None) -> ProperMotionSettings:
+def validate_settings(
+    settings: Mapping | ProperMotionSettings | None = None, source: str | None = None
+) -> ProperMotionSettings:
     """Build :class:`ProperMotionSettings` from a mapping (a TOML table).
 
     Parameters
