@@ -16,7 +16,7 @@ import dataclasses
 import difflib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import astropy.units as u
@@ -31,7 +31,7 @@ __all__ = [
 ]
 
 
-def unit_field(default, unit: str, doc: str = ""):
+def unit_field(default: object, unit: str, doc: str = ""):
     """A dataclass field holding a float in ``unit`` (documented in metadata).
 
     Parameters
@@ -150,7 +150,9 @@ def _coerce(value, tp, key: str, source):
     return value
 
 
-def check_known_keys(mapping: Mapping, allowed, prefix: str = "", source=None) -> None:
+def check_known_keys(
+    mapping: Mapping, allowed: Iterable[str], prefix: str = "", source: str | None = None
+) -> None:
     """Raise :class:`ConfigError` for the first key of ``mapping`` not in ``allowed``.
 
     The message suggests the closest allowed key ("did you mean ...?") or lists them.
@@ -174,7 +176,7 @@ def check_known_keys(mapping: Mapping, allowed, prefix: str = "", source=None) -
             raise ConfigError(f"unknown key{hint}", key=_join(prefix, key), source=source)
 
 
-def from_mapping(cls, mapping: Mapping | None, prefix: str = "", source=None):
+def from_mapping(cls, mapping: Mapping | None, prefix: str = "", source: str | None = None):
     """Build dataclass ``cls`` from ``mapping``, validating keys, types and units.
 
     Parameters
@@ -214,7 +216,7 @@ def from_mapping(cls, mapping: Mapping | None, prefix: str = "", source=None):
         raise ConfigError(str(exc), key=prefix or None, source=source) from None
 
 
-def to_mapping(obj) -> dict:
+def to_mapping(obj: object) -> dict:
     """Plain-dict view of a settings dataclass (for provenance and hashing).
 
     Parameters

@@ -22,16 +22,22 @@ Unit("adu")
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
+from numpy.typing import ArrayLike
 
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, validate_table
+
+if TYPE_CHECKING:
+    from astropy.nddata import NDData
 
 __all__ = ["Frame", "FRAME_ATTRS", "TRUTH_SPEC", "frame_wcs"]
 
@@ -170,7 +176,7 @@ class Frame:
         saturated: np.ndarray | None,
         attrs: Mapping,
         truth: QTable | None = None,
-        path=None,
+        path: str | os.PathLike | None = None,
         noiseless: np.ndarray | None = None,
     ) -> Frame:
         """A frame from its image in adu and the ``frames`` root attributes.
@@ -235,7 +241,7 @@ class Frame:
         )
 
     @classmethod
-    def from_nddata(cls, data, truth: QTable | None = None) -> Frame:
+    def from_nddata(cls, data: NDData, truth: QTable | None = None) -> Frame:
         """A frame from :class:`astropy.nddata.NDData` (the inverse of :meth:`to_nddata`).
 
         Parameters
@@ -286,7 +292,7 @@ class Frame:
         """Epoch of the frame [yr]."""
         return u.Quantity(self.attrs.get("epoch", 0.0), u.yr)
 
-    def to_arcsec(self, xp, yp):
+    def to_arcsec(self, xp: ArrayLike, yp: ArrayLike):
         """Field-frame position [arcsec] of pixel coordinates (0-based, centre = 0).
 
         Parameters
@@ -304,7 +310,7 @@ class Frame:
             np.asarray(yp) - (ny - 1) / 2
         ) * self.pixel_scale
 
-    def to_pixel(self, x, y):
+    def to_pixel(self, x: ArrayLike, y: ArrayLike):
         """Pixel coordinates (0-based) of field-frame positions [arcsec].
 
         Parameters

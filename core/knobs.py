@@ -54,7 +54,7 @@ def gather_knobs(
     homes: Homes,
     legacy_tables: tuple[str, ...] = (),
     prefix: str = "",
-    source=None,
+    source: str | None = None,
     known: tuple[str, ...] = (),
 ) -> dict:
     """A stage table with every knob moved from its home into the ``knobs`` table.

@@ -117,7 +117,7 @@ def human_bytes(n: float) -> str:
     return f"{n:.1f} PiB"  # pragma: no cover
 
 
-def check_memory(nbytes: float, what: str, key: str, source=None) -> None:
+def check_memory(nbytes: float, what: str, key: str, source: str | None = None) -> None:
     """Refuse settings whose estimated memory exceeds :func:`memory_limit`.
 
     Parameters

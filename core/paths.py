@@ -26,7 +26,11 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=,-]{0,99}")
 
 
 def check_name(
-    name: str, key: str, source=None, reserved: tuple[str, ...] = (), what: str = "name"
+    name: str,
+    key: str,
+    source: str | None = None,
+    reserved: tuple[str, ...] = (),
+    what: str = "name",
 ) -> str:
     """Return ``name`` when it is a safe single path component, else raise.
 

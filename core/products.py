@@ -380,7 +380,9 @@ def _array_datasets(f: h5py.File) -> list[str]:
     return names
 
 
-def read_table_group(obj, path=None) -> QTable:
+def read_table_group(
+    obj: h5py.Dataset | h5py.Group, path: str | os.PathLike | None = None
+) -> QTable:
     """Read one table (compound dataset or, format version 1, group) into a QTable.
 
     Columns with units become Quantities; the table's attributes become ``meta``.
@@ -615,7 +617,12 @@ def read_product(
     )
 
 
-def validate_table(table, spec: TableSpec, path=None, table_name: str | None = None) -> QTable:
+def validate_table(
+    table: Table,
+    spec: TableSpec,
+    path: str | os.PathLike | None = None,
+    table_name: str | None = None,
+) -> QTable:
     """Check a table against a spec and convert its columns to the spec's units.
 
     Parameters
@@ -735,7 +742,7 @@ def _convert_column(col, unit: str, path, cname: str, where: str):
     return arr
 
 
-def as_table(obj) -> Table:
+def as_table(obj: Table | Mapping) -> Table:
     """Return ``obj`` as an astropy Table (accepts mappings of columns).
 
     Parameters

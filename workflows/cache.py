@@ -58,7 +58,7 @@ PARTIAL_SUFFIX = ".partial"
 KEY_LENGTH = 24
 
 
-def canonical_json(obj) -> str:
+def canonical_json(obj: object) -> str:
     """Deterministic JSON text of ``obj`` (sorted keys, no whitespace).
 
     Parameters

@@ -261,7 +261,7 @@ def human(n: float) -> str:
     return f"{n:.1f} TB"  # pragma: no cover
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``cache`` command to the top-level sub-parsers.
 
     Parameters

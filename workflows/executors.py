@@ -24,8 +24,12 @@ import concurrent.futures as cf
 import multiprocessing
 import os
 from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING
 
 from mavispm.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    import distributed
 
 __all__ = [
     "DaskExecutor",
@@ -77,7 +81,7 @@ class Executor(abc.ABC):
         return cf.wait(list(futures), return_when=cf.FIRST_COMPLETED)
 
     @staticmethod
-    def outcome(future):
+    def outcome(future: cf.Future):
         """The future's result (re-raising the task's exception).
 
         Parameters
@@ -107,7 +111,7 @@ class SerialExecutor(Executor):
 
     name = "serial"
 
-    def submit(self, fn, *args):
+    def submit(self, fn: Callable, *args):
         """Run ``fn(*args)`` now, in the calling thread.
 
         Parameters
@@ -153,7 +157,7 @@ class PoolExecutor(Executor):
             ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
             self._pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx)
 
-    def submit(self, fn, *args):
+    def submit(self, fn: Callable, *args):
         """Start ``fn(*args)`` in the pool.
 
         Parameters
@@ -203,7 +207,7 @@ class DaskExecutor(Executor):
             self.client = client_or_address
         self.name = f"dask({self.client.scheduler.address})"
 
-    def submit(self, fn, *args):
+    def submit(self, fn: Callable, *args):
         # pure=False: each call is a task of its own even with equal arguments.
         """Start ``fn(*args)`` on the cluster (each call its own task, even with equal arguments).
 
@@ -221,7 +225,7 @@ class DaskExecutor(Executor):
         """
         return self.client.submit(fn, *args, pure=False)
 
-    def wait(self, futures):
+    def wait(self, futures: Iterable):
         """Block until at least one future is done.
 
         Parameters
@@ -253,7 +257,9 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def make_executor(spec=None, workers: int = 0, timeout: float = 20.0) -> Executor:
+def make_executor(
+    spec: str | distributed.Client | None = None, workers: int = 0, timeout: float = 20.0
+) -> Executor:
     """Build an executor from a ``--scheduler`` value (see module docstring).
 
     Parameters

@@ -22,7 +22,7 @@ _STATE = threading.local()
 _ORIGINAL = warnings.showwarning
 
 
-def format_warning(message, category, filename, lineno) -> str:
+def format_warning(message: Warning | str, category: type, filename: str, lineno: int) -> str:
     """One line: ``Category: message (file.py:line)``.
 
     Parameters

@@ -209,7 +209,7 @@ class StageRegistry:
     def __getitem__(self, name: str) -> StageSpec:
         return self.stages[name]
 
-    def validate(self, name: str, settings: Mapping, source=None):
+    def validate(self, name: str, settings: Mapping, source: str | None = None):
         """Run the stage's settings validator (no-op when it has none).
 
         Parameters

@@ -116,7 +116,7 @@ def read_summary(rundir: str | os.PathLike) -> dict:
     return summary
 
 
-def check_summary(summary, path) -> None:
+def check_summary(summary: object, path: str | os.PathLike) -> None:
     """Check the structure of a summary.json mapping (see docs/workflows.md).
 
     Parameters
@@ -233,7 +233,7 @@ def _variant_label(node: Mapping) -> str:
     return " ".join(p for p in (lab.get("study"), lab.get("point")) if p) or "-"
 
 
-def panel_title(node: Mapping, keys=("study", "point", "scene", "epoch")) -> str:
+def panel_title(node: Mapping, keys: tuple[str, ...] = ("study", "point", "scene", "epoch")) -> str:
     """A node's labels spelled out for a plot title or legend.
 
     Parameters
@@ -914,7 +914,7 @@ def stage_report_functions() -> dict[str, str]:
     return {stage: f"{module}:write_report" for stage, (module, _) in STAGE_MODULES.items()}
 
 
-def stage_report_names(summary: Mapping, path=None) -> list[str]:
+def stage_report_names(summary: Mapping, path: str | os.PathLike | None = None) -> list[str]:
     """Stage names whose reports summary.json asks for, checked against the registry.
 
     ``stage_reports`` is a list of stage names. Run directories written before

@@ -31,6 +31,7 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mavispm.core.errors import ConfigError, MavispmError
 from mavispm.core.paths import check_name, contained
@@ -40,6 +41,9 @@ from mavispm.workflows.config import Workflow, load_workflow
 from mavispm.workflows.executors import make_executor
 from mavispm.workflows.graph import Node, expand
 from mavispm.workflows.registry import StageRegistry, StageSpec, resolve
+
+if TYPE_CHECKING:
+    import distributed
 
 __all__ = [
     "RUNNING",
@@ -259,7 +263,7 @@ class RunResult:
 def run_workflow(
     workflow: Workflow | str | os.PathLike,
     workdir: str | os.PathLike | None = None,
-    scheduler=None,
+    scheduler: str | distributed.Client | None = None,
     force: bool = False,
     registry: StageRegistry | None = None,
     workers: int | None = None,
@@ -345,7 +349,7 @@ def run_workflow(
     return RunResult(rundir=rundir, summary=summary, ran=ran, cached=cached)
 
 
-def check_workdir(workdir) -> Path:
+def check_workdir(workdir: str | os.PathLike | None) -> Path:
     """The work directory as an absolute path; it must be a folder (or not exist yet).
 
     Parameters
@@ -635,7 +639,7 @@ def _materialize_locked(
         shutil.copyfile(workflow.source, tmp)
 
 
-def canonical_json_pretty(obj) -> str:
+def canonical_json_pretty(obj: object) -> str:
     """Indented JSON text (keys sorted) for files people read.
 
     Parameters

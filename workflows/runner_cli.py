@@ -18,7 +18,7 @@ __all__ = [
 ]
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``run`` and ``report`` commands to the top-level sub-parsers.
 
     Parameters

@@ -244,7 +244,9 @@ def canonical_propermotions(settings: Mapping) -> dict:
     return canonical_settings(settings, "propermotions")
 
 
-def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:
+def run_cluster(
+    inputs: Mapping, settings: Mapping, params: Mapping, seed: int | None, outdir: Path
+) -> dict:
     """Cluster catalogue at the workflow's epochs (set as ``epochs`` in years).
 
     The ``[epochs]`` table owns the epochs (config refuses ``[cluster] epochs``);
@@ -275,7 +277,9 @@ def run_cluster(inputs, settings, params, seed, outdir: Path) -> dict:
     return {"main": out}
 
 
-def run_optics(inputs, settings, params, seed, outdir: Path) -> dict:
+def run_optics(
+    inputs: Mapping, settings: Mapping, params: Mapping, seed: int | None, outdir: Path
+) -> dict:
     """PSF grid (and seeing halo) of a scene's optics (``[scene.optics]``).
 
     The grid comes from, or is computed into, the optics module's disk cache of
@@ -325,7 +329,9 @@ def _link_or_copy(source: Path, target: Path) -> None:
         shutil.copyfile(source, target)
 
 
-def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
+def run_frames(
+    inputs: Mapping, settings: Mapping, params: Mapping, seed: int | None, outdir: Path
+) -> dict:
     """Frames of one epoch of one scene (HDF5, plus FITS when ``[outputs] fits``).
 
     The optics are read from the scene's ``optics`` node (the declared ``psf``
@@ -379,7 +385,9 @@ def run_frames(inputs, settings, params, seed, outdir: Path) -> dict:
     return products
 
 
-def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
+def run_stars(
+    inputs: Mapping, settings: Mapping, params: Mapping, seed: int | None, outdir: Path
+) -> dict:
     """Measured stars of one frame (observer mode: started from the ``earlier``
     epochs' measured products when the graph gives them).
 
@@ -410,7 +418,9 @@ def run_stars(inputs, settings, params, seed, outdir: Path) -> dict:
     return {"main": out}
 
 
-def run_propermotions(inputs, settings, params, seed, outdir: Path) -> dict:
+def run_propermotions(
+    inputs: Mapping, settings: Mapping, params: Mapping, seed: int | None, outdir: Path
+) -> dict:
     """Proper motions from the measured catalogues of all epochs.
 
     The true motions come from the catalogue (``truth``). When ``[propermotions]``
@@ -457,7 +467,9 @@ def _catalogue_distance(path) -> str | None:
     return None if distance is None else f"{float(distance.to_value('kpc'))!r} kpc"
 
 
-def run_dynamics(inputs, settings, params, seed, outdir: Path) -> dict:
+def run_dynamics(
+    inputs: Mapping, settings: Mapping, params: Mapping, seed: int | None, outdir: Path
+) -> dict:
     """Dynamical fit and IMBH model comparison (plots in ``plots/``).
 
     Inputs: ``propermotions``, optional ``truth``, ``truth_no_imbh``; products: ``main`` and ``plot_<name>`` per PNG.

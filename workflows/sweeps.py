@@ -111,7 +111,7 @@ def get_dotted(mapping: Mapping, key: str, default: Any = None) -> Any:
     return node
 
 
-def set_dotted(mapping: dict, key: str, value: Any, source=None) -> None:
+def set_dotted(mapping: dict, key: str, value: Any, source: str | None = None) -> None:
     """Set dotted ``key`` in nested ``mapping`` in place, creating tables as needed.
 
     Parameters
@@ -190,7 +190,7 @@ def expand_points(axes: Sequence[Any], mode: str = "grid") -> list[SweepPoint]:
     return points
 
 
-def apply_point(mapping: Mapping, point: SweepPoint, source=None) -> dict:
+def apply_point(mapping: Mapping, point: SweepPoint, source: str | None = None) -> dict:
     """Return a copy of the workflow ``mapping`` with the point's overrides set.
 
     Parameters

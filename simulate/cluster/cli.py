@@ -36,7 +36,7 @@ MAX_IMBH_FRACTION = 0.2
 BYTES_PER_STAR_EPOCH = 160
 
 
-def validate_settings(settings: Mapping | None, source=None) -> ClusterSettings:
+def validate_settings(settings: Mapping | None, source: str | None = None) -> ClusterSettings:
     """Build :class:`ClusterSettings` from a mapping (TOML table ``[cluster]``).
 
     Parameters
@@ -250,7 +250,7 @@ def _as_option_error(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
     return err
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``cluster`` sub-command.
 
     Parameters

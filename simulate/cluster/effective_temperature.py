@@ -12,6 +12,7 @@ branch and ~4,100 K at its tip.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = ["MASS_TEFF_TABLE", "effective_temperature"]
 
@@ -29,7 +30,7 @@ MASS_TEFF_TABLE = np.array(
 )  # fmt: skip
 
 
-def effective_temperature(initial_mass) -> np.ndarray:
+def effective_temperature(initial_mass: ArrayLike) -> np.ndarray:
     """T_eff [K] of luminous stars of ``initial_mass`` [solMass]; NaN beyond the RGB tip.
 
     Below the table's lowest mass the temperature is held at its first value.

@@ -34,7 +34,7 @@ from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, validate_table
 from mavispm.simulate.cluster import population as pop
 from mavispm.simulate.cluster.projection import in_square, pc_to_arcsec, sky_to_field
-from mavispm.simulate.cluster.settings import ExternalInput
+from mavispm.simulate.cluster.settings import ClusterSettings, ExternalInput
 
 __all__ = [
     "detect_format",
@@ -247,7 +247,9 @@ def _magnitudes(table, path, distance, extinction_v):
     return mag, luminous
 
 
-def read_external_stars(ext: ExternalInput, settings, distance: float, extinction_v: float) -> dict:
+def read_external_stars(
+    ext: ExternalInput, settings: ClusterSettings, distance: float, extinction_v: float
+) -> dict:
     """Read an external list and keep the stars in the field plus margin.
 
     Parameters

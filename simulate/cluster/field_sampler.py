@@ -152,7 +152,9 @@ def arc_measure(radius: np.ndarray, half: float, outer: float, region: Region) -
     return 4.0 * (l1 + l2)
 
 
-def sample_angle(radius, uniform, half: float, outer: float, region: Region) -> np.ndarray:
+def sample_angle(
+    radius: np.ndarray, uniform: np.ndarray, half: float, outer: float, region: Region
+) -> np.ndarray:
     """Position angle uniform over the region's arcs at each radius (one uniform each).
 
     Parameters

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
+from numpy.typing import ArrayLike
 
 from mavispm.simulate.cluster import population as pop
 from mavispm.simulate.cluster.eddington import (
@@ -123,7 +124,7 @@ class ClusterModel:
         """DF of the first component (the whole cluster when unsegregated)."""
         return self.components[0].df
 
-    def total_density(self, r) -> np.ndarray:
+    def total_density(self, r: ArrayLike) -> np.ndarray:
         """Density of all components [solMass/pc^3] at ``r`` [pc] (no IMBH).
 
         Parameters

@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "BH_SUBSYSTEM_RANGE",
@@ -220,7 +221,7 @@ BH_PROGENITOR_MIN = 25.0
 BH_SUBSYSTEM_RANGE = (10.0, 20.0)
 
 
-def white_dwarf_mass(initial) -> np.ndarray:
+def white_dwarf_mass(initial: ArrayLike) -> np.ndarray:
     """White-dwarf mass [solMass] (Kalirai et al. 2008 IFMR, capped at 1.2 solMass).
 
     Parameters
@@ -236,7 +237,7 @@ def white_dwarf_mass(initial) -> np.ndarray:
     return np.minimum(0.109 * np.asarray(initial, float) + 0.394, 1.2)
 
 
-def neutron_star_mass(initial) -> np.ndarray:
+def neutron_star_mass(initial: ArrayLike) -> np.ndarray:
     """Neutron-star mass [solMass]: 1.3 at 8 solMass rising to 1.4 at 25 solMass.
 
     Parameters
@@ -254,7 +255,7 @@ def neutron_star_mass(initial) -> np.ndarray:
     return 1.3 + 0.1 * np.clip(t, 0.0, 1.0)
 
 
-def black_hole_mass(initial) -> np.ndarray:
+def black_hole_mass(initial: ArrayLike) -> np.ndarray:
     """Black-hole mass [solMass]: 5 at 25 solMass rising linearly to 30 at 100 solMass.
 
     Parameters
@@ -271,7 +272,7 @@ def black_hole_mass(initial) -> np.ndarray:
     return np.clip(5.0 + (m - BH_PROGENITOR_MIN) / 3.0, 5.0, 30.0)
 
 
-def remnant_kind(initial) -> np.ndarray:
+def remnant_kind(initial: ArrayLike) -> np.ndarray:
     """Kind of the remnant of stars of initial ``mass`` above the RGB tip.
 
     Parameters
@@ -293,7 +294,7 @@ def remnant_kind(initial) -> np.ndarray:
     )
 
 
-def remnant_mass(initial) -> np.ndarray:
+def remnant_mass(initial: ArrayLike) -> np.ndarray:
     """Remnant mass [solMass] of stars of initial mass ``initial`` (WD, NS or BH).
 
     Parameters
@@ -314,7 +315,7 @@ def remnant_mass(initial) -> np.ndarray:
     )
 
 
-def kind_from_mass(mass, luminous) -> np.ndarray:
+def kind_from_mass(mass: ArrayLike, luminous: ArrayLike) -> np.ndarray:
     """Best guess of ``kind`` from a present-day mass [solMass] (external lists).
 
     Luminous objects are stars; dark ones are white dwarfs below 1.25 solMass,

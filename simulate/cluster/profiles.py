@@ -19,12 +19,14 @@ cored model holds ``2 M_BH`` of stars.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 import astropy.constants as const
 import astropy.units as u
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.integrate import cumulative_trapezoid, solve_ivp
 from scipy.interpolate import CubicSpline
 from scipy.optimize import brentq
@@ -341,7 +343,7 @@ class MassModel:
         """Outer edge of the model [pc]."""
         return float(self.r[-1])
 
-    def density(self, r) -> np.ndarray:
+    def density(self, r: ArrayLike) -> np.ndarray:
         """Stellar mass density [solMass/pc^3] at radius ``r`` [pc] (analytic shape).
 
         Parameters
@@ -357,7 +359,7 @@ class MassModel:
         r = np.asarray(r, float)
         return np.where(r <= self.r_max, self.norm * self.tracer.shape(r), 0.0)
 
-    def enclosed_stellar_mass(self, r) -> np.ndarray:
+    def enclosed_stellar_mass(self, r: ArrayLike) -> np.ndarray:
         """Stellar mass inside ``r`` [solMass] (interpolated in log-log).
 
         Parameters
@@ -407,7 +409,7 @@ class MassModel:
         keep = np.concatenate([[True], np.diff(np.log(nodes)) > min_log_step])
         return nodes[keep]
 
-    def relative_potential(self, r) -> np.ndarray:
+    def relative_potential(self, r: ArrayLike) -> np.ndarray:
         """Relative potential Psi(r) [(km/s)^2] including the point mass.
 
         Parameters
@@ -529,9 +531,9 @@ def radial_grid(r_lo: float, r_hi: float, n: int) -> np.ndarray:
 
 def build_mass_model(
     tracer: TracerProfile,
-    stellar_mass,
-    bh_mass=0.0,
-    r_min=None,
+    stellar_mass: float,
+    bh_mass: float = 0.0,
+    r_min: float | None = None,
     n_grid: int = N_RADIAL_GRID,
 ) -> MassModel:
     """Tabulate a normalised mass model.
@@ -575,7 +577,10 @@ def build_mass_model(
 
 
 def build_multi_mass_model(
-    tracers, masses, bh_mass=0.0, n_grid: int = N_RADIAL_GRID
+    tracers: Sequence[TracerProfile],
+    masses: Sequence[float],
+    bh_mass: float = 0.0,
+    n_grid: int = N_RADIAL_GRID,
 ) -> list[MassModel]:
     """Components of a multi-mass model, all in the total potential.
 

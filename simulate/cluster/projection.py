@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import astropy.units as u
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "ARCSEC_PER_PC_KPC",
@@ -41,7 +42,7 @@ ARCSEC_PER_PC_KPC = float(
 )
 
 
-def pc_to_arcsec(length_pc, distance_kpc: float):
+def pc_to_arcsec(length_pc: ArrayLike, distance_kpc: float):
     """Angle [arcsec] subtended by ``length_pc`` [pc] at ``distance_kpc`` (small angles).
 
     Parameters
@@ -59,7 +60,7 @@ def pc_to_arcsec(length_pc, distance_kpc: float):
     return np.asarray(length_pc) * ARCSEC_PER_PC_KPC / distance_kpc
 
 
-def arcsec_to_pc(angle_arcsec, distance_kpc: float):
+def arcsec_to_pc(angle_arcsec: ArrayLike, distance_kpc: float):
     """Length [pc] at ``distance_kpc`` subtending ``angle_arcsec``.
 
     Parameters
@@ -77,7 +78,7 @@ def arcsec_to_pc(angle_arcsec, distance_kpc: float):
     return np.asarray(angle_arcsec) * distance_kpc / ARCSEC_PER_PC_KPC
 
 
-def velocity_to_pm(v_kms, distance_kpc: float):
+def velocity_to_pm(v_kms: ArrayLike, distance_kpc: float):
     """Proper motion [mas/yr] of a transverse velocity [km/s] at ``distance_kpc``.
 
     Parameters
@@ -95,7 +96,7 @@ def velocity_to_pm(v_kms, distance_kpc: float):
     return np.asarray(v_kms) / (K_PM * distance_kpc)
 
 
-def pm_to_velocity(pm_masyr, distance_kpc: float):
+def pm_to_velocity(pm_masyr: ArrayLike, distance_kpc: float):
     """Transverse velocity [km/s] of a proper motion [mas/yr] at ``distance_kpc``.
 
     Parameters
@@ -113,7 +114,7 @@ def pm_to_velocity(pm_masyr, distance_kpc: float):
     return np.asarray(pm_masyr) * K_PM * distance_kpc
 
 
-def rotate(x, y, angle_deg: float):
+def rotate(x: ArrayLike, y: ArrayLike, angle_deg: float):
     """Rotate vectors by ``angle_deg`` counter-clockwise.
 
     Parameters
@@ -132,7 +133,15 @@ def rotate(x, y, angle_deg: float):
     return c * x - s * y, s * x + c * y
 
 
-def sky_to_field(x, y, pm_x, pm_y, offset=(0.0, 0.0), rotation: float = 0.0, pm_sys=(0.0, 0.0)):
+def sky_to_field(
+    x: ArrayLike,
+    y: ArrayLike,
+    pm_x: ArrayLike,
+    pm_y: ArrayLike,
+    offset: tuple[float, float] = (0.0, 0.0),
+    rotation: float = 0.0,
+    pm_sys: tuple[float, float] = (0.0, 0.0),
+):
     """Sky-plane positions [arcsec] and PMs [mas/yr] to the field frame.
 
     Parameters
@@ -158,7 +167,14 @@ def sky_to_field(x, y, pm_x, pm_y, offset=(0.0, 0.0), rotation: float = 0.0, pm_
     return xf, yf, pxf + pm_sys[0], pyf + pm_sys[1]
 
 
-def propagate(x, y, pm_x, pm_y, epoch: float, reference_epoch: float = 0.0):
+def propagate(
+    x: ArrayLike,
+    y: ArrayLike,
+    pm_x: ArrayLike,
+    pm_y: ArrayLike,
+    epoch: float,
+    reference_epoch: float = 0.0,
+):
     """Positions [arcsec] at ``epoch`` [yr] from positions at ``reference_epoch``.
 
     Parameters
@@ -181,7 +197,7 @@ def propagate(x, y, pm_x, pm_y, epoch: float, reference_epoch: float = 0.0):
     return np.asarray(x) + np.asarray(pm_x) * dt, np.asarray(y) + np.asarray(pm_y) * dt
 
 
-def in_square(x, y, half_size: float):
+def in_square(x: ArrayLike, y: ArrayLike, half_size: float):
     """Mask of points inside the square ``|x|, |y| <= half_size``.
 
     Parameters
