@@ -13,8 +13,9 @@ Rules
 - A callable *needs* a ``Parameters`` section when it takes at least one argument besides
   ``self``/``cls``. For a class the arguments are those of its constructor: the explicit
   ``__init__`` or, for a dataclass, its annotated fields. A class's section may sit in the class
-  docstring or in its ``__init__`` docstring (numpydoc allows both); a dataclass may document its
-  fields in an ``Attributes`` section instead (they are its constructor's arguments).
+  docstring or in its ``__init__`` docstring (numpydoc allows both); a dataclass's fields are
+  its constructor's arguments, so they belong in ``Parameters`` too (an ``Attributes``
+  section alone does not count, as for numpydoc's own validator).
 - A callable without arguments is covered when it has any docstring.
 - Type hints: the share of arguments (besides ``self``/``cls``) of public functions and methods
   that carry an annotation.
@@ -40,7 +41,6 @@ __all__ = ["Callable", "Coverage", "scan_package", "main"]
 ROOT = Path(__file__).resolve().parents[1]
 EXCLUDED_TOP = {"tests", "benchmarks", "docs", ".dev", "build"}
 _PARAMS = re.compile(r"^\s*Parameters\s*\n\s*-{3,}\s*$", re.MULTILINE)
-_ATTRIBUTES = re.compile(r"^\s*Attributes\s*\n\s*-{3,}\s*$", re.MULTILINE)
 
 
 @dataclass(frozen=True)
@@ -176,7 +176,7 @@ def _class(module: str, node: ast.ClassDef) -> list[Callable]:
             and "ClassVar" not in ast.unparse(n.annotation)
         ]
         n_args = len(fields)
-        covered = _has_params(doc) or bool(doc and _ATTRIBUTES.search(doc))
+        covered = _has_params(doc)
     else:
         n_args = 0
         covered = _has_params(doc)

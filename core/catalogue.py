@@ -68,7 +68,7 @@ CATALOGUE_SPEC = TableSpec(
 class Catalogue:
     """A catalogue product in memory.
 
-    Attributes
+    Parameters
     ----------
     epochs : dict of str to QTable
         Epoch name to star table (ordered by epoch).

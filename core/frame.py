@@ -129,7 +129,7 @@ def frame_wcs(attrs: Mapping, shape: tuple[int, int]):
 class Frame:
     """A stacked frame in electrons with its detector description.
 
-    Attributes
+    Parameters
     ----------
     image : ndarray (ny, nx) of float
         Stacked frame [electron] (the sum of ``nexp`` sub-exposures).

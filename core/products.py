@@ -99,7 +99,7 @@ class TableSpec:
 class Product:
     """An HDF5 product read back into memory.
 
-    Attributes
+    Parameters
     ----------
     path : pathlib.Path
     kind : str

@@ -309,7 +309,7 @@ MIN_FIT_STARS = 10
 class DynamicsResult:
     """What :func:`fit_dynamics` returns: the ``dynamics`` product in memory.
 
-    Attributes
+    Parameters
     ----------
     tables : dict of str to QTable
         ``profile``, ``summary``, ``posterior_<model>``, ... (docs/formats.md).

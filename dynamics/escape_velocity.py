@@ -406,7 +406,7 @@ def escape_velocity_quantile(models, R, quantile: float = 0.99) -> u.Quantity:
 class PosteriorMassModel:
     """One posterior sample's mass model and the distance it was fitted at.
 
-    Attributes
+    Parameters
     ----------
     model : SphericalMassModel
     distance : float

@@ -29,7 +29,7 @@ __all__ = [
 class EvidenceResult:
     """Nested-sampling evidence of one model.
 
-    Attributes
+    Parameters
     ----------
     log_z, log_z_err : float
     n_calls : int

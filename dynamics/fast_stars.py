@@ -155,7 +155,7 @@ class FastStarSettings:
 class PMStars:
     """Proper motions for the test (plain floats; relative to the cluster mean motion).
 
-    Attributes
+    Parameters
     ----------
     id : ndarray of int
     R : ndarray
@@ -382,7 +382,7 @@ def threshold(sigma, v_esc, d_nodes, d_weights, alpha, iterations: int = 60):
 class PullTails:
     """Width and tails of the PM error distribution measured from pulls.
 
-    Attributes
+    Parameters
     ----------
     source : str
         ``"truth"`` (measured minus true PM over the error: an artificial-star test),
@@ -675,7 +675,7 @@ def poisson_probabilities(n_obs: int, expected: float) -> tuple[float, float]:
 class FastStarResult:
     """Outcome of :func:`fast_star_test`.
 
-    Attributes
+    Parameters
     ----------
     possible : bool
         False when no test could be made (``note`` says why); then nothing is fast.

@@ -179,7 +179,7 @@ def make_likelihood(
 class ModelFit:
     """One model's fit: space, likelihood, chain, summary and evidences.
 
-    Attributes
+    Parameters
     ----------
     name : str
         Model name (``none``, ``imbh``, ``dark``, ``imbh_dark``).
@@ -365,7 +365,7 @@ def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:
 class Comparison:
     """Model comparison (``ln B > 0`` favours an IMBH) and the verdict.
 
-    Attributes
+    Parameters
     ----------
     ln_bayes_factor, ln_bayes_factor_err : float
         ln Z of the best model with an IMBH minus that of the best without, and its error.

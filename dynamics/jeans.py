@@ -60,7 +60,7 @@ KMS_PER_MASYR_KPC = 4.740470463533348
 class ProjectedMoments:
     """Dimensionless projected moments on the output radii (G = M = a = 1).
 
-    Attributes
+    Parameters
     ----------
     X : ndarray
         Projected radii in scale radii.

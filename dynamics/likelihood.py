@@ -57,7 +57,7 @@ _GL16 = np.polynomial.legendre.leggauss(16)
 class StarSample:
     """Stars used in the fit (plain floats in fixed units).
 
-    Attributes
+    Parameters
     ----------
     R : ndarray
         Projected radius about the field centre [arcsec] (already clipped to ``min_radius``).

@@ -64,7 +64,7 @@ def _psi(tracer, x):
 class MassModel:
     """Cluster + point mass + dark Plummer sphere.
 
-    Attributes
+    Parameters
     ----------
     cluster_mass : Quantity
         Cluster mass [solMass].

@@ -39,7 +39,7 @@ __all__ = [
 class ChainResult:
     """Posterior samples and diagnostics of one emcee run.
 
-    Attributes
+    Parameters
     ----------
     names : list of str
     samples : ndarray (n, ndim)

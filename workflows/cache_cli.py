@@ -65,7 +65,7 @@ _AGE_UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400, "w": 7 * 86400}
 class Entry:
     """One removable cache entry: a file, or a store node folder.
 
-    Attributes
+    Parameters
     ----------
     path : pathlib.Path
         The file or folder.

@@ -107,7 +107,7 @@ SECTION_STAGE = {
 class WorkflowSection:
     """The ``[workflow]`` table.
 
-    Attributes
+    Parameters
     ----------
     name : str
         Workflow name (run directory and report title).
@@ -141,7 +141,7 @@ class WorkflowSection:
 class OutputsSection:
     """The ``[outputs]`` table.
 
-    Attributes
+    Parameters
     ----------
     fits : bool
         Also write FITS images of the frames.
@@ -166,7 +166,7 @@ class OutputsSection:
 class SweepAxis:
     """One ``[[sweep]]`` axis.
 
-    Attributes
+    Parameters
     ----------
     parameter : str
         Dotted workflow key swept, e.g. ``"dynamics.walkers"``.
@@ -185,7 +185,7 @@ class SweepAxis:
 class SceneConfig:
     """Effective settings of one scene: render scene (optics included), optics, measurement.
 
-    Attributes
+    Parameters
     ----------
     name : str
         Scene name (empty for the single ``[scene]``).
@@ -207,7 +207,7 @@ class SceneConfig:
 class Epoch:
     """An observing epoch: catalogue table name and time [yr].
 
-    Attributes
+    Parameters
     ----------
     name : str
         Epoch (catalogue table) name.
@@ -223,7 +223,7 @@ class Epoch:
 class Variant:
     """One fully resolved run of the workflow: a study at a sweep point.
 
-    Attributes
+    Parameters
     ----------
     study : str
         Study name ("" when the file has no ``[studies]``).
@@ -262,7 +262,7 @@ class Variant:
 class Workflow:
     """A loaded, validated workflow file.
 
-    Attributes
+    Parameters
     ----------
     source : pathlib.Path
         The workflow file.

@@ -41,7 +41,7 @@ __all__ = [
 class Node:
     """One stage task.
 
-    Attributes
+    Parameters
     ----------
     id : str
         Readable path, unique in the run.

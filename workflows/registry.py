@@ -81,7 +81,7 @@ def resolve(ref: str | None) -> Callable | None:
 class StageSpec:
     """How the runner calls one stage.
 
-    Attributes
+    Parameters
     ----------
     name : str
         Stage name (one of :data:`STAGE_NAMES`).
@@ -169,7 +169,7 @@ def _code_digest(patterns: tuple[str, ...], version: str) -> str:
 class StageRegistry:
     """Stage name to :class:`StageSpec`.
 
-    Attributes
+    Parameters
     ----------
     stages : dict of str to StageSpec
         The registered stages.

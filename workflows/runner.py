@@ -75,7 +75,7 @@ class TaskError(MavispmError):
 class Task:
     """Everything a worker needs to run one node (picklable).
 
-    Attributes
+    Parameters
     ----------
     node_id : str
     stage : StageSpec
@@ -218,7 +218,7 @@ def _relative_products(products, outdir: Path, task: Task) -> dict[str, str]:
 class RunResult:
     """Outcome of :func:`run_workflow`.
 
-    Attributes
+    Parameters
     ----------
     rundir : pathlib.Path
     summary : dict

@@ -43,7 +43,7 @@ __all__ = [
 class SweepPoint:
     """One combination of swept values.
 
-    Attributes
+    Parameters
     ----------
     label : str
         File-system safe label (``"imbh_mass=1500,baseline=0-10"``); empty when

@@ -329,7 +329,7 @@ class TransformModel:
 class AlignmentFit:
     """Result of fitting one epoch's transformation.
 
-    Attributes
+    Parameters
     ----------
     model : TransformModel
     params : ndarray

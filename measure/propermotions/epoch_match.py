@@ -38,7 +38,7 @@ ID_SHARE_FRACTION = 0.5
 class EpochMatch:
     """Cross-identification of stars over epochs.
 
-    Attributes
+    Parameters
     ----------
     index : ndarray of int, shape (n_stars, n_epochs)
         Row of each star in each epoch's table, -1 where it was not matched.

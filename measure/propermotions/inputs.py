@@ -52,7 +52,7 @@ TRUTH_SCORING_FLAGS = 16
 class EpochCatalogue:
     """One epoch's measured stars, plain arrays in fixed units.
 
-    Attributes
+    Parameters
     ----------
     epoch : float
         [yr]

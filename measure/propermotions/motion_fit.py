@@ -35,7 +35,7 @@ MIN_RADIUS = 1e-9
 class LinearMotion:
     """Per-star weighted least-squares linear motion fit (all arrays shape (n,)).
 
-    Attributes
+    Parameters
     ----------
     pm_x, pm_y : ndarray
         Proper motion [arcsec/yr].

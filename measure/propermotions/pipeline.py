@@ -61,7 +61,7 @@ class PMFlag:
 class ProperMotionResult:
     """What :func:`derive_proper_motions` returns.
 
-    Attributes
+    Parameters
     ----------
     stars : QTable
         The propermotions ``stars`` table (units attached).

@@ -78,7 +78,7 @@ UAS_YR = u.microarcsecond / u.yr
 class AccuracyData:
     """Per-star accuracy quantities of one propermotions product (truth known).
 
-    Attributes
+    Parameters
     ----------
     name : str
         Label of the product in plots and tables (its file name stem).

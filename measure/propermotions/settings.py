@@ -37,7 +37,7 @@ __all__ = [
 class ProperMotionKnobs:
     """Accuracy and speed knobs of the proper-motion stage (``[propermotions.knobs]``).
 
-    Attributes
+    Parameters
     ----------
     match_tolerance : float
         Added to the positional search radius while the epoch transformation is not yet

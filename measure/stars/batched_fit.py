@@ -52,7 +52,7 @@ FLAG_FAILED = 32
 class FitOptions:
     """Knobs of the batched fitter.
 
-    Attributes
+    Parameters
     ----------
     radius : int
         Stamp half-width [pixel].
@@ -102,7 +102,7 @@ class FitOptions:
 class FitResult:
     """Per-star results of a fit (arrays of length N).
 
-    Attributes
+    Parameters
     ----------
     x, y : ndarray
         Fitted positions [pixel].

@@ -53,7 +53,7 @@ __all__ = [
 class EPSFOptions:
     """How the ePSF is built.
 
-    Attributes
+    Parameters
     ----------
     variation : str
         "constant", "grid" or "polynomial".

@@ -191,7 +191,7 @@ def _half_rms(v: np.ndarray) -> float:
 class ErrorModel:
     """Per-star error terms beyond the Fisher matrix (arrays of length N).
 
-    Attributes
+    Parameters
     ----------
     position : ndarray
         ePSF model error of the position [pixel], per coordinate.

@@ -332,7 +332,7 @@ def run_engine(
 class FramePSF:
     """The frame's ePSF and what the error model needs of its building.
 
-    Attributes
+    Parameters
     ----------
     psf : VariableEPSF
         The ePSF from all PSF stars.

@@ -44,7 +44,7 @@ __all__ = [
 class PhotutilsOptions:
     """Settings of the photutils reference engine.
 
-    Attributes
+    Parameters
     ----------
     radius : int
         Fit stamp half-width [pixel] (``fit_shape = 2 radius + 1``).

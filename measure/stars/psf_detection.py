@@ -66,7 +66,7 @@ __all__ = [
 class DetectionOptions:
     """Knobs of :func:`detect_stars`.
 
-    Attributes
+    Parameters
     ----------
     threshold : float
         Matched-filter significance (about the PSF-fit flux SNR) of a detection.

@@ -44,7 +44,7 @@ class MeasureKnobs:
     None of them changes what is measured, only how well and how fast; the
     defaults are the documented accuracy/speed trade-off (docs/measure.md).
 
-    Attributes
+    Parameters
     ----------
     oversampling : int or "auto"
         ePSF oversampling factor; "auto" (default): 4 with at least 200
@@ -138,7 +138,7 @@ KNOB_NAMES = tuple(f.name for f in fields(MeasureKnobs))
 class MeasureSettings:
     """Settings of ``mavispm measure stars``: the method, and its knobs.
 
-    Attributes
+    Parameters
     ----------
     engine : {"fast", "photutils"}
         "fast": the batched Gauss-Newton fitter; "photutils": PSFPhotometry.

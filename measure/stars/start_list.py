@@ -62,7 +62,7 @@ _BAD_REFERENCE = 1 | 2 | 4 | 16 | 32
 class EarlierEpoch:
     """One earlier epoch's measured stars, in that epoch's pixel frame.
 
-    Attributes
+    Parameters
     ----------
     epoch : float
         [yr]
@@ -128,7 +128,7 @@ def read_earlier(path) -> EarlierEpoch:
 class TransferOptions:
     """Knobs of the epoch-to-epoch transform.
 
-    Attributes
+    Parameters
     ----------
     n_reference : int
         Brightest isolated stars of the earlier epoch used as reference stars.
@@ -155,7 +155,7 @@ class EpochTransform:
 
     ``x' = a[0] + a[1] x + a[2] y``, ``y' = b[0] + b[1] x + b[2] y``.
 
-    Attributes
+    Parameters
     ----------
     a, b : ndarray, shape (3,)
     n_used : int

@@ -96,7 +96,7 @@ def _check_basis(basis: np.ndarray, oversampling: int) -> np.ndarray:
 class StampGeometry:
     """Pixel stamps of ``N`` stars: integer centres and radius.
 
-    Attributes
+    Parameters
     ----------
     cx, cy : ndarray of int, shape (N,)
         Stamp centre pixels (column, row).

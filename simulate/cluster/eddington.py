@@ -74,7 +74,7 @@ class NoIsotropicDFError(ValueError):
 class DistributionFunction:
     """A tabulated isotropic DF f(E).
 
-    Attributes
+    Parameters
     ----------
     energy : ndarray
         Relative energies ``E = Psi - v^2/2`` (or ``Q`` for Osipkov-Merritt)

@@ -190,7 +190,7 @@ class FieldSampler:
 
     Build with :func:`build_field_sampler`.
 
-    Attributes
+    Parameters
     ----------
     half_size, outer_half_size : float
         Half-size of the field and of field plus margin [pc].

@@ -85,7 +85,7 @@ IMBH_ID = 0
 class Component:
     """Groups sharing one density shape: their mass model and DF.
 
-    Attributes
+    Parameters
     ----------
     mass : MassModel
         The component's density in the total potential.
@@ -103,7 +103,7 @@ class Component:
 class ClusterModel:
     """A (multi-mass) cluster model with its DFs and its parameters.
 
-    Attributes
+    Parameters
     ----------
     components : tuple of Component
         One per distinct density shape (one for an unsegregated model).

@@ -80,7 +80,7 @@ def quantiles_from_pdf(y: np.ndarray, pdf: np.ndarray, levels: np.ndarray) -> np
 class QuantileTable:
     """Quantiles ``y(c, u)`` of a conditional density on a grid of ``c``.
 
-    Attributes
+    Parameters
     ----------
     cond : ndarray, shape (n_rows,)
         Ascending conditioning values (often a logarithm).

@@ -24,7 +24,7 @@ __all__ = [
 class ClusterPreset:
     """Observed parameters of a cluster.
 
-    Attributes
+    Parameters
     ----------
     name : str
     distance : float

@@ -304,7 +304,7 @@ class MassModel:
     ``r`` [pc]; ``psi`` is the relative potential ``Phi(r_max) - Phi(r)``
     [(km/s)^2], positive and decreasing outwards.
 
-    Attributes
+    Parameters
     ----------
     tracer : TracerProfile
     stellar_mass : float

@@ -53,7 +53,7 @@ class ClusterKnobs(SamplerResolution):
     (``benchmarks/bench_cluster.py`` tabulates the Jeans agreement against them). Every
     value must be at least 8.
 
-    Attributes
+    Parameters
     ----------
     n_energy : int
         Energy grid of the Eddington DF table.
@@ -127,7 +127,7 @@ class ClusterSettings:
     """Settings of the cluster catalogue stage (see ``docs/cluster.md``, which gives every
     default and where the preset supplies a value left None).
 
-    Attributes
+    Parameters
     ----------
     preset : str
         Cluster preset (``"ngc3201"``, ``"ngc3201-nbody"``, ...).

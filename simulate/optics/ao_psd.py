@@ -60,7 +60,7 @@ MAVIS_FITTING_WEIGHTS = (1.0, 2.0, 30.0, 0.25, 0.25)
 class AOSettings:
     """The MCAO system and which residual terms to include (``[scene.optics.ao]``).
 
-    Attributes
+    Parameters
     ----------
     n_actuators : int
         Actuators (and WFS sub-apertures) across the pupil diameter.
@@ -533,7 +533,7 @@ def noise_gain(settings: AOSettings, n: int = 4096) -> float:
 class TomographicOperator:
     """Per-frequency MCAO correction operators on the control-region frequencies.
 
-    Attributes
+    Parameters
     ----------
     fx, fy : ndarray, shape (F,)
         Frequencies (m^-1), zero frequency excluded.

@@ -49,7 +49,7 @@ _DIRECTIONS = (0.0, 0.0, 0.0, 0.0, 90.0, -90.0, -90.0, 90.0, 0.0, 0.0)
 class AtmosphereSettings:
     """Turbulence conditions (TOML table ``[scene.optics.atmosphere]``).
 
-    Attributes
+    Parameters
     ----------
     seeing : float
         Zenith seeing FWHM at 500 nm (arcsec); r0 = 0.98 lambda / seeing.
@@ -101,7 +101,7 @@ class AtmosphereSettings:
 class Layers:
     """Turbulent layers along the line of sight (airmass applied).
 
-    Attributes
+    Parameters
     ----------
     heights : ndarray
         Distance along the line of sight (m).

@@ -21,7 +21,7 @@ __all__ = [
 class BlurSettings:
     """Gaussian blur terms (TOML table ``[scene.optics.blur]``).
 
-    Attributes
+    Parameters
     ----------
     charge_diffusion : bool
         Include CCD charge diffusion.

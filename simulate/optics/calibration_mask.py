@@ -62,7 +62,7 @@ __all__ = [
 class CalibrationMaskSettings:
     """The calibration mask and its measurement (TOML table ``[calibration]``).
 
-    Attributes
+    Parameters
     ----------
     pitch : float
         Hole spacing at the input plane [mm]; 0.5 mm as in MAVISIM 1.1.
@@ -157,7 +157,7 @@ def _design(x, y, terms) -> np.ndarray:
 class PolynomialDistortion:
     """A displacement field ``d = sum c u^i v^j`` per axis [mas], ``u, v = x, y / 15"``.
 
-    Attributes
+    Parameters
     ----------
     terms : tuple of (int, int)
         Powers ``(i, j)``.
@@ -194,7 +194,7 @@ class PolynomialDistortion:
 class CalibrationResult:
     """What the calibration recovered and what it leaves behind.
 
-    Attributes
+    Parameters
     ----------
     settings : CalibrationMaskSettings
     recovered : PolynomialDistortion

@@ -54,7 +54,7 @@ _BASIS = {
 class DistortionSettings:
     """Distortion (TOML table ``[scene.optics.distortion]``).
 
-    Attributes
+    Parameters
     ----------
     enabled : bool
         Master switch; off gives exactly zero displacement.

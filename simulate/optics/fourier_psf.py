@@ -34,7 +34,7 @@ __all__ = [
 class FourierSampling:
     """Sampling of one monochromatic Fourier PSF computation.
 
-    Attributes
+    Parameters
     ----------
     wavelength : float
         Science wavelength (m).

@@ -72,7 +72,7 @@ _MODE_BASIS = {
 class ImageMotionSettings:
     """Per-exposure image motion (TOML table ``[scene.optics.image_motion]``).
 
-    Attributes
+    Parameters
     ----------
     enabled : bool
         Off (default): a stack is N identical sub-exposures.
@@ -297,7 +297,7 @@ def _rng(seed: int, epoch: float) -> np.random.Generator:
 class StackMotion:
     """The drawn per-exposure coefficients of one stack.
 
-    Attributes
+    Parameters
     ----------
     modes : ndarray, shape (N, 6)
         Coefficients of :data:`MOTION_MODES` per sub-exposure (mas).

@@ -94,7 +94,7 @@ class OpticsKnobs:
     it takes; the defaults are those of :class:`~mavispm.simulate.optics.psf_grid.PSFSettings`
     (docs/optics.md gives the accuracy against each).
 
-    Attributes
+    Parameters
     ----------
     n_nodes : int
         PSF-grid nodes per side over ``psf.field_size`` (field sampling of the PSF).
@@ -120,7 +120,7 @@ OPTICS_KNOB_HOMES = {f.name: ("psf",) for f in dataclasses.fields(OpticsKnobs)}
 class OpticsSettings:
     """All optics settings (TOML table ``[scene.optics]``), one sub-table per term.
 
-    Attributes
+    Parameters
     ----------
     atmosphere : AtmosphereSettings
         Seeing, Cn^2 profile, winds, outer scale.
@@ -262,7 +262,7 @@ def check_psf_grid_memory(settings: OpticsSettings, source=None) -> None:
 class Optics:
     """The optics of one scene.
 
-    Attributes
+    Parameters
     ----------
     settings : OpticsSettings
     psf_grid : PSFGrid

@@ -73,7 +73,7 @@ ALGORITHM_VERSION = 2  # 2: LGS cone effect, weighted fitting directions, LGS po
 class PSFSettings:
     """High-order PSF grid (TOML table ``[scene.optics.psf]``).
 
-    Attributes
+    Parameters
     ----------
     mode : {"fourier", "static", "diffraction", "file"}
         How PSFs are made (see module docstring).
@@ -149,7 +149,7 @@ class PSFSettings:
 class PSFGrid:
     """A grid of normalised PSF stamps with bilinear interpolation.
 
-    Attributes
+    Parameters
     ----------
     cube : ndarray, shape (ny, nx, n, n)
         PSFs, each summing to 1, n odd, optical axis at pixel ((n-1)/2, (n-1)/2).
@@ -235,7 +235,7 @@ def _axis_weights(nodes: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndar
 class GridResult:
     """A computed grid plus what the halo needs.
 
-    Attributes
+    Parameters
     ----------
     grid : PSFGrid
     psd_frequency : ndarray
@@ -321,7 +321,7 @@ def radial_average(fx, fy, psd, df) -> tuple[np.ndarray, np.ndarray]:
 class ConeGeometry:
     """What the cone effect needs.
 
-    Attributes
+    Parameters
     ----------
     lgs_directions : ndarray, shape (G, 2)
         LGS directions [rad].
@@ -347,7 +347,7 @@ class ResidualPSDModel:
     servo-lag, tomography and noise parts come per direction from the
     tomographic operator on the control-region frequencies ``sel``.
 
-    Attributes
+    Parameters
     ----------
     sampling : FourierSampling
     fx, fy : ndarray

@@ -18,7 +18,7 @@ __all__ = [
 class PupilSettings:
     """Telescope pupil geometry (TOML table ``[scene.optics.pupil]``).
 
-    Attributes
+    Parameters
     ----------
     diameter : float
         Primary mirror diameter D (m).

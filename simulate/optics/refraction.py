@@ -63,7 +63,7 @@ BESSELL_V = np.array(
 class RefractionSettings:
     """Atmospheric refraction of a scene (TOML table ``[scene.optics.refraction]``).
 
-    Attributes
+    Parameters
     ----------
     enabled : bool
         Apply the colour-dependent shift (off: no displacement at all).

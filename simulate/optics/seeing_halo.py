@@ -32,7 +32,7 @@ __all__ = [
 class HaloSettings:
     """Seeing-wing kernel (TOML table ``[scene.optics.halo]``).
 
-    Attributes
+    Parameters
     ----------
     enabled : bool
         Whether to model the halo at all (None halo, untapered stamps when off).
@@ -119,7 +119,7 @@ def _radius_grid(n: int, pixel_scale: float) -> np.ndarray:
 class Halo:
     """Radial profile of the large central PSF and its ramp.
 
-    Attributes
+    Parameters
     ----------
     radius : ndarray
         Radii (mas) of the tabulated profile.

@@ -37,7 +37,7 @@ _CORNER = 15.0 * np.sqrt(2.0)
 class TelescopeSettings:
     """Telescope astrometric terms (TOML table ``[scene.optics.telescope]``).
 
-    Attributes
+    Parameters
     ----------
     plate_scale_rms : float
         RMS of the per-epoch relative plate-scale change [ppm] (0: none).

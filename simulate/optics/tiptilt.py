@@ -64,7 +64,7 @@ PRESETS: dict[str, tuple[tuple[float, float, float], ...]] = {
 class TipTiltSettings:
     """NGS tip-tilt residual (TOML table ``[scene.optics.tiptilt]``).
 
-    Attributes
+    Parameters
     ----------
     enabled : bool
         Off gives zero covariance everywhere.
@@ -181,7 +181,7 @@ def ngs_noise_variance(settings: TipTiltSettings, magnitudes: np.ndarray) -> np.
 class TiltCovariance:
     """Layer-summed tilt covariance function of angular separation.
 
-    Attributes
+    Parameters
     ----------
     rho : ndarray
         Tabulated layer-plane separations (m).
@@ -388,7 +388,7 @@ def field_average_sigma(field: TipTiltField, half_width: float = 15.0, n: int = 
 class KernelMap:
     """TT kernel shapes at field positions.
 
-    Attributes
+    Parameters
     ----------
     sigma_major, sigma_minor : ndarray
         1-sigma semi-axes of the Gaussian kernel (mas), major >= minor >= 0.

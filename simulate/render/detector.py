@@ -45,7 +45,7 @@ SATURATION_SAFETY_SIGMA = 10.0
 class DetectorSettings:
     """Detector of a scene (TOML table ``[detector]``).
 
-    Attributes
+    Parameters
     ----------
     nx, ny : int
         Frame size in pixels (4000 x 4000 covers 30" x 30" at 7.5 mas).

@@ -31,7 +31,7 @@ __all__ = [
 class SceneSettings:
     """How a frame is exposed and rendered.
 
-    Attributes
+    Parameters
     ----------
     exptime : float
         One sub-exposure, s (30).

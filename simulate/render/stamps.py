@@ -88,7 +88,7 @@ class RenderParams:
     In the spirit of GalSim's ``GSParams``: every trade of run time against error
     is made here.
 
-    Attributes
+    Parameters
     ----------
     oversampling : int
         Frequency oversampling of the stamp spectra before folding (1 = no alias
@@ -174,7 +174,7 @@ class RenderParams:
 class StampPlan:
     """Everything about one stamp size that does not depend on the star (cached).
 
-    Attributes
+    Parameters
     ----------
     m : int
         Stamp side (pixels).

@@ -37,7 +37,7 @@ __all__ = [
 class PhotometrySettings:
     """Photometric calibration of a scene (TOML table ``[photometry]``).
 
-    Attributes
+    Parameters
     ----------
     zero_point : float
         Photon flux density of a V = 0 (Vega) star above the atmosphere,
