@@ -35,7 +35,9 @@ The README's "Python API" section chains the whole pipeline; one stage alone:
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import astropy.units as u
 
@@ -46,6 +48,10 @@ from mavispm.dynamics.cli import DynamicsResult, fit_dynamics
 from mavispm.measure.propermotions.cli import proper_motions
 from mavispm.measure.stars.cli import measure_stars
 from mavispm.measure.stars.measure_frame import read_frame
+
+if TYPE_CHECKING:
+    from mavispm.simulate.optics.model import Optics, OpticsSettings
+    from mavispm.simulate.render.stamps import StarRenderer
 
 __all__ = [
     "Catalogue",
@@ -97,7 +103,11 @@ def simulate_cluster(settings: Mapping | None = None, seed: int = 0) -> Catalogu
     return Catalogue(epochs={n: epochs[n] for n in order}, attrs=dict(attrs))
 
 
-def build_optics(settings: Mapping | None = None, cache_dir=None, progress: bool = False):
+def build_optics(
+    settings: Mapping | OpticsSettings | None = None,
+    cache_dir: str | os.PathLike | None = None,
+    progress: bool = False,
+) -> Optics:
     """The optics of a scene: PSF grid, seeing halo, tip-tilt, blur, distortion.
 
     Parameters
@@ -121,12 +131,12 @@ def build_optics(settings: Mapping | None = None, cache_dir=None, progress: bool
 
 
 def render_epoch(
-    catalogue: Catalogue,
+    catalogue: Catalogue | str | os.PathLike,
     epoch: str | int = 0,
     scene: Mapping | None = None,
-    optics=None,
+    optics: Optics | None = None,
     seed: int = 0,
-    renderer=None,
+    renderer: StarRenderer | None = None,
 ) -> Frame:
     """Render one epoch of a catalogue into a stacked frame, in memory.
 
@@ -154,6 +164,7 @@ def render_epoch(
     Frame
         The stack in electrons with its truth table and ``frames`` attributes;
         what :func:`measure_stars` takes.
+
     Examples
     --------
     A diffraction-limited 2 x 2 PSF grid (cached in a temporary folder) and
