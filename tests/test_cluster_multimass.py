@@ -297,6 +297,7 @@ SETTING_NAMES = (
     imbh=st.sampled_from([0.0, 300.0, 3000.0, 30000.0]),
 )
 @example(mass=20000.0, ns=0.0, bh=0.0, ra=None, bhs=5e-324, imbh=0.0)
+@example(mass=20000.0, ns=0.0, bh=2.225073858507e-311, ra=None, bhs=0.0, imbh=0.0)
 def test_stress_models_are_finite_reproducible_or_clearly_refused(mass, ns, bh, ra, bhs, imbh):
     try:
         settings = ClusterSettings(

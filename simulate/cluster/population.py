@@ -32,6 +32,7 @@ __all__ = [
     "DARK_MAGNITUDE",
     "MASS_LUMINOSITY_TABLE",
     "MassFunction",
+    "MIN_GROUP_NUMBER",
     "MassGroup",
     "NS_PROGENITOR_MIN",
     "STAR_GROUP_EDGES",
@@ -463,6 +464,12 @@ def _group_moments(mf: MassFunction, kind: str, lo: float, hi: float, n: int = 4
     return number, number * mean
 
 
+#: Objects per mass-function star below which a group is empty (a retention of 1e-311 left a
+#: black-hole group whose density underflowed to 0 and broke the DF; a 1e7-star cluster
+#: would hold < 1e-8 objects of such a group).
+MIN_GROUP_NUMBER = 1e-15
+
+
 def mass_groups(
     mf: MassFunction,
     include_remnants: bool = True,
@@ -474,7 +481,8 @@ def mass_groups(
     Stars are split at :data:`STAR_GROUP_EDGES` up to the RGB tip, white dwarfs
     at a final mass of 0.6 solMass; neutron stars and black holes (retained
     fractions ``ns_retention``, ``bh_retention``) form one group each. Empty
-    groups are dropped.
+    groups (fewer than :data:`MIN_GROUP_NUMBER` objects per mass-function star) are
+    dropped.
 
     Parameters
     ----------
@@ -502,7 +510,7 @@ def mass_groups(
     groups = []
     for kind, lo, hi, keep in spec:
         number, mass = _group_moments(mf, kind, lo, hi)
-        if number * keep > 0:
+        if number * keep > MIN_GROUP_NUMBER:
             lo, hi = max(lo, mf.mass_min), min(hi, mf.mass_max)
             groups.append(MassGroup(kind, lo, hi, float(number * keep), float(mass * keep)))
     return groups
