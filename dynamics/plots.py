@@ -71,6 +71,8 @@ def profile_plot(profile, fits, truths, path, seed: int = 0):
         Truth profiles by model name ("imbh", "no_imbh").
     path : path
         PNG file (written atomically).
+    seed : int
+        Seed of the posterior draws of the model bands.
     """
     R_lo = max(float(profile["R_min"].value.min()) if len(profile) else 0.1, 0.05)
     R_hi = fits[0].likelihood.stars.field_radius

@@ -61,6 +61,10 @@ def ml_dispersion(v, e, n_iter: int = 500, tol: float = 1e-10):
     ----------
     v, e : ndarray (..., n)
         Values and their Gaussian errors (same unit).
+    n_iter : int
+        Most fixed-point iterations.
+    tol : float
+        Relative change of the variance at which the iteration stops.
 
     Returns
     -------

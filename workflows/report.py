@@ -971,6 +971,9 @@ def _fmt_number(value, spec: str) -> str:
 def write_report(rundir: str | os.PathLike, reports: Mapping[str, str] | None = None) -> Path:
     """Write ``report.md`` (and ``report/`` with tables and plots) for a run directory.
 
+    Each selected stage's report function is called on that stage's products;
+    stage modules that cannot be imported are skipped.
+
     Parameters
     ----------
     rundir : path
@@ -980,9 +983,6 @@ def write_report(rundir: str | os.PathLike, reports: Mapping[str, str] | None = 
         calling code (the runner passes its stage registry's). Default: the
         trusted registry :func:`stage_report_functions`. summary.json only
         selects stages by name (``stage_reports``); it never names code.
-
-    Each selected stage's report function is called on that stage's products;
-    stage modules that cannot be imported are skipped.
 
     Returns
     -------

@@ -233,10 +233,19 @@ def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> f
 
     Parameters
     ----------
+    settings : AOSettings
+        LGS photometry and WFS: ``lgs_photons``, ``lgs_read_noise`` [electron],
+        ``lgs_excess_noise``, ``lgs_pixel_scale`` [mas], ``lgs_pixels``, ``lgs_spot_fwhm``
+        [mas], ``lgs_wavelength`` [nm], or ``lgs_slope_noise`` [nm] when set.
     pitch : float
         Sub-aperture size d (m).
     r0_wfs : float
         Fried parameter at the LGS wavelength along the line of sight (m).
+
+    Returns
+    -------
+    float
+        RMS wavefront-difference noise per frame [nm].
     """
     s = settings
     if s.lgs_slope_noise is not None:
@@ -403,6 +412,10 @@ def aliasing_psd(
         Spatial frequencies inside the control region (m^-1).
     pitch : float
         Sub-aperture size d (m).
+    r0 : float
+        Fried parameter at the science wavelength (m).
+    outer_scale : float
+        Outer scale L0 (m).
     n_fold : int
         Folded orders summed in each direction (|m|, |n| <= n_fold).
     temporal : callable, optional
@@ -591,6 +604,14 @@ def tomographic_operator(
     ----------
     fx, fy : ndarray, shape (F,)
         Control-region frequencies, none equal to (0, 0) (m^-1).
+    settings : AOSettings
+        DMs, LGS asterism, fitting directions and loop.
+    atmosphere : Layers
+        Turbulent layers (distances [m], Cn^2 fractions, winds [m/s]).
+    r0 : float
+        Fried parameter at the science wavelength (m).
+    outer_scale : float
+        Outer scale L0 (m).
     noise_psd_single : ndarray, shape (F,)
         Noise PSD of one WFS (rad^2 m^2) before the loop gain; zeros when noise is off.
     """

@@ -63,6 +63,8 @@ def run_stage(
         The HDF5 product to write (atomically).
     cache_dir : Path, optional
         PSF-grid cache folder.
+    progress : bool
+        Progress bar while a PSF grid is computed (on a terminal only).
 
     Returns
     -------

@@ -464,7 +464,10 @@ def build_image_motion(
 
     Parameters
     ----------
+    settings : ImageMotionSettings
+        The ``[scene.optics.image_motion]`` table.
     tiptilt : TipTiltField
+        The tip-tilt residual model (sets the mode budget).
     layers_ : Layers
         Turbulent layers (for the tilt correlation time D / v_eff).
     diameter : float

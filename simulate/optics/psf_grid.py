@@ -560,8 +560,18 @@ def compute_fourier_grid(
 
     Parameters
     ----------
+    psf : PSFSettings
+        Wavelength, pixel scale, stamp size and the sampling knobs.
+    pupil : PupilSettings
+        Pupil geometry.
+    atmosphere : AtmosphereSettings
+        Turbulence profile and seeing.
+    ao : AOSettings
+        AO system.
     positions : ndarray, shape (K, 2)
         Field positions (arcsec).
+    progress : bool
+        Progress bar (on a terminal only).
     residual : bool
         False gives the diffraction-limited PSF (zero residual PSD).
 

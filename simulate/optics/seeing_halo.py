@@ -192,6 +192,8 @@ def build_halo(
 
     Parameters
     ----------
+    settings : HaloSettings
+        Kernel size and ramp radii.
     psd_frequency, psd_profile : ndarray
         Azimuthally averaged on-axis residual PSD (m^-1, rad^2 m^2); beyond
         its last frequency the von Karman spectrum is used.
@@ -199,8 +201,14 @@ def build_halo(
         Wavelength (m).
     diameter : float
         Pupil diameter (m).
+    obscuration_ratio : float
+        Central obstruction over pupil diameter.
     r0, outer_scale : float
         Atmosphere at that wavelength (m).
+    control_radius_mas : float
+        AO control radius (mas); the default ramp start.
+    stamp_half_width_mas : float
+        Half-width of the core PSF stamps (mas); the default ramp end is 95 % of it.
     oversampling : float
         Sampling of the Hankel integrals relative to Nyquist (accuracy knob).
     """

@@ -222,6 +222,10 @@ def tilt_covariance_function(
 
     Parameters
     ----------
+    atmosphere : AtmosphereSettings
+        Turbulence profile, seeing and zenith angle.
+    pupil : PupilSettings
+        Pupil diameter and obscuration (the annular G-tilt averaging aperture).
     max_separation : float
         Largest angular separation needed (rad).
     """
