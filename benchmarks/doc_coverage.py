@@ -36,7 +36,14 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Callable", "Coverage", "scan_package", "main"]
+__all__ = [
+    "Callable",
+    "Coverage",
+    "documented_parameters",
+    "main",
+    "parameter_mismatches",
+    "scan_package",
+]
 
 ROOT = Path(__file__).resolve().parents[1]
 EXCLUDED_TOP = {"tests", "benchmarks", "docs", ".dev", "build"}
@@ -287,6 +294,74 @@ def scan_package(root: Path = ROOT) -> Coverage:
     return cov
 
 
+_SECTION = re.compile(
+    r"^(Parameters|Other Parameters|Returns|Yields|Receives|Raises|Warns|Warnings|See Also|"
+    r"Notes|References|Examples|Attributes|Methods)\n-{3,}$",
+    re.MULTILINE,
+)
+
+
+def documented_parameters(doc: str) -> set[str] | None:
+    """Names listed in a docstring's numpydoc ``Parameters`` section.
+
+    Parameters
+    ----------
+    doc : str
+        A cleaned docstring (``inspect.cleandoc``/``ast.get_docstring``).
+
+    Returns
+    -------
+    set of str or None
+        The names (``x, y : float`` gives two; ``*args`` gives ``args``); None without a
+        Parameters section.
+    """
+    m = re.search(r"^Parameters\n-{3,}\n", doc, re.MULTILINE)
+    if not m:
+        return None
+    rest = doc[m.end() :]
+    nxt = _SECTION.search(rest)
+    names = set()
+    for line in (rest[: nxt.start()] if nxt else rest).splitlines():
+        if line and not line.startswith(" "):
+            for name in line.split(" :")[0].split(","):
+                if name.strip().lstrip("*"):
+                    names.add(name.strip().lstrip("*"))
+    return names
+
+
+def parameter_mismatches(root: Path = ROOT) -> list[str]:
+    """Public functions whose Parameters section and signature name different arguments.
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        The package root (the repository root).
+
+    Returns
+    -------
+    list of str
+        ``module:line name: undocumented [...] unknown [...]`` per mismatch.
+    """
+    out = []
+    for path in public_modules(root):
+        tree = ast.parse(path.read_text())
+        methods = {id(f) for c in ast.walk(tree) if isinstance(c, ast.ClassDef) for f in c.body}
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            names = documented_parameters(ast.get_docstring(node) or "")
+            if names is None:
+                continue
+            args = {a.arg for a in _arguments(node, id(node) in methods)}
+            if names != args:
+                rel = path.relative_to(root)
+                out.append(
+                    f"{rel}:{node.lineno} {node.name}: undocumented {sorted(args - names)} "
+                    f"unknown {sorted(names - args)}"
+                )
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the coverage numbers.
 
@@ -319,6 +394,8 @@ def main(argv: list[str] | None = None) -> int:
         for c in cov.callables:
             if not c.documented:
                 print(f"missing: {c.module}.{c.name}")
+        for line in parameter_mismatches():
+            print(f"mismatch: {line}")
     print(
         f"numpydoc coverage: {cov.n_documented}/{len(cov.callables)} public callables "
         f"({cov.percent:.1f}%); with arguments: {cov.percent_with_args:.1f}%"

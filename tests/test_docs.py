@@ -83,6 +83,12 @@ def test_the_scanner_counts_a_missing_section(tmp_path):
         "good": True,
         "nothing": True,
     }
+    (tmp_path / "pkg" / "wrong.py").write_text(
+        'def f(x, y):\n    """F.\n\n    Parameters\n    ----------\n    x, z : float\n'
+        '        Values.\n    """\n'
+    )
+    (mismatch,) = doc_coverage.parameter_mismatches(tmp_path)
+    assert "undocumented ['y'] unknown ['z']" in mismatch
 
 
 @pytest.mark.parametrize("module", ["mavispm.dynamics.jeans"])
@@ -91,3 +97,9 @@ def test_dynamics_docstring_example(module):
     against its closed form) runs as written."""
     result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
     assert result.attempted >= 5 and result.failed == 0
+
+
+def test_parameters_sections_name_the_signature_arguments():
+    """Where a function has a Parameters section, it documents exactly the arguments of its
+    signature (no argument forgotten, none that does not exist)."""
+    assert doc_coverage.parameter_mismatches(ROOT) == []
