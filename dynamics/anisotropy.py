@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "Anisotropy",
@@ -58,7 +59,7 @@ class Anisotropy:
         """Whether beta does not depend on radius."""
         return self.beta_0 == self.beta_inf
 
-    def beta(self, r):
+    def beta(self, r: ArrayLike):
         """``beta(r)``.
 
         Parameters
@@ -76,7 +77,7 @@ class Anisotropy:
             return np.full_like(r2, self.beta_0)
         return self.beta_0 + (self.beta_inf - self.beta_0) * r2 / (r2 + self.r_a**2)
 
-    def ln_factor(self, ln_r):
+    def ln_factor(self, ln_r: ArrayLike):
         """``ln g(r)`` of the integrating factor at ``ln r``.
 
         ``g(r) = r^(2 beta_0) (r^2 + r_a^2)^(beta_inf - beta_0)``, the solution of

@@ -37,10 +37,12 @@ posterior samples of the no-IMBH models (:func:`escape_velocity_quantile`).
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import astropy.units as u
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN
@@ -156,7 +158,7 @@ def potential_table(profile) -> _PotentialTable:
     return _PotentialTable(edges, phi, m_in, min(max(slope, 0.5), 3.0))
 
 
-def dimensionless_potential(profile, x):
+def dimensionless_potential(profile, x: ArrayLike):
     """``phi(x)`` of a unit-mass profile in units of ``G M / a`` (zero at infinity).
 
     Parameters
@@ -186,7 +188,7 @@ class ProfileComponent:
     mass: float
     scale_radius: float
 
-    def enclosed_mass(self, r):
+    def enclosed_mass(self, r: ArrayLike):
         """Mass inside ``r`` [pc] in solMass.
 
         Parameters
@@ -202,7 +204,7 @@ class ProfileComponent:
         x = np.asarray(r, dtype=float) / self.scale_radius
         return self.mass * np.asarray(self.profile.enclosed(x), dtype=float)
 
-    def potential(self, r):
+    def potential(self, r: ArrayLike):
         """``Phi(r)`` [(km/s)^2], zero at infinity.
 
         Parameters
@@ -236,7 +238,7 @@ class PointMass:
 
     mass: float
 
-    def enclosed_mass(self, r):
+    def enclosed_mass(self, r: ArrayLike):
         """``mass`` at every ``r`` > 0 [solMass].
 
         Parameters
@@ -251,7 +253,7 @@ class PointMass:
         """
         return np.full(np.shape(r), float(self.mass))
 
-    def potential(self, r):
+    def potential(self, r: ArrayLike):
         """``-G M / r`` [(km/s)^2] (r clipped to 1e-12 pc).
 
         Parameters
@@ -281,7 +283,7 @@ class SphericalMassModel:
 
     components: tuple
 
-    def enclosed_mass(self, r):
+    def enclosed_mass(self, r: ArrayLike):
         """Total mass inside ``r`` [pc] in solMass.
 
         Parameters
@@ -299,7 +301,7 @@ class SphericalMassModel:
             np.zeros(np.shape(r)),
         )
 
-    def potential(self, r):
+    def potential(self, r: ArrayLike):
         """``Phi(r)`` [(km/s)^2], zero at infinity.
 
         Parameters
@@ -316,7 +318,7 @@ class SphericalMassModel:
             (np.asarray(c.potential(r), float) for c in self.components), np.zeros(np.shape(r))
         )
 
-    def escape_speed(self, r):
+    def escape_speed(self, r: ArrayLike):
         """``sqrt(-2 Phi(r))`` [km/s] at 3-D radii ``r`` [pc] (floats).
 
         Parameters
@@ -356,7 +358,7 @@ def escape_velocity(model, r) -> u.Quantity:
     return np.sqrt(np.maximum(-2.0 * phi, 0.0)) * (u.km / u.s)
 
 
-def escape_velocity_samples(models, r_pc) -> np.ndarray:
+def escape_velocity_samples(models: Sequence[SphericalMassModel], r_pc: ArrayLike) -> np.ndarray:
     """Escape speeds [km/s] of every model at radii ``r_pc``: shape ``(n_models, n_radii)``.
 
     Parameters
@@ -375,7 +377,9 @@ def escape_velocity_samples(models, r_pc) -> np.ndarray:
     return np.stack([np.sqrt(np.maximum(-2.0 * m.potential(r_pc), 0.0)) for m in models])
 
 
-def escape_velocity_quantile(models, R, quantile: float = 0.99) -> u.Quantity:
+def escape_velocity_quantile(
+    models: Sequence[SphericalMassModel], R: u.Quantity, quantile: float = 0.99
+) -> u.Quantity:
     """Conservative escape velocity at projected radii ``R``.
 
     Taken at the 3-D radius ``r = R`` (the largest escape velocity of all radii
@@ -416,7 +420,7 @@ class PosteriorMassModel:
     model: SphericalMassModel
     distance: float
 
-    def escape_speed_at(self, R_arcsec):
+    def escape_speed_at(self, R_arcsec: ArrayLike):
         """Escape speed [km/s] at 3-D radius ``r = R`` for projected radii [arcsec].
 
         ``r = R`` is the smallest 3-D radius a star at projected radius ``R`` can have, so the
@@ -438,7 +442,7 @@ class PosteriorMassModel:
         return self.model.escape_speed(r_pc)
 
 
-def escape_speed_at_projected(model, R_arcsec, distance: float):
+def escape_speed_at_projected(model, R_arcsec: ArrayLike, distance: float):
     """Escape speed [km/s] at ``r = R`` of any mass model, for projected radii in arcsec.
 
     Parameters

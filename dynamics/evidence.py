@@ -12,9 +12,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    from mavispm.dynamics.parameters import ParameterSpace
 
 __all__ = [
     "EvidenceResult",
@@ -49,7 +55,12 @@ class EvidenceResult:
 
 
 def run_dynesty(
-    loglike, space, seed: int, nlive: int = 250, dlogz: float = 0.1, progress: bool = False
+    loglike: Callable[[np.ndarray], float],
+    space: ParameterSpace,
+    seed: int,
+    nlive: int = 250,
+    dlogz: float = 0.1,
+    progress: bool = False,
 ):
     """Evidence of one model with dynesty's static nested sampler.
 
@@ -133,7 +144,7 @@ def information_criteria(max_log_like: float, n_params: int, n_data: int) -> dic
     }
 
 
-def savage_dickey(bh_samples, prior_max: float, min_samples: int = 50):
+def savage_dickey(bh_samples: ArrayLike, prior_max: float, min_samples: int = 50):
     """Savage-Dickey ln B_10 from IMBH posterior samples of ``bh_mass``.
 
     The posterior density at zero is the fraction of samples in ``[0, h]``

@@ -46,11 +46,14 @@ the distance prior and the fitted no-IMBH models):
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
+from numpy.typing import ArrayLike
 from scipy import stats
 
 from mavispm.core.config import unit_field
@@ -186,7 +189,7 @@ class PMStars:
     def __len__(self):
         return len(self.R)
 
-    def select(self, keep) -> PMStars:
+    def select(self, keep: np.ndarray) -> PMStars:
         """The stars where ``keep`` is true.
 
         Parameters
@@ -277,7 +280,7 @@ def largest_error(stars: PMStars):
     return np.sqrt(0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b))
 
 
-def rice_sf(t, nu, sigma):
+def rice_sf(t: ArrayLike, nu: ArrayLike, sigma: ArrayLike):
     """``P(|X| > t)`` for a 2-D isotropic Gaussian ``X`` with mean modulus ``nu``, sd ``sigma``.
 
     Computed as the non-central chi-square survival function (accurate far in the
@@ -324,7 +327,9 @@ def distance_nodes(distance: float, distance_error: float):
     return d, w / w.sum()
 
 
-def p_value(mu, sigma, v_esc, d_nodes, d_weights):
+def p_value(
+    mu: np.ndarray, sigma: np.ndarray, v_esc: np.ndarray, d_nodes: np.ndarray, d_weights: np.ndarray
+):
     """p-value of an observed PM modulus ``mu`` if the true speed were the escape speed.
 
     Parameters
@@ -342,7 +347,14 @@ def p_value(mu, sigma, v_esc, d_nodes, d_weights):
     return p
 
 
-def threshold(sigma, v_esc, d_nodes, d_weights, alpha, iterations: int = 60):
+def threshold(
+    sigma: np.ndarray,
+    v_esc: np.ndarray,
+    d_nodes: np.ndarray,
+    d_weights: np.ndarray,
+    alpha: float,
+    iterations: int = 60,
+):
     """PM modulus [mas/yr] above which a star is fast at level ``alpha`` (bisection).
 
     Parameters
@@ -412,7 +424,7 @@ class PullTails:
             return 1.0
         return stats.norm.ppf(0.75) / stats.t.ppf(0.75, self.dof)
 
-    def sf(self, z):
+    def sf(self, z: ArrayLike):
         """One-sided tail probability beyond ``z`` robust sigma.
 
         Parameters
@@ -430,7 +442,7 @@ class PullTails:
         return stats.t.sf(z / self.t_scale, self.dof)
 
 
-def measure_tails(pulls, source: str) -> PullTails:
+def measure_tails(pulls: ArrayLike, source: str) -> PullTails:
     """Robust width, tail fractions and a Student-t fit of a pull sample.
 
     Parameters
@@ -501,7 +513,7 @@ def pulls_of(stars: PMStars, dispersion=None) -> tuple[np.ndarray, str]:
 # ---------------------------------------------------------------- binaries
 
 
-def binary_kicks(n, rng, baseline, settings: FastStarSettings):
+def binary_kicks(n: int, rng: np.random.Generator, baseline: float, settings: FastStarSettings):
     """Apparent 2-D velocity [km/s] of unresolved binaries' photocentres over a baseline.
 
     Circular orbits, periods log-normal in days (``binary_log_period``), mass ratio
@@ -558,7 +570,15 @@ def _truncated_rayleigh(s, v_max, k):
     return s * np.sqrt(-2.0 * np.log1p(-u_[None, :] * f_max))
 
 
-def expected_flags(t, sigma, s, v_max, tails: PullTails | None, kicks=None, k=64):
+def expected_flags(
+    t: np.ndarray,
+    sigma: np.ndarray,
+    s: np.ndarray,
+    v_max: np.ndarray,
+    tails: PullTails | None,
+    kicks: np.ndarray | None = None,
+    k: int = 64,
+):
     """Per-star probability of exceeding the threshold ``t`` [mas/yr].
 
     True speeds: modulus of a 2-D Gaussian of 1-D dispersion ``s`` truncated at
@@ -1012,7 +1032,9 @@ def _pm_xy_spec():
     )
 
 
-def read_pm_stars(path, field_radius: float | None = None, use_flagged: bool = False):
+def read_pm_stars(
+    path: str | os.PathLike, field_radius: float | None = None, use_flagged: bool = False
+):
     """Stars of a propermotions product for the fast-star test, and the epoch baseline.
 
     Flagged stars are dropped unless ``use_flagged``; stars beyond ``field_radius``
@@ -1085,7 +1107,7 @@ def read_pm_stars(path, field_radius: float | None = None, use_flagged: bool = F
     return stars, baseline
 
 
-def model_dispersion(likelihood, theta):
+def model_dispersion(likelihood, theta: ArrayLike):
     """``R [arcsec] -> 1-D PM dispersion [mas/yr]`` (rms of radial and tangential) of a model.
 
     Parameters
@@ -1139,7 +1161,9 @@ def stars_from_sample(sample) -> PMStars:
     )
 
 
-def about_fitted_centre(stars: PMStars, samples, names, n_sigma: float = 2.0):
+def about_fitted_centre(
+    stars: PMStars, samples: ArrayLike, names: Sequence[str], n_sigma: float = 2.0
+):
     """Stars about a fit's centre and systemic motion (posterior medians), conservatively.
 
     ``x0, y0`` [arcsec] and ``pm_x0, pm_y0`` [mas/yr] are the fitted centre and mean

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,7 +97,14 @@ def stored_fits(product, settings, stars, distance):
     return fits
 
 
-def run(dynamics, output, settings_mapping=None, propermotions=None, plots_dir=None, seed=0):
+def run(
+    dynamics: str | os.PathLike,
+    output: str | os.PathLike,
+    settings_mapping: Mapping | None = None,
+    propermotions: str | os.PathLike | None = None,
+    plots_dir: str | os.PathLike | None = None,
+    seed: int = 0,
+):
     """Add the fast-star test to a dynamics product; returns the output path.
 
     The stored fits are reused (no refit); the settings are the product's own, with the
@@ -203,7 +212,7 @@ def _handler(args) -> int:
     return 0
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the top-level ``fast-stars`` command.
 
     Parameters

@@ -4,6 +4,7 @@ the Jeans projector and the likelihood."""
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 __all__ = [
     "cubic_weights",
@@ -11,7 +12,7 @@ __all__ = [
 ]
 
 
-def cubic_weights(lnx_grid_start: float, step: float, n: int, lnq):
+def cubic_weights(lnx_grid_start: float, step: float, n: int, lnq: ArrayLike):
     """Indices and 4-point Lagrange weights for cubic interpolation on a uniform grid.
 
     Queries outside the grid are clamped to its ends.
@@ -39,7 +40,7 @@ def cubic_weights(lnx_grid_start: float, step: float, n: int, lnq):
     return idx, weights
 
 
-def interpolate(values, idx, weights):
+def interpolate(values: np.ndarray, idx: np.ndarray, weights: np.ndarray):
     """Apply :func:`cubic_weights` to grid ``values`` (..., n) -> (..., N).
 
     Parameters

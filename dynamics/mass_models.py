@@ -19,6 +19,7 @@ names of the posterior tables of a ``dynamics`` product) and
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import astropy.units as u
@@ -94,7 +95,7 @@ class MassModel:
             self.dark_radius.to_value(u.pc),
         )
 
-    def enclosed_mass(self, r) -> u.Quantity:
+    def enclosed_mass(self, r: u.Quantity) -> u.Quantity:
         """``M(<r)`` [solMass] at 3-D radii ``r`` (length).
 
         Parameters
@@ -112,7 +113,7 @@ class MassModel:
         dark = md * Plummer().enclosed(r / b) if md > 0 else 0.0
         return (m * self.tracer.enclosed(r / a) + mb + dark) * u.Msun
 
-    def potential(self, r) -> u.Quantity:
+    def potential(self, r: u.Quantity) -> u.Quantity:
         """``Phi(r)`` [(km/s)^2], zero at infinity (the point mass diverges at r = 0).
 
         Parameters
@@ -135,7 +136,7 @@ class MassModel:
             )
         return phi * (u.km / u.s) ** 2
 
-    def escape_speed(self, r) -> u.Quantity:
+    def escape_speed(self, r: u.Quantity) -> u.Quantity:
         """``sqrt(-2 Phi(r))`` [km/s].
 
         Parameters
@@ -151,7 +152,12 @@ class MassModel:
         return np.sqrt(-2.0 * self.potential(r))
 
 
-def mass_model(params: dict, tracer: str = "plummer", concentration: float = 1.5, distance=None):
+def mass_model(
+    params: dict,
+    tracer: str = "plummer",
+    concentration: float = 1.5,
+    distance: u.Quantity | None = None,
+):
     """Mass model of one parameter vector of a fit.
 
     Parameters
@@ -191,7 +197,9 @@ def mass_model(params: dict, tracer: str = "plummer", concentration: float = 1.5
     )
 
 
-def posterior_mass_models(path, model: str = "dark", max_samples: int | None = None):
+def posterior_mass_models(
+    path: str | os.PathLike, model: str = "dark", max_samples: int | None = None
+):
     """Mass models of every posterior sample of one model of a ``dynamics`` product.
 
     Parameters

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import ndtri
 
 __all__ = [
@@ -61,7 +62,7 @@ class Parameter:
         if self.prior not in ("uniform", "gaussian"):
             raise ValueError(f"parameter {self.name}: unknown prior {self.prior!r}")
 
-    def from_scaled(self, z):
+    def from_scaled(self, z: ArrayLike):
         """Physical value from the order-unity scaled value.
 
         Uniform prior: ``z`` in [-1, 1] maps to [lo, hi]; Gaussian: ``mean + sd z``.
@@ -80,7 +81,7 @@ class Parameter:
             return 0.5 * (self.hi + self.lo) + 0.5 * (self.hi - self.lo) * z
         return self.mean + self.sd * z
 
-    def to_scaled(self, v):
+    def to_scaled(self, v: ArrayLike):
         """Order-unity scaled value from the physical value.
 
         Parameters
@@ -97,7 +98,7 @@ class Parameter:
             return (v - 0.5 * (self.hi + self.lo)) / (0.5 * (self.hi - self.lo))
         return (v - self.mean) / self.sd
 
-    def log_prior_scaled(self, z):
+    def log_prior_scaled(self, z: ArrayLike):
         """Log prior density in the scaled space (-inf outside the support).
 
         Parameters
@@ -115,7 +116,7 @@ class Parameter:
             return np.where(np.abs(z) <= 1.0, -np.log(2.0), -np.inf)
         return -0.5 * z * z - 0.5 * np.log(2 * np.pi)
 
-    def from_unit(self, q):
+    def from_unit(self, q: ArrayLike):
         """Physical value from the unit cube (dynesty prior transform).
 
         Parameters
@@ -168,7 +169,7 @@ class ParameterSpace:
         """
         return self.names.index(name)
 
-    def from_scaled(self, z):
+    def from_scaled(self, z: ArrayLike):
         """Physical vector(s) from scaled vector(s) (last axis = parameters).
 
         Parameters
@@ -184,7 +185,7 @@ class ParameterSpace:
         z = np.asarray(z, dtype=float)
         return np.stack([p.from_scaled(z[..., i]) for i, p in enumerate(self.params)], axis=-1)
 
-    def to_scaled(self, v):
+    def to_scaled(self, v: ArrayLike):
         """Scaled vector(s) from physical vector(s).
 
         Parameters
@@ -200,7 +201,7 @@ class ParameterSpace:
         v = np.asarray(v, dtype=float)
         return np.stack([p.to_scaled(v[..., i]) for i, p in enumerate(self.params)], axis=-1)
 
-    def log_prior_scaled(self, z) -> float:
+    def log_prior_scaled(self, z: ArrayLike) -> float:
         """Sum of the log prior densities of a scaled vector.
 
         Parameters
@@ -215,7 +216,7 @@ class ParameterSpace:
         """
         return float(sum(p.log_prior_scaled(z[i]) for i, p in enumerate(self.params)))
 
-    def from_unit(self, q):
+    def from_unit(self, q: ArrayLike):
         """Physical vector from a unit-cube vector (dynesty).
 
         Parameters
@@ -230,7 +231,7 @@ class ParameterSpace:
         """
         return np.array([p.from_unit(q[i]) for i, p in enumerate(self.params)])
 
-    def as_dict(self, v) -> dict:
+    def as_dict(self, v: ArrayLike) -> dict:
         """Physical vector as {name: value}.
 
         Parameters

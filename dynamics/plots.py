@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from numpy.typing import ArrayLike  # noqa: E402
 
 from mavispm.core.atomic import atomic_path  # noqa: E402
 
@@ -33,7 +36,7 @@ _NAMES = {
 }
 
 
-def model_band(fit, R, n_draws: int = 200, seed: int = 0):
+def model_band(fit, R: ArrayLike, n_draws: int = 200, seed: int = 0):
     """16/50/84 % posterior quantiles of the model dispersions at radii ``R`` [arcsec].
 
     Parameters
@@ -59,7 +62,7 @@ def model_band(fit, R, n_draws: int = 200, seed: int = 0):
     return np.percentile(curves, [16, 50, 84], axis=0)
 
 
-def profile_plot(profile, fits, truths, path, seed: int = 0):
+def profile_plot(profile, fits, truths, path: str | os.PathLike, seed: int = 0):
     """Radial and tangential dispersion profiles: data, model bands and truth.
 
     Parameters
@@ -118,7 +121,7 @@ def profile_plot(profile, fits, truths, path, seed: int = 0):
     return path
 
 
-def corner_plot(fit, path, bins: int | None = None):
+def corner_plot(fit, path: str | os.PathLike, bins: int | None = None):
     """A small corner plot (histograms and smoothed 2-D 68/95% contours) of one model's chain.
 
     ``bins`` defaults to ``sqrt(n) / 2`` clipped to [10, 40] for ``n`` samples.
@@ -191,7 +194,7 @@ def corner_plot(fit, path, bins: int | None = None):
     return path
 
 
-def fast_star_plot(result, path, title: str | None = None):
+def fast_star_plot(result, path: str | os.PathLike, title: str | None = None):
     """2-D speed against projected radius with the escape-velocity curves.
 
     Parameters

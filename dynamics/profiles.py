@@ -19,6 +19,7 @@ from __future__ import annotations
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
+from numpy.typing import ArrayLike
 
 from mavispm.core.errors import InputError
 from mavispm.dynamics.jeans import KMS_PER_MASYR_KPC
@@ -54,7 +55,7 @@ def equal_count_bins(n: int, bin_size: int) -> list[slice]:
     return [slice(edges[i], edges[i + 1]) for i in range(len(edges) - 1)]
 
 
-def ml_dispersion(v, e, n_iter: int = 500, tol: float = 1e-10):
+def ml_dispersion(v: ArrayLike, e: ArrayLike, n_iter: int = 500, tol: float = 1e-10):
     """Maximum-likelihood intrinsic dispersion and mean (vectorised over leading axes).
 
     Parameters
@@ -87,7 +88,7 @@ def ml_dispersion(v, e, n_iter: int = 500, tol: float = 1e-10):
     return np.sqrt(s2), mu
 
 
-def fisher_error(sigma, e):
+def fisher_error(sigma: float, e: ArrayLike):
     """Analytic 1-sigma error of the ML dispersion (inf when sigma = 0).
 
     The dispersion maximises ``prod N(v; 0, sigma^2 + e_i^2)``; its Fisher information is
@@ -111,7 +112,15 @@ def fisher_error(sigma, e):
 
 
 def dispersion_profile(
-    R, v_r, v_t, e_r, e_t, bin_size: int = 300, n_bootstrap: int = 200, distance=None, seed=0
+    R: u.Quantity,
+    v_r: u.Quantity,
+    v_t: u.Quantity,
+    e_r: u.Quantity,
+    e_t: u.Quantity,
+    bin_size: int = 300,
+    n_bootstrap: int = 200,
+    distance: u.Quantity | None = None,
+    seed: int = 0,
 ) -> QTable:
     """Binned radial, tangential and pooled PM dispersion profile.
 
@@ -196,7 +205,7 @@ def dispersion_profile(
     return table
 
 
-def radial_tangential(x, y, pm_x, pm_y):
+def radial_tangential(x: np.ndarray, y: np.ndarray, pm_x: np.ndarray, pm_y: np.ndarray):
     """Rotate proper motions into radial / tangential components about (0, 0).
 
     Stars exactly at the centre get the x/y components (any direction is radial).

@@ -17,12 +17,18 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import emcee
 import numpy as np
 from scipy.optimize import minimize
+
+if TYPE_CHECKING:
+    from mavispm.dynamics.parameters import ParameterSpace
 
 __all__ = [
     "BACKEND_KEY_ATTR",
@@ -131,7 +137,7 @@ def _open_backend(path, name: str, walkers: int, ndim: int, key: str | None):
     return backend, iteration
 
 
-def h5py_readable(path) -> bool:
+def h5py_readable(path: str | os.PathLike) -> bool:
     """Whether ``path`` opens as an HDF5 file.
 
     Parameters
@@ -170,7 +176,11 @@ class _Posterior:
         return lp + ll, ll
 
 
-def find_map(loglike, space, starts=None):
+def find_map(
+    loglike: Callable[[np.ndarray], float],
+    space: ParameterSpace,
+    starts: Sequence[np.ndarray] | None = None,
+):
     """Maximum a posteriori point in scaled space (Powell, several starts).
 
     Parameters
@@ -214,8 +224,8 @@ def find_map(loglike, space, starts=None):
 
 
 def run_emcee(
-    loglike,
-    space,
+    loglike: Callable[[np.ndarray], float],
+    space: ParameterSpace,
     seed: int,
     walkers: int = 32,
     max_steps: int = 20000,
@@ -328,7 +338,7 @@ def run_emcee(
     )
 
 
-def summarise(samples, names, detection_ratio: float = 0.1) -> dict:
+def summarise(samples: np.ndarray, names: Sequence[str], detection_ratio: float = 0.1) -> dict:
     """Posterior summaries per parameter.
 
     Parameters

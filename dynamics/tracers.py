@@ -27,6 +27,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mavispm.dynamics.interpolation import cubic_weights
 
@@ -74,7 +75,7 @@ class Plummer(_ClosedFormEnclosedMass):
     #: logarithmic outer slope of the density (nu ~ x**-outer_slope)
     outer_slope = 5.0
 
-    def density(self, x):
+    def density(self, x: ArrayLike):
         """3-D density ``nu(x)`` (unit mass, unit scale radius).
 
         Parameters
@@ -90,7 +91,7 @@ class Plummer(_ClosedFormEnclosedMass):
         x = np.asarray(x, dtype=float)
         return 3.0 / _FOUR_PI * (1.0 + x * x) ** -2.5
 
-    def enclosed(self, x):
+    def enclosed(self, x: ArrayLike):
         """Mass fraction inside 3-D radius ``x``.
 
         Parameters
@@ -106,7 +107,7 @@ class Plummer(_ClosedFormEnclosedMass):
         x = np.asarray(x, dtype=float)
         return x**3 * (1.0 + x * x) ** -1.5
 
-    def surface_density(self, X):
+    def surface_density(self, X: ArrayLike):
         """Projected density ``Sigma(X)`` (unit mass, per unit area in a**2).
 
         Parameters
@@ -122,7 +123,7 @@ class Plummer(_ClosedFormEnclosedMass):
         X = np.asarray(X, dtype=float)
         return 1.0 / np.pi * (1.0 + X * X) ** -2
 
-    def projected_enclosed(self, X):
+    def projected_enclosed(self, X: ArrayLike):
         """Mass fraction inside projected radius ``X``.
 
         Parameters
@@ -161,7 +162,7 @@ class Dehnen:
         if not (0.0 <= self.gamma < 2.5):
             raise ValueError(f"Dehnen gamma must be in [0, 2.5), got {self.gamma}")
 
-    def density(self, x):
+    def density(self, x: ArrayLike):
         """3-D density ``nu(x)`` (unit mass, unit scale radius).
 
         Parameters
@@ -178,7 +179,7 @@ class Dehnen:
         g = self.gamma
         return (3.0 - g) / _FOUR_PI * x**-g * (1.0 + x) ** (g - 4.0)
 
-    def enclosed(self, x):
+    def enclosed(self, x: ArrayLike):
         """Mass fraction inside 3-D radius ``x``.
 
         Parameters
@@ -199,7 +200,7 @@ class Dehnen:
         """Profiles sharing :meth:`at_points` tables (every gamma)."""
         return ("dehnen",)
 
-    def at_points(self, points, mass_points=None):
+    def at_points(self, points: ArrayLike, mass_points: ArrayLike | None = None):
         """Evaluator of ``(nu, m)`` at fixed points for any Dehnen ``gamma``.
 
         Parameters
@@ -257,7 +258,7 @@ class King62(_ClosedFormEnclosedMass):
         val = (np.arccos(z) / z - np.sqrt(1.0 - z2c)) / z2c
         return np.where(inside, val, 0.0)
 
-    def density(self, x):
+    def density(self, x: ArrayLike):
         """3-D density ``nu(x)`` (unit mass, unit core radius).
 
         Parameters
@@ -272,7 +273,7 @@ class King62(_ClosedFormEnclosedMass):
         """
         return self._raw_density(x) / _king_table(self.concentration)[2]
 
-    def enclosed(self, x):
+    def enclosed(self, x: ArrayLike):
         """Mass fraction inside 3-D radius ``x`` (tabulated, cached).
 
         Parameters
@@ -293,7 +294,7 @@ class King62(_ClosedFormEnclosedMass):
         small = lnx < lx[0]  # central density is flat: m ~ x^3
         return np.where(small, np.exp(lm[0] + 3.0 * (lnx - lx[0])), out)
 
-    def surface_density(self, X):
+    def surface_density(self, X: ArrayLike):
         """Projected density (unit mass), zero beyond the tidal radius.
 
         Parameters
@@ -317,7 +318,7 @@ class King62(_ClosedFormEnclosedMass):
         q = 1.0 + X * X
         return np.pi * (np.log(q) - 4.0 * c * (np.sqrt(q) - 1.0) + c * c * (q - 1.0))
 
-    def projected_enclosed(self, X):
+    def projected_enclosed(self, X: ArrayLike):
         """Mass fraction inside projected radius ``X``.
 
         Parameters
@@ -370,7 +371,7 @@ _CUSP_PANELS = 800
 _CUSP_NODES = 4
 
 
-def cusp_factor(cusp_radius: float, gamma: float, inv_x2):
+def cusp_factor(cusp_radius: float, gamma: float, inv_x2: ArrayLike):
     """Cusp multiplier ``(1 + (x_c / x)^2)^(gamma / 2)`` from precomputed ``1 / x^2``.
 
     Parameters
@@ -600,7 +601,7 @@ class Cusped:
         """Profiles sharing :meth:`at_points` tables (same base, any gamma / cusp radius)."""
         return ("cusped", self.base)
 
-    def at_points(self, points, mass_points=None) -> CuspedAtPoints:
+    def at_points(self, points: ArrayLike, mass_points: ArrayLike | None = None) -> CuspedAtPoints:
         """Evaluator of ``(nu, m)`` at fixed points for every profile of this family.
 
         Parameters
@@ -622,7 +623,7 @@ class Cusped:
         nu, m = self.at_points(x.ravel())(self)
         return nu.reshape(x.shape), m.reshape(x.shape)
 
-    def density(self, x):
+    def density(self, x: ArrayLike):
         """3-D density ``nu(x)`` (unit mass, unit scale radius).
 
         Parameters
@@ -637,7 +638,7 @@ class Cusped:
         """
         return self._evaluate(x)[0]
 
-    def enclosed(self, x):
+    def enclosed(self, x: ArrayLike):
         """Mass fraction inside 3-D radius ``x``.
 
         Parameters
