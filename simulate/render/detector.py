@@ -212,7 +212,7 @@ def expose_stack(
     return total.reshape(mean.shape), saturated.reshape(mean.shape)
 
 
-def skewed_normal(lam: np.ndarray, var_rn, z: np.ndarray, skew_limit: float) -> np.ndarray:
+def skewed_normal(lam: np.ndarray, var_rn: float, z: np.ndarray, skew_limit: float) -> np.ndarray:
     """Draws of Poisson(lam) + N(0, var_rn) from standard normals ``z``, matching 3 moments.
 
     ``lam + sd (z + a (z**2 - 1)) / sqrt(1 + 2 a**2)`` with ``sd**2 = lam + var_rn``

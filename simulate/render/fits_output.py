@@ -60,7 +60,7 @@ def _object_name(attrs: Mapping) -> str:
     return str(name).upper() if str(name).lower().startswith("ngc") else str(name)
 
 
-def standard_cards(attrs: Mapping, shape) -> fits.Header:
+def standard_cards(attrs: Mapping, shape: tuple[int, int]) -> fits.Header:
     """FITS-standard cards of a frame: observatory, date, exposure and the TAN WCS.
 
     Parameters
@@ -116,7 +116,9 @@ def standard_cards(attrs: Mapping, shape) -> fits.Header:
     return hdr
 
 
-def frame_header(attrs: Mapping, shape, scene: Mapping | None = None) -> fits.Header:
+def frame_header(
+    attrs: Mapping, shape: tuple[int, int], scene: Mapping | None = None
+) -> fits.Header:
     """Build the FITS header of a frame's image.
 
     Parameters

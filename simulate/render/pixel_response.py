@@ -29,7 +29,7 @@ __all__ = ["flat_field_residual", "pixel_transfer"]
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(48)
 
 
-def pixel_transfer(frequency, pixel: float, amplitude: float = 0.0) -> np.ndarray:
+def pixel_transfer(frequency: np.ndarray, pixel: float, amplitude: float = 0.0) -> np.ndarray:
     """Fourier transform of the pixel response along one axis.
 
     Parameters

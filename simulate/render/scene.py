@@ -65,7 +65,7 @@ class SceneSettings:
             raise ValueError(f"nexp must be >= 1, got {self.nexp}")
 
 
-def scene_from_mapping(mapping: Mapping | None, source=None) -> SceneSettings:
+def scene_from_mapping(mapping: Mapping | None, source: str | None = None) -> SceneSettings:
     """Build :class:`SceneSettings` from a TOML mapping (ConfigError naming bad keys).
 
     Parameters

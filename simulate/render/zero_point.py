@@ -144,7 +144,9 @@ def photometric_zero_point(settings: PhotometrySettings) -> u.Quantity:
     return (2.5 * math.log10(rate) - settings.extinction * settings.airmass) * u.mag
 
 
-def star_electrons(mag, settings: PhotometrySettings, exposure: u.Quantity) -> u.Quantity:
+def star_electrons(
+    mag: np.ndarray | u.Quantity, settings: PhotometrySettings, exposure: u.Quantity
+) -> u.Quantity:
     """Electrons detected from stars of apparent V magnitude ``mag`` (above the atmosphere).
 
     Parameters
