@@ -18,11 +18,13 @@ from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.simulate.optics.model import Optics, OpticsSettings, build_optics
 from mavispm.simulate.optics.model import validate_settings as _validate
-from mavispm.simulate.optics.psf_grid import read_grid, write_grid
+from mavispm.simulate.optics.psf_grid import PSFGrid, read_grid, write_grid
 from mavispm.simulate.optics.tiptilt import kernel_map
 
 
-def validate_settings(settings: Mapping | OpticsSettings | None, source=None) -> OpticsSettings:
+def validate_settings(
+    settings: Mapping | OpticsSettings | None, source: str | None = None
+) -> OpticsSettings:
     """The :class:`OpticsSettings` of a ``[scene.optics]`` table.
 
     Parameters
@@ -90,7 +92,7 @@ def _build_and_write(
     return output, optics
 
 
-def tiptilt_product_fields(optics: Optics, grid) -> tuple[dict, dict]:
+def tiptilt_product_fields(optics: Optics, grid: PSFGrid) -> tuple[dict, dict]:
     """The TT kernel map on the grid nodes and the conditions, for the ``psfgrid`` product.
 
     Parameters
@@ -186,7 +188,7 @@ def _handler(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``optics`` sub-command.
 
     Parameters

@@ -38,6 +38,7 @@ spectrum). Lengths in m, frequencies in m^-1, angles in rad, PSDs in rad^2 m^2.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import j1
 
 __all__ = [
@@ -47,7 +48,7 @@ __all__ = [
 ]
 
 
-def pupil_coherence(q, diameter: float, obscuration: float = 0.0) -> np.ndarray:
+def pupil_coherence(q: ArrayLike, diameter: float, obscuration: float = 0.0) -> np.ndarray:
     """Normalised Fourier transform of the annular pupil, ``<exp(2 pi i q.x)>_pupil``.
 
     Parameters

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mavispm.core.config import unit_field
 from mavispm.core.errors import InputError
@@ -231,7 +232,7 @@ class Distortion:
         """Whether any displacement is applied."""
         return self.settings.enabled
 
-    def static_displacement(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+    def static_displacement(self, x: ArrayLike, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Static displacement (mas) at field positions (arcsec).
 
         Parameters
@@ -280,7 +281,9 @@ class Distortion:
         draws = _epoch_rng(s.dynamic_seed, epoch).standard_normal(len(s.dynamic_terms))
         return {t: float(s.dynamic_amplitude * d) for t, d in zip(s.dynamic_terms, draws)}
 
-    def displacement(self, x, y, epoch: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    def displacement(
+        self, x: ArrayLike, y: ArrayLike, epoch: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Total displacement (arcsec) at field positions (arcsec) for ``epoch`` (yr).
 
         Exactly zero when disabled.

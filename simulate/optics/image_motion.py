@@ -35,11 +35,17 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.distortion import _BASIS, SCIENCE_RADIUS, _basis_rms
+
+if TYPE_CHECKING:
+    from mavispm.simulate.optics.atmosphere import Layers
+    from mavispm.simulate.optics.tiptilt import TipTiltField
 
 __all__ = [
     "DISTORTION_TERMS",
@@ -115,7 +121,7 @@ class ImageMotionSettings:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
-def mode_basis(x, y) -> np.ndarray:
+def mode_basis(x: ArrayLike, y: ArrayLike) -> np.ndarray:
     """Displacements (mas) per unit coefficient, shape (N, 2, 6), at positions (arcsec).
 
     Parameters
@@ -135,7 +141,7 @@ def mode_basis(x, y) -> np.ndarray:
     return np.stack(cols, -1)
 
 
-def distortion_basis(x, y) -> np.ndarray:
+def distortion_basis(x: ArrayLike, y: ArrayLike) -> np.ndarray:
     """Unit-RMS dynamic-distortion terms (mas per unit coefficient), shape (N, 2, 3).
 
     Parameters
@@ -177,7 +183,7 @@ def exposure_average_factor(tau: float, exptime: float) -> float:
     return float(2.0 / r**2 * (r - 1.0 + np.exp(-r)))
 
 
-def effective_wind_speed(weights, velocities) -> float:
+def effective_wind_speed(weights: ArrayLike, velocities: ArrayLike) -> float:
     """``(sum c_l |v_l|^(5/3))^(3/5)`` (m/s) of layers with Cn^2 fractions ``weights``.
 
     Parameters
@@ -197,7 +203,7 @@ def effective_wind_speed(weights, velocities) -> float:
     return float((np.sum(w / w.sum() * speed ** (5 / 3))) ** 0.6)
 
 
-def budget_mode_covariance(tiptilt, n_grid: int = 7) -> np.ndarray:
+def budget_mode_covariance(tiptilt: TipTiltField, n_grid: int = 7) -> np.ndarray:
     """Covariance (6, 6) in mas^2 of the low-order modes of the atmospheric TT residual.
 
     Least-squares projection of the residual's cross-covariance on
@@ -234,7 +240,7 @@ def budget_mode_covariance(tiptilt, n_grid: int = 7) -> np.ndarray:
     return out * tiptilt.settings.scale_factor**2
 
 
-def noise_free_covariance(tiptilt, xy) -> np.ndarray:
+def noise_free_covariance(tiptilt: TipTiltField, xy: ArrayLike) -> np.ndarray:
     """Atmospheric TT residual cross-covariance (P, P, 2, 2) mas^2 without the NGS noise.
 
     ``r = t - W s_meas`` with ``W = K_as C_ss^-1`` (the loop's MMSE weights,
@@ -308,7 +314,7 @@ class StackMotion:
     modes: np.ndarray
     distortion: np.ndarray
 
-    def displacements(self, x, y) -> np.ndarray:
+    def displacements(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """Per-exposure displacements (N_exp, N_star, 2) in mas at positions (arcsec).
 
         Parameters
@@ -324,7 +330,7 @@ class StackMotion:
         d = np.einsum("sjm,km->ksj", mode_basis(x, y), self.modes)
         return d + np.einsum("sjt,kt->ksj", distortion_basis(x, y), self.distortion)
 
-    def stack_moments(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+    def stack_moments(self, x: ArrayLike, y: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Mean displacement (N_star, 2) and its covariance over the exposures (N_star, 2, 2),
         both in mas, computed from the coefficient moments (no per-exposure loop).
 
@@ -433,7 +439,7 @@ class ImageMotion:
         dist = _ar1(rng, nexp, s.distortion_rms**2 * np.eye(len(DISTORTION_TERMS)), rho_d)
         return StackMotion(modes, dist)
 
-    def stack(self, x, y, nexp: int, exptime: float, epoch: float = 0.0):
+    def stack(self, x: ArrayLike, y: ArrayLike, nexp: int, exptime: float, epoch: float = 0.0):
         """Mean displacement (N, 2) and blur covariance (N, 2, 2), mas, of a stack's stars.
 
         Parameters
@@ -458,7 +464,7 @@ class ImageMotion:
 
 
 def build_image_motion(
-    settings: ImageMotionSettings, tiptilt, layers_, diameter: float
+    settings: ImageMotionSettings, tiptilt: TipTiltField, layers_: Layers, diameter: float
 ) -> ImageMotion:
     """The :class:`ImageMotion` of a scene, with the budget from its TT field.
 

@@ -12,7 +12,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -23,6 +25,9 @@ from matplotlib.patches import Circle, Ellipse  # noqa: E402
 
 from mavispm.core.atomic import atomic_path  # noqa: E402
 from mavispm.simulate.optics.distortion import SCIENCE_RADIUS  # noqa: E402
+
+if TYPE_CHECKING:
+    from mavispm.simulate.optics.model import Optics
 
 __all__ = [
     "draw_all",
@@ -41,7 +46,7 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def plot_psf_grid(optics, path: Path, crop_arcsec: float = 0.4) -> Path:
+def plot_psf_grid(optics: Optics, path: Path, crop_arcsec: float = 0.4) -> Path:
     """Mosaic of log-intensity thumbnails of the grid PSFs.
 
     Parameters
@@ -89,7 +94,11 @@ def _diagonal_slice(psf: np.ndarray, pixel_scale: float):
     return r, psf[c + k, c + k]
 
 
-def plot_psf_profile(optics, path: Path, positions=((-15.0, -15.0), (-9.0, -9.0))) -> Path:
+def plot_psf_profile(
+    optics: Optics,
+    path: Path,
+    positions: Sequence[tuple[float, float]] = ((-15.0, -15.0), (-9.0, -9.0)),
+) -> Path:
     """Radial (diagonal) slices of off-axis PSFs over the central PSF.
 
     Parameters
@@ -144,7 +153,9 @@ def plot_psf_profile(optics, path: Path, positions=((-15.0, -15.0), (-9.0, -9.0)
     return _save(fig, path)
 
 
-def plot_tiptilt_map(optics, path: Path, half_width: float = 15.0, step: float = 3.0) -> Path:
+def plot_tiptilt_map(
+    optics: Optics, path: Path, half_width: float = 15.0, step: float = 3.0
+) -> Path:
     """Tip-tilt kernel ellipses (1 sigma, magnified) on a grid, with the NGS.
 
     Parameters
@@ -198,7 +209,7 @@ def plot_tiptilt_map(optics, path: Path, half_width: float = 15.0, step: float =
     return _save(fig, path)
 
 
-def plot_tiptilt_kernel_map(optics, path: Path) -> Path:
+def plot_tiptilt_kernel_map(optics: Optics, path: Path) -> Path:
     """The psfgrid product's TT kernel map: semi-major / semi-minor sigma and angle at the nodes.
 
     Parameters
@@ -259,7 +270,7 @@ def plot_tiptilt_kernel_map(optics, path: Path) -> Path:
     return _save(fig, path)
 
 
-def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 61) -> Path:
+def plot_distortion_map(optics: Optics, path: Path, half_width: float = 15.0, n: int = 61) -> Path:
     """Static distortion amplitude map and its x / y projections.
 
     Parameters
@@ -301,7 +312,7 @@ def plot_distortion_map(optics, path: Path, half_width: float = 15.0, n: int = 6
     return _save(fig, path)
 
 
-def draw_all(optics, outdir: Path) -> list[Path]:
+def draw_all(optics: Optics, outdir: Path) -> list[Path]:
     """Draw every optics plot into ``outdir``.
 
     Parameters

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import j0
 
 from mavispm.core.config import unit_field
@@ -56,7 +57,7 @@ class HaloSettings:
             raise ValueError("ramp_start must be >= 0 arcsec")
 
 
-def ramp(radius, start: float, end: float) -> np.ndarray:
+def ramp(radius: ArrayLike, start: float, end: float) -> np.ndarray:
     """Raised-cosine ramp: 0 below ``start``, 1 above ``end`` (same units as radius).
 
     Parameters

@@ -24,6 +24,7 @@ import hashlib
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from mavispm.core.config import unit_field
 
@@ -85,7 +86,7 @@ def plate_scale_change(settings: TelescopeSettings, epoch: float) -> float:
     return float(settings.plate_scale_rms * 1e-6 * rng.standard_normal())
 
 
-def telescope_displacement(x, y, epoch: float, settings: TelescopeSettings):
+def telescope_displacement(x: ArrayLike, y: ArrayLike, epoch: float, settings: TelescopeSettings):
     """Displacement [arcsec] of images at field positions ``x, y`` [arcsec] at ``epoch`` [yr].
 
     Plate-scale change ``epsilon r`` plus a cubic field distortion ``k r^2 r`` that reaches
