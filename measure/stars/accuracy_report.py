@@ -10,6 +10,7 @@ measured minus input x against magnitude (the style of fig:astromresiab-x3).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -326,7 +327,7 @@ def _plot(
     plt.close(fig)
 
 
-def write_report(measured_paths: Sequence, outdir) -> list[Path]:
+def write_report(measured_paths: Sequence, outdir: str | os.PathLike) -> list[Path]:
     """Accuracy report of one or more measured products, one table per frame (epoch).
 
     Each frame's common offset (:func:`frame_offset`) is reported separately and

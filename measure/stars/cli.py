@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -58,7 +59,7 @@ _COPIED_ATTRS = (
 )
 
 
-def validate_settings(settings: Mapping | None, source=None) -> MeasureSettings:
+def validate_settings(settings: Mapping | None, source: str | None = None) -> MeasureSettings:
     """Build :class:`MeasureSettings` from a mapping (a TOML table).
 
     Knobs may be given flat or in ``knobs`` (:func:`~mavispm.measure.stars.settings.nest_knobs`).
@@ -169,9 +170,9 @@ def measure_stars(
 
 
 def run_stage(
-    frames,
+    frames: str | os.PathLike,
     settings: Mapping | MeasureSettings | None,
-    output,
+    output: str | os.PathLike,
     seed: int | None = None,
     earlier: Sequence | None = None,
 ) -> Path:
@@ -250,7 +251,7 @@ def write_measured(
     )
 
 
-def write_report(measured_paths: Sequence, outdir) -> list[Path]:
+def write_report(measured_paths: Sequence, outdir: str | os.PathLike) -> list[Path]:
     """Accuracy report (ECSV, Markdown, PNG) of measured products, per epoch.
 
     Parameters
@@ -298,7 +299,7 @@ def _handler(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers) -> argparse.ArgumentParser:
+def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``stars`` sub-command.
 
     Parameters

@@ -115,7 +115,17 @@ def _binned(values, edges, selected):
     return out_all, out_sel
 
 
-def detection_scores(x, y, flux, x_true, y_true, mag_true, radius, r_det, r_true) -> dict:
+def detection_scores(
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    x_true: np.ndarray,
+    y_true: np.ndarray,
+    mag_true: np.ndarray,
+    radius: float,
+    r_det: np.ndarray,
+    r_true: np.ndarray,
+) -> dict:
     """Completeness and false-detection rate against magnitude and radius.
 
     Detections are matched one-to-one to the truth within ``radius`` (pixels).

@@ -213,7 +213,9 @@ class ErrorModel:
     kind: str = "epsf"
 
     @classmethod
-    def fisher_only(cls, n: int, chi2_ratio=None, chi2_inflation=None) -> ErrorModel:
+    def fisher_only(
+        cls, n: int, chi2_ratio: np.ndarray | None = None, chi2_inflation: np.ndarray | None = None
+    ) -> ErrorModel:
         """No model terms (the Fisher errors), optionally with chi^2 terms.
 
         Parameters

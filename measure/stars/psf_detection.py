@@ -36,14 +36,20 @@ The functions take the frame and stage callables from
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from mavispm.measure.stars.batched_fit import FLAG_FAILED, render_model
+from mavispm.measure.stars.batched_fit import FLAG_FAILED, FitResult, render_model
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
+
+if TYPE_CHECKING:
+    from mavispm.core.frame import Frame
+    from mavispm.measure.stars.settings import MeasureSettings
 
 __all__ = [
     "DetectionOptions",
@@ -114,7 +120,7 @@ def _gaussian_kernel(fwhm: float) -> np.ndarray:
     return g / g.sum()
 
 
-def sampled_epsf(psf, x: float, y: float, half: int) -> np.ndarray:
+def sampled_epsf(psf: VariableEPSF, x: float, y: float, half: int) -> np.ndarray:
     """The ePSF at ``(x, y)`` sampled at integer pixel offsets, (2 half + 1)^2 (a star
     centred on a pixel; values are fractions of the star's light).
 
@@ -140,7 +146,7 @@ def sampled_epsf(psf, x: float, y: float, half: int) -> np.ndarray:
     return e[np.ix_(idx, idx)]
 
 
-def psf_kernel(psf, x: float, y: float, half: int = 3) -> np.ndarray:
+def psf_kernel(psf: VariableEPSF, x: float, y: float, half: int = 3) -> np.ndarray:
     """Matched-filter kernel: the ePSF core at ``(x, y)``, non-negative, sum 1.
 
     Parameters
@@ -306,7 +312,14 @@ def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
 
 
 def model_error_profile(
-    residual: np.ndarray, psf, x, y, flux, noise_var: float, floor: float, n_stars: int = 50
+    residual: np.ndarray,
+    psf: VariableEPSF,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    noise_var: float,
+    floor: float,
+    n_stars: int = 50,
 ) -> np.ndarray:
     """Fractional model error of a star's light against radius, from the residuals.
 
@@ -369,7 +382,7 @@ def model_error_profile(
 MAX_USEFUL_ERROR = 0.5
 
 
-def useful_psfs(psf, alpha: np.ndarray) -> tuple[VariableEPSF, VariableEPSF]:
+def useful_psfs(psf: VariableEPSF, alpha: np.ndarray) -> tuple[VariableEPSF, VariableEPSF]:
     """The ePSF truncated where it stops being useful, and its model-error ePSF.
 
     Parameters
@@ -409,7 +422,14 @@ def _core_sum(image: np.ndarray, x, y) -> np.ndarray:
     return box[cy, cx]
 
 
-def prune(fit, psf, err_psf, shape, options: DetectionOptions, scale=None):
+def prune(
+    fit: FitResult,
+    psf: VariableEPSF,
+    err_psf: VariableEPSF,
+    shape: tuple[int, int],
+    options: DetectionOptions,
+    scale: np.ndarray | None = None,
+):
     """Candidates that survive the joint fit (see the module docstring).
 
     ``psf`` is the ePSF the residuals are made with (:func:`useful_psfs`). A
@@ -476,7 +496,13 @@ def prune(fit, psf, err_psf, shape, options: DetectionOptions, scale=None):
     return keep, model, error
 
 
-def detect_stars(frame, settings, build_psf, run_engine, options: DetectionOptions):
+def detect_stars(
+    frame: Frame,
+    settings: MeasureSettings,
+    build_psf: Callable,
+    run_engine: Callable,
+    options: DetectionOptions,
+):
     """Blind detection on a frame (see the module docstring).
 
     Parameters
