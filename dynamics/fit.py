@@ -176,7 +176,7 @@ def backend_key(stars, settings, distance, model, seed) -> str:
 
     from mavispm.core.array_cache import content_key
 
-    knobs = {k: v for k, v in asdict(settings).items() if k != "progress"}
+    knobs = {k: v for k, v in asdict(settings).items() if k not in ("progress", "workers")}
     cols = ("R", "v_r", "v_t", "e_r", "e_t") + (("x", "y") if stars.x is not None else ())
     arrays = [np.asarray(getattr(stars, c), dtype=float) for c in cols]
     return content_key(
@@ -238,6 +238,64 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
         criteria={"max_log_like": max_ll, **information_criteria(max_ll, len(space), stars.R.size)},
         wall_s=wall,
     )
+
+
+def _n_extra(model: str) -> int:
+    """Parameters a model adds to the cluster's (its relative cost)."""
+    return int(MODELS[model]["bh"]) + 2 * int(MODELS[model]["dark"])
+
+
+def _fit_one(args) -> ModelFit:
+    stars, settings, distance, model, seed, backend_path = args
+    return fit_model(stars, settings, distance, model, seed, backend_path=backend_path)
+
+
+def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
+    """Fit every model of ``settings.models`` (in ``settings.workers`` processes).
+
+    Parameters
+    ----------
+    stars : StarSample
+    settings : DynamicsSettings
+    distance : float
+        Distance [kpc] (prior mean when fitted).
+    seed : int
+    backend_stem : path, optional
+        emcee backends are kept in ``<backend_stem>-<model>.h5`` (one file per
+        model, so that models may run in parallel processes).
+
+    Returns
+    -------
+    list of ModelFit
+        In the order of ``settings.models``; the result does not depend on ``workers``.
+    """
+    from pathlib import Path
+
+    jobs = [
+        (
+            stars,
+            settings,
+            distance,
+            m,
+            seed,
+            None if backend_stem is None else Path(f"{backend_stem}-{m}.h5"),
+        )
+        for m in settings.models
+    ]
+    workers = min(int(settings.workers), len(jobs))
+    if workers <= 1:
+        return [_fit_one(j) for j in jobs]
+    import concurrent.futures as cf
+    import dataclasses
+    import multiprocessing as mp
+
+    quiet = dataclasses.replace(settings, progress=False)  # no bars from worker processes
+    jobs = [(j[0], quiet, *j[2:]) for j in jobs]
+    # the longest models (most parameters) first, so the pool's tail is short
+    order = sorted(range(len(jobs)), key=lambda i: -_n_extra(jobs[i][3]))
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = {i: pool.submit(_fit_one, jobs[i]) for i in order}
+        return [futures[i].result() for i in range(len(jobs))]
 
 
 def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:

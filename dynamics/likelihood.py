@@ -36,6 +36,7 @@ import numpy as np
 from mavispm.core.errors import InputError
 from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.anisotropy import osipkov_merritt
+from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
 from mavispm.dynamics.star_sums import star_sums, stars_about
@@ -192,6 +193,8 @@ class DiscreteLikelihood:
         if completeness is not None:
             r, c = (np.asarray(v, dtype=float) for v in completeness)
             self.completeness = (r, c)
+        empty = np.zeros(0)
+        self._comp_r, self._comp_c = self.completeness or (empty, empty)
         self.n_stars = len(stars.R)
 
     def _value(self, theta, name, default):
@@ -305,12 +308,6 @@ class DiscreteLikelihood:
         e2 = np.stack([er2 * cos2 + et2 * sin2, er2 * sin2 + et2 * cos2])
         return np.log(np.maximum(R, self.min_radius)), v2, e2
 
-    def _completeness(self, R):
-        if self.completeness is None:
-            return np.ones_like(R)
-        r, c = self.completeness
-        return np.interp(R, r, c)
-
     def ln_field_norm(self, ln_a, offset, ln_sig, ln_proj):
         """ln of the tracer number (unit mass, completeness-weighted) inside the field.
 
@@ -323,34 +320,19 @@ class DiscreteLikelihood:
         ln_sig, ln_proj : ndarray
             ln surface density and ln projected mass fraction on the grid.
         """
-        lnX = self.lnX_grid
-        R_f = self.stars.field_radius
-        if self.completeness is None and offset <= 0.0:
-            i_f, w_f = cubic_weights(lnX[0], self.step, lnX.size, [self._ln_field - ln_a])
-            return float(interpolate(ln_proj, i_f, w_f)[0])
-        a = np.exp(ln_a)
-        r_in = 0.01 * R_f
-        offset = min(offset, 0.5 * R_f)
-        i_in, w_in = cubic_weights(lnX[0], self.step, lnX.size, [np.log(r_in) - ln_a])
-        total = float(np.exp(interpolate(ln_proj, i_in, w_in)[0])) * self._completeness(r_in)
-        t, w = _GL16
-        # Gauss-Legendre pieces in ln R, split at the completeness knots (kinks) and
-        # at R_field - offset (where the ring starts to leave the field); one pass
-        cuts = [r_in, R_f - offset, R_f + offset]
-        if self.completeness is not None:
-            cuts += [r for r in self.completeness[0] if r_in < r < R_f + offset]
-        ln_cuts = np.log(np.unique(cuts))
-        lo, hi = ln_cuts[:-1], ln_cuts[1:]
-        half = 0.5 * (hi - lo)
-        lnR = (0.5 * (hi + lo))[:, None] + half[:, None] * t[None, :]
-        R = np.exp(lnR).ravel()
-        idx, wt = cubic_weights(lnX[0], self.step, lnX.size, lnR.ravel() - ln_a)
-        f = np.exp(interpolate(ln_sig, idx, wt)) * (R / a) ** 2 * self._completeness(R)
-        if offset > 0:
-            cosang = (R * R + offset * offset - R_f * R_f) / (2.0 * R * offset)
-            f = f * np.arccos(np.clip(cosang, -1.0, 1.0)) / np.pi
-        total += 2.0 * np.pi * float(np.sum(f.reshape(lnR.shape) * w[None, :] * half[:, None]))
-        return float(np.log(max(total, np.finfo(float).tiny)))
+        return ln_field_number(
+            self.lnX_grid[0],
+            self.step,
+            ln_sig,
+            ln_proj,
+            float(ln_a),
+            float(offset),
+            float(self.stars.field_radius),
+            self._comp_r,
+            self._comp_c,
+            _GL16[0],
+            _GL16[1],
+        )
 
     def __call__(self, theta) -> float:
         """ln L for physical parameter vector ``theta`` (finite, or -inf if invalid)."""

@@ -47,7 +47,8 @@ class DynamicsSettings:
     ``projection_nodes``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
     "nested": the posterior from the nested-sampling run, no emcee). Evidence:
-    ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``.
+    ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
+    fitted in parallel processes (1: in this process; the result does not depend on it).
     Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
     :class:`~mavispm.dynamics.fast_stars.FastStarSettings`; None = no test).
     """
@@ -101,6 +102,7 @@ class DynamicsSettings:
     nlive: int = 250
     dlogz: float = 0.1
     progress: bool = True
+    workers: int = 1
     fast_stars: FastStarSettings | None = None
 
     def __post_init__(self):
@@ -171,6 +173,7 @@ class DynamicsSettings:
             "nlive": self.nlive,
             "dlogz": self.dlogz,
             "ambiguous_ln_b": self.ambiguous_ln_b,
+            "workers": self.workers,
         }
         for name, val in positive.items():
             if not val > 0:

@@ -76,7 +76,7 @@ STAGE_MODULES = {
 UI_KEYS = {
     "frames": ("render.threads",),
     "stars": ("progress",),
-    "dynamics": ("progress",),
+    "dynamics": ("progress", "workers"),
 }
 
 #: Files every stage's key depends on (the shared product format).
