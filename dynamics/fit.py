@@ -37,6 +37,8 @@ LABELS = {
     "dark_mass": r"$M_{\rm dark}/M_\odot$",
     "log_dark_radius": r"$\log_{10} b/''$",
     "beta": r"$\beta$",
+    "beta_0": r"$\beta_0$",
+    "beta_inf": r"$\beta_\infty$",
     "log_anisotropy_radius": r"$\log_{10} r_a/''$",
     "distance": r"$d$/kpc",
     "x0": r"$x_0/''$",
@@ -98,6 +100,10 @@ def parameter_space(
     if s.anisotropy == "constant":
         params.append(Parameter("beta", lo=s.beta_range[0], hi=s.beta_range[1]))
     else:
+        if s.anisotropy == "general":
+            params.append(Parameter("beta_0", lo=s.beta_range[0], hi=s.beta_range[1]))
+            lo, hi = s.beta_inf_range
+            params.append(Parameter("beta_inf", lo=lo, hi=hi))
         lo, hi = s.log_anisotropy_radius_range
         params.append(Parameter("log_anisotropy_radius", lo=lo, hi=hi))
     sd = s.distance_sd(distance)
@@ -190,7 +196,19 @@ def backend_key(stars, settings, distance, model, seed) -> str:
 
 
 def fit_model(stars, settings, distance, model, seed, backend_path=None) -> ModelFit:
-    """Sample one model with emcee (and its evidences with dynesty if enabled)."""
+    """Sample one model with emcee (and its evidences with dynesty if enabled).
+
+    BLAS runs single-threaded inside (the likelihood's small matrix products are
+    2x slower with threads on a busy machine); parallelism is across models
+    (``settings.workers``).
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit_model(stars, settings, distance, model, seed, backend_path)
+
+
+def _fit_model(stars, settings, distance, model, seed, backend_path) -> ModelFit:
     name = _model_name(model)
     space = parameter_space(settings, distance, name, positions=stars.x is not None)
     like = make_likelihood(stars, space, settings, distance)

@@ -23,7 +23,8 @@ Model parameters (physical): ``log_mass`` (log10 solMass), ``log_scale_radius``
 (log10 arcsec), optionally ``gamma`` (cusp or Dehnen slope) and ``log_cusp_radius``
 (log10 arcsec), ``bh_mass`` (solMass), ``dark_mass`` (solMass) with
 ``log_dark_radius`` (log10 arcsec), ``beta`` or ``log_anisotropy_radius`` (log10
-arcsec, Osipkov-Merritt; neither: isotropic), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
+arcsec, Osipkov-Merritt; with ``beta_0`` and ``beta_inf``: the general profile; neither:
+isotropic), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
 ``pm_y0`` (mas/yr).
 """
 
@@ -34,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavispm.core.errors import InputError
+from mavispm.dynamics.anisotropy import Anisotropy, osipkov_merritt
 from mavispm.dynamics.anisotropy import constant as constant_anisotropy
-from mavispm.dynamics.anisotropy import osipkov_merritt
 from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
@@ -158,6 +159,10 @@ class DiscreteLikelihood:
             raise ValueError(
                 "give 'beta' or 'log_anisotropy_radius', not both (neither: isotropic)"
             )
+        if ("beta_0" in self._idx) != ("beta_inf" in self._idx) or (
+            "beta_0" in self._idx and "log_anisotropy_radius" not in self._idx
+        ):
+            raise ValueError("'beta_0', 'beta_inf' and 'log_anisotropy_radius' go together")
         self._moving = any(n in self._idx for n in ("x0", "y0", "pm_x0", "pm_y0"))
         if self._moving and stars.x is None:
             raise InputError("fitting the centre or systemic motion needs star positions x, y")
@@ -213,13 +218,21 @@ class DiscreteLikelihood:
         return self._fixed_tracer
 
     def anisotropy_of(self, theta):
-        """Anisotropy profile (radii in scale radii) of ``theta``."""
+        """Anisotropy profile (radii in scale radii) of ``theta``.
+
+        ``beta`` alone: constant; ``log_anisotropy_radius`` alone: Osipkov-Merritt;
+        ``beta_0``, ``beta_inf`` and ``log_anisotropy_radius``: the general profile
+        ``beta_0 + (beta_inf - beta_0) r^2 / (r^2 + r_a^2)``; none: isotropic.
+        """
         if "beta" in self._idx:
             return constant_anisotropy(theta[self._idx["beta"]])
         if "log_anisotropy_radius" not in self._idx:
             return constant_anisotropy(0.0)
         ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
-        return osipkov_merritt(10.0 ** theta[self._idx["log_anisotropy_radius"]] / np.exp(ln_a))
+        r_a = 10.0 ** theta[self._idx["log_anisotropy_radius"]] / np.exp(ln_a)
+        if "beta_0" in self._idx:
+            return Anisotropy(theta[self._idx["beta_0"]], theta[self._idx["beta_inf"]], r_a)
+        return osipkov_merritt(r_a)
 
     def model_on_grid(self, theta):
         """Grid quantities for physical parameter vector ``theta``.
@@ -338,6 +351,10 @@ class DiscreteLikelihood:
         """ln L for physical parameter vector ``theta`` (finite, or -inf if invalid)."""
         theta = np.asarray(theta, dtype=float)
         if "beta" in self._idx and not theta[self._idx["beta"]] < 1.0:
+            return -np.inf
+        if "beta_0" in self._idx and not (
+            theta[self._idx["beta_0"]] < 1.0 and theta[self._idx["beta_inf"]] <= 1.0
+        ):
             return -np.inf
         if self._value(theta, "bh_mass", 0.0) < 0 or self._value(theta, "dark_mass", 0.0) < 0:
             return -np.inf

@@ -20,7 +20,7 @@ MODELS = {
     "dark": {"bh": False, "dark": True},
     "imbh_dark": {"bh": True, "dark": True},
 }
-ANISOTROPY = ("constant", "osipkov-merritt")
+ANISOTROPY = ("constant", "osipkov-merritt", "general")
 
 
 @dataclass(frozen=True)
@@ -34,8 +34,9 @@ class DynamicsSettings:
     ``king_concentration`` (King 1962 ``log10 r_t/r_c``). Mass: cluster (tracer shape,
     ``log_mass_range``) + point mass (``bh_mass_max``, uniform) + dark Plummer sphere
     (``dark_mass_max``, uniform; ``log_dark_radius_range`` log10 arcsec), combined per
-    ``models``. ``anisotropy``: "constant" (``beta_range``) or "osipkov-merritt"
-    (``log_anisotropy_radius_range``, log10 arcsec). Nuisances: ``log_scale_radius_range``
+    ``models``. ``anisotropy``: "constant" (``beta_range``), "osipkov-merritt"
+    (``log_anisotropy_radius_range``, log10 arcsec) or "general" (``beta_0`` in
+    ``beta_range``, ``beta_inf`` in ``beta_inf_range``, ``r_a``: both as special cases). Nuisances: ``log_scale_radius_range``
     or ``log_scale_radius_prior`` (mean, sd; e.g. from the surface-brightness profile);
     ``distance`` [kpc] overrides the product's, ``distance_error`` [kpc] (None: 3 % of the
     distance; 0: fixed); ``centre_error`` [arcsec] and ``systemic_error`` [mas/yr]
@@ -69,6 +70,7 @@ class DynamicsSettings:
     anisotropy: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)
     log_anisotropy_radius_range: tuple[float, float] = (0.0, 3.0)
+    beta_inf_range: tuple[float, float] = (-0.5, 0.95)
     distance: float | None = unit_field(None, "kpc", "overrides the product's distance")
     distance_error: float | None = unit_field(
         None, "kpc", "Gaussian prior width; None = 3% of the distance, 0 = fixed"
@@ -132,6 +134,7 @@ class DynamicsSettings:
             "beta_range",
             "log_dark_radius_range",
             "log_anisotropy_radius_range",
+            "beta_inf_range",
         ):
             lo, hi = getattr(self, name)
             if not lo < hi:
@@ -146,6 +149,8 @@ class DynamicsSettings:
                 )
         if not self.beta_range[1] < 1.0:
             raise ValueError("beta_range must stay below 1")
+        if not self.beta_inf_range[1] <= 1.0:
+            raise ValueError("beta_inf_range must stay at or below 1")
         if not (0.0 <= self.gamma_range[0] and self.gamma_range[1] < 2.5):
             raise ValueError("gamma_range must lie in [0, 2.5)")
         if (self.completeness_radius is None) != (self.completeness is None):
