@@ -145,6 +145,7 @@ def make_likelihood(
         grid_size=s.grid_size,
         n_panels=s.projection_panels,
         n_gl=s.projection_nodes,
+        points_per_efold=s.radial_points_per_efold,
         x_max=s.truncation,
         star_counts=s.star_counts if star_counts is None else star_counts,
         completeness=completeness,

@@ -116,8 +116,9 @@ class DiscreteLikelihood:
         Prior range of the scale radius [arcsec]; sets the grid in ``R / a``.
     min_radius : float
         Radii are clipped to at least this [arcsec] (guards ``R = 0``).
-    grid_size, n_panels, n_gl, x_max
-        Radial grid points and projection quadrature (see JeansProjector).
+    grid_size, n_panels, n_gl, x_max, points_per_efold
+        Output grid points in ``ln(R / a)`` and the projection's quadrature and
+        radial grid (see JeansProjector).
     star_counts : bool
         Include the star-count term.
     completeness : (radii, values), optional
@@ -140,6 +141,7 @@ class DiscreteLikelihood:
         n_gl: int = 6,
         x_max: float = 1e4,
         star_counts: bool = True,
+        points_per_efold: int = 24,
         completeness=None,
     ):
         self.stars = stars
@@ -182,7 +184,11 @@ class DiscreteLikelihood:
         self.lnX_grid = np.linspace(np.log(x_lo), np.log(x_hi), grid_size)
         self.step = self.lnX_grid[1] - self.lnX_grid[0]
         self.projector = JeansProjector(
-            np.exp(self.lnX_grid), x_max=x_max, n_panels=n_panels, n_gl=n_gl
+            np.exp(self.lnX_grid),
+            x_max=x_max,
+            n_panels=n_panels,
+            n_gl=n_gl,
+            points_per_efold=points_per_efold,
         )
         self._v2 = np.ascontiguousarray(np.stack([stars.v_r**2, stars.v_t**2]), dtype=float)
         self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)

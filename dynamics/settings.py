@@ -45,7 +45,7 @@ class DynamicsSettings:
     (the positional term), ``completeness_radius`` [arcsec] / ``completeness`` (tabulated
     completeness of the sample vs radius), ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
-    ``projection_nodes``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    ``projection_nodes``, ``radial_points_per_efold``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
     "nested": the posterior from the nested-sampling run, no emcee). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
@@ -92,6 +92,7 @@ class DynamicsSettings:
     grid_size: int = 64
     projection_panels: int = 16
     projection_nodes: int = 6
+    radial_points_per_efold: int = 24
     truncation: float = 1.0e4
     bin_size: int = 300
     n_bootstrap: int = 200
@@ -171,6 +172,7 @@ class DynamicsSettings:
             "grid_size": self.grid_size - 7,
             "projection_panels": self.projection_panels,
             "projection_nodes": self.projection_nodes,
+            "radial_points_per_efold": self.radial_points_per_efold - 3,
             "walkers": self.walkers,
             "max_steps": self.max_steps,
             "tau_factor": self.tau_factor,
