@@ -15,6 +15,7 @@ DAOPhot-style polynomially variable PSF by a least-squares fit over the nodes
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -529,6 +530,7 @@ def build_field_epsf(
     model_radius: int = 5,
     half: int | None = None,
     neighbour_flux: np.ndarray | None = None,
+    anchor: Callable[[np.ndarray, float, float, int], np.ndarray] | None = None,
 ) -> tuple[VariableEPSF, np.ndarray]:
     """Build a (field-variable) ePSF from the frame.
 
@@ -559,6 +561,12 @@ def build_field_epsf(
         third, ...; 1: the second, fourth, ...): two disjoint halves for the ePSF
         error estimate (:mod:`mavispm.measure.stars.error_model`). The oversampling
         is resolved from the full set.
+    anchor : callable, optional
+        ``anchor(epsf, x, y, oversampling) -> epsf``: moves each node's ePSF
+        (built at field position ``(x, y)`` [pixel]) onto another centre
+        convention; observer mode anchors a later epoch to the earlier epoch's
+        ePSF (:class:`mavispm.measure.stars.epsf_anchor.EarlierAnchor`). Without
+        it each node is centred on the mean start position of its PSF stars.
 
     Returns
     -------
@@ -611,19 +619,16 @@ def build_field_epsf(
     epsfs = np.asarray(
         [build_epsf(work, x[near], y[near], options, bad, noise_floor, others) for near in members]
     )
+    if options.variation == "polynomial":  # the ePSFs sample the field at their stars
+        nodes = np.array([(np.mean(x[near]), np.mean(y[near])) for near in members])
+    if anchor is not None:
+        epsfs = np.asarray([anchor(e, xn, yn, oversampling) for e, (xn, yn) in zip(epsfs, nodes)])
     if options.variation == "constant":
         return constant_epsf(epsfs[0], oversampling), used
     if options.variation == "grid":
         return gridded_epsf(epsfs, gx, gy, oversampling), used
     return (
-        polynomial_epsf(
-            epsfs,
-            np.array([np.mean(x[near]) for near in members]),
-            np.array([np.mean(y[near]) for near in members]),
-            options.poly_order,
-            shape,
-            oversampling,
-        ),
+        polynomial_epsf(epsfs, nodes[:, 0], nodes[:, 1], options.poly_order, shape, oversampling),
         used,
     )
 
