@@ -471,6 +471,18 @@ def anchor_summary(anchor: EarlierAnchor | None, pixel_scale: float) -> str:
     )
 
 
+def carried_truth_ids(earlier: list[EarlierEpoch], ids: np.ndarray) -> np.ndarray:
+    """Truth ids (scoring only) of carried stars: each id's ``id_true`` in the latest
+    earlier epoch that has it (the id itself where the product has no ``id_true``:
+    forced epochs and products written before the column; -1 for an earlier
+    detection without a truth match)."""
+    lookup: dict[int, int] = {}
+    for ep in sorted(earlier, key=_epoch):
+        true = ep.ids if ep.ids_true is None else ep.ids_true
+        lookup.update(zip(ep.ids.tolist(), true.tolist()))
+    return np.fromiter((lookup.get(i, i) for i in ids.tolist()), np.int64, len(ids))
+
+
 def _epoch(e: EarlierEpoch) -> float:
     return e.epoch
 
@@ -538,7 +550,7 @@ def measure_frame(
             raise InputError(
                 "blind mode: no sources detected (lower detection_threshold?)", path=frame.path
             )
-        ids = -(np.arange(len(x0), dtype=np.int64) + 1)
+        ids = np.arange(len(x0), dtype=np.int64)  # detection index: all an observer has
     else:
         x0, y0 = starting_positions(frame, settings, rng)
         ids = np.asarray(truth["id"], np.int64)
@@ -562,15 +574,14 @@ def measure_frame(
     x_true = y_true = mag = flux_true = dist = crlb_x = crlb_y = np.full(n, np.nan)
     if truth is not None:
         tx, ty = np.asarray(truth["x_pix"], float), np.asarray(truth["y_pix"], float)
-        if carried:  # scoring only: the carried ids are the first epoch's
-            index = _index_by_id(ids, np.asarray(truth["id"], np.int64))
+        if carried:  # scoring only: the carried stars' truth ids (their earlier id_true)
+            index = _index_by_id(carried_truth_ids(earlier, ids), np.asarray(truth["id"], np.int64))
             sel = np.maximum(index, 0)
             dist = np.where(index >= 0, np.hypot(fit.x - tx[sel], fit.y - ty[sel]), np.nan)
             ok = (index >= 0) & (dist <= settings.match_radius)
         elif settings.blind:
             index, dist = match_to_truth(fit.x, fit.y, tx, ty, settings.match_radius)
             ok = index >= 0
-            ids = np.where(ok, np.asarray(truth["id"], np.int64)[np.maximum(index, 0)], ids)
             extra.update(completeness(fit.x, fit.y, tx, ty, settings.match_radius))
             r_det = np.hypot(*frame.to_arcsec(fit.x, fit.y))
             r_true = np.hypot(*frame.to_arcsec(tx, ty))
@@ -588,6 +599,7 @@ def measure_frame(
         # forced mode knows each star's identity: keep its truth even when unmatched
         known = index >= 0
         sel = np.maximum(index, 0)
+        id_true = np.where(known, np.asarray(truth["id"], np.int64)[sel], -1)
         x_true = np.where(known, truth["x"].to_value(u.arcsec)[sel], np.nan)
         y_true = np.where(known, truth["y"].to_value(u.arcsec)[sel], np.nan)
         mag = np.where(known, truth["mag"].to_value(u.mag)[sel], np.nan)
@@ -612,6 +624,8 @@ def measure_frame(
     x_as, y_as = frame.to_arcsec(fit.x, fit.y)
     stars = QTable()
     stars["id"] = ids
+    if truth is not None:
+        stars["id_true"] = id_true.astype(np.int64)
     stars["x_pix"] = fit.x
     stars["y_pix"] = fit.y
     stars["x"] = x_as * u.arcsec

@@ -62,6 +62,8 @@ class EarlierEpoch:
     flag : ndarray of int
         The measure stage's flags.
     path : Path or None
+    ids_true : ndarray of int or None
+        The product's ``id_true`` column (truth ids for scoring; None where absent).
     psf : VariableEPSF or None
         That epoch's ePSF (the ``epsf_basis`` array and ``epsf`` attribute of its
         product), the centre convention a later epoch's ePSF is anchored to.
@@ -75,6 +77,7 @@ class EarlierEpoch:
     flag: np.ndarray
     path: Path | None = None
     psf: VariableEPSF | None = None
+    ids_true: np.ndarray | None = None
 
 
 def read_earlier(path) -> EarlierEpoch:
@@ -101,8 +104,10 @@ def read_earlier(path) -> EarlierEpoch:
             psf = epsf_from_product(prod.arrays["epsf_basis"], prod.attrs["epsf"])
         except (InputError, KeyError, ValueError, TypeError) as exc:
             raise InputError(f"array 'epsf_basis' / attribute 'epsf': {exc}", path=path) from None
+    ids_true = np.asarray(stars["id_true"], np.int64)[keep] if "id_true" in stars.colnames else None
     return EarlierEpoch(
         psf=psf,
+        ids_true=ids_true,
         epoch=epoch,
         ids=np.asarray(stars["id"], np.int64)[keep],
         x=x[keep],
