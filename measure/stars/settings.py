@@ -47,8 +47,8 @@ class MeasureKnobs:
     Attributes
     ----------
     oversampling : int or "auto"
-        ePSF oversampling factor; "auto" (default): 4 with at least 200
-        usable PSF stars per ePSF node, else 2
+        ePSF oversampling factor; "auto" (default): 4 with at least 600
+        PSF stars used per ePSF node (after the ``psf_stars_per_node`` cap), else 2
         (:func:`mavispm.measure.stars.epsf.resolve_oversampling`).
     epsf_size : int
         ePSF footprint [pixel] (odd).
