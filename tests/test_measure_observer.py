@@ -274,3 +274,21 @@ def test_earlier_epsf_is_read_back(epochs):
     assert psf.kind == meta["kind"] == "grid"
     node = psf.epsf_at(meta["nodes_x"][1], meta["nodes_y"][0])  # node 1 of the 2 x 2 grid
     np.testing.assert_allclose(node, basis[1], rtol=0, atol=1e-12)
+
+
+def test_malformed_earlier_epsf_is_a_one_line_error(epochs, tmp_path):
+    """An earlier product whose ePSF description does not fit its basis is refused,
+    naming the attribute and the file (no traceback, no silent fallback)."""
+    import shutil
+
+    from mavispm.measure.stars.start_list import read_earlier
+
+    _, _, f2, m1, _ = epochs
+    for bad in ('{"kind": "grid", "oversampling": 2}', "not json", '{"kind": "spline"}'):
+        broken = tmp_path / "m1_broken.h5"
+        shutil.copy(m1, broken)
+        with h5py.File(broken, "r+") as f:
+            f.attrs["epsf"] = bad
+        with pytest.raises(InputError, match="epsf") as err:
+            read_earlier(broken)
+        assert "m1_broken.h5" in str(err.value) and "\n" not in str(err.value)
