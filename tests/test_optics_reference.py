@@ -18,12 +18,19 @@ the day the model reaches them. Full 11 x 11 grids are slow-marked.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from mavispm.simulate.optics.ao_psd import AOSettings
 from mavispm.simulate.optics.atmosphere import AtmosphereSettings
-from mavispm.simulate.optics.psf_grid import PSFSettings, compute_fourier_grid, compute_grid
+from mavispm.simulate.optics.psf_grid import (
+    PSFSettings,
+    compute_fourier_grid,
+    compute_grid,
+    residual_psd_model,
+)
 from mavispm.simulate.optics.psf_metrics import fwhm
 from mavispm.simulate.optics.pupil import PupilSettings
 from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings, field_average_sigma
@@ -46,6 +53,23 @@ SIMPARAMS = {
 }
 #: measured (idle-machine independent) values of the cases the model misses
 MISSES = {"III": 23.54, "IV": 29.57, "IIIx3": 50.03, "IVx3": 73.80}
+#: TIPTOP 1.6.0 (astro-tiptop, with astro-p3 1.6.4) run on its shipped perfTest/MAVIS.ini
+#: (getHoErrorBreakDown; PSD sums per science direction), RMS wavefront error in nm:
+#: fitting, aliasing, servo-lag alone, tomography alone (sqrt(ST^2 - servo^2)),
+#: spatio-temporal (servo-lag + tomography), LGS noise, MCAO cone ("reduced sensing volume").
+TIPTOP_BUDGET = {
+    (0.0, 0.0): {
+        "fitting": 67.55,
+        "aliasing": 26.82,
+        "servo": 40.70,
+        "tomography": 57.90,
+        "servo_tomography": 70.8,
+        "noise": 17.1,
+        "cone": 0.0,
+    },
+    (15.0, 0.0): {"servo_tomography": 66.1, "noise": 15.1, "cone": 25.4},
+    (15.0, 15.0): {"servo_tomography": 115.0, "noise": 16.9, "cone": 42.6},
+}
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +79,7 @@ def centre_and_corner():
     return strehl, [fwhm(p, PSF.pixel_scale) for p in psfs]
 
 
-@pytest.mark.xfail(strict=True, reason="centre Strehl 0.30 against TIPTOP 0.249 (+21%)")
+@pytest.mark.xfail(strict=True, reason="centre Strehl 0.299 against TIPTOP 0.249 (+20%)")
 def test_tiptop_strehl_centre(centre_and_corner):
     assert centre_and_corner[0][0] == pytest.approx(TIPTOP["strehl"][0], rel=0.10)
 
@@ -84,6 +108,53 @@ def test_tiptop_fwhm_centre_and_corner(centre_and_corner):
 def test_paper_sigma_tt(asterism):
     field = TipTiltField(TipTiltSettings(asterism=asterism), ATM, PUPIL)
     assert field_average_sigma(field) == pytest.approx(PAPER_TT[asterism], rel=0.10)
+
+
+@pytest.fixture(scope="module")
+def budgets():
+    """On-axis term budgets (nm): all terms, tomography off (servo-lag alone), servo-lag off."""
+    out = {}
+    for name, ao in (
+        ("all", AO),
+        ("servo", dataclasses.replace(AO, tomography=False)),
+        ("tomography", dataclasses.replace(AO, servo_lag=False)),
+    ):
+        model = residual_psd_model(PSF, PUPIL, ATM, ao)
+        out[name] = {pos: model.budget(pos) for pos in TIPTOP_BUDGET}
+    return out
+
+
+def test_tiptop_budget_terms_that_agree(budgets):
+    """Fitting, aliasing, servo-lag alone and the on-axis total against TIPTOP's breakdown."""
+    ours, ref = budgets["all"][(0.0, 0.0)], TIPTOP_BUDGET[(0.0, 0.0)]
+    assert ours["fitting"] == pytest.approx(ref["fitting"], rel=0.05)
+    assert ours["aliasing"] == pytest.approx(ref["aliasing"], rel=0.15)
+    assert budgets["servo"][(0.0, 0.0)]["servo_tomography"] == pytest.approx(ref["servo"], rel=0.05)
+    total = np.sqrt(
+        sum(v**2 for k, v in ref.items() if k not in ("servo", "tomography", "servo_tomography"))
+        + ref["servo_tomography"] ** 2
+    )
+    assert ours["total"] == pytest.approx(total, rel=0.10)
+
+
+@pytest.mark.xfail(strict=True, reason="tomography alone 50.3 nm against TIPTOP 57.9 (-13%)")
+def test_tiptop_budget_tomography(budgets):
+    ours = budgets["tomography"][(0.0, 0.0)]["servo_tomography"]
+    assert ours == pytest.approx(TIPTOP_BUDGET[(0.0, 0.0)]["tomography"], rel=0.10)
+
+
+@pytest.mark.xfail(strict=True, reason="LGS noise 13.5 nm on axis against TIPTOP 17.1 (-21%)")
+def test_tiptop_budget_noise(budgets):
+    assert budgets["all"][(0.0, 0.0)]["noise"] == pytest.approx(17.1, rel=0.10)
+
+
+@pytest.mark.xfail(
+    strict=True, reason="cone 59.6 / 109.2 nm at (15,0) / (15,15) against 25.4 / 42.6"
+)
+def test_tiptop_budget_cone(budgets):
+    for pos in ((15.0, 0.0), (15.0, 15.0)):
+        ours = budgets["all"][pos]["cone"]
+        assert ours == pytest.approx(TIPTOP_BUDGET[pos]["cone"], rel=0.20)
 
 
 @pytest.fixture(scope="module")

@@ -185,7 +185,8 @@ def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> f
 
     Centre-of-gravity noise of Thomas et al. (2006, MNRAS 371, 323), the
     phase-difference variance across a sub-aperture at the WFS wavelength:
-    ``sigma^2 = F [pi^2 / (2 N_ph) (N_T / N_D)^2 + pi^2 / 3 (RON / N_ph)^2 (N_s^2 / N_D)^2]``
+    ``sigma^2 = F [pi^2 / (2 ln2 N_ph) (N_T / N_D)^2 + pi^2 / 3 (RON / N_ph)^2 (N_s^2 / N_D)^2]``
+    (the ``2 ln 2`` of the Gaussian-spot photon term, as in P3's ``sensor.NoiseVariance``)
     with ``N_D = max(1, lambda / d / pixel)`` (diffraction spot FWHM in pixels),
     ``N_T = max(1, hypot(spot, lambda / r0) / pixel)`` (turbulent spot FWHM),
     ``N_s`` the pixels across the window and F the excess-noise factor.
@@ -204,7 +205,7 @@ def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> f
     pix = s.lgs_pixel_scale / 1000.0  # arcsec
     n_d = max(1.0, lam / pitch * ARCSEC_PER_RAD / pix)
     n_t = max(1.0, np.hypot(s.lgs_spot_fwhm / 1000.0, lam / r0_wfs * ARCSEC_PER_RAD) / pix)
-    shot = np.pi**2 / (2 * s.lgs_photons) * (n_t / n_d) ** 2
+    shot = np.pi**2 / (2 * np.log(2) * s.lgs_photons) * (n_t / n_d) ** 2
     ron = np.pi**2 / 3 * (s.lgs_read_noise / s.lgs_photons) ** 2 * (s.lgs_pixels**2 / n_d) ** 2
     var = s.lgs_excess_noise * (shot + ron)  # rad^2 at the LGS wavelength
     return float(np.sqrt(var) * lam / (2 * np.pi) * 1e9)
