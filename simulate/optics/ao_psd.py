@@ -106,8 +106,8 @@ class AOSettings:
         convention for cross-checks, not physics for a science star at infinity.
     servo_model : {"integrator", "pure_delay"}
         Temporal filter of the tomographic correction: the closed-loop
-        integrator (default) or P3 / TIPTOP's tomographic pure delay
-        ``exp(-2 pi i f.v delay / f_loop)`` (a peer-code convention).
+        integrator (default) or P3 / TIPTOP's tomographic pure delay of
+        ``loop_delay / loop_frequency`` (a peer-code convention).
     fitting, aliasing, noise, servo_lag, tomography, cone_effect : bool
         Switches of the residual terms. With ``tomography`` off the correction
         is perfect in every direction apart from the other terms (and the cone
