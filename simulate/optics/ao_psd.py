@@ -103,7 +103,8 @@ class AOSettings:
         phasors use ``h / (1 - h/H)`` (the footprint-centre shift in pupil
         coordinates); "all": every layer phasor, DM projector and science
         directions included, as P3 / TIPTOP do (``strechFactor``): a peer-code
-        convention for cross-checks, not physics for a science star at infinity.
+        convention for cross-checks, not physics for a science star at infinity
+        (with "all" the cone-effect term also sees the stretched distances).
     servo_model : {"integrator", "pure_delay"}
         Temporal filter of the tomographic correction: the closed-loop
         integrator (default) or P3 / TIPTOP's tomographic pure delay of
