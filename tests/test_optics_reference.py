@@ -152,6 +152,14 @@ def test_tiptop_tomography_with_p3_conventions(budgets):
         assert budgets["p3"][pos]["servo_tomography"] == pytest.approx(st, rel=0.05), pos
 
 
+def test_tiptop_centre_strehl_with_p3_conventions():
+    """End to end, PSD to PSF: with P3's stretch and pure-delay conventions the on-axis HO
+    image Strehl is TIPTOP's (0.259, its HO-only PSF of MAVIS.ini)."""
+    ao = dataclasses.replace(AO, **P3_CONVENTIONS)
+    _, strehl, _, _ = compute_fourier_grid(PSF, PUPIL, ATM, ao, np.zeros((1, 2)), progress=False)
+    assert strehl[0] == pytest.approx(0.259, rel=0.05)
+
+
 def test_tiptop_noise_gap_is_its_noise_gain(budgets):
     """P3 propagates tomographic LGS noise with a fixed gain min(0.8, 0.4 + 0.1333 delay)^2
     (fourierModel.noisePSD); with it in place of our exact integrator gain the on-axis noise
