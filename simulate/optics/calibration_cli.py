@@ -26,7 +26,14 @@ from mavispm.simulate.optics.calibration_mask import (
 from mavispm.simulate.optics.cli import load_scene_optics
 from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
 
-__all__ = ["register", "run_calibration", "load_mask_settings"]
+__all__ = [
+    "load_mask_settings",
+    "register",
+    "run_calibration",
+    "run_stage",
+    "validate_settings",
+    "write_report",
+]
 
 
 def load_mask_settings(path: str | Path | None, overrides: Mapping | None = None):
@@ -51,6 +58,86 @@ def load_mask_settings(path: str | Path | None, overrides: Mapping | None = None
         table = dict(table)
     table.update({k: v for k, v in (overrides or {}).items() if v is not None})
     return from_mapping(CalibrationMaskSettings, table, prefix="calibration", source=source)
+
+
+def validate_settings(settings: Mapping | None, source=None) -> CalibrationMaskSettings:
+    """The :class:`CalibrationMaskSettings` of a ``[calibration]`` table (raises ConfigError)."""
+    if isinstance(settings, CalibrationMaskSettings):
+        return settings
+    return from_mapping(
+        CalibrationMaskSettings, dict(settings or {}), prefix="calibration", source=source
+    )
+
+
+def run_stage(
+    settings: Mapping | None,
+    distortion: Mapping | None,
+    output: str | Path,
+    seed: int | None = None,
+) -> Path:
+    """The workflow's calibration stage: calibrate a scene's distortion, write the product.
+
+    Parameters
+    ----------
+    settings : mapping
+        The mask table (``[scenes.NAME.calibration]``).
+    distortion : mapping
+        The scene's ``[scene.optics.distortion]`` table (without ``calibration``).
+    output : path
+        The calibration product to write (atomically).
+    seed : int, optional
+        Seed of the hole errors and centroid noise when the table sets no ``seed``.
+
+    Returns
+    -------
+    Path
+        ``output``.
+    """
+    table = dict(settings or {})
+    if seed is not None and "seed" not in table:
+        table["seed"] = int(seed)
+    run_calibration(distortion or {}, validate_settings(table), output)
+    return Path(output)
+
+
+def write_report(paths, outdir) -> list[Path]:
+    """Markdown table of the input and post-calibration distortion of calibration products.
+
+    Parameters
+    ----------
+    paths : list of path
+        Calibration products.
+    outdir : path
+        Folder of the report (created).
+
+    Returns
+    -------
+    list of Path
+        The Markdown file written.
+    """
+    from mavispm.core.atomic import atomic_path
+    from mavispm.core.products import read_product
+
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "| product | method | order | input distortion RMS [mas] | residual RMS [mas] |",
+        "|---|---|---|---|---|",
+    ]
+    for path in map(Path, paths):
+        attrs = read_product(path, "calibration", load_arrays=False).attrs
+        lines.append(
+            f"| {path.parent.name}/{path.name} | {attrs['method']} | {int(attrs['order'])} | "
+            f"{attrs['input_rms'].to_value('mas'):.4f} | "
+            f"{attrs['residual_rms'].to_value('mas'):.5f} |"
+        )
+    target = outdir / "calibration.md"
+    with atomic_path(target) as tmp:
+        tmp.write_text(
+            'Distortion over the science field (r <= 15"), both axes, mean removed, before '
+            "and after the calibration mask (docs/optics.md).\n\n" + "\n".join(lines) + "\n"
+        )
+    return [target]
 
 
 def run_calibration(

@@ -176,6 +176,8 @@ class Optics:
         and tapered like ``psf_grid``; None with one slice (``broadband.slices = 1``).
     slice_wavelengths : numpy.ndarray or None
         Their wavelengths [nm].
+    slice_cache_paths : tuple of Path
+        The PSF-grid cache files of the slices (empty with one slice).
     """
 
     settings: OpticsSettings
@@ -189,6 +191,7 @@ class Optics:
     image_motion: ImageMotion | None = None
     psf_slices: np.ndarray | None = None
     slice_wavelengths: np.ndarray | None = None
+    slice_cache_paths: tuple = ()
 
     def kernel_covariance(self, x, y) -> np.ndarray:
         """TT covariance plus isotropic blur, (N, 2, 2) in mas^2, at field positions (arcsec)."""
@@ -286,12 +289,15 @@ def build_optics(
         grid = taper_grid(grid, halo)
     tiptilt = TipTiltField(s.tiptilt, s.atmosphere, s.pupil)
     slices = lam_k = None
+    slice_paths = []
     if s.broadband.slices > 1:
         lam_k = slice_wavelengths(s.refraction, s.broadband.slices)
         cubes = []
         for lam in lam_k:
             psf_k = dataclasses.replace(s.psf, wavelength=float(lam))
-            grid_k = cached_grid(psf_k, s.pupil, s.atmosphere, s.ao, cache_dir, progress)[0].grid
+            res_k, path_k = cached_grid(psf_k, s.pupil, s.atmosphere, s.ao, cache_dir, progress)
+            slice_paths.append(path_k)
+            grid_k = res_k.grid
             cubes.append((taper_grid(grid_k, halo) if halo is not None else grid_k).cube)
         slices = np.stack(cubes)
     return Optics(
@@ -308,4 +314,5 @@ def build_optics(
         ),
         psf_slices=slices,
         slice_wavelengths=lam_k,
+        slice_cache_paths=tuple(slice_paths),
     )
