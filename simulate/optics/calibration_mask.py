@@ -217,7 +217,7 @@ def _rms_zero_mean(dx: np.ndarray, dy: np.ndarray) -> float:
 
 
 def simulate_calibration(
-    distortion: Distortion, settings: CalibrationMaskSettings
+    distortion: Distortion, settings: CalibrationMaskSettings, imager=None
 ) -> CalibrationResult:
     """Image the mask through ``distortion``, measure the holes and recover the distortion.
 
@@ -227,6 +227,11 @@ def simulate_calibration(
         The distortion the mask sees (its ``displacement(x, y, epoch)`` in arcsec),
         evaluated at ``settings.epoch``.
     settings : CalibrationMaskSettings
+    imager : callable, optional
+        ``imager(x, y) -> (x_measured, y_measured)`` [arcsec]: measures one exposure of
+        holes at true imaged positions ``x, y`` (NaN for a failed hole), e.g.
+        :func:`~mavispm.simulate.optics.pinhole_imaging.rendered_hole_imager`. Default:
+        the true positions plus Gaussian ``centroid_noise``.
 
     Returns
     -------
@@ -241,6 +246,8 @@ def simulate_calibration(
 
     def image(sx: float, sy: float) -> tuple[np.ndarray, np.ndarray]:
         dx, dy = distortion.displacement(xq + sx, yq + sy, settings.epoch)
+        if imager is not None:
+            return imager(xq + sx + dx, yq + sy + dy)
         mx = xq + sx + dx + noise * rng.standard_normal(x.size)
         my = yq + sy + dy + noise * rng.standard_normal(y.size)
         return mx, my
@@ -268,6 +275,14 @@ def simulate_calibration(
         holes_dx = 0.5 * (bx[: x.size] + bx[x.size :])
         holes_dy = 0.5 * (by[: x.size] + by[x.size :])
     # scale the columns for conditioning; lstsq is exact for a well-posed system
+    # holes whose image could not be measured (imager NaN) drop out of the fit
+    use = np.isfinite(bx) & np.isfinite(by)
+    if np.count_nonzero(use) < a.shape[1]:
+        raise ValueError(
+            f"only {np.count_nonzero(use)} holes measured; order {settings.order} needs "
+            f"at least {a.shape[1]}"
+        )
+    a, bx, by = a[use], bx[use], by[use]
     norm = np.sqrt(np.mean(a**2, axis=0))
     norm[norm == 0] = 1.0
     cx = np.linalg.lstsq(a / norm, bx, rcond=None)[0] / norm
