@@ -90,7 +90,7 @@ def test_direct_fit_of_rendered_holes_recovers_the_injected_polynomial(imaging):
     terms = polynomial_terms(mask.order)
     x, y = mask_holes(mask)
     a = np.column_stack([_design(x, y, terms), np.ones(x.size)])
-    sigma = float(np.sqrt(np.mean(record[0].crlb_x**2))) * 1e3  # mas
+    sigma = float(np.sqrt(np.mean(record[0].crlb_x ** 2))) * 1e3  # mas
     std = sigma * np.sqrt(np.diag(np.linalg.inv(a.T @ a)))[: len(terms)]
     injected_x = {(2, 0): 3000.0, (1, 1): 1500.0}
     injected_y = {(0, 2): 2000.0, (1, 0): 40.0}
