@@ -301,3 +301,22 @@ def test_build_optics_computes_one_grid_per_slice(tmp_path):
     assert peak / peak[0] == pytest.approx((lam[0] / lam) ** 2, rel=1e-2)
     one = build_optics(validate_settings(small_table(mode="diffraction", n_nodes=1)), tmp_path)
     assert one.psf_slices is None
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.lists(st.floats(0.0, 1.0), min_size=1, max_size=5).filter(lambda w: sum(w) > 1e-3),
+    st.floats(-20.0, 20.0),
+    st.floats(0.0, 50.0),
+)
+def test_broadband_psf_conserves_flux_and_moves_the_centroid(w, shift, spread):
+    """Any weights, shifts and spread: unit flux, centroid at the weighted mean shift."""
+    k = len(w)
+    cube, _ = gaussian_slices(np.linspace(500.0, 600.0, k), n=161)
+    w = np.asarray(w) / np.sum(w)
+    shifts = np.column_stack([shift * np.linspace(-1, 1, k), 0.5 * shift * np.ones(k)])
+    img = broadband_psf(cube, 1.0, w, shifts, np.diag([spread, 0.0]))
+    assert img.sum() == pytest.approx(1.0, abs=1e-12)
+    cx, cy, _ = moments(img, 1.0)
+    assert cx == pytest.approx(w @ shifts[:, 0], abs=1e-6)
+    assert cy == pytest.approx(w @ shifts[:, 1], abs=1e-6)
