@@ -12,8 +12,10 @@ per bin, the median signed error in x and y:
   first and last epoch implies, ``(dar(last) - dar(first)) / T``.
 
 Measured PMs are relative to the cluster's mean motion and each epoch is aligned on the
-field, so every column has its median over all stars removed: what is left is the
-colour-dependent part. Truth is used for scoring only.
+field, so the measured values are put on the truth's zero point: the median over all
+stars of measured minus true is removed from them (a common offset, which an observer
+cannot see); a bin's measured minus true value is then its colour-dependent error.
+Truth is used for scoring only.
 """
 
 from __future__ import annotations
@@ -70,9 +72,11 @@ def _binned(teff: np.ndarray, *values: np.ndarray) -> list[list[float]]:
     return rows
 
 
-def _centred(v: np.ndarray) -> np.ndarray:
-    good = np.isfinite(v)
-    return v - (np.median(v[good]) if good.any() else 0.0)
+def _on_truth_zero_point(measured: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """``measured`` less the median of ``measured - true`` over all stars (common offset)."""
+    d = measured - true
+    good = np.isfinite(d)
+    return measured - (np.median(d[good]) if good.any() else 0.0)
 
 
 def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
@@ -118,7 +122,7 @@ def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
     rows, csv_rows, panels = [], [], []
 
     def add(node, quantity, axis, unit, teff, measured, true):
-        binned = _binned(teff, _centred(measured), _centred(true))
+        binned = _binned(teff, _on_truth_zero_point(measured, true), true)
         cells = ["-" if n == 0 else f"{m:+.1f} ({t:+.1f})" for n, m, t in binned]
         lab = node["labels"]
         rows.append([lab.get("study", "") or "-", lab.get("scene", ""), quantity, axis, *cells])
@@ -197,7 +201,7 @@ def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
             )
             add(pm_node, "PM [uas/yr]", axis, "uas/yr", teff, meas, true)
             if axis == "x":
-                panels.append((pm_node, teff, _centred(meas), _centred(true)))
+                panels.append((pm_node, teff, _on_truth_zero_point(meas, true), true))
     if not rows:
         return "Scenes with refraction found, but no catalogue `teff` to bin them by.\n"
     _write_csv(
@@ -206,12 +210,13 @@ def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
         csv_rows,
     )
     text = (
-        "Median signed error per effective-temperature bin, measured (true), each column with "
-        "its median over all stars removed (epochs are aligned and PMs relative): a position "
-        "is the measured minus the catalogue position, its truth the DAR shift of the frame; "
-        "a PM is the measured minus the true motion, its truth the DAR change between the "
-        "first and last epoch over the baseline. Scenes rendered with refraction only.\n\n"
-        + _md_table(header, rows)
+        "Median signed shift per effective-temperature bin, measured (true): a position is "
+        "the measured minus the catalogue position, its truth the DAR shift of the frame; a "
+        "PM is the measured minus the true motion, its truth the DAR change between the "
+        "first and last epoch over the baseline. Measured values are put on the truth's zero "
+        "point (the median of measured minus true over all stars removed: epochs are aligned "
+        "and PMs relative), so measured minus true in a bin is its colour-dependent error. "
+        "Scenes rendered with refraction only.\n\n" + _md_table(header, rows)
     )
     if panels:
         fig, axes = plt.subplots(
@@ -237,7 +242,7 @@ def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
             ax.set_title(panel_title(node, ("study", "point", "scene")), fontsize=8)
             ax.legend(fontsize=6)
         axes[-1, 0].set_xlabel("effective temperature [K]")
-        fig.suptitle("Proper-motion error against colour (median removed)", fontsize=10)
+        fig.suptitle("Proper-motion error against colour (truth's zero point)", fontsize=10)
         fig.tight_layout()
         png = _save(fig, outdir / "colour_shifts.png")
         text += f"\n![PM error against colour]({_rel(png, rundir)})\n"
