@@ -17,7 +17,11 @@ The images
     position ``q`` (arcsec) is seen at ``q + s + D(q + s)``, with ``s`` the translation
     and ``D`` the distortion being calibrated (static plus the dynamic term of the
     calibration epoch), and is measured with a Gaussian centroid noise of RMS
-    ``centroid_noise`` [mas] per axis and image.
+    ``centroid_noise`` [mas] per axis and image. Each translation misses its nominal
+    value by a random error of RMS ``translation_error`` [mm] per axis, which the
+    observer does not know: a constant difference between two images that the fit can
+    only take as a linear (scale, rotation, shear) term, ``error / shift`` per unit of
+    field.
 
 The recovery
     ``D`` is modelled as a bivariate polynomial of total degree 1 to ``order`` in
@@ -38,7 +42,7 @@ a calibration product (``[scene.optics.distortion] calibration``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -76,6 +80,8 @@ class CalibrationMaskSettings:
     shift : float
         Translation of the mask for the differential method [mm], applied along x
         and, in a third image, along y.
+    translation_error : float
+        RMS error of each translation per axis [mm] (unknown to the observer).
     centroid_noise : float
         RMS centroid noise of one hole in one image, per axis [mas].
     order : int
@@ -95,6 +101,7 @@ class CalibrationMaskSettings:
     mask_scale: float = unit_field(1000.0 / 582.0, "arcsec / mm", "input-plane scale")
     hole_position_error: float = unit_field(0.01, "mm", "RMS machining error per axis")
     shift: float = unit_field(0.2, "mm", "translation of the differential method")
+    translation_error: float = unit_field(0.0, "mm", "RMS error of each translation")
     centroid_noise: float = unit_field(0.01, "mas", "RMS per hole, image and axis")
     order: int = 6
     method: Literal["differential", "direct"] = "differential"
@@ -115,7 +122,7 @@ class CalibrationMaskSettings:
         for name in ("pitch", "mask_scale", "shift"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        for name in ("hole_position_error", "centroid_noise"):
+        for name in ("hole_position_error", "centroid_noise", "translation_error"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be >= 0")
@@ -187,6 +194,8 @@ class CalibrationResult:
         together, ``sqrt(<dx^2 + dy^2>)``) with its mean removed [mas].
     input_rms : float
         The same for the input distortion [mas].
+    translation_errors : numpy.ndarray (2, 2)
+        Errors of the x- and y-translations (rows), per axis (columns) [arcsec].
     """
 
     settings: CalibrationMaskSettings
@@ -194,6 +203,7 @@ class CalibrationResult:
     holes: dict
     residual_rms: float
     input_rms: float
+    translation_errors: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
 def mask_holes(settings: CalibrationMaskSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -261,8 +271,13 @@ def simulate_calibration(
         holes_dx, holes_dy = bx, by
     else:
         s = settings.shift * settings.mask_scale
-        x1, y1 = image(s, 0.0)
-        x2, y2 = image(0.0, s)
+        if settings.translation_error > 0:  # drawn only when set: same streams otherwise
+            moved = settings.translation_error * settings.mask_scale
+            moved = moved * rng.standard_normal((2, 2))
+        else:
+            moved = np.zeros((2, 2))
+        x1, y1 = image(s + moved[0, 0], moved[0, 1])
+        x2, y2 = image(moved[1, 0], s + moved[1, 1])
         # displacement of each hole between the images, less the known translation [mas]
         a = np.vstack(
             [
@@ -307,6 +322,7 @@ def simulate_calibration(
         },
         residual_rms=_rms_zero_mean(tx - rx, ty - ry),
         input_rms=_rms_zero_mean(tx, ty),
+        translation_errors=moved if settings.method == "differential" else np.zeros((2, 2)),
     )
 
 
