@@ -98,3 +98,36 @@ def test_direct_fit_of_rendered_holes_recovers_the_injected_polynomial(imaging):
     for k, term in enumerate(rec.terms):
         assert rec.coefficients_x[k] == pytest.approx(injected_x.get(term, 0.0), abs=4 * std[k])
         assert rec.coefficients_y[k] == pytest.approx(injected_y.get(term, 0.0), abs=4 * std[k])
+
+
+def test_cli_renders_the_holes_through_the_scene(tmp_path, capsys):
+    """`mavispm simulate calibration --scene` with imaging = "rendered", and its errors."""
+    from mavispm.core.products import read_product
+    from mavispm.workflows.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(
+        "[scene]\nnexp = 1\n[scene.detector]\nnx = 320\nny = 320\n[scene.render]\nhalo = false\n"
+        '[scene.optics.psf]\nmode = "diffraction"\nn_nodes = 1\nstamp_size = "0.3 arcsec"\n'
+        'pixel_scale = "3.75 mas"\npupil_sampling = 32\npsd_padding = 2.5\n'
+        "[scene.optics.halo]\nenabled = false\n[scene.optics.tiptilt]\nenabled = false\n"
+        '[scene.optics.distortion]\nstatic = "polynomial"\n'
+        "coefficients_x = [[2, 0, 3000.0]]\ncoefficients_y = [[0, 2, 2000.0]]\n"
+    )
+    mask = tmp_path / "mask.toml"
+    mask.write_text(
+        '[calibration]\nn_holes = 6\npitch = "0.17 mm"\nshift = "0.05 mm"\norder = 2\n'
+        'hole_position_error = 0\nimaging = "rendered"\nhole_magnitude = 21\n'
+    )
+    out = tmp_path / "calib.h5"
+    args = ["simulate", "calibration", "--mask", str(mask), "-o", str(out)]
+    assert main([*args, "--scene", str(scene)]) == 0
+    prod = read_product(out, "calibration")
+    assert prod.attrs["residual_rms"].to_value("mas") > 0
+    assert np.all(np.isfinite(prod.tables["holes"]["dx_meas"]))
+    bad = tmp_path / "bad.h5"
+    capsys.readouterr()
+    assert main(["simulate", "calibration", "--mask", str(mask), "-o", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "calibration.imaging" in err and "scene" in err and len(err.strip().splitlines()) == 1
+    assert not bad.exists()

@@ -134,3 +134,16 @@ def test_calibrated_scene_renders_the_post_calibration_residual(tmp_path):
 def test_bad_calibration_tables_are_refused_at_load(tmp_path, extra, match):
     with pytest.raises(ConfigError, match=match):
         load_workflow(_write(tmp_path, TINY + extra))
+
+
+def test_rendered_mask_imaging_hands_the_scene_to_the_calibration_node(tmp_path):
+    from mavispm.workflows.graph import expand
+
+    text = TINY.replace("order = 5\n", 'order = 5\nimaging = "rendered"\n')
+    nodes = expand(load_workflow(_write(tmp_path, text)))
+    node = nodes["calibration/calibrated"]
+    assert node.params["scene"]["detector"] == {"nx": 200, "ny": 200}
+    assert "calibration" not in node.params["scene"]
+    assert nodes["frames/calibrated/e0"].inputs["calibration"] == "calibration/calibrated"
+    plain = expand(load_workflow(_write(tmp_path, TINY, "plain.toml")))
+    assert "scene" not in plain["calibration/calibrated"].params  # analytic: distortion only

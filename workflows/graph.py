@@ -210,7 +210,14 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
                 "calibration",
                 ["calibration", scene.name],
                 scene.calibration,
-                {"distortion": dict((scene.optics or {}).get("distortion") or {})},
+                {
+                    "distortion": dict((scene.optics or {}).get("distortion") or {}),
+                    **(
+                        {"scene": scene.scene}
+                        if scene.calibration.get("imaging") == "rendered"
+                        else {}
+                    ),
+                },
                 derive_seed(v.seed, "calibration", scene.name),
                 scene=scene.name,
             )

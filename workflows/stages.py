@@ -149,10 +149,15 @@ def run_optics(inputs, settings, params, seed, outdir: Path) -> dict:
 
 def run_calibration(inputs, settings, params, seed, outdir: Path) -> dict:
     """Calibration mask of a scene (``[scenes.NAME.calibration]``): images the pinhole
-    grid through the scene's distortion (``params["distortion"]``) and writes the
+    grid through the scene's distortion (``params["distortion"]``; rendered through the
+    scene, ``params["scene"]``, when the mask's ``imaging`` is "rendered") and writes the
     recovered distortion; the scene's frames take it as their ``calibration`` input."""
     out = _stage("calibration")(
-        dict(settings), dict(params.get("distortion") or {}), outdir / "calibration.h5", seed
+        dict(settings),
+        dict(params.get("distortion") or {}),
+        outdir / "calibration.h5",
+        seed,
+        scene=params.get("scene"),
     )
     return {"main": out}
 

@@ -74,6 +74,7 @@ def run_stage(
     distortion: Mapping | None,
     output: str | Path,
     seed: int | None = None,
+    scene: Mapping | None = None,
 ) -> Path:
     """The workflow's calibration stage: calibrate a scene's distortion, write the product.
 
@@ -87,6 +88,9 @@ def run_stage(
         The calibration product to write (atomically).
     seed : int, optional
         Seed of the hole errors and centroid noise when the table sets no ``seed``.
+    scene : mapping, optional
+        The scene (``[scene]``) whose PSF and detector image the holes when the mask's
+        ``imaging`` is "rendered".
 
     Returns
     -------
@@ -96,7 +100,7 @@ def run_stage(
     table = dict(settings or {})
     if seed is not None and "seed" not in table:
         table["seed"] = int(seed)
-    run_calibration(distortion or {}, validate_settings(table), output)
+    run_calibration(distortion or {}, validate_settings(table), output, scene=scene)
     return Path(output)
 
 
@@ -140,18 +144,48 @@ def write_report(paths, outdir) -> list[Path]:
     return [target]
 
 
+def hole_imager(mask: CalibrationMaskSettings, scene: Mapping | None, source=None):
+    """The imager of ``mask`` (None: analytic centroid noise), rendering through ``scene``.
+
+    Raises
+    ------
+    ConfigError
+        Rendered imaging without a scene.
+    """
+    if mask.imaging != "rendered":
+        return None
+    if scene is None:
+        raise ConfigError(
+            "imaging = 'rendered' renders the holes through a scene; give one (--scene)",
+            key="calibration.imaging",
+            source=source,
+        )
+    from mavispm.simulate.optics.pinhole_imaging import rendered_hole_imager
+    from mavispm.simulate.render import cli as render_cli
+
+    settings = render_cli.validate_settings(scene, source=source)
+    optics = render_cli.build_scene_optics(settings)
+    return rendered_hole_imager(settings, optics, mask.hole_magnitude, seed=mask.seed)
+
+
 def run_calibration(
     distortion: Mapping | DistortionSettings | None,
     mask: CalibrationMaskSettings,
     output: str | Path,
     source=None,
+    scene: Mapping | None = None,
 ) -> CalibrationResult:
-    """Simulate the calibration of ``distortion`` and write the product to ``output``."""
+    """Simulate the calibration of ``distortion`` and write the product to ``output``.
+
+    ``scene`` (a ``[scene]`` mapping) is needed when the mask's ``imaging`` is
+    "rendered": its PSF, detector and noise image the holes.
+    """
     if not isinstance(distortion, DistortionSettings):
         distortion = from_mapping(
             DistortionSettings, distortion, prefix="scene.optics.distortion", source=source
         )
-    result = simulate_calibration(Distortion(distortion), mask)
+    imager = hole_imager(mask, scene, source)
+    result = simulate_calibration(Distortion(distortion), mask, imager=imager)
     from mavispm.core.config import to_mapping
 
     write_calibration(output, result, distortion_config=to_mapping(distortion))
@@ -160,6 +194,10 @@ def run_calibration(
 
 def _handler(args: argparse.Namespace) -> int:
     optics = load_scene_optics(args.scene) if args.scene else {}
+    scene = None
+    if args.scene:
+        data = tomllib.loads(Path(args.scene).read_text())  # checked by load_scene_optics
+        scene = data.get("scene", data)
     overrides = {"order": args.order, "method": args.method, "seed": args.seed}
     if args.seed is not None and args.seed < 0:
         raise ConfigError("expected a seed >= 0", key="--seed")
@@ -167,7 +205,9 @@ def _handler(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.is_dir():
         raise InputError("output is a folder; expected an HDF5 file name", path=out)
-    result = run_calibration(optics.get("distortion", {}), mask, out, source=args.scene)
+    result = run_calibration(
+        optics.get("distortion", {}), mask, out, source=args.scene, scene=scene
+    )
     print(
         f"wrote {out}: input distortion {result.input_rms:.4f} mas RMS, "
         f"residual after calibration {result.residual_rms:.5f} mas RMS "

@@ -82,6 +82,12 @@ class CalibrationMaskSettings:
         and, in a third image, along y.
     translation_error : float
         RMS error of each translation per axis [mm] (unknown to the observer).
+    imaging : {"analytic", "rendered"}
+        "analytic": true positions plus Gaussian ``centroid_noise``; "rendered": every
+        exposure rendered through a scene and measured by the PSF fitter
+        (:mod:`mavispm.simulate.optics.pinhole_imaging`; needs the scene).
+    hole_magnitude : float
+        Brightness of each hole image with ``imaging = "rendered"`` [mag].
     centroid_noise : float
         RMS centroid noise of one hole in one image, per axis [mas].
     order : int
@@ -102,6 +108,8 @@ class CalibrationMaskSettings:
     hole_position_error: float = unit_field(0.01, "mm", "RMS machining error per axis")
     shift: float = unit_field(0.2, "mm", "translation of the differential method")
     translation_error: float = unit_field(0.0, "mm", "RMS error of each translation")
+    imaging: Literal["analytic", "rendered"] = "analytic"
+    hole_magnitude: float = unit_field(18.0, "mag", "hole images when rendered")
     centroid_noise: float = unit_field(0.01, "mas", "RMS per hole, image and axis")
     order: int = 6
     method: Literal["differential", "direct"] = "differential"
@@ -126,6 +134,10 @@ class CalibrationMaskSettings:
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be >= 0")
+        if self.imaging not in ("analytic", "rendered"):
+            raise ValueError(f"imaging must be 'analytic' or 'rendered', got {self.imaging!r}")
+        if not -5 <= self.hole_magnitude <= 35:
+            raise ValueError(f"hole_magnitude must be -5 to 35 mag, got {self.hole_magnitude}")
         if self.method not in ("differential", "direct"):
             raise ValueError(f"method must be 'differential' or 'direct', got {self.method!r}")
         if self.shift * self.mask_scale > 0.5 * SCIENCE_RADIUS:
