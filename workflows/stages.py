@@ -61,9 +61,14 @@ STAGE_MODULES = {
         "mavispm.simulate.optics.cli",
         ("simulate/optics/*.py", "!simulate/optics/plots.py"),
     ),
-    "calibration": (
+    "calibration": (  # rendered hole images use the renderer and the star fitter
         "mavispm.simulate.optics.calibration_cli",
-        ("simulate/optics/*.py", "!simulate/optics/plots.py"),
+        (
+            "simulate/optics/*.py",
+            "!simulate/optics/plots.py",
+            "simulate/render/*.py",
+            "measure/stars/*.py",
+        ),
     ),
     "frames": (
         "mavispm.simulate.render.cli",
