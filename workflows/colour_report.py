@@ -203,7 +203,10 @@ def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
             if axis == "x":
                 panels.append((pm_node, teff, _on_truth_zero_point(meas, true), true))
     if not rows:
-        return "Scenes with refraction found, but no catalogue `teff` to bin them by.\n"
+        return (
+            "Scenes with refraction found, but no measured stars with a catalogue `teff` "
+            "to bin them by.\n"
+        )
     _write_csv(
         outdir / "colour_shifts.csv",
         ["study", "scene", "quantity", "axis", "unit", "teff_lo", "teff_hi", "n", "median", "true"],
