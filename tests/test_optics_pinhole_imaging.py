@@ -131,3 +131,13 @@ def test_cli_renders_the_holes_through_the_scene(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "calibration.imaging" in err and "scene" in err and len(err.strip().splitlines()) == 1
     assert not bad.exists()
+
+
+def test_saturated_holes_are_a_one_line_error_naming_the_magnitude(imaging):
+    from mavispm.core.errors import InputError
+
+    scene, optics = imaging
+    x, y = mask_holes(CalibrationMaskSettings(**MASK))
+    imager = rendered_hole_imager(scene, optics, 10.0, seed=1)
+    with pytest.raises(InputError, match="hole_magnitude 10.*saturated"):
+        imager(x, y)

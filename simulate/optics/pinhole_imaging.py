@@ -120,7 +120,15 @@ def measure_hole_images(
         later_epochs="truth",
         crowding_radius=2.0,
     )
-    stars, _, _ = measure_frame(frame, settings, seed=int(rng.integers(2**31)))
+    try:
+        stars, _, _ = measure_frame(frame, settings, seed=int(rng.integers(2**31)))
+    except InputError as exc:
+        saturated = int(np.count_nonzero(frame.saturated))
+        raise InputError(
+            f"the calibration holes (hole_magnitude {hole_magnitude:g}) could not be measured: "
+            f"{exc} ({saturated} saturated pixels); expected unsaturated hole images",
+            column="hole_magnitude",
+        ) from None
     order = np.argsort(np.asarray(stars["id"], np.int64))
     stars = stars[order]
     ok = (np.asarray(stars["flag"]).astype(int) & (1 | 16 | 32)) == 0
