@@ -126,6 +126,10 @@ def test_mean_is_the_star_displacement():
         dx, dy = star_displacement(teff, DAR)
         assert np.allclose(spec.mean, dx, rtol=0, atol=1e-12)  # arcsec
         assert np.allclose(spec.weights.sum(axis=1), 1.0)
+    # more stars than one block of the work arrays: the blocks join seamlessly
+    many = np.random.default_rng(0).uniform(3000.0, 30000.0, 25000)
+    spec = slice_spectrum(many, DAR, 3)
+    assert np.allclose(spec.mean, star_displacement(many, DAR)[0], rtol=0, atol=1e-12)
 
 
 def test_slice_wavelengths_split_the_band():

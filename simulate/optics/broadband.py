@@ -41,6 +41,9 @@ from mavispm.simulate.optics.refraction import (
     refraction,
 )
 
+#: Stars per block of the (stars x band wavelengths) arrays (~40 MB each).
+_CHUNK = 10000
+
 __all__ = [
     "BroadbandSettings",
     "SliceSpectrum",
@@ -170,22 +173,26 @@ def slice_spectrum(
     teff = np.atleast_1d(np.asarray(teff, float))
     teff = np.where(np.isfinite(teff), teff, settings.default_teff)
     group = slice_groups(settings, n_slices)
-    lam, w = photon_weights(teff, settings)
+    lam, _ = band_response(settings)
     onehot = np.zeros((len(lam), n_slices))
     onehot[np.arange(len(lam)), group] = 1.0
-    weights = w @ onehot
-    theta = np.radians(settings.zenith_direction)
-    if not settings.enabled:
-        zero = np.zeros_like(weights)
-        return SliceSpectrum(weights, zero, zero[:, 0], (np.cos(theta), np.sin(theta)))
     d = settings.adc_residual * (refraction(lam, settings) - refraction(
         settings.reference_wavelength, settings
     ))  # fmt: skip
-    safe = np.where(weights > 0, weights, 1.0)
-    shifts = (w * d) @ onehot / safe
-    second = (w * d**2) @ onehot / safe
-    within = np.maximum(second - shifts**2, 0.0)
-    variance = np.sum(weights * within, axis=1)
+    weights = np.empty((teff.size, n_slices))
+    shifts = np.zeros((teff.size, n_slices))
+    variance = np.zeros(teff.size)
+    for a in range(0, teff.size, _CHUNK):  # (stars x wavelengths) work arrays, bounded
+        part = slice(a, a + _CHUNK)
+        w = photon_weights(teff[part], settings)[1]
+        weights[part] = w @ onehot
+        if settings.enabled:
+            safe = np.where(weights[part] > 0, weights[part], 1.0)
+            shifts[part] = (w * d) @ onehot / safe
+            second = (w * d**2) @ onehot / safe
+            within = np.maximum(second - shifts[part] ** 2, 0.0)
+            variance[part] = np.sum(weights[part] * within, axis=1)
+    theta = np.radians(settings.zenith_direction)
     return SliceSpectrum(weights, shifts, variance, (np.cos(theta), np.sin(theta)))
 
 
