@@ -324,3 +324,22 @@ def test_broadband_psf_conserves_flux_and_moves_the_centroid(w, shift, spread):
     cx, cy, _ = moments(img, 1.0)
     assert cx == pytest.approx(w @ shifts[:, 0], abs=1e-6)
     assert cy == pytest.approx(w @ shifts[:, 1], abs=1e-6)
+
+
+def test_without_refraction_the_slices_still_follow_each_stars_colour():
+    """Refraction off, 2 colour bins: the two hot stars share the narrower (bluer) kernel,
+    the two cool ones the wider, whatever their order in the catalogue."""
+    from mavispm.simulate.optics.model import validate_settings
+
+    table = epoch_table([-0.3, -0.1, 0.1, 0.3], [0.0] * 4, [16.0] * 4)
+    table["teff"] = [20000.0, 3500.0, 20000.0, 3500.0] * u.K
+    o = make_optics("gaussian", nodes=1, blur_sigma=0.0)
+    o.tiptilt.sxx = o.tiptilt.syy = 1.0
+    o.tiptilt.sxy = 0.0
+    lam = slice_wavelengths(RefractionSettings(), 4)
+    o.psf_slices = gaussian_slices(lam, n=129)[0][:, None, None]
+    o.settings = validate_settings({"broadband": {"slices": 4, "colour_bins": 2}})
+    m, _ = _frame_moments(o, table)
+    assert m[0, 2] == pytest.approx(m[2, 2], rel=1e-4)  # (pixel phases differ)
+    assert m[1, 2] == pytest.approx(m[3, 2], rel=1e-4)
+    assert m[1, 2] > 1.02 * m[0, 2]  # the cool stars' photons are redder: wider slices

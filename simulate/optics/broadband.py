@@ -21,8 +21,9 @@ the whole band (``sum_k w_k d_k``) and its second moment along the zenith exactl
 monochromatic one plus the in-band refraction variance (law of total variance); only
 the shape inside each sub-band is approximated.
 
-Stars share a kernel within ``colour_bins`` bins of their mean refraction (the
-renderer mixes the slice transforms once per bin); each star keeps its own exact mean
+Stars share a kernel within ``colour_bins`` equal-count bins of effective temperature
+(the mean refraction is monotonic in it; the renderer mixes the slice transforms once
+per bin); each star keeps its own exact mean
 shift and in-sub-band variance. ``slices = 1`` is the monochromatic PSF at the grid
 wavelength with the mean shift only, i.e. the renderer as it was.
 """
@@ -65,7 +66,7 @@ class BroadbandSettings:
         Monochromatic PSF slices across the band of ``[scene.optics.refraction]``
         (1: the monochromatic PSF at ``psf.wavelength``, as without this table).
     colour_bins : int
-        Bins of stars (by mean refraction) sharing one broadband kernel.
+        Equal-count bins of stars (by effective temperature) sharing one broadband kernel.
     """
 
     slices: int = 1
@@ -202,7 +203,7 @@ def colour_bins(mean_shift, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     mean_shift : array (N,)
-        Any scalar colour measure (here the mean DAR shift, or the ``teff``).
+        Any scalar colour measure (the renderer uses the effective temperature).
     n_bins : int
 
     Returns

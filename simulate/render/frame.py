@@ -320,8 +320,12 @@ def _broadband_kernels(stars: QTable, optics, epoch: float):
         Largest slice shift of each star's kernel [mas].
     """
     settings = optics.settings
-    spec = slice_spectrum(_teff(stars), settings.refraction, settings.broadband.slices, epoch)
-    index, rep = colour_bins(spec.mean, settings.broadband.colour_bins)
+    teff = _teff(stars)
+    teff = np.where(np.isfinite(teff), teff, settings.refraction.default_teff)
+    spec = slice_spectrum(teff, settings.refraction, settings.broadband.slices, epoch)
+    # equal-count bins of temperature (the mean shift is monotonic in it, and the slice
+    # weights follow it with refraction off too)
+    index, rep = colour_bins(teff, settings.broadband.colour_bins)
     e = np.asarray(spec.direction)
     rel = (spec.shifts - spec.mean[:, None]) * 1000.0  # mas
     spectra = [(spec.weights[r], rel[r][:, None] * e[None, :]) for r in rep]
