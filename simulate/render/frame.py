@@ -15,6 +15,7 @@ from astropy.table import QTable
 
 from mavispm.core.errors import InputError
 from mavispm.core.frame import Frame
+from mavispm.simulate.optics.broadband import colour_bins, slice_spectrum
 from mavispm.simulate.optics.refraction import star_displacement
 from mavispm.simulate.optics.telescope import telescope_displacement
 from mavispm.simulate.render.detector import expose_stack
@@ -64,6 +65,7 @@ def make_renderer(optics, scene: SceneSettings, cache_dir=None) -> StarRenderer:
         scene.render,
         cache_dir,
         intrapixel_amplitude=scene.detector.intrapixel_amplitude,
+        slice_cubes=getattr(optics, "psf_slices", None),
     )
 
 
@@ -278,7 +280,15 @@ def render_stack(
         cov = cov + motion_cov
         render_x_pix = x_pix + motion_mean[:, 0] / s
         render_y_pix = y_pix + motion_mean[:, 1] / s
+    colour = spectra = None
+    if getattr(renderer, "n_slices", 1) > 1 and len(x):
+        colour, spectra, spread, extent = _broadband_kernels(
+            stars, optics, u.Quantity(epoch, u.yr).value
+        )
+        cov = cov + spread
     sigma_max = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0, None)) if len(x) else x
+    if spectra is not None:
+        sigma_max = sigma_max + extent / 4  # the slices' shifts widen the wing
     noise = noise_sigma_per_subexposure(scene)
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max, x, y)
     sky = sky_electrons_per_pixel(phot, s * u.mas, sub_exposure).value
@@ -301,6 +311,8 @@ def render_stack(
         sizes,
         noise_sigma=noise,
         progress=progress,
+        colour=colour,
+        spectra=spectra,
     )
     flat = flat_field_residual(image.shape, det.flat_residual, det.flat_seed)
     if flat is not None:
@@ -348,6 +360,43 @@ def render_stack(
     return RenderedStack(img_adu, saturated, image, truth, attrs)
 
 
+def _teff(stars: QTable) -> np.ndarray:
+    """Effective temperatures [K] of the stars (NaN where the table has no ``teff``)."""
+    if "teff" in stars.colnames:
+        return _values(stars["teff"], u.K)
+    return np.full(len(stars), np.nan)
+
+
+def _broadband_kernels(stars: QTable, optics, epoch: float):
+    """Colour bins and broadband kernels of the stars (``[scene.optics.broadband]``).
+
+    Returns
+    -------
+    colour : numpy.ndarray (N,) int
+        Bin of each star.
+    spectra : list of (weights (K,), shifts (K, 2) [mas])
+        Each bin's kernel: the slices of its median star, shifted relative to that
+        star's mean refraction (each star is placed at its own mean, ``dar``).
+    spread : numpy.ndarray (N, 2, 2)
+        Each star's in-sub-band refraction spread along the zenith [mas^2].
+    extent : numpy.ndarray (N,)
+        Largest slice shift of each star's kernel [mas].
+    """
+    settings = optics.settings
+    teff = _teff(stars)
+    teff = np.where(np.isfinite(teff), teff, settings.refraction.default_teff)
+    spec = slice_spectrum(teff, settings.refraction, settings.broadband.slices, epoch)
+    # equal-count bins of temperature (the mean shift is monotonic in it, and the slice
+    # weights follow it with refraction off too)
+    index, rep = colour_bins(teff, settings.broadband.colour_bins)
+    e = np.asarray(spec.direction)
+    rel = (spec.shifts - spec.mean[:, None]) * 1000.0  # mas
+    spectra = [(spec.weights[r], rel[r][:, None] * e[None, :]) for r in rep]
+    spread = spec.variance[:, None, None] * 1e6 * np.outer(e, e)[None]
+    extent = np.abs(rel[rep]).max(axis=1)[index]
+    return index, spectra, spread, extent
+
+
 def _refraction_shift(stars: QTable, optics, epoch: float) -> tuple[np.ndarray, np.ndarray] | None:
     """Colour-dependent atmospheric refraction of each star [arcsec], or None when off.
 
@@ -357,8 +406,4 @@ def _refraction_shift(stars: QTable, optics, epoch: float) -> tuple[np.ndarray, 
     refr = getattr(getattr(optics, "settings", None), "refraction", None)
     if refr is None or not refr.enabled or len(stars) == 0:
         return None
-    if "teff" in stars.colnames:
-        teff = _values(stars["teff"], u.K)
-    else:
-        teff = np.full(len(stars), np.nan)
-    return star_displacement(teff, refr, epoch)
+    return star_displacement(_teff(stars), refr, epoch)
