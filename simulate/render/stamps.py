@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import scipy.fft
 
 from mavispm.core.array_cache import content_key, load_arrays, save_arrays
 from mavispm.simulate.render.pixel_response import pixel_transfer
@@ -773,6 +772,8 @@ def _node_transforms_fft(cube, requests, chunk: int = 8, workers: int = 1) -> li
     every request; this is exact, not an approximation. Nodes are done a few at a
     time. Returns one (nodes, len(fy), len(fx)) complex array per request.
     """
+    import scipy.fft  # plans only (cached on disk): a warm frames process never imports it
+
     nodes = cube.shape[0]
     base = max(int(p) for p, _, _ in requests)
     outs, picks = [], []
