@@ -90,6 +90,28 @@ def _plain_pixels(table: QTable) -> QTable:
     return table
 
 
+def validate_truth(truth: QTable, path=None) -> QTable:
+    """A frame's truth table checked against :data:`TRUTH_SPEC` (pixel columns as plain numbers).
+
+    Parameters
+    ----------
+    truth : QTable
+        Rendered stars.
+    path : path, optional
+        Source file, for messages.
+
+    Returns
+    -------
+    QTable
+
+    Raises
+    ------
+    InputError
+        A missing column or a column of the wrong unit.
+    """
+    return validate_table(_plain_pixels(truth), TRUTH_SPEC, path=path, table_name="truth")
+
+
 def frame_wcs(attrs: Mapping, shape: tuple[int, int]):
     """Gnomonic (TAN) WCS of a frame centred on the field centre.
 
@@ -209,17 +231,19 @@ class Frame:
         """
         if isinstance(image_adu, u.Quantity):
             image_adu = image_adu.to_value(u.adu)
-        image = np.asarray(image_adu, float)
-        if image.ndim != 2 or min(image.shape) < 3:
+        image_adu = np.asarray(image_adu)
+        if image_adu.ndim != 2 or min(image_adu.shape) < 3:
             raise InputError(
-                f"array 'image' must be a 2-D frame, got shape {image.shape}", path=path
+                f"array 'image' must be a 2-D frame, got shape {image_adu.shape}", path=path
             )
         vals = {k: _attr(attrs, k, unit, path) for k, unit in FRAME_ATTRS.items()}
         nexp = int(attrs.get("nexp", 1))
         if nexp < 1 or vals["gain"] <= 0:
             raise InputError("attributes 'nexp' and 'gain' must be positive", path=path)
+        # electrons in one pass (float64, as np.asarray(image_adu, float) * gain)
+        image = np.multiply(image_adu, vals["gain"], dtype=np.float64)
         if saturated is None:
-            saturated = image >= 0.999 * vals["saturation"] * nexp
+            saturated = np.asarray(image_adu, float) >= 0.999 * vals["saturation"] * nexp
         saturated = np.asarray(saturated, bool)
         if saturated.shape != image.shape:
             raise InputError(
@@ -227,9 +251,9 @@ class Frame:
                 path=path,
             )
         if truth is not None:
-            truth = validate_table(_plain_pixels(truth), TRUTH_SPEC, path=path, table_name="truth")
+            truth = validate_truth(truth, path=path)
         return cls(
-            image=image * vals["gain"],
+            image=image,
             saturated=saturated,
             sky=vals["sky"],
             read_noise_var=vals["read_noise"] ** 2 * nexp,

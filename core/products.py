@@ -27,6 +27,7 @@ import datetime as _dt
 import difflib
 import json
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -268,8 +269,6 @@ def write_product(
 
 def _write_table(f: h5py.File, name: str, table) -> None:
     """Write one table as a compound dataset astropy reads (units in its column meta)."""
-    from astropy.io.misc.hdf5 import write_table_hdf5
-
     meta = dict(getattr(table, "meta", {}) or {})
     colnames = list(table.colnames) if hasattr(table, "colnames") else list(table)
     columns = {}
@@ -286,18 +285,68 @@ def _write_table(f: h5py.File, name: str, table) -> None:
             raise InputError(f"table '{name}' has columns of different lengths", column=cname)
         columns[cname] = (arr, unit)
     if columns:
-        out = Table()
-        for cname, (arr, unit) in columns.items():
-            out[cname] = arr
-            if unit:
-                out[cname].unit = unit
-        write_table_hdf5(out, f, path=name, serialize_meta=True)
+        header = _simple_table_header(columns)
+        if header is not None:  # what astropy writes, without importing its YAML machinery
+            data = np.empty(nrows, dtype=[(c, arr.dtype) for c, (arr, _) in columns.items()])
+            for cname, (arr, _) in columns.items():
+                data[cname] = arr
+            f.create_dataset(name, data=data)
+            f.create_dataset(name + TABLE_META_SUFFIX, data=np.array(header))
+        else:
+            from astropy.io.misc.hdf5 import write_table_hdf5
+
+            out = Table()
+            for cname, (arr, unit) in columns.items():
+                out[cname] = arr
+                if unit:
+                    out[cname].unit = unit
+            write_table_hdf5(out, f, path=name, serialize_meta=True)
         obj = f[name]
     else:  # no columns: an empty group (astropy cannot store a table without columns)
         obj = f.create_group(name)
     obj.attrs["mavispm_table"] = True
     obj.attrs["nrows"] = 0 if nrows is None else nrows
     _write_attrs(obj, {k: v for k, v in meta.items() if _attr_ok(v)})
+
+
+#: Suffix of the dataset holding astropy's YAML column description of a table.
+TABLE_META_SUFFIX = ".__table_column_meta__"
+
+_PLAIN_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+_PLAIN_UNIT = re.compile(r"[A-Za-z][A-Za-z0-9_ /().*]*[A-Za-z0-9)]\Z|[A-Za-z]\Z")
+#: Plain words that YAML reads as booleans or null (astropy's dumper quotes them).
+_YAML_WORDS = {"y", "n", "yes", "no", "true", "false", "on", "off", "null"}
+
+
+def _plain_yaml(text: str, pattern) -> bool:
+    return bool(pattern.match(text)) and text.lower() not in _YAML_WORDS and "  " not in text
+
+
+def _simple_table_header(columns: Mapping[str, tuple[np.ndarray, str]]) -> list[bytes] | None:
+    """astropy's ``__table_column_meta__`` lines for a table of plain columns, or None.
+
+    ``astropy.io.misc.hdf5.write_table_hdf5(..., serialize_meta=True)`` stores the
+    column names, units and types as YAML (``datatype:`` then one
+    ``- {name: x, unit: arcsec, datatype: float64}`` per column); producing it imports
+    ``astropy.io.misc.yaml`` and with it ``astropy.coordinates`` (~0.2-0.9 s of every
+    process that writes a product). For 1-D numeric, boolean and byte-string columns
+    whose names and units YAML writes unquoted, the lines are written here (equal to
+    astropy's, tested); anything else returns None and goes through astropy.
+    """
+    lines = [b"datatype:"]
+    for cname, (arr, unit) in columns.items():
+        kind = arr.dtype.kind
+        if kind not in "biufS" or not _plain_yaml(cname, _PLAIN_NAME):
+            return None
+        datatype = "string" if kind == "S" else arr.dtype.name
+        item = f"name: {cname}"
+        if unit:
+            text = u.Unit(unit, parse_strict="silent").to_string()
+            if not _plain_yaml(text, _PLAIN_UNIT):
+                return None
+            item += f", unit: {text}"
+        lines.append(f"- {{{item}, datatype: {datatype}}}".encode())
+    return lines
 
 
 def _attr_ok(value) -> bool:

@@ -21,7 +21,7 @@ from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import TableSpec, read_product, validate_table, write_product
-from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
+from mavispm.dynamics.fit import compare, fit_models, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
 from mavispm.dynamics.settings import DynamicsSettings
@@ -389,7 +389,7 @@ def run_stage(
     settings : mapping or DynamicsSettings
     output : path
         The ``dynamics`` product to write (atomically). The emcee chains are
-        kept next to it in ``<output>.emcee.h5`` so an interrupted fit resumes.
+        kept next to it in ``<output>.emcee-<model>.h5`` so an interrupted fit resumes.
     seed : int
     plots_dir : path, optional
         Write the profile and corner plots here.
@@ -437,11 +437,7 @@ def run_stage(
     for key, path in (("imbh", truth), ("no_imbh", truth_no_imbh)):
         if path is not None:
             truths[key] = truth_profile(path, stars.field_radius, settings, seed)
-    backend = output.with_name(output.name + ".emcee.h5")
-    fits = [
-        fit_model(stars, settings, distance, model, seed, backend_path=backend)
-        for model in settings.models
-    ]
+    fits = fit_models(stars, settings, distance, seed, output.with_name(output.name + ".emcee"))
     comp = compare(fits, settings.bh_mass_max, settings.ambiguous_ln_b)
     attrs = {
         **comp.as_attrs(),

@@ -49,6 +49,8 @@ LABELS = {
     "dark_mass": r"$M_{\rm dark}/M_\odot$",
     "log_dark_radius": r"$\log_{10} b/''$",
     "beta": r"$\beta$",
+    "beta_0": r"$\beta_0$",
+    "beta_inf": r"$\beta_\infty$",
     "log_anisotropy_radius": r"$\log_{10} r_a/''$",
     "distance": r"$d$/kpc",
     "x0": r"$x_0/''$",
@@ -110,6 +112,10 @@ def parameter_space(
     if s.anisotropy == "constant":
         params.append(Parameter("beta", lo=s.beta_range[0], hi=s.beta_range[1]))
     else:
+        if s.anisotropy == "general":
+            params.append(Parameter("beta_0", lo=s.beta_range[0], hi=s.beta_range[1]))
+            lo, hi = s.beta_inf_range
+            params.append(Parameter("beta_inf", lo=lo, hi=hi))
         lo, hi = s.log_anisotropy_radius_range
         params.append(Parameter("log_anisotropy_radius", lo=lo, hi=hi))
     sd = s.distance_sd(distance)
@@ -169,6 +175,7 @@ def make_likelihood(
         grid_size=s.grid_size,
         n_panels=s.projection_panels,
         n_gl=s.projection_nodes,
+        points_per_efold=s.radial_points_per_efold,
         x_max=s.truncation,
         star_counts=s.star_counts if star_counts is None else star_counts,
         completeness=completeness,
@@ -244,7 +251,7 @@ def backend_key(stars, settings, distance, model, seed) -> str:
 
     from mavispm.core.array_cache import content_key
 
-    knobs = {k: v for k, v in asdict(settings).items() if k != "progress"}
+    knobs = {k: v for k, v in asdict(settings).items() if k not in ("progress", "workers")}
     cols = ("R", "v_r", "v_t", "e_r", "e_t") + (("x", "y") if stars.x is not None else ())
     arrays = [np.asarray(getattr(stars, c), dtype=float) for c in cols]
     return content_key(
@@ -259,6 +266,10 @@ def backend_key(stars, settings, distance, model, seed) -> str:
 
 def fit_model(stars, settings, distance, model, seed, backend_path=None) -> ModelFit:
     """Sample one model with emcee (and its evidences with dynesty if enabled).
+
+    BLAS runs single-threaded inside (the likelihood's small matrix products are
+    2x slower with threads on a busy machine); parallelism is across models
+    (``settings.workers``).
 
     Parameters
     ----------
@@ -280,6 +291,13 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
     ModelFit
         The model's fit.
     """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit_model(stars, settings, distance, model, seed, backend_path)
+
+
+def _fit_model(stars, settings, distance, model, seed, backend_path) -> ModelFit:
     name = _model_name(model)
     space = parameter_space(settings, distance, name, positions=stars.x is not None)
     like = make_likelihood(stars, space, settings, distance)
@@ -327,6 +345,64 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
         criteria={"max_log_like": max_ll, **information_criteria(max_ll, len(space), stars.R.size)},
         wall_s=wall,
     )
+
+
+def _n_extra(model: str) -> int:
+    """Parameters a model adds to the cluster's (its relative cost)."""
+    return int(MODELS[model]["bh"]) + 2 * int(MODELS[model]["dark"])
+
+
+def _fit_one(args) -> ModelFit:
+    stars, settings, distance, model, seed, backend_path = args
+    return fit_model(stars, settings, distance, model, seed, backend_path=backend_path)
+
+
+def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
+    """Fit every model of ``settings.models`` (in ``settings.workers`` processes).
+
+    Parameters
+    ----------
+    stars : StarSample
+    settings : DynamicsSettings
+    distance : float
+        Distance [kpc] (prior mean when fitted).
+    seed : int
+    backend_stem : path, optional
+        emcee backends are kept in ``<backend_stem>-<model>.h5`` (one file per
+        model, so that models may run in parallel processes).
+
+    Returns
+    -------
+    list of ModelFit
+        In the order of ``settings.models``; the result does not depend on ``workers``.
+    """
+    from pathlib import Path
+
+    jobs = [
+        (
+            stars,
+            settings,
+            distance,
+            m,
+            seed,
+            None if backend_stem is None else Path(f"{backend_stem}-{m}.h5"),
+        )
+        for m in settings.models
+    ]
+    workers = min(int(settings.workers), len(jobs))
+    if workers <= 1:
+        return [_fit_one(j) for j in jobs]
+    import concurrent.futures as cf
+    import dataclasses
+    import multiprocessing as mp
+
+    quiet = dataclasses.replace(settings, progress=False)  # no bars from worker processes
+    jobs = [(j[0], quiet, *j[2:]) for j in jobs]
+    # the longest models (most parameters) first, so the pool's tail is short
+    order = sorted(range(len(jobs)), key=lambda i: -_n_extra(jobs[i][3]))
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = {i: pool.submit(_fit_one, jobs[i]) for i in order}
+        return [futures[i].result() for i in range(len(jobs))]
 
 
 def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:

@@ -23,7 +23,8 @@ Model parameters (physical): ``log_mass`` (log10 solMass), ``log_scale_radius``
 (log10 arcsec), optionally ``gamma`` (cusp or Dehnen slope) and ``log_cusp_radius``
 (log10 arcsec), ``bh_mass`` (solMass), ``dark_mass`` (solMass) with
 ``log_dark_radius`` (log10 arcsec), ``beta`` or ``log_anisotropy_radius`` (log10
-arcsec, Osipkov-Merritt; neither: isotropic), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
+arcsec, Osipkov-Merritt; with ``beta_0`` and ``beta_inf``: the general profile; neither:
+isotropic), ``distance`` (kpc), ``x0``, ``y0`` (arcsec), ``pm_x0``,
 ``pm_y0`` (mas/yr).
 """
 
@@ -34,8 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mavispm.core.errors import InputError
+from mavispm.dynamics.anisotropy import Anisotropy, osipkov_merritt
 from mavispm.dynamics.anisotropy import constant as constant_anisotropy
-from mavispm.dynamics.anisotropy import osipkov_merritt
+from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
 from mavispm.dynamics.star_sums import star_sums, stars_about
@@ -120,8 +122,9 @@ class DiscreteLikelihood:
         Prior range of the scale radius [arcsec]; sets the grid in ``R / a``.
     min_radius : float
         Radii are clipped to at least this [arcsec] (guards ``R = 0``).
-    grid_size, n_panels, n_gl, x_max
-        Radial grid points and projection quadrature (see JeansProjector).
+    grid_size, n_panels, n_gl, x_max, points_per_efold
+        Output grid points in ``ln(R / a)`` and the projection's quadrature and
+        radial grid (see JeansProjector).
     star_counts : bool
         Include the star-count term.
     completeness : (radii, values), optional
@@ -144,6 +147,7 @@ class DiscreteLikelihood:
         n_gl: int = 6,
         x_max: float = 1e4,
         star_counts: bool = True,
+        points_per_efold: int = 24,
         completeness=None,
     ):
         self.stars = stars
@@ -163,6 +167,10 @@ class DiscreteLikelihood:
             raise ValueError(
                 "give 'beta' or 'log_anisotropy_radius', not both (neither: isotropic)"
             )
+        if ("beta_0" in self._idx) != ("beta_inf" in self._idx) or (
+            "beta_0" in self._idx and "log_anisotropy_radius" not in self._idx
+        ):
+            raise ValueError("'beta_0', 'beta_inf' and 'log_anisotropy_radius' go together")
         self._moving = any(n in self._idx for n in ("x0", "y0", "pm_x0", "pm_y0"))
         if self._moving and stars.x is None:
             raise InputError("fitting the centre or systemic motion needs star positions x, y")
@@ -182,7 +190,11 @@ class DiscreteLikelihood:
         self.lnX_grid = np.linspace(np.log(x_lo), np.log(x_hi), grid_size)
         self.step = self.lnX_grid[1] - self.lnX_grid[0]
         self.projector = JeansProjector(
-            np.exp(self.lnX_grid), x_max=x_max, n_panels=n_panels, n_gl=n_gl
+            np.exp(self.lnX_grid),
+            x_max=x_max,
+            n_panels=n_panels,
+            n_gl=n_gl,
+            points_per_efold=points_per_efold,
         )
         self._v2 = np.ascontiguousarray(np.stack([stars.v_r**2, stars.v_t**2]), dtype=float)
         self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)
@@ -198,6 +210,8 @@ class DiscreteLikelihood:
         if completeness is not None:
             r, c = (np.asarray(v, dtype=float) for v in completeness)
             self.completeness = (r, c)
+        empty = np.zeros(0)
+        self._comp_r, self._comp_c = self.completeness or (empty, empty)
         self.n_stars = len(stars.R)
 
     def _value(self, theta, name, default):
@@ -230,6 +244,10 @@ class DiscreteLikelihood:
     def anisotropy_of(self, theta):
         """Anisotropy profile (radii in scale radii) of ``theta``.
 
+        ``beta`` alone: constant; ``log_anisotropy_radius`` alone: Osipkov-Merritt;
+        ``beta_0``, ``beta_inf`` and ``log_anisotropy_radius``: the general profile
+        ``beta_0 + (beta_inf - beta_0) r^2 / (r^2 + r_a^2)``; none: isotropic.
+
         Parameters
         ----------
         theta : array_like
@@ -238,14 +256,17 @@ class DiscreteLikelihood:
         Returns
         -------
         Anisotropy
-            Constant ``beta``, Osipkov-Merritt with the fitted radius, or isotropic.
+            The profile the parameters describe (above).
         """
         if "beta" in self._idx:
             return constant_anisotropy(theta[self._idx["beta"]])
         if "log_anisotropy_radius" not in self._idx:
             return constant_anisotropy(0.0)
         ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
-        return osipkov_merritt(10.0 ** theta[self._idx["log_anisotropy_radius"]] / np.exp(ln_a))
+        r_a = 10.0 ** theta[self._idx["log_anisotropy_radius"]] / np.exp(ln_a)
+        if "beta_0" in self._idx:
+            return Anisotropy(theta[self._idx["beta_0"]], theta[self._idx["beta_inf"]], r_a)
+        return osipkov_merritt(r_a)
 
     def model_on_grid(self, theta):
         """Grid quantities for physical parameter vector ``theta``.
@@ -352,12 +373,6 @@ class DiscreteLikelihood:
         e2 = np.stack([er2 * cos2 + et2 * sin2, er2 * sin2 + et2 * cos2])
         return np.log(np.maximum(R, self.min_radius)), v2, e2
 
-    def _completeness(self, R):
-        if self.completeness is None:
-            return np.ones_like(R)
-        r, c = self.completeness
-        return np.interp(R, r, c)
-
     def ln_field_norm(self, ln_a, offset, ln_sig, ln_proj):
         """ln of the tracer number (unit mass, completeness-weighted) inside the field.
 
@@ -370,39 +385,28 @@ class DiscreteLikelihood:
         ln_sig, ln_proj : ndarray
             ln surface density and ln projected mass fraction on the grid.
         """
-        lnX = self.lnX_grid
-        R_f = self.stars.field_radius
-        if self.completeness is None and offset <= 0.0:
-            i_f, w_f = cubic_weights(lnX[0], self.step, lnX.size, [self._ln_field - ln_a])
-            return float(interpolate(ln_proj, i_f, w_f)[0])
-        a = np.exp(ln_a)
-        r_in = 0.01 * R_f
-        offset = min(offset, 0.5 * R_f)
-        i_in, w_in = cubic_weights(lnX[0], self.step, lnX.size, [np.log(r_in) - ln_a])
-        total = float(np.exp(interpolate(ln_proj, i_in, w_in)[0])) * self._completeness(r_in)
-        t, w = _GL16
-        # Gauss-Legendre pieces in ln R, split at the completeness knots (kinks) and
-        # at R_field - offset (where the ring starts to leave the field); one pass
-        cuts = [r_in, R_f - offset, R_f + offset]
-        if self.completeness is not None:
-            cuts += [r for r in self.completeness[0] if r_in < r < R_f + offset]
-        ln_cuts = np.log(np.unique(cuts))
-        lo, hi = ln_cuts[:-1], ln_cuts[1:]
-        half = 0.5 * (hi - lo)
-        lnR = (0.5 * (hi + lo))[:, None] + half[:, None] * t[None, :]
-        R = np.exp(lnR).ravel()
-        idx, wt = cubic_weights(lnX[0], self.step, lnX.size, lnR.ravel() - ln_a)
-        f = np.exp(interpolate(ln_sig, idx, wt)) * (R / a) ** 2 * self._completeness(R)
-        if offset > 0:
-            cosang = (R * R + offset * offset - R_f * R_f) / (2.0 * R * offset)
-            f = f * np.arccos(np.clip(cosang, -1.0, 1.0)) / np.pi
-        total += 2.0 * np.pi * float(np.sum(f.reshape(lnR.shape) * w[None, :] * half[:, None]))
-        return float(np.log(max(total, np.finfo(float).tiny)))
+        return ln_field_number(
+            self.lnX_grid[0],
+            self.step,
+            ln_sig,
+            ln_proj,
+            float(ln_a),
+            float(offset),
+            float(self.stars.field_radius),
+            self._comp_r,
+            self._comp_c,
+            _GL16[0],
+            _GL16[1],
+        )
 
     def __call__(self, theta) -> float:
         """ln L for physical parameter vector ``theta`` (finite, or -inf if invalid)."""
         theta = np.asarray(theta, dtype=float)
         if "beta" in self._idx and not theta[self._idx["beta"]] < 1.0:
+            return -np.inf
+        if "beta_0" in self._idx and not (
+            theta[self._idx["beta_0"]] < 1.0 and theta[self._idx["beta_inf"]] <= 1.0
+        ):
             return -np.inf
         if self._value(theta, "bh_mass", 0.0) < 0 or self._value(theta, "dark_mass", 0.0) < 0:
             return -np.inf

@@ -25,7 +25,7 @@ MODELS = {
     "dark": {"bh": False, "dark": True},
     "imbh_dark": {"bh": True, "dark": True},
 }
-ANISOTROPY = ("constant", "osipkov-merritt")
+ANISOTROPY = ("constant", "osipkov-merritt", "general")
 
 
 @dataclass(frozen=True)
@@ -39,8 +39,9 @@ class DynamicsSettings:
     ``king_concentration`` (King 1962 ``log10 r_t/r_c``). Mass: cluster (tracer shape,
     ``log_mass_range``) + point mass (``bh_mass_max``, uniform) + dark Plummer sphere
     (``dark_mass_max``, uniform; ``log_dark_radius_range`` log10 arcsec), combined per
-    ``models``. ``anisotropy``: "constant" (``beta_range``) or "osipkov-merritt"
-    (``log_anisotropy_radius_range``, log10 arcsec). Nuisances: ``log_scale_radius_range``
+    ``models``. ``anisotropy``: "constant" (``beta_range``), "osipkov-merritt"
+    (``log_anisotropy_radius_range``, log10 arcsec) or "general" (``beta_0`` in
+    ``beta_range``, ``beta_inf`` in ``beta_inf_range``, ``r_a``: both as special cases). Nuisances: ``log_scale_radius_range``
     or ``log_scale_radius_prior`` (mean, sd; e.g. from the surface-brightness profile);
     ``distance`` [kpc] overrides the product's, ``distance_error`` [kpc] (None: 3 % of the
     distance; 0: fixed); ``centre_error`` [arcsec] and ``systemic_error`` [mas/yr]
@@ -49,10 +50,11 @@ class DynamicsSettings:
     (the positional term), ``completeness_radius`` [arcsec] / ``completeness`` (tabulated
     completeness of the sample vs radius), ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
-    ``projection_nodes``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    ``projection_nodes``, ``radial_points_per_efold``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
     "nested": the posterior from the nested-sampling run, no emcee). Evidence:
-    ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``.
+    ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
+    fitted in parallel processes (1: in this process; the result does not depend on it).
     Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
     :class:`~mavispm.dynamics.fast_stars.FastStarSettings`; None = no test).
     """
@@ -73,6 +75,7 @@ class DynamicsSettings:
     anisotropy: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)
     log_anisotropy_radius_range: tuple[float, float] = (0.0, 3.0)
+    beta_inf_range: tuple[float, float] = (-0.5, 0.95)
     distance: float | None = unit_field(None, "kpc", "overrides the product's distance")
     distance_error: float | None = unit_field(
         None, "kpc", "Gaussian prior width; None = 3% of the distance, 0 = fixed"
@@ -94,6 +97,7 @@ class DynamicsSettings:
     grid_size: int = 64
     projection_panels: int = 16
     projection_nodes: int = 6
+    radial_points_per_efold: int = 24
     truncation: float = 1.0e4
     bin_size: int = 300
     n_bootstrap: int = 200
@@ -106,6 +110,7 @@ class DynamicsSettings:
     nlive: int = 250
     dlogz: float = 0.1
     progress: bool = True
+    workers: int = 1
     fast_stars: FastStarSettings | None = None
 
     def __post_init__(self):
@@ -135,6 +140,7 @@ class DynamicsSettings:
             "beta_range",
             "log_dark_radius_range",
             "log_anisotropy_radius_range",
+            "beta_inf_range",
         ):
             lo, hi = getattr(self, name)
             if not lo < hi:
@@ -149,6 +155,8 @@ class DynamicsSettings:
                 )
         if not self.beta_range[1] < 1.0:
             raise ValueError("beta_range must stay below 1")
+        if not self.beta_inf_range[1] <= 1.0:
+            raise ValueError("beta_inf_range must stay at or below 1")
         if not (0.0 <= self.gamma_range[0] and self.gamma_range[1] < 2.5):
             raise ValueError("gamma_range must lie in [0, 2.5)")
         if (self.completeness_radius is None) != (self.completeness is None):
@@ -169,6 +177,7 @@ class DynamicsSettings:
             "grid_size": self.grid_size - 7,
             "projection_panels": self.projection_panels,
             "projection_nodes": self.projection_nodes,
+            "radial_points_per_efold": self.radial_points_per_efold - 3,
             "walkers": self.walkers,
             "max_steps": self.max_steps,
             "tau_factor": self.tau_factor,
@@ -176,6 +185,7 @@ class DynamicsSettings:
             "nlive": self.nlive,
             "dlogz": self.dlogz,
             "ambiguous_ln_b": self.ambiguous_ln_b,
+            "workers": self.workers,
         }
         for name, val in positive.items():
             if not val > 0:

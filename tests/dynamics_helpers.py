@@ -566,16 +566,14 @@ def realistic_stars(seed, case="segregated", imbh_mass=0.0, radius=15.0, pm_erro
     return stars, float(u.Quantity(attrs["distance"], u.kpc).value)
 
 
-def validation_trial(seed, case, imbh_mass, settings=None):
-    """Four-model comparison on one realistic cluster; the verdict numbers."""
-    import time
-
-    from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
+def validation_settings(**knobs):
+    """Dynamics settings of the validation matrix: the four models, Plummer tracer with a
+    free cusp, centre, distance and systemic motion fitted, the core-radius prior of
+    NGC 3201 from photometry (log10 of 1.30', Harris 1996, 2010 edition, +- 0.05 dex),
+    sampler knobs as given (default: emcee, 20 tau, nlive 100, dlogz 0.5)."""
     from mavispm.dynamics.settings import DynamicsSettings
 
-    t0 = time.process_time()
-    stars, dist = realistic_stars(seed, case, imbh_mass)
-    s = settings or DynamicsSettings(
+    base = dict(
         progress=False,
         walkers=32,
         max_steps=4000,
@@ -586,6 +584,18 @@ def validation_trial(seed, case, imbh_mass, settings=None):
         log_scale_radius_range=(1.0, 3.0),
         log_scale_radius_prior=(1.892, 0.05),
     )
+    return DynamicsSettings(**{**base, **knobs})
+
+
+def validation_trial(seed, case, imbh_mass, settings=None):
+    """Four-model comparison on one realistic cluster; the verdict numbers."""
+    import time
+
+    from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
+
+    t0 = time.process_time()
+    stars, dist = realistic_stars(seed, case, imbh_mass)
+    s = settings or validation_settings()
     fits = [fit_model(stars, s, dist, m, seed) for m in s.models]
     c = compare(fits, s.bh_mass_max, s.ambiguous_ln_b)
     bh = marginal_bh_samples(fits, seed)

@@ -186,6 +186,8 @@ def write_measured(path, ep: EpochCatalogue, distance=4.6, xy_unit="arcsec", ext
     stars["y_err"] = ep.y_err * u.arcsec
     stars["flux"] = np.full(ep.ids.size, 1e5) * u.electron
     stars["flag"] = ep.flag
+    if ep.ids_true is not None:
+        stars["id_true"] = ep.ids_true
     if ep.mag is not None:
         stars["mag"] = ep.mag * u.mag
     if ep.x_true is not None:

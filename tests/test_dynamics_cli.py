@@ -63,7 +63,7 @@ def test_run_stage_writes_product_and_plots(pm_file, tmp_path):
     more = {**TINY, "max_steps": 90}
     out2 = run_stage(pm_file, more, tmp_path / "fit.h5", seed=1)
     assert read_product(out2, "dynamics").attrs["steps_imbh"] == 90
-    with h5py.File(tmp_path / "fit.h5.emcee.h5") as f:
+    with h5py.File(tmp_path / "fit.h5.emcee-imbh.h5") as f:
         assert f["imbh"]["chain"].shape[0] == 90
 
 

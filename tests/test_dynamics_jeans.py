@@ -307,6 +307,24 @@ def test_osipkov_merritt_projection_matches_nested_quad(r_a):
             assert getattr(mom, f"tangential_{key}")[j] == pytest.approx(tan, rel=2e-4), key
 
 
+def test_general_anisotropy_projection_matches_nested_quad():
+    """beta(r) = b0 + (binf - b0) r^2/(r^2 + r_a^2) (tangential centre, radial outside),
+    Plummer tracer with a point mass: vs nested quad with g(r) integrated by hand."""
+    from mavispm.dynamics.anisotropy import Anisotropy
+
+    b0, binf, r_a = -0.3, 0.6, 0.8
+    tr = Plummer()
+    X = np.array([0.05, 1.0])
+    mom = JeansProjector(X).moments(tr, Anisotropy(b0, binf, r_a))
+    beta = lambda r: b0 + (binf - b0) * r * r / (r * r + r_a * r_a)  # noqa: E731
+    # ln g = int 2 beta(s) / s ds, integrated by hand: 2 b0 ln r + (binf - b0) ln(r^2 + r_a^2)
+    ln_g = lambda r: 2 * b0 * np.log(r) + (binf - b0) * np.log(r * r + r_a * r_a)  # noqa: E731
+    for j, R in enumerate(X):
+        _, rad, tan = _nested_quad_moments(tr.density, lambda s: 1.0, beta, ln_g, R)
+        assert mom.radial_bh[j] == pytest.approx(rad, rel=3e-4)
+        assert mom.tangential_bh[j] == pytest.approx(tan, rel=3e-4)
+
+
 def test_dark_component_constant_beta_matches_nested_quad():
     """Extended dark Plummer sphere in a cusped Dehnen tracer, beta = 0.3, vs nested quad."""
     tr = Dehnen(gamma=1.2)

@@ -247,3 +247,31 @@ def test_fused_stars_about_matches_numpy_reference():
     theta = np.array([v[n] for n in sp.names])
     for a, b in zip(like._stars_about(theta), like._stars_about_numpy(theta)):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+def test_general_anisotropy_contains_constant_and_osipkov_merritt():
+    """anisotropy = "general" (beta_0, beta_inf, r_a): beta_0 = beta_inf is the constant-beta
+    likelihood, (0, 1) the Osipkov-Merritt one; an invalid beta_inf gives -inf."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    _, stars = _mock_sample(n=200)
+    gen = DynamicsSettings(anisotropy="general", beta_inf_range=(-0.5, 1.0))
+    sp = parameter_space(gen, 4.6, "imbh")
+    assert {"beta_0", "beta_inf", "log_anisotropy_radius"} <= set(sp.names)
+    lk = make_likelihood(stars, sp, gen, 4.6)
+    v = sp.as_dict(sp.from_scaled(np.full(len(sp), 0.1)))
+
+    def other(aniso, **vals):
+        s = DynamicsSettings(anisotropy=aniso)
+        sp2 = parameter_space(s, 4.6, "imbh")
+        w = {**v, **vals}
+        return make_likelihood(stars, sp2, s, 4.6)(np.array([w[n] for n in sp2.names]))
+
+    const = lk(np.array([{**v, "beta_0": 0.2, "beta_inf": 0.2}[n] for n in sp.names]))
+    assert const == pytest.approx(other("constant", beta=0.2), abs=1e-9)
+    om = lk(np.array([{**v, "beta_0": 0.0, "beta_inf": 1.0}[n] for n in sp.names]))
+    assert om == pytest.approx(other("osipkov-merritt"), abs=1e-9)
+    assert lk(np.array([{**v, "beta_inf": 1.2}[n] for n in sp.names])) == -np.inf
+    with pytest.raises(ValueError, match="beta_inf_range"):
+        DynamicsSettings(anisotropy="general", beta_inf_range=(0.0, 1.5))

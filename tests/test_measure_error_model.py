@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import astropy.units as u
 import numpy as np
 import pytest
@@ -200,3 +202,42 @@ def test_reported_errors_describe_the_scatter_with_a_frame_built_epsf(crowded_fr
     np.testing.assert_allclose(
         pure_stars["x_err"].value, pure_stars["x_err_fisher"].value, equal_nan=True
     )
+
+
+def test_auto_oversampling_counts_the_stars_used(tmp_path):
+    """484 isolated stars, constant PSF: more than 200 usable PSF stars but 150 used (the
+    cap). The old rule (x4 from 200 usable) left the bright stars at 2.75x the Cramér-Rao
+    bound (computed with the exact PRF); "auto" now takes x2, at 1.0-1.1x."""
+    from measure_helpers import Detector, grid_positions, mag_to_flux, true_epsf, write_frames
+
+    from mavispm.measure.stars.crlb import crlb
+
+    rng = np.random.default_rng(5)
+    shape, psf, det = (300, 300), SynthPSF(1.0), Detector()
+    x, y = grid_positions(shape, 13, 8, rng)
+    mag = rng.uniform(16.0, 21.0, len(x))
+    write_frames(tmp_path / "f.h5", shape, x, y, mag, psf, det, seed=3)
+    epsf = true_epsf(psf, shape)
+    ratio = {}
+    for setting in ("auto", 4):
+        out = run_stage(
+            tmp_path / "f.h5", {"psf_variation": "constant", "oversampling": setting},
+            tmp_path / f"m{setting}.h5", seed=0,
+        )  # fmt: skip
+        prod = read_product(out, "measured")
+        assert prod.attrs["n_psf_stars"] == 150
+        stars = prod.tables["stars"]
+        flux = mag_to_flux(mag) * prod.attrs["epsf_flux_fraction"]
+        sky = np.full(len(x), det.sky)
+        bound = crlb(epsf, x, y, flux, sky, det.read_noise**2 * det.nexp, 5)[:, 0]
+        dx = np.asarray(stars["x_pix"]) - x
+        ok = (np.asarray(stars["flag"]) & (4 | 8 | 32)) == 0
+        ratio[setting] = [
+            robust_sigma(dx[k]) / np.median(bound[k])
+            for lo, hi in ((16, 18), (18, 19.5), (19.5, 21))
+            for k in [ok & (mag >= lo) & (mag < hi)]
+        ]
+        if setting == "auto":
+            assert json.loads(prod.attrs["epsf"])["oversampling"] == 2
+    assert max(ratio["auto"]) < 1.3, ratio
+    assert ratio[4][0] > 1.5 * ratio["auto"][0], ratio  # the frame where x4 fell short

@@ -106,8 +106,18 @@ def test_blind_mode(frame, tmp_path):
     assert prod.attrs["detect_false_fraction"] < 0.2
     stars = prod.tables["stars"]
     matched = (np.asarray(stars["flag"]) & 16) == 0
-    assert np.all(np.asarray(stars["id"])[~matched] < 0)
+    # id: the detection index (an observer's); id_true: the truth match, scoring only
+    assert np.array_equal(np.asarray(stars["id"]), np.arange(len(stars)))
+    id_true = np.asarray(stars["id_true"])
+    assert np.all(id_true[~matched] == -1) and np.all(id_true[matched] >= 0)
+    assert len(np.unique(id_true[matched])) == np.count_nonzero(matched)
     assert np.all(np.isfinite(stars["match_dist"][matched]))
+    truth = read_product(frame, "frames").tables["truth"]
+    row = {int(i): k for k, i in enumerate(np.asarray(truth["id"]))}
+    k = np.array([row[i] for i in id_true[matched]])
+    dx = np.asarray(stars["x_pix"])[matched] - np.asarray(truth["x_pix"])[k]
+    dy = np.asarray(stars["y_pix"])[matched] - np.asarray(truth["y_pix"])[k]
+    assert np.all(np.hypot(dx, dy) <= 2.0)  # the truth star at id_true is the detection
 
 
 def test_match_is_one_to_one():

@@ -196,3 +196,32 @@ def test_mask_settings_errors(tmp_path):
         load_mask_settings(None, {"method": "guess"})
     with pytest.raises(ConfigError, match="n_holes"):
         load_mask_settings(None, {"n_holes": 3, "order": 6})
+
+
+def test_translation_error_becomes_a_linear_term():
+    """An unknown error e in a mask translation s is fitted as the linear map e * p / s."""
+    from mavispm.simulate.optics.calibration_mask import (
+        CalibrationMaskSettings,
+        simulate_calibration,
+    )
+    from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
+
+    mask = CalibrationMaskSettings(
+        hole_position_error=0.0, centroid_noise=0.0, translation_error=0.002, seed=3, order=4
+    )
+    result = simulate_calibration(Distortion(DistortionSettings(enabled=False)), mask)
+    e = result.translation_errors * 1000.0  # mas; rows: x- and y-translation
+    assert np.all(np.abs(e) > 0)
+    s = mask.shift * mask.mask_scale  # arcsec
+    gx, gy = np.meshgrid(np.linspace(-15, 15, 7), np.linspace(-15, 15, 7))
+    dx, dy = result.recovered.displacement_mas(gx, gy)
+    assert np.allclose(dx, (e[0, 0] * gx + e[1, 0] * gy) / s, atol=1e-9)
+    assert np.allclose(dy, (e[0, 1] * gx + e[1, 1] * gy) / s, atol=1e-9)
+    # 0.002 mm is 3.4 mas on the sky: a 0.15% scale error, 26 mas at 15"
+    assert np.max(np.abs(dx)) > 5.0
+    # without the error the same draw of everything else recovers nothing
+    clean = simulate_calibration(
+        Distortion(DistortionSettings(enabled=False)),
+        CalibrationMaskSettings(hole_position_error=0.0, centroid_noise=0.0, seed=3, order=4),
+    )
+    assert np.abs(clean.recovered.displacement_mas(gx, gy)[0]).max() < 1e-9

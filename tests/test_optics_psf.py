@@ -189,3 +189,35 @@ def test_reference_numbers_full_grid(tmp_path):
     assert 0.20 <= g.strehl[5, 5] <= 0.30
     f = [fwhm(p, g.pixel_scale) for p in g.cube.reshape(-1, g.n, g.n)]
     assert np.median(f) <= 18.0
+
+
+@pytest.mark.parametrize("servo_model", ["pure_delay", "integrator"])
+def test_servo_lag_and_anisoplanatism_cancel_downwind(servo_model):
+    """One layer at h blowing at v along +x, one ground DM fitted on axis: a late DM shows
+    the layer displaced by v dt, so the star at theta = v dt / h (downwind) sees it exactly
+    (pure delay dt: residual 0) and the star at -theta sees twice the lag. With the
+    integrator the downwind side is still the better one."""
+    from mavispm.simulate.optics.ao_psd import correction_residual_psd, tomographic_operator
+    from mavispm.simulate.optics.atmosphere import Layers
+
+    ao = AOSettings(
+        dm_heights=(0.0,),
+        dm_pitches=(0.2,),
+        fitting_rings=((0.0, 1),),
+        fitting_weights=(1.0,),
+        noise=False,
+        servo_model=servo_model,
+    )
+    h, v = 10000.0, 10.0
+    layer = Layers(np.array([h]), np.array([1.0]), np.array([[v, 0.0]]))
+    rng = np.random.default_rng(3)
+    fx, fy = rng.uniform(-1.7, 1.7, (2, 200))  # inside the DM's control radius 2.5 m^-1
+    op = tomographic_operator(fx, fy, ao, layer, 0.1, 25.0, np.zeros(fx.size))
+    theta = v * ao.loop_delay / ao.loop_frequency / h  # rad
+    down, up = correction_residual_psd(op, np.array([[theta, 0.0], [-theta, 0.0]]))
+    lag = correction_residual_psd(op, np.zeros((1, 2)))[0]
+    if servo_model == "pure_delay":
+        assert down.sum() < 1e-2 * lag.sum()  # MMSE and projector regularisation
+        assert up.sum() == pytest.approx(4 * lag.sum(), rel=0.05)
+    else:
+        assert down.sum() < lag.sum() < up.sum()

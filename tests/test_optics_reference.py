@@ -18,12 +18,19 @@ the day the model reaches them. Full 11 x 11 grids are slow-marked.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from mavispm.simulate.optics.ao_psd import AOSettings
+from mavispm.simulate.optics.ao_psd import AOSettings, noise_gain
 from mavispm.simulate.optics.atmosphere import AtmosphereSettings
-from mavispm.simulate.optics.psf_grid import PSFSettings, compute_fourier_grid, compute_grid
+from mavispm.simulate.optics.psf_grid import (
+    PSFSettings,
+    compute_fourier_grid,
+    compute_grid,
+    residual_psd_model,
+)
 from mavispm.simulate.optics.psf_metrics import fwhm
 from mavispm.simulate.optics.pupil import PupilSettings
 from mavispm.simulate.optics.tiptilt import TipTiltField, TipTiltSettings, field_average_sigma
@@ -45,7 +52,28 @@ SIMPARAMS = {
     "IVx3": ("bad", 3, False, 61.42),
 }
 #: measured (idle-machine independent) values of the cases the model misses
-MISSES = {"III": 23.54, "IV": 29.57, "IIIx3": 50.03, "IVx3": 73.80}
+MISSES = {"III": 23.55, "IV": 29.58, "IIIx3": 50.15, "IVx3": 73.83}
+#: TIPTOP 1.6.0 (astro-tiptop, with astro-p3 1.6.4) run on its shipped perfTest/MAVIS.ini
+#: (getHoErrorBreakDown; PSD sums per science direction), RMS wavefront error in nm:
+#: fitting, aliasing, servo-lag alone (its SCAO integrator formula), spatio-temporal
+#: (servo-lag + tomography, its tomographic model), LGS noise, MCAO cone ("reduced
+#: sensing volume"). Its "sole tomographic error" 57.9 = sqrt(70.8^2 - 40.7^2) mixes the
+#: two servo models and is not used.
+TIPTOP_ON_AXIS = {"fitting": 67.55, "aliasing": 26.82, "servo": 40.70, "noise": 17.1}
+#: (x, y) arcsec -> (servo + tomography, noise, cone) nm
+TIPTOP_BUDGET = {
+    (0.0, 0.0): (70.8, 17.1, 0.0),
+    (15.0, 0.0): (66.1, 15.1, 25.4),
+    (-15.0, 0.0): (72.3, 15.1, 25.3),
+    (0.0, 15.0): (68.7, 15.1, 25.3),
+    (0.0, -15.0): (69.6, 15.1, 25.3),
+    (15.0, 15.0): (115.0, 16.9, 42.6),
+    (-15.0, -15.0): (123.6, 16.9, 42.3),
+    (15.0, -15.0): (116.7, 16.9, 42.5),
+    (-15.0, 15.0): (122.1, 16.9, 42.4),
+}
+#: P3's conventions (see AOSettings.layer_stretch / servo_model)
+P3_CONVENTIONS = {"layer_stretch": "all", "servo_model": "pure_delay"}
 
 
 @pytest.fixture(scope="module")
@@ -55,11 +83,15 @@ def centre_and_corner():
     return strehl, [fwhm(p, PSF.pixel_scale) for p in psfs]
 
 
-@pytest.mark.xfail(strict=True, reason="centre Strehl 0.30 against TIPTOP 0.249 (+21%)")
+@pytest.mark.xfail(strict=True, reason="centre Strehl 0.299 against TIPTOP 0.249 (+20%)")
 def test_tiptop_strehl_centre(centre_and_corner):
     assert centre_and_corner[0][0] == pytest.approx(TIPTOP["strehl"][0], rel=0.10)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="(-15,-15) Strehl 0.033 (0.043 at (15,15)): cone 109 nm against TIPTOP's 42",
+)
 def test_tiptop_strehl_corner(centre_and_corner):
     lo, hi = TIPTOP["strehl"][2]
     assert 0.9 * lo <= centre_and_corner[0][1] <= 1.1 * hi
@@ -84,6 +116,71 @@ def test_tiptop_fwhm_centre_and_corner(centre_and_corner):
 def test_paper_sigma_tt(asterism):
     field = TipTiltField(TipTiltSettings(asterism=asterism), ATM, PUPIL)
     assert field_average_sigma(field) == pytest.approx(PAPER_TT[asterism], rel=0.10)
+
+
+@pytest.fixture(scope="module")
+def budgets():
+    """Term budgets (nm) per direction: defaults, servo-lag alone, P3's conventions."""
+    out = {}
+    for name, ao in (
+        ("all", AO),
+        ("servo", dataclasses.replace(AO, tomography=False)),
+        ("p3", dataclasses.replace(AO, **P3_CONVENTIONS)),
+    ):
+        model = residual_psd_model(PSF, PUPIL, ATM, ao)
+        out[name] = {pos: model.budget(pos) for pos in TIPTOP_BUDGET}
+    return out
+
+
+def test_tiptop_budget_terms_that_agree(budgets):
+    """Fitting, aliasing, servo-lag alone and the on-axis total against TIPTOP's breakdown."""
+    ours, ref = budgets["all"][(0.0, 0.0)], TIPTOP_ON_AXIS
+    assert ours["fitting"] == pytest.approx(ref["fitting"], rel=0.05)
+    assert ours["aliasing"] == pytest.approx(ref["aliasing"], rel=0.15)
+    servo = budgets["servo"][(0.0, 0.0)]["servo_tomography"]
+    assert servo == pytest.approx(ref["servo"], rel=0.05)
+    st, noise, _ = TIPTOP_BUDGET[(0.0, 0.0)]
+    total = np.sqrt(ref["fitting"] ** 2 + ref["aliasing"] ** 2 + st**2 + noise**2)
+    assert ours["total"] == pytest.approx(total, rel=0.10)
+
+
+def test_tiptop_tomography_with_p3_conventions(budgets):
+    """With P3's cone stretch of every layer and its pure-delay servo model, our MMSE
+    tomography + DM projection gives TIPTOP's servo + tomography error in all 9 directions
+    (field pattern included: the downwind side is the better one)."""
+    for pos, (st, _, _) in TIPTOP_BUDGET.items():
+        assert budgets["p3"][pos]["servo_tomography"] == pytest.approx(st, rel=0.05), pos
+
+
+def test_tiptop_centre_strehl_with_p3_conventions():
+    """End to end, PSD to PSF: with P3's stretch and pure-delay conventions the on-axis HO
+    image Strehl is TIPTOP's (0.259, its HO-only PSF of MAVIS.ini)."""
+    ao = dataclasses.replace(AO, **P3_CONVENTIONS)
+    _, strehl, _, _ = compute_fourier_grid(PSF, PUPIL, ATM, ao, np.zeros((1, 2)), progress=False)
+    assert strehl[0] == pytest.approx(0.259, rel=0.05)
+
+
+def test_tiptop_noise_gap_is_its_noise_gain(budgets):
+    """P3 propagates tomographic LGS noise with a fixed gain min(0.8, 0.4 + 0.1333 delay)^2
+    (fourierModel.noisePSD); with it in place of our exact integrator gain the on-axis noise
+    matches TIPTOP's 17.1 nm (the single-WFS variance is the same Thomas formula)."""
+    p3_gain = min(0.8, 0.4 + 0.1333 * AO.loop_delay) ** 2
+    ours = budgets["all"][(0.0, 0.0)]["noise"] * np.sqrt(p3_gain / noise_gain(AO))
+    assert ours == pytest.approx(TIPTOP_BUDGET[(0.0, 0.0)][1], rel=0.10)
+
+
+@pytest.mark.xfail(strict=True, reason="LGS noise 13.5 nm on axis against TIPTOP 17.1 (-21%)")
+def test_tiptop_budget_noise(budgets):
+    assert budgets["all"][(0.0, 0.0)]["noise"] == pytest.approx(17.1, rel=0.10)
+
+
+@pytest.mark.xfail(
+    strict=True, reason="cone 59.6 / 109.2 nm at (15,0) / (15,15) against 25.4 / 42.6"
+)
+def test_tiptop_budget_cone(budgets):
+    for pos in ((15.0, 0.0), (15.0, 15.0)):
+        ours = budgets["all"][pos]["cone"]
+        assert ours == pytest.approx(TIPTOP_BUDGET[pos][2], rel=0.20)
 
 
 @pytest.fixture(scope="module")

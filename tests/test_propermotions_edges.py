@@ -250,8 +250,8 @@ def test_stars_missing_in_random_epochs_give_finite_flagged_motions(seed, n_ep, 
 
 
 def test_blind_epochs_are_matched_by_position_and_ignore_truth_flags(tmp_path):
-    """Blind detections carry truth-match ids and flag 16 (no truth match) only for
-    scoring: the PM stage must not use either (an observer has no truth)."""
+    """Blind detections carry flag 16 (no truth match) only for scoring, and ids that
+    do not identify a star across epochs: the PM stage must use neither."""
     import dataclasses
 
     truth = make_cluster(n=600, seed=4)
@@ -278,3 +278,36 @@ def test_blind_epochs_are_matched_by_position_and_ignore_truth_flags(tmp_path):
     # the same epochs matched by their (truth) ids pair the wrong stars
     bad = derive_proper_motions(epochs, validate_settings({"match": "id"})).stars
     assert np.nanstd(np.asarray(bad["pm_x"].to_value(u.mas / u.yr))) > 100 * np.std(truth.pm_x)
+
+
+def test_blind_ids_are_detection_indices_and_id_true_scores(tmp_path):
+    """Blind products: ``id`` is each epoch's detection index (not shared), ``id_true``
+    the truth match (-1 none). The PM stage matches by position, carries ``id_true``
+    through, and scores against the true proper motions by it."""
+    import dataclasses
+
+    truth = make_cluster(n=400, seed=6)
+    e0, e1 = observe(truth, [0.0, 10.0], seed=7)
+    rng = np.random.default_rng(1)
+    paths = []
+    for k, ep in enumerate((e0, e1)):
+        order = rng.permutation(ep.ids.size)  # detections come in any order
+        sub = {f: getattr(ep, f)[order] for f in ("x", "y", "x_err", "y_err", "flag")}
+        true = ep.ids[order].copy()
+        true[:5] = -1  # five detections without a truth match
+        ep = dataclasses.replace(ep, ids=np.arange(ep.ids.size), ids_true=true, mag=None, **sub)
+        ep = dataclasses.replace(ep, x_true=None, y_true=None)
+        paths.append(write_measured(tmp_path / f"m{k}.h5", ep, extra_attrs={"blind": True}))
+    epochs = [read_measured(p) for p in paths]
+    assert epochs[1].ids_true is not None
+    truth_pm = {"id": truth.ids, "pm_x": truth.pm_x, "pm_y": truth.pm_y}
+    stars = derive_proper_motions(epochs, validate_settings({}), truth_pm=truth_pm).stars
+    id_true = np.asarray(stars["id_true"])
+    assert stars.colnames[:2] == ["id", "id_true"]
+    scored = id_true >= 0
+    assert np.count_nonzero(scored) > 350 and np.count_nonzero(~scored) >= 1
+    # the pairs are right (by position) and scored against the right truth (by id_true)
+    pm, pm_true = (stars[c].to_value(u.mas / u.yr) for c in ("pm_x", "pm_x_true"))
+    d = (pm - pm_true)[scored]
+    assert np.nanstd(d - np.nanmedian(d)) < 0.1 * np.std(truth.pm_x)
+    assert np.all(np.isnan(pm_true[~scored]))

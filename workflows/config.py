@@ -17,6 +17,10 @@ A workflow file describes a whole study. Its top-level tables are:
     distinct optics as its own node) and of the star measurement.
     ``[scenes.NAME]`` tables overlay ``[scene]`` per scene
     (``[scenes.III.optics.tiptilt]``); ``[scenes.NAME.measure]`` overlays ``[measure]``.
+    A ``calibration`` table in a scene (``[scenes.NAME.calibration]``, keys of
+    ``mavispm simulate calibration``'s mask) adds a calibration node imaging the mask
+    through the scene's distortion; the scene's frames then carry the post-calibration
+    residual distortion.
 ``[propermotions]``, ``[dynamics]``
     Stage settings; present means "run this stage".
 ``[outputs]``
@@ -96,6 +100,7 @@ RESERVED_NAMES = ("store", "products", "report")
 SECTION_STAGE = {
     "cluster": "cluster",
     "optics": "optics",
+    "calibration": "calibration",
     "scene": "frames",
     "measure": "stars",
     "propermotions": "propermotions",
@@ -201,6 +206,7 @@ class SceneConfig:
     scene: dict
     optics: dict | None
     measure: dict | None
+    calibration: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -797,7 +803,10 @@ def _scenes(eff: Mapping, ctx: _Context) -> list[SceneConfig]:
             )
         label = prefix if overlays else "scene"
         scene = deep_merge(base_scene or {}, overlay)
+        calibration = scene.pop("calibration", None)
         optics = dict(scene.get("optics") or {})
+        if calibration is not None:
+            _check_calibration(calibration, optics, label, ctx)
         measure = None
         if base_measure is not None or measure_overlay is not None:
             measure = deep_merge(base_measure or {}, measure_overlay or {})
@@ -805,5 +814,31 @@ def _scenes(eff: Mapping, ctx: _Context) -> list[SceneConfig]:
         ctx.validate("optics", optics, f"{label}.optics")
         if measure is not None:
             ctx.validate("measure", measure, f"{prefix}.measure" if overlays else "measure")
-        out.append(SceneConfig(name=name, scene=scene, optics=optics, measure=measure))
+        out.append(
+            SceneConfig(
+                name=name, scene=scene, optics=optics, measure=measure, calibration=calibration
+            )
+        )
     return out
+
+
+def _check_calibration(calibration, optics: Mapping, label: str, ctx: _Context) -> None:
+    """A scene's calibration table: a table, a distortion to calibrate, no second product."""
+    key = f"{label}.calibration"
+    if not isinstance(calibration, Mapping):
+        raise ConfigError(f"expected a table, got {calibration!r}", key=key, source=ctx.src)
+    distortion = optics.get("distortion") or {}
+    if distortion.get("calibration"):
+        raise ConfigError(
+            "the scene names a calibration product in optics.distortion.calibration and has a "
+            f"[{key}] table; expected one of the two{ctx.suffix}",
+            key=key,
+            source=ctx.src,
+        )
+    if distortion.get("enabled", True) is False:
+        raise ConfigError(
+            f"a calibration needs a distortion: optics.distortion.enabled is false{ctx.suffix}",
+            key=key,
+            source=ctx.src,
+        )
+    ctx.validate("calibration", calibration, key)

@@ -6,6 +6,7 @@ becomes the chain::
     cluster ---------------------------+--> frames[scene, epoch] --> stars[scene, epoch]
     (or an external catalogue file)    |                                   |
     optics[scene] (PSF grid) ----------+         propermotions[scene] <----+ (all epochs)
+    calibration[scene] (mask, optional) +
 
 (in observer mode, ``[measure] later_epochs = "measured"``, the default, the
 stars node of each later epoch also takes the earlier epochs' stars nodes as
@@ -263,6 +264,24 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
             )
             out.append(optics)
             psf_inputs["psf"] = optics.id
+        if scene.calibration is not None:  # the calibration mask through this distortion
+            calibration = make(
+                "calibration",
+                ["calibration", scene.name],
+                scene.calibration,
+                {
+                    "distortion": dict((scene.optics or {}).get("distortion") or {}),
+                    **(
+                        {"scene": scene.scene}
+                        if scene.calibration.get("imaging") == "rendered"
+                        else {}
+                    ),
+                },
+                derive_seed(v.seed, "calibration", scene.name),
+                scene=scene.name,
+            )
+            out.append(calibration)
+            psf_inputs["calibration"] = calibration.id
         measured = []
         # observer mode (the default): a later epoch starts from the earlier epochs'
         # measured positions, so its stars node depends on theirs

@@ -44,7 +44,15 @@ __all__ = [
 ]
 
 #: The stage names of the workflow graph, in pipeline order.
-STAGE_NAMES = ("cluster", "optics", "frames", "stars", "propermotions", "dynamics")
+STAGE_NAMES = (
+    "cluster",
+    "optics",
+    "calibration",
+    "frames",
+    "stars",
+    "propermotions",
+    "dynamics",
+)
 
 PACKAGE_ROOT = Path(__file__).resolve().parent.parent
 

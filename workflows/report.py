@@ -25,6 +25,10 @@ Recipes
 ``model_comparison``
     The dynamics stage's model-comparison numbers (ln B, Delta ln L, AIC,
     BIC, M_BH) per study and sweep point.
+``colour_shifts``
+    Scenes rendered with atmospheric refraction: median signed position error per
+    epoch and PM error per effective-temperature bin, measured next to the true DAR
+    shift (:mod:`mavispm.workflows.colour_report`).
 ``fast_stars``
     The fast-star test per study and sweep point: significant fast stars, the
     expected false ones, the lower IMBH mass limit (with ln B), the fast stars
@@ -53,6 +57,7 @@ __all__ = [
     "BAD_FLAGS",
     "bin_label",
     "clipped_dispersion",
+    "colour_shifts",
     "dispersion_profile",
     "dispersion_profiles",
     "KEY_DYNAMICS_METRICS",
@@ -864,6 +869,13 @@ def _sweep_number(value) -> float:
         return 0.0
 
 
+def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
+    """Recipe: position and PM errors against colour (see :mod:`.colour_report`)."""
+    from mavispm.workflows.colour_report import colour_shifts as recipe
+
+    return recipe(summary, rundir, outdir)
+
+
 #: Report recipe name -> function(summary, rundir, outdir) -> Markdown text.
 RECIPES: dict[str, Callable[[Mapping, Path, Path], str]] = {
     "astrometry_by_magnitude": astrometry_by_magnitude,
@@ -871,6 +883,7 @@ RECIPES: dict[str, Callable[[Mapping, Path, Path], str]] = {
     "dispersion_profiles": dispersion_profiles,
     "model_comparison": model_comparison,
     "fast_stars": fast_stars,
+    "colour_shifts": colour_shifts,
 }
 
 
@@ -880,6 +893,7 @@ RECIPE_TITLES = {
     "dispersion_profiles": "Dispersion profiles",
     "model_comparison": "IMBH model comparison",
     "fast_stars": "Fast stars (stars above the no-IMBH escape velocity)",
+    "colour_shifts": "Astrometric and proper-motion errors against colour (refraction)",
 }
 
 

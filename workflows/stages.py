@@ -48,6 +48,7 @@ __all__ = [
     "canonical_stars",
     "default_registry",
     "product_metrics",
+    "run_calibration",
     "run_cluster",
     "run_dynamics",
     "run_frames",
@@ -67,6 +68,15 @@ STAGE_MODULES = {
         "mavispm.simulate.optics.cli",
         ("simulate/optics/*.py", "!simulate/optics/plots.py"),
     ),
+    "calibration": (  # rendered hole images use the renderer and the star fitter
+        "mavispm.simulate.optics.calibration_cli",
+        (
+            "simulate/optics/*.py",
+            "!simulate/optics/plots.py",
+            "simulate/render/*.py",
+            "measure/stars/*.py",
+        ),
+    ),
     "frames": (
         "mavispm.simulate.render.cli",
         ("simulate/render/*.py", "simulate/optics/*.py", "!simulate/optics/plots.py"),
@@ -83,7 +93,7 @@ STAGE_MODULES = {
 UI_KEYS = {
     "frames": ("render.threads",),
     "stars": ("progress",),
-    "dynamics": ("progress",),
+    "dynamics": ("progress", "workers"),
 }
 
 #: Stages whose settings tables hold accuracy/speed knobs: their canonical spelling
@@ -284,7 +294,8 @@ def run_optics(
 
     The grid comes from, or is computed into, the optics module's disk cache of
     PSF grids keyed by their parameters, and is hard-linked (not copied) into the
-    node's folder as ``psfgrid-<key>.h5``; the halo profile is kept beside it. The
+    node's folder as ``psfgrid-<key>.h5`` (with the grids of the broadband slices,
+    ``[scene.optics.broadband]``); the halo profile is kept beside it. The
     scene's frames nodes take this folder as their declared ``psf`` input.
 
     Inputs: none used.
@@ -311,11 +322,31 @@ def run_optics(
     from mavispm.simulate.optics.model import build_optics
 
     s = validate_settings(dict(settings))
-    source = build_optics(s, progress=False).cache_path
+    built = build_optics(s, progress=False)
+    source = built.cache_path
     main = Path(outdir) / source.name
     _link_or_copy(source, main)
+    products = {"main": main}
+    for k, path in enumerate(built.slice_cache_paths):  # broadband: a grid per wavelength
+        products[f"slice_{k}"] = Path(outdir) / path.name
+        _link_or_copy(path, products[f"slice_{k}"])
     build_optics(s, cache_dir=Path(outdir), progress=False)  # the halo beside the grid
-    return {"main": main}
+    return products
+
+
+def run_calibration(inputs, settings, params, seed, outdir: Path) -> dict:
+    """Calibration mask of a scene (``[scenes.NAME.calibration]``): images the pinhole
+    grid through the scene's distortion (``params["distortion"]``; rendered through the
+    scene, ``params["scene"]``, when the mask's ``imaging`` is "rendered") and writes the
+    recovered distortion; the scene's frames take it as their ``calibration`` input."""
+    out = _stage("calibration")(
+        dict(settings),
+        dict(params.get("distortion") or {}),
+        outdir / "calibration.h5",
+        seed,
+        scene=params.get("scene"),
+    )
+    return {"main": out}
 
 
 def _link_or_copy(source: Path, target: Path) -> None:
@@ -336,9 +367,11 @@ def run_frames(
 
     The optics are read from the scene's ``optics`` node (the declared ``psf``
     input: its PSF grid and halo); the stamp plans are cached in the optics
-    module's disk cache, shared by the scene's epochs.
+    module's disk cache, shared by the scene's epochs. A ``calibration`` input (the
+    scene's calibration node) becomes ``[scene.optics.distortion] calibration``.
 
-    Inputs: ``catalogue``, ``psf`` (the optics node's grid); products: ``main``, ``fits``.
+    Inputs: ``catalogue``, ``psf`` (the optics node's grid), optional ``calibration``;
+    products: ``main``, ``fits``.
 
     Parameters
     ----------
@@ -359,6 +392,13 @@ def run_frames(
         Product name to path; "main" feeds the downstream stages.
     """
     scene = dict(settings)
+    if "calibration" in inputs:  # the post-calibration residual distortion
+        optics = dict(scene.get("optics") or {})
+        optics["distortion"] = {
+            **dict(optics.get("distortion") or {}),
+            "calibration": str(inputs["calibration"]),
+        }
+        scene["optics"] = optics
     fits = outdir / "frames.fits" if params.get("fits", True) else None
     kwargs = {}
     if "psf" in inputs:

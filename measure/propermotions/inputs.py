@@ -71,8 +71,10 @@ class EpochCatalogue:
         [kpc], from the product's root attribute.
     path : pathlib.Path or None
     blind : bool
-        The stars were found by blind detection: their ids come from the truth match
-        (for scoring) and must not be used to cross-match epochs.
+        The stars were found by blind detection: their ids are detection indices
+        and must not be used to cross-match epochs.
+    ids_true : ndarray of int or None
+        The product's ``id_true`` column (truth id for scoring; -1 unmatched).
     """
 
     epoch: float
@@ -89,6 +91,7 @@ class EpochCatalogue:
     distance: float | None = None
     path: Path | None = None
     blind: bool = False
+    ids_true: np.ndarray | None = None
 
     @property
     def label(self) -> str:
@@ -196,6 +199,9 @@ def epoch_catalogue(
         distance=distance,
         path=None if path is None else Path(path),
         blind=bool(attrs.get("blind", False)),
+        ids_true=(
+            np.asarray(stars["id_true"], dtype=np.int64) if "id_true" in stars.colnames else None
+        ),
     )
 
 

@@ -260,6 +260,9 @@ def derive_proper_motions(
             notes.append(f"epochs disagree on the distance {sorted(found)} kpc; using the first")
         distance = next((e.distance for e in epochs if e.distance is not None), None)
     stars = _stars_table(match.ids[keep], motion, mag[keep], flag, settings, distance, notes)
+    truth_ids = _truth_ids(epochs, match, ref)
+    if truth_ids is not None:  # scoring only (blind epochs: the detections' truth matches)
+        stars.add_column(truth_ids[keep], name="id_true", index=1)
     if np.any(np.isfinite(mag_fit[keep])):  # measured magnitude: median over the epochs
         stars.add_column(
             mag_fit[keep] * u.mag, name="mag_fit", index=stars.colnames.index("flag") + 1
@@ -372,6 +375,28 @@ def _stars_table(ids, motion, mag, flag, settings, distance, notes) -> QTable:
     return stars
 
 
+def _truth_ids(epochs: list[EpochCatalogue], match: EpochMatch, ref: int) -> np.ndarray | None:
+    """Truth id of every matched star (scoring only), or None when no epoch has ``id_true``.
+
+    The reference epoch's ``id_true`` where the star is there, else the first epoch's
+    that has it; an epoch without the column contributes its ``id`` (forced
+    photometry: the input list's ids are the truth ids); -1 where unknown.
+    """
+    if not any(e.ids_true is not None for e in epochs):
+        return None
+    n = match.index.shape[0]
+    out = np.full(n, -1, np.int64)
+    done = np.zeros(n, bool)
+    for k in [ref] + [k for k in range(len(epochs)) if k != ref]:
+        ep = epochs[k]
+        true = ep.ids if ep.ids_true is None else ep.ids_true
+        rows = match.index[:, k]
+        take = (rows >= 0) & ~done
+        out[take] = true[rows[take]]
+        done |= take
+    return out
+
+
 def _truth_motion(epochs, match, keep, t, ref, fits, valid, x, y, truth_pm, motion, vx, vy, vxy):
     """True proper motions [arcsec/yr] expressed in the measured relative frame, or None.
 
@@ -383,11 +408,13 @@ def _truth_motion(epochs, match, keep, t, ref, fits, valid, x, y, truth_pm, moti
     n = match.index.shape[0]
     pm_true = np.full((n, 2), np.nan)
     if truth_pm is not None:
+        truth_ids = _truth_ids(epochs, match, ref)
+        ids = match.ids if truth_ids is None else truth_ids
         order = np.argsort(truth_pm["id"])
         sid = np.asarray(truth_pm["id"])[order]
-        pos = np.clip(np.searchsorted(sid, match.ids), 0, max(sid.size - 1, 0))
+        pos = np.clip(np.searchsorted(sid, ids), 0, max(sid.size - 1, 0))
         found = sid.size > 0
-        hit = found & (sid[pos] == match.ids)
+        hit = found & (sid[pos] == ids) & (ids >= 0)
         pm_true[hit, 0] = np.asarray(truth_pm["pm_x"])[order][pos[hit]] / MAS
         pm_true[hit, 1] = np.asarray(truth_pm["pm_y"])[order][pos[hit]] / MAS
     elif all(e.x_true is not None and e.y_true is not None for e in epochs):

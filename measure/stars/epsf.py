@@ -15,6 +15,7 @@ DAOPhot-style polynomially variable PSF by a least-squares fit over the nodes
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -595,6 +596,7 @@ def build_field_epsf(
     model_radius: int = 5,
     half: int | None = None,
     neighbour_flux: np.ndarray | None = None,
+    anchor: Callable[[np.ndarray, float, float, int], np.ndarray] | None = None,
 ) -> tuple[VariableEPSF, np.ndarray]:
     """Build a (field-variable) ePSF from the frame.
 
@@ -625,6 +627,12 @@ def build_field_epsf(
         third, ...; 1: the second, fourth, ...): two disjoint halves for the ePSF
         error estimate (:mod:`mavispm.measure.stars.error_model`). The oversampling
         is resolved from the full set.
+    anchor : callable, optional
+        ``anchor(epsf, x, y, oversampling) -> epsf``: moves each node's ePSF
+        (built at field position ``(x, y)`` [pixel]) onto another centre
+        convention; observer mode anchors a later epoch to the earlier epoch's
+        ePSF (:class:`mavispm.measure.stars.epsf_anchor.EarlierAnchor`). Without
+        it each node is centred on the mean start position of its PSF stars.
 
     Returns
     -------
@@ -660,7 +668,8 @@ def build_field_epsf(
         gx, gy = node_positions(shape, options.grid)
     nodes = np.array([(xi, yi) for yi in gy for xi in gx])
     members = node_psf_stars(x, y, chosen, nodes, options.stars_per_node)
-    oversampling = resolve_oversampling(options.oversampling, len(chosen) / len(nodes))
+    used_per_node = min(len(chosen) / len(nodes), float(options.stars_per_node))
+    oversampling = resolve_oversampling(options.oversampling, used_per_node)
     options = replace(options, oversampling=oversampling)
     if half is not None:
         members = [m[half::2] for m in members]
@@ -677,19 +686,16 @@ def build_field_epsf(
     epsfs = np.asarray(
         [build_epsf(work, x[near], y[near], options, bad, noise_floor, others) for near in members]
     )
+    if options.variation == "polynomial":  # the ePSFs sample the field at their stars
+        nodes = np.array([(np.mean(x[near]), np.mean(y[near])) for near in members])
+    if anchor is not None:
+        epsfs = np.asarray([anchor(e, xn, yn, oversampling) for e, (xn, yn) in zip(epsfs, nodes)])
     if options.variation == "constant":
         return constant_epsf(epsfs[0], oversampling), used
     if options.variation == "grid":
         return gridded_epsf(epsfs, gx, gy, oversampling), used
     return (
-        polynomial_epsf(
-            epsfs,
-            np.array([np.mean(x[near]) for near in members]),
-            np.array([np.mean(y[near]) for near in members]),
-            options.poly_order,
-            shape,
-            oversampling,
-        ),
+        polynomial_epsf(epsfs, nodes[:, 0], nodes[:, 1], options.poly_order, shape, oversampling),
         used,
     )
 
@@ -726,8 +732,10 @@ def node_psf_stars(
     return [chosen[np.atleast_1d(tree.query(node, k=k)[1])] for node in nodes]
 
 
-#: Usable PSF stars per node from which an ePSF is oversampled 4 times in ``"auto"`` mode.
-AUTO_OVERSAMPLING_X4 = 200
+#: PSF stars used per node (after the ``stars_per_node`` cap) from which an ePSF is
+#: oversampled 4 times in ``"auto"`` mode: x4 has 16 pixel phases to fill where x2 has 4,
+#: so it needs four times the stars for the same samples per phase.
+AUTO_OVERSAMPLING_X4 = 600
 
 
 def resolve_oversampling(setting: int | str, stars_per_node: float) -> int:
@@ -737,18 +745,17 @@ def resolve_oversampling(setting: int | str, stars_per_node: float) -> int:
     phases per detector pixel to fill with PSF-star samples; with too few stars
     the phases are noisy and the bright stars' astrometry is limited by the ePSF
     (docs/measure.md). ``"auto"``: 4 with at least :data:`AUTO_OVERSAMPLING_X4`
-    usable PSF stars per node (all that pass the selection, before the
-    ``stars_per_node`` cap), else 2. Measured on frames rendered with the MAVIS
-    optics: the quickstart field (151 usable, constant ePSF) has 0.006 mas
-    per-epoch scatter at m = 18-20 with x2 and 0.1 mas with x4; the NGC 3201
-    field (252 per node of a 3 x 3 grid) 0.15-0.2 mas with both, but x2 leaves a
-    -1 mas offset in the dense centre cell that x4 does not.
+    PSF stars *used* per node, else 2. The rule counted the usable stars before
+    the ``stars_per_node`` cap (x4 from 200): the full NGC 3201 frames (3,500
+    stars, 150 used per node of 3 x 3) then got x4, and their bright stars (V < 22)
+    scattered 30-50 uas per epoch; with x2, 8-14 uas (baseline scene) and 15-29
+    (tip-tilt scene), at the Cramér-Rao bound fainter than V = 22.
 
     Parameters
     ----------
     setting : int or "auto"
     stars_per_node : float
-        Usable PSF stars per ePSF node.
+        PSF stars used per ePSF node.
     """
     if setting == "auto":
         return 4 if stars_per_node >= AUTO_OVERSAMPLING_X4 else 2

@@ -40,6 +40,7 @@ from mavispm.measure.stars.batched_fit import (
 from mavispm.measure.stars.crlb import crlb
 from mavispm.measure.stars.detection import completeness, detect_sources, detection_scores
 from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf
+from mavispm.measure.stars.epsf_anchor import EarlierAnchor
 from mavispm.measure.stars.error_model import (
     ErrorModel,
     epsf_difference_shifts,
@@ -352,11 +353,13 @@ class FramePSF:
 MIN_STARS_SPLIT = 6
 
 
-def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
+def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> FramePSF:
     """ePSF from the frame, rebuilt after neighbour subtraction ``neighbour_passes`` times.
 
     With ``settings.error_model == "epsf"`` the last build is repeated with each
-    half of the PSF stars (the ePSF model-error estimate).
+    half of the PSF stars (the ePSF model-error estimate). ``anchor`` (observer
+    mode: :class:`~mavispm.measure.stars.epsf_anchor.EarlierAnchor`) centres every
+    node ePSF of every build on the earlier epoch's ePSF.
 
     Parameters
     ----------
@@ -366,6 +369,8 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
         Star positions [pixel] from which the PSF stars are chosen.
     settings : MeasureSettings
         The stage settings.
+    anchor : EarlierAnchor, optional
+        The earlier epoch's ePSF (observer mode); None: no anchoring.
 
     Returns
     -------
@@ -380,7 +385,7 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
     # (a faint star's local background is raised by the bright candidate next to it)
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
-    psf, used = build_field_epsf(options=opts, neighbour_flux=upper, **build)
+    psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
         fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
@@ -394,12 +399,14 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings) -> FramePSF:
             previous=psf,
             model_radius=settings.stamp_radius,
         )
-        psf, used = build_field_epsf(options=opts, **build)
+        psf, used = build_field_epsf(options=opts, anchor=anchor, **build)
     halves = None
     per_node = min(settings.psf_stars_per_node, len(used))
     if settings.error_model == "epsf" and per_node >= MIN_STARS_SPLIT:
         try:
-            halves = tuple(build_field_epsf(options=opts, half=h, **build)[0] for h in (0, 1))
+            halves = tuple(
+                build_field_epsf(options=opts, half=h, anchor=anchor, **build)[0] for h in (0, 1)
+            )
         except InputError:  # a half too poor for an ePSF: chi^2 terms only
             halves = None
     return FramePSF(psf, len(used), halves)
@@ -520,13 +527,21 @@ def error_terms(
     return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells)
 
 
-def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
-    """Start positions [pixel] refined by one quick measurement (ePSF from the start
-    list without neighbour passes, fast fit); failed stars keep their start.
+def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
+    """Start positions [pixel] refined by one quick measurement (fast fit); failed
+    stars keep their start.
 
     Carried positions are off by each star's motion since the earlier epoch (a
     few tenths of a pixel); an ePSF built on them is blurred and anchored to
-    them, which doubled the bright-star scatter on the NGC 3201 frames.
+    them, which doubled the bright-star scatter on the NGC 3201 frames. The fit
+    uses the earlier epoch's ePSF when ``anchor`` holds it
+    (:meth:`~mavispm.measure.stars.epsf_anchor.EarlierAnchor.mapped_psf`), else a
+    quick ePSF from the start list (no neighbour passes). An ePSF built on the
+    carried positions has pixel-phase errors (it is blurred by the motions); the
+    builder of the real ePSF keeps the pixel-phase pattern of its start
+    positions (:func:`~mavispm.measure.stars.epsf.build_epsf_fast`), so starts
+    measured with it passed those errors on (30-50 uas per star at V < 22 on the
+    full NGC 3201 frame, against the truth-forced measurement of the same frame).
 
     Parameters
     ----------
@@ -536,6 +551,9 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
         Carried start positions [pixel].
     settings : MeasureSettings
         The stage settings.
+    anchor : EarlierAnchor, optional
+        The earlier epoch's ePSF (observer mode), used for the quick fit; None: a quick
+        ePSF from the start list.
 
     Returns
     -------
@@ -543,7 +561,10 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings):
         Refined positions [pixel].
     """
     quick = settings.replace(neighbour_passes=0, error_model="fisher", progress=False)
-    psf = build_psf(frame, x0, y0, quick).psf
+    if anchor is not None:
+        psf = anchor.mapped_psf()
+    else:
+        psf = build_psf(frame, x0, y0, quick).psf
     fit = run_engine(frame, psf, x0, y0, quick, engine="fast", return_model=False)
     ok = ((fit.flag & FLAG_FAILED) == 0) & np.isfinite(fit.x) & np.isfinite(fit.y)
     return np.where(ok, fit.x, x0), np.where(ok, fit.y, y0)
@@ -584,6 +605,44 @@ def blind_detection(frame: Frame, settings: MeasureSettings):
     )
     x0, y0, info = detect_stars(frame, settings, build_psf, run_engine, opts)
     return x0, y0, {"first_pass": info["n_first"], "passes": json.dumps(info["n_pass"])}
+
+
+def earlier_anchor(
+    earlier: list[EarlierEpoch], transforms: list, settings: MeasureSettings
+) -> EarlierAnchor | None:
+    """The ePSF anchor of an observer-mode epoch: the earliest earlier epoch with an
+    ePSF (its centre convention is the input list's), or None (``epsf_anchor =
+    "start"``, or no earlier ePSF known)."""
+    if settings.epsf_anchor != "earlier":
+        return None
+    for ep, tr in zip(sorted(earlier, key=_epoch), transforms):
+        if ep.psf is not None:
+            return EarlierAnchor(ep.psf, tr.a, tr.b)
+    return None
+
+
+def anchor_summary(anchor: EarlierAnchor | None, pixel_scale: float) -> str:
+    """JSON of the ePSF anchoring: ``"start"``, or ``"earlier"`` with the rms node shift
+    (x, y) [mas] over all node ePSFs built (quick start refinement, builds, halves)."""
+    if anchor is None or not anchor.shifts:
+        return json.dumps({"anchor": "start"})
+    s = np.asarray(anchor.shifts)
+    rms = np.sqrt(np.mean(s[:, 2:] ** 2, axis=0)) * pixel_scale * 1000.0
+    return json.dumps(
+        {"anchor": "earlier", "n_nodes": len(s), "rms_shift_mas": [float(v) for v in rms]}
+    )
+
+
+def carried_truth_ids(earlier: list[EarlierEpoch], ids: np.ndarray) -> np.ndarray:
+    """Truth ids (scoring only) of carried stars: each id's ``id_true`` in the latest
+    earlier epoch that has it (the id itself where the product has no ``id_true``:
+    forced epochs and products written before the column; -1 for an earlier
+    detection without a truth match)."""
+    lookup: dict[int, int] = {}
+    for ep in sorted(earlier, key=_epoch):
+        true = ep.ids if ep.ids_true is None else ep.ids_true
+        lookup.update(zip(ep.ids.tolist(), true.tolist()))
+    return np.fromiter((lookup.get(i, i) for i in ids.tolist()), np.int64, len(ids))
 
 
 def _epoch(e: EarlierEpoch) -> float:
@@ -633,14 +692,16 @@ def measure_frame(
     t0 = time.perf_counter()
     truth = frame.truth
     extra: dict = {}
+    anchor = None
     carried = bool(earlier) and settings.later_epochs == "measured"
     if carried:
         ids, x0, y0, transforms = start_from_earlier(earlier, frame.image, frame.sky, frame.bad)
         if len(ids) == 0:
             raise InputError("observer mode: no earlier star falls in this frame", path=frame.path)
         extra["start"] = "measured"
+        anchor = earlier_anchor(earlier, transforms, settings)
         if settings.refine_start:
-            x0, y0 = refined_start(frame, x0, y0, settings)
+            x0, y0 = refined_start(frame, x0, y0, settings, anchor)
         extra["start_transform"] = json.dumps(
             {f"{e.epoch:g}": t.to_dict() for e, t in zip(sorted(earlier, key=_epoch), transforms)}
         )
@@ -651,14 +712,14 @@ def measure_frame(
             raise InputError(
                 "blind mode: no sources detected (lower detection_threshold?)", path=frame.path
             )
-        ids = -(np.arange(len(x0), dtype=np.int64) + 1)
+        ids = np.arange(len(x0), dtype=np.int64)  # detection index: all an observer has
     else:
         x0, y0 = starting_positions(frame, settings, rng)
         ids = np.asarray(truth["id"], np.int64)
         extra["start"] = "truth"
     if settings.blind and not carried:
         extra["start"] = "detected"
-    frame_psf = build_psf(frame, x0, y0, settings)
+    frame_psf = build_psf(frame, x0, y0, settings, anchor)
     psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
     t_psf = time.perf_counter()
     fit = run_engine(frame, psf, x0, y0, settings, return_model=False)
@@ -675,15 +736,14 @@ def measure_frame(
     x_true = y_true = mag = flux_true = dist = crlb_x = crlb_y = np.full(n, np.nan)
     if truth is not None:
         tx, ty = np.asarray(truth["x_pix"], float), np.asarray(truth["y_pix"], float)
-        if carried:  # scoring only: the carried ids are the first epoch's
-            index = _index_by_id(ids, np.asarray(truth["id"], np.int64))
+        if carried:  # scoring only: the carried stars' truth ids (their earlier id_true)
+            index = _index_by_id(carried_truth_ids(earlier, ids), np.asarray(truth["id"], np.int64))
             sel = np.maximum(index, 0)
             dist = np.where(index >= 0, np.hypot(fit.x - tx[sel], fit.y - ty[sel]), np.nan)
             ok = (index >= 0) & (dist <= settings.match_radius)
         elif settings.blind:
             index, dist = match_to_truth(fit.x, fit.y, tx, ty, settings.match_radius)
             ok = index >= 0
-            ids = np.where(ok, np.asarray(truth["id"], np.int64)[np.maximum(index, 0)], ids)
             extra.update(completeness(fit.x, fit.y, tx, ty, settings.match_radius))
             r_det = np.hypot(*frame.to_arcsec(fit.x, fit.y))
             r_true = np.hypot(*frame.to_arcsec(tx, ty))
@@ -701,6 +761,7 @@ def measure_frame(
         # forced mode knows each star's identity: keep its truth even when unmatched
         known = index >= 0
         sel = np.maximum(index, 0)
+        id_true = np.where(known, np.asarray(truth["id"], np.int64)[sel], -1)
         x_true = np.where(known, truth["x"].to_value(u.arcsec)[sel], np.nan)
         y_true = np.where(known, truth["y"].to_value(u.arcsec)[sel], np.nan)
         mag = np.where(known, truth["mag"].to_value(u.mag)[sel], np.nan)
@@ -725,6 +786,8 @@ def measure_frame(
     x_as, y_as = frame.to_arcsec(fit.x, fit.y)
     stars = QTable()
     stars["id"] = ids
+    if truth is not None:
+        stars["id_true"] = id_true.astype(np.int64)
     stars["x_pix"] = fit.x
     stars["y_pix"] = fit.y
     stars["x"] = x_as * u.arcsec
@@ -761,6 +824,7 @@ def measure_frame(
         "blind": bool(settings.blind),
         "start": extra.pop("start"),
         "start_transform": extra.pop("start_transform", None),
+        "epsf_anchor": anchor_summary(anchor, frame.pixel_scale),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),
         "epsf_flux_fraction": extra.pop("epsf_flux_fraction", None),
         **{f"detect_{k}": v for k, v in extra.items()},

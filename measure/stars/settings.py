@@ -47,8 +47,8 @@ class MeasureKnobs:
     Parameters
     ----------
     oversampling : int or "auto"
-        ePSF oversampling factor; "auto" (default): 4 with at least 200
-        usable PSF stars per ePSF node, else 2
+        ePSF oversampling factor; "auto" (default): 4 with at least 600
+        PSF stars used per ePSF node (after the ``psf_stars_per_node`` cap), else 2
         (:func:`mavispm.measure.stars.epsf.resolve_oversampling`).
     epsf_size : int
         ePSF footprint [pixel] (odd).
@@ -172,6 +172,16 @@ class MeasureSettings:
     refine_start : bool
         Observer mode: refine the carried start list by one quick measurement
         before the ePSF is built (:func:`mavispm.measure.stars.measure_frame.refined_start`).
+    epsf_anchor : {"earlier", "start"}
+        Observer mode: what fixes a later epoch's ePSF. "earlier" (default): the
+        earlier epoch's ePSF (read from its product) refines the carried start
+        list, and every node ePSF is shifted onto it at the same place on the sky
+        (:mod:`mavispm.measure.stars.epsf_anchor`): the carried positions, off by
+        the stars' own motions, no longer enter the measured positions. "start"
+        (the method before): a quick ePSF built on the carried positions refines
+        them and each node ePSF is centred on its PSF stars' mean start (as at
+        the first epoch, where the start is the input list). An earlier product
+        without an ePSF falls back to "start".
     match_radius : float [pix]
         Truth cross-match distance cut.
     crowding_radius : float [pix]
@@ -211,6 +221,7 @@ class MeasureSettings:
     forced_positions: Literal["rendered", "catalogue"] = "rendered"
     later_epochs: Literal["measured", "truth"] = "measured"
     refine_start: bool = True
+    epsf_anchor: Literal["earlier", "start"] = "earlier"
     match_radius: float = unit_field(2.0, "pix")
     crowding_radius: float = unit_field(10.0, "pix")
     crowding_ratio: float = 0.1

@@ -33,6 +33,8 @@ from scipy.spatial import cKDTree
 
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product
+from mavispm.measure.stars.epsf_anchor import epsf_from_product
+from mavispm.measure.stars.variable_psf import VariableEPSF
 
 __all__ = [
     "EarlierEpoch",
@@ -74,6 +76,11 @@ class EarlierEpoch:
     flag : ndarray of int
         The measure stage's flags.
     path : Path or None
+    ids_true : ndarray of int or None
+        The product's ``id_true`` column (truth ids for scoring; None where absent).
+    psf : VariableEPSF or None
+        That epoch's ePSF (the ``epsf_basis`` array and ``epsf`` attribute of its
+        product), the centre convention a later epoch's ePSF is anchored to.
     """
 
     epoch: float
@@ -83,6 +90,8 @@ class EarlierEpoch:
     flux: np.ndarray
     flag: np.ndarray
     path: Path | None = None
+    psf: VariableEPSF | None = None
+    ids_true: np.ndarray | None = None
 
 
 def read_earlier(path) -> EarlierEpoch:
@@ -104,7 +113,7 @@ def read_earlier(path) -> EarlierEpoch:
         Not a measured product, missing columns or the ``epoch`` attribute.
     """
     path = Path(path)
-    prod = read_product(path, "measured", specs={"stars": PREVIOUS_SPEC}, load_arrays=False)
+    prod = read_product(path, "measured", specs={"stars": PREVIOUS_SPEC})
     stars = prod.tables["stars"]
     if "epoch" not in prod.attrs:
         raise InputError("root attribute 'epoch' [yr] missing", path=path)
@@ -113,7 +122,16 @@ def read_earlier(path) -> EarlierEpoch:
     y = np.asarray(stars["y_pix"], float)
     keep = np.isfinite(x) & np.isfinite(y)
     flux = stars["flux"].to_value(u.electron)
+    psf = None
+    if "epsf_basis" in prod.arrays and "epsf" in prod.attrs:
+        try:
+            psf = epsf_from_product(prod.arrays["epsf_basis"], prod.attrs["epsf"])
+        except (InputError, KeyError, ValueError, TypeError) as exc:
+            raise InputError(f"array 'epsf_basis' / attribute 'epsf': {exc}", path=path) from None
+    ids_true = np.asarray(stars["id_true"], np.int64)[keep] if "id_true" in stars.colnames else None
     return EarlierEpoch(
+        psf=psf,
+        ids_true=ids_true,
         epoch=epoch,
         ids=np.asarray(stars["id"], np.int64)[keep],
         x=x[keep],

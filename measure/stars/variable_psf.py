@@ -418,7 +418,30 @@ def polynomial_epsf(
         )
     p, ey, ex = epsfs.shape
     coef, *_ = np.linalg.lstsq(design, epsfs.reshape(p, -1), rcond=None)
-    basis = coef.reshape(nterm, ey, ex)
+    return polynomial_from_basis(coef.reshape(nterm, ey, ex), order, shape, oversampling)
+
+
+def polynomial_from_basis(
+    basis: np.ndarray, order: int, shape: tuple[int, int], oversampling: int
+) -> VariableEPSF:
+    """A polynomially variable ePSF from its coefficient ePSFs (:func:`polynomial_epsf`'s basis).
+
+    Parameters
+    ----------
+    basis : ndarray, shape (nterm, ny, nx)
+        Coefficients of the monomials ``u^i v^j`` (``i + j <= order``).
+    order : int
+    shape : (int, int)
+        Frame shape (ny, nx) that normalises the coordinates.
+    oversampling : int
+    """
+    order = int(order)
+    ny, nx = shape
+    xc, yc = (nx - 1) / 2.0, (ny - 1) / 2.0
+    xh, yh = max(nx / 2.0, 1.0), max(ny / 2.0, 1.0)
+    nterm = (order + 1) * (order + 2) // 2
+    if basis.shape[0] != nterm:
+        raise InputError(f"a polynomial ePSF of order {order} needs {nterm} basis ePSFs")
 
     def mixing(x, y):
         w = _monomials((x - xc) / xh, (y - yc) / yh, order)

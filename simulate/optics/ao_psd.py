@@ -115,6 +115,19 @@ class AOSettings:
         directions); a radius 0 ring has one direction. Empty for the square grid.
     control_region : {"circle", "square"}
         Shape of the corrected spatial frequencies: ``|f| < fc`` or ``|fx|, |fy| < fc``.
+    layer_stretch : {"none", "lgs", "all"}
+        Cone stretch ``1 / (1 - h / H)`` of the layer distances in the tomography.
+        "none" (default): the LGS phasors use the footprint centres ``h theta_g``
+        and the footprint compression is the cone-effect term; "lgs": the LGS
+        phasors use ``h / (1 - h/H)`` (the footprint-centre shift in pupil
+        coordinates); "all": every layer phasor, DM projector and science
+        directions included, as P3 / TIPTOP do (``strechFactor``): a peer-code
+        convention for cross-checks, not physics for a science star at infinity
+        (with "all" the cone-effect term also sees the stretched distances).
+    servo_model : {"integrator", "pure_delay"}
+        Temporal filter of the tomographic correction: the closed-loop
+        integrator (default) or P3 / TIPTOP's tomographic pure delay of
+        ``loop_delay / loop_frequency`` (a peer-code convention).
     fitting, aliasing, noise, servo_lag, tomography, cone_effect : bool
         Switches of the residual terms. With ``tomography`` off the correction
         is perfect in every direction apart from the other terms (and the cone
@@ -152,6 +165,8 @@ class AOSettings:
     tomography: bool = True
     cone_effect: bool = True
     control_region: Literal["square", "circle"] = "circle"
+    layer_stretch: Literal["none", "lgs", "all"] = "none"
+    servo_model: Literal["integrator", "pure_delay"] = "integrator"
 
     def __post_init__(self):
         if self.n_actuators < 2:
@@ -180,6 +195,14 @@ class AOSettings:
             )
         if self.n_fitting < 1:
             raise ValueError("n_fitting must be >= 1")
+        if self.layer_stretch not in ("none", "lgs", "all"):
+            raise ValueError(
+                f"layer_stretch must be 'none', 'lgs' or 'all', got {self.layer_stretch!r}"
+            )
+        if self.servo_model not in ("integrator", "pure_delay"):
+            raise ValueError(
+                f"servo_model must be 'integrator' or 'pure_delay', got {self.servo_model!r}"
+            )
         if self.fitting_weights and len(self.fitting_weights) != len(self.fitting_rings):
             raise ValueError("fitting_weights needs one weight per fitting_rings entry")
         if any(w < 0 for w in self.fitting_weights) or (
@@ -226,7 +249,8 @@ def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> f
 
     Centre-of-gravity noise of Thomas et al. (2006, MNRAS 371, 323), the
     phase-difference variance across a sub-aperture at the WFS wavelength:
-    ``sigma^2 = F [pi^2 / (2 N_ph) (N_T / N_D)^2 + pi^2 / 3 (RON / N_ph)^2 (N_s^2 / N_D)^2]``
+    ``sigma^2 = F [pi^2 / (2 ln2 N_ph) (N_T / N_D)^2 + pi^2 / 3 (RON / N_ph)^2 (N_s^2 / N_D)^2]``
+    (the ``2 ln 2`` of the Gaussian-spot photon term, as in P3's ``sensor.NoiseVariance``)
     with ``N_D = max(1, lambda / d / pixel)`` (diffraction spot FWHM in pixels),
     ``N_T = max(1, hypot(spot, lambda / r0) / pixel)`` (turbulent spot FWHM),
     ``N_s`` the pixels across the window and F the excess-noise factor.
@@ -254,7 +278,7 @@ def shack_hartmann_noise(settings: AOSettings, pitch: float, r0_wfs: float) -> f
     pix = s.lgs_pixel_scale / 1000.0  # arcsec
     n_d = max(1.0, lam / pitch * ARCSEC_PER_RAD / pix)
     n_t = max(1.0, np.hypot(s.lgs_spot_fwhm / 1000.0, lam / r0_wfs * ARCSEC_PER_RAD) / pix)
-    shot = np.pi**2 / (2 * s.lgs_photons) * (n_t / n_d) ** 2
+    shot = np.pi**2 / (2 * np.log(2) * s.lgs_photons) * (n_t / n_d) ** 2
     ron = np.pi**2 / 3 * (s.lgs_read_noise / s.lgs_photons) ** 2 * (s.lgs_pixels**2 / n_d) ** 2
     var = s.lgs_excess_noise * (shot + ron)  # rad^2 at the LGS wavelength
     return float(np.sqrt(var) * lam / (2 * np.pi) * 1e9)
@@ -597,6 +621,7 @@ def tomographic_operator(
     r0: float,
     outer_scale: float,
     noise_psd_single: np.ndarray,
+    lgs_range: float = np.inf,
 ) -> TomographicOperator:
     """Build the MMSE tomography + DM projection for the given frequencies.
 
@@ -614,18 +639,32 @@ def tomographic_operator(
         Outer scale L0 (m).
     noise_psd_single : ndarray, shape (F,)
         Noise PSD of one WFS (rad^2 m^2) before the loop gain; zeros when noise is off.
+    lgs_range : float
+        LGS distance along the line of sight (m), for ``settings.layer_stretch``.
     """
     h_l = atmosphere.heights
+    stretched = h_l / (1.0 - h_l / lgs_range) if np.isfinite(lgs_range) else h_l
+    h_lgs = h_l if settings.layer_stretch == "none" else stretched
+    if settings.layer_stretch == "all":
+        h_l = stretched
     h_d = np.asarray(settings.dm_heights, float)
     w = von_karman_psd(fx**2 + fy**2, r0, outer_scale)
     turb = w[:, None] * atmosphere.weights[None, :]
-    nu = (
+    # temporal frequency of a frozen-flow layer: phi(x, t) = phi0(x - v t) has the
+    # Fourier phase exp(-2 pi i f.v t) in the convention of the direction phasors
+    # exp(+2 pi i h f.theta), so the DM command, which lags, sees nu = -f.v (the sign
+    # sets on which side of the field anisoplanatism and lag add up: the science
+    # direction displaced downwind, h theta = v delay, is the better one)
+    nu = -(
         fx[:, None] * atmosphere.velocities[None, :, 0]
         + fy[:, None] * atmosphere.velocities[None, :, 1]
     )
-    temporal = (
-        closed_loop_transfer(nu, settings) if settings.servo_lag else np.ones_like(nu, complex)
-    )
+    if not settings.servo_lag:
+        temporal = np.ones_like(nu, complex)
+    elif settings.servo_model == "pure_delay":
+        temporal = np.exp(-2j * np.pi * nu * settings.loop_delay / settings.loop_frequency)
+    else:
+        temporal = closed_loop_transfer(nu, settings)
     ngain = noise_gain(settings)
     noise = noise_psd_single * ngain if settings.noise else np.zeros_like(fx)
     if not settings.tomography:
@@ -633,7 +672,7 @@ def tomographic_operator(
         empty = np.zeros((fx.size, 0, 0), complex)
         return TomographicOperator(fx, fy, turb, empty, empty, noise, temporal, h_d, h_l)
     # LGS measurement M: (F, G, L); MMSE reconstructor W = C M^H (M C M^H + Cn)^-1
-    m = _phasor(fx, fy, h_l, lgs_directions(settings))
+    m = _phasor(fx, fy, h_lgs, lgs_directions(settings))
     n_g = m.shape[1]
     mc = m * turb[:, None, :]
     cmm = np.einsum("fgl,fkl->fgk", mc, m.conj())

@@ -17,7 +17,11 @@ The images
     position ``q`` (arcsec) is seen at ``q + s + D(q + s)``, with ``s`` the translation
     and ``D`` the distortion being calibrated (static plus the dynamic term of the
     calibration epoch), and is measured with a Gaussian centroid noise of RMS
-    ``centroid_noise`` [mas] per axis and image.
+    ``centroid_noise`` [mas] per axis and image. Each translation misses its nominal
+    value by a random error of RMS ``translation_error`` [mm] per axis, which the
+    observer does not know: a constant difference between two images that the fit can
+    only take as a linear (scale, rotation, shear) term, ``error / shift`` per unit of
+    field.
 
 The recovery
     ``D`` is modelled as a bivariate polynomial of total degree 1 to ``order`` in
@@ -38,7 +42,7 @@ a calibration product (``[scene.optics.distortion] calibration``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -76,6 +80,14 @@ class CalibrationMaskSettings:
     shift : float
         Translation of the mask for the differential method [mm], applied along x
         and, in a third image, along y.
+    translation_error : float
+        RMS error of each translation per axis [mm] (unknown to the observer).
+    imaging : {"analytic", "rendered"}
+        "analytic": true positions plus Gaussian ``centroid_noise``; "rendered": every
+        exposure rendered through a scene and measured by the PSF fitter
+        (:mod:`mavispm.simulate.optics.pinhole_imaging`; needs the scene).
+    hole_magnitude : float
+        Brightness of each hole image with ``imaging = "rendered"`` [mag].
     centroid_noise : float
         RMS centroid noise of one hole in one image, per axis [mas].
     order : int
@@ -95,6 +107,9 @@ class CalibrationMaskSettings:
     mask_scale: float = unit_field(1000.0 / 582.0, "arcsec / mm", "input-plane scale")
     hole_position_error: float = unit_field(0.01, "mm", "RMS machining error per axis")
     shift: float = unit_field(0.2, "mm", "translation of the differential method")
+    translation_error: float = unit_field(0.0, "mm", "RMS error of each translation")
+    imaging: Literal["analytic", "rendered"] = "analytic"
+    hole_magnitude: float = unit_field(18.0, "mag", "hole images when rendered")
     centroid_noise: float = unit_field(0.01, "mas", "RMS per hole, image and axis")
     order: int = 6
     method: Literal["differential", "direct"] = "differential"
@@ -115,10 +130,14 @@ class CalibrationMaskSettings:
         for name in ("pitch", "mask_scale", "shift"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0")
-        for name in ("hole_position_error", "centroid_noise"):
+        for name in ("hole_position_error", "centroid_noise", "translation_error"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be >= 0")
+        if self.imaging not in ("analytic", "rendered"):
+            raise ValueError(f"imaging must be 'analytic' or 'rendered', got {self.imaging!r}")
+        if not -5 <= self.hole_magnitude <= 35:
+            raise ValueError(f"hole_magnitude must be -5 to 35 mag, got {self.hole_magnitude}")
         if self.method not in ("differential", "direct"):
             raise ValueError(f"method must be 'differential' or 'direct', got {self.method!r}")
         if self.shift * self.mask_scale > 0.5 * SCIENCE_RADIUS:
@@ -209,6 +228,8 @@ class CalibrationResult:
         together, ``sqrt(<dx^2 + dy^2>)``) with its mean removed [mas].
     input_rms : float
         The same for the input distortion [mas].
+    translation_errors : numpy.ndarray (2, 2)
+        Errors of the x- and y-translations (rows), per axis (columns) [arcsec].
     """
 
     settings: CalibrationMaskSettings
@@ -216,6 +237,7 @@ class CalibrationResult:
     holes: dict
     residual_rms: float
     input_rms: float
+    translation_errors: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
 def mask_holes(settings: CalibrationMaskSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -250,7 +272,7 @@ def _rms_zero_mean(dx: np.ndarray, dy: np.ndarray) -> float:
 
 
 def simulate_calibration(
-    distortion: Distortion, settings: CalibrationMaskSettings
+    distortion: Distortion, settings: CalibrationMaskSettings, imager=None
 ) -> CalibrationResult:
     """Image the mask through ``distortion``, measure the holes and recover the distortion.
 
@@ -260,6 +282,11 @@ def simulate_calibration(
         The distortion the mask sees (its ``displacement(x, y, epoch)`` in arcsec),
         evaluated at ``settings.epoch``.
     settings : CalibrationMaskSettings
+    imager : callable, optional
+        ``imager(x, y) -> (x_measured, y_measured)`` [arcsec]: measures one exposure of
+        holes at true imaged positions ``x, y`` (NaN for a failed hole), e.g.
+        :func:`~mavispm.simulate.optics.pinhole_imaging.rendered_hole_imager`. Default:
+        the true positions plus Gaussian ``centroid_noise``.
 
     Returns
     -------
@@ -274,6 +301,8 @@ def simulate_calibration(
 
     def image(sx: float, sy: float) -> tuple[np.ndarray, np.ndarray]:
         dx, dy = distortion.displacement(xq + sx, yq + sy, settings.epoch)
+        if imager is not None:
+            return imager(xq + sx + dx, yq + sy + dy)
         mx = xq + sx + dx + noise * rng.standard_normal(x.size)
         my = yq + sy + dy + noise * rng.standard_normal(y.size)
         return mx, my
@@ -287,8 +316,13 @@ def simulate_calibration(
         holes_dx, holes_dy = bx, by
     else:
         s = settings.shift * settings.mask_scale
-        x1, y1 = image(s, 0.0)
-        x2, y2 = image(0.0, s)
+        if settings.translation_error > 0:  # drawn only when set: same streams otherwise
+            moved = settings.translation_error * settings.mask_scale
+            moved = moved * rng.standard_normal((2, 2))
+        else:
+            moved = np.zeros((2, 2))
+        x1, y1 = image(s + moved[0, 0], moved[0, 1])
+        x2, y2 = image(moved[1, 0], s + moved[1, 1])
         # displacement of each hole between the images, less the known translation [mas]
         a = np.vstack(
             [
@@ -301,6 +335,14 @@ def simulate_calibration(
         holes_dx = 0.5 * (bx[: x.size] + bx[x.size :])
         holes_dy = 0.5 * (by[: x.size] + by[x.size :])
     # scale the columns for conditioning; lstsq is exact for a well-posed system
+    # holes whose image could not be measured (imager NaN) drop out of the fit
+    use = np.isfinite(bx) & np.isfinite(by)
+    if np.count_nonzero(use) < a.shape[1]:
+        raise ValueError(
+            f"only {np.count_nonzero(use)} holes measured; order {settings.order} needs "
+            f"at least {a.shape[1]}"
+        )
+    a, bx, by = a[use], bx[use], by[use]
     norm = np.sqrt(np.mean(a**2, axis=0))
     norm[norm == 0] = 1.0
     cx = np.linalg.lstsq(a / norm, bx, rcond=None)[0] / norm
@@ -325,6 +367,7 @@ def simulate_calibration(
         },
         residual_rms=_rms_zero_mean(tx - rx, ty - ry),
         input_rms=_rms_zero_mean(tx, ty),
+        translation_errors=moved if settings.method == "differential" else np.zeros((2, 2)),
     )
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from mavispm.simulate.optics.atmosphere import MAS_PER_RAD
 from mavispm.simulate.optics.pupil import PupilSettings, pupil_mask
@@ -129,6 +128,8 @@ def telescope_otf(pupil: PupilSettings, sampling: FourierSampling) -> np.ndarray
     ndarray, shape (n_psd, n_psd)
         The OTF (dimensionless), zero separation at index 0.
     """
+    import scipy.fft  # here, not at the top: a frames process reading a cached grid never needs it
+
     p = pupil_mask(pupil, sampling.n_psd, sampling.dx)
     spec = scipy.fft.rfft2(np.fft.ifftshift(p))
     otf = scipy.fft.irfft2(np.abs(spec) ** 2, s=p.shape)
@@ -151,6 +152,8 @@ def structure_function(psd: np.ndarray, df: float) -> np.ndarray:
 
 def _covariance(psd: np.ndarray, df: float) -> np.ndarray:
     """Phase covariance C(r) = sum_f PSD(f) cos(2 pi f r) df^2 on the wrapped grid."""
+    import scipy.fft
+
     return scipy.fft.fft2(np.fft.ifftshift(psd), workers=-1).real * df**2
 
 
@@ -173,6 +176,8 @@ def psf_from_otf(otf: np.ndarray, sampling: FourierSampling) -> np.ndarray:
     ndarray, shape (n_stamp, n_stamp)
         The PSF (sums to 1).
     """
+    import scipy.fft
+
     n_psd, n_fft, n_out = otf.shape[0], sampling.n_fft, sampling.n_stamp
     h = (n_out - 1) // 2
     centred = np.fft.fftshift(otf)

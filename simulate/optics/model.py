@@ -16,6 +16,9 @@ blur       charge diffusion and vibration         ``simulate.optics.blur``
 distortion static and dynamic distortion          ``simulate.optics.distortion``
 image_     per-exposure image motion and dynamic  ``simulate.optics.image_motion``
 motion     distortion of stacks
+refraction differential atmospheric refraction   ``simulate.optics.refraction``
+telescope  plate-scale variation, field distortion ``simulate.optics.telescope``
+broadband  monochromatic PSF slices of the band  ``simulate.optics.broadband``
 knobs      accuracy and speed knobs (below)
 ========== ===================================== ==========================
 
@@ -43,6 +46,7 @@ import numpy as np
 
 from mavispm.core.array_cache import content_key, load_arrays, save_arrays
 from mavispm.core.config import from_mapping
+from mavispm.core.errors import ConfigError
 from mavispm.core.knobs import gather_knobs, scatter_knobs
 from mavispm.simulate.optics.ao_psd import AOSettings
 from mavispm.simulate.optics.atmosphere import (
@@ -53,6 +57,7 @@ from mavispm.simulate.optics.atmosphere import (
     von_karman_psd,
 )
 from mavispm.simulate.optics.blur import BlurSettings, blur_sigma
+from mavispm.simulate.optics.broadband import BroadbandSettings, slice_wavelengths
 from mavispm.simulate.optics.distortion import Distortion, DistortionSettings
 from mavispm.simulate.optics.image_motion import (
     ImageMotion,
@@ -157,6 +162,7 @@ class OpticsSettings:
     refraction: RefractionSettings = field(default_factory=RefractionSettings)
     telescope: TelescopeSettings = field(default_factory=TelescopeSettings)
     image_motion: ImageMotionSettings = field(default_factory=ImageMotionSettings)
+    broadband: BroadbandSettings = field(default_factory=BroadbandSettings)
 
     @property
     def knobs(self) -> OpticsKnobs:
@@ -191,6 +197,21 @@ def validate_settings(mapping: Mapping | None, source=None) -> OpticsSettings:
         from_mapping(OpticsKnobs, mapping["knobs"], prefix="scene.optics.knobs", source=source)
     mapping = scatter_knobs(gathered, OPTICS_KNOB_HOMES)
     settings = from_mapping(OpticsSettings, mapping, prefix="scene.optics", source=source)
+    if settings.broadband.slices > 1:
+        key = "scene.optics.broadband.slices"
+        if settings.refraction.band == "monochromatic":
+            raise ConfigError(
+                "more than 1 slice needs a band: set scene.optics.refraction.band to "
+                "'V' or 'tophat'",
+                key=key,
+                source=source,
+            )
+        if settings.psf.mode == "file":
+            raise ConfigError(
+                "slices need PSFs computed at each wavelength; psf.mode 'file' has one",
+                key=key,
+                source=source,
+            )
     check_psf_grid_memory(settings, source)
     return settings
 
@@ -231,7 +252,9 @@ def psf_grid_memory(settings: OpticsSettings) -> tuple[float, str]:
             n_stamp, n_fft = smp.n_stamp, max(smp.n_fft, smp.n_psd)
         except ValueError:  # coarser than Nyquist: refused later with its own message
             pass
-    cube = 2.0 * psf.n_nodes**2 * n_stamp**2 * 8
+    # broadband slices: the grid plus one grid per slice
+    n_grids = 1 if settings.broadband.slices == 1 else 1 + settings.broadband.slices
+    cube = 2.0 * psf.n_nodes**2 * n_stamp**2 * 8 * n_grids
     fft = 4.0 * min(psf.chunk, psf.n_nodes**2) * n_fft**2 * 16 if psf.mode != "file" else 0.0
     key = "scene.optics.psf.n_nodes" if cube >= fft else "scene.optics.psf.pupil_sampling"
     return cube + fft, key
@@ -282,6 +305,13 @@ class Optics:
     image_motion : ImageMotion
         Per-exposure image motion and dynamic distortion of stacks (``enabled`` false
         by default).
+    psf_slices : numpy.ndarray or None
+        Monochromatic grids (K, n_nodes, n_nodes, n, n) at ``slice_wavelengths``, sampled
+        and tapered like ``psf_grid``; None with one slice (``broadband.slices = 1``).
+    slice_wavelengths : numpy.ndarray or None
+        Their wavelengths [nm].
+    slice_cache_paths : tuple of Path
+        The PSF-grid cache files of the slices (empty with one slice).
     """
 
     settings: OpticsSettings
@@ -293,6 +323,9 @@ class Optics:
     cache_path: Path | None
     control_radius: float
     image_motion: ImageMotion | None = None
+    psf_slices: np.ndarray | None = None
+    slice_wavelengths: np.ndarray | None = None
+    slice_cache_paths: tuple = ()
 
     def kernel_covariance(self, x, y) -> np.ndarray:
         """TT covariance plus isotropic blur, (N, 2, 2) in mas^2, at field positions (arcsec).
@@ -452,6 +485,18 @@ def build_optics(
         halo = cached_halo(s, result, path)
         grid = taper_grid(grid, halo)
     tiptilt = TipTiltField(s.tiptilt, s.atmosphere, s.pupil)
+    slices = lam_k = None
+    slice_paths = []
+    if s.broadband.slices > 1:
+        lam_k = slice_wavelengths(s.refraction, s.broadband.slices)
+        cubes = []
+        for lam in lam_k:
+            psf_k = dataclasses.replace(s.psf, wavelength=float(lam))
+            res_k, path_k = cached_grid(psf_k, s.pupil, s.atmosphere, s.ao, cache_dir, progress)
+            slice_paths.append(path_k)
+            grid_k = res_k.grid
+            cubes.append((taper_grid(grid_k, halo) if halo is not None else grid_k).cube)
+        slices = np.stack(cubes)
     return Optics(
         settings=s,
         psf_grid=grid,
@@ -464,4 +509,7 @@ def build_optics(
         image_motion=build_image_motion(
             s.image_motion, tiptilt, layers(s.atmosphere), s.pupil.diameter
         ),
+        psf_slices=slices,
+        slice_wavelengths=lam_k,
+        slice_cache_paths=tuple(slice_paths),
     )

@@ -66,7 +66,8 @@ __all__ = [
 ]
 
 #: bump when the algorithm changes so stale cache entries are not reused
-ALGORITHM_VERSION = 2  # 2: LGS cone effect, weighted fitting directions, LGS position angle
+ALGORITHM_VERSION = 3  # 2: LGS cone effect, weighted fitting directions, LGS position angle
+# 3: servo-lag temporal frequency sign (nu = -f.v), Thomas 2 ln 2 LGS noise, P3 conventions
 
 
 @dataclass(frozen=True)
@@ -536,7 +537,9 @@ def residual_psd_model(
         sigma_nm = ao_psd.shack_hartmann_noise(ao, d, r0_wfs)
         sigma_rad = 2 * np.pi * sigma_nm * 1e-9 / lam
         noise = ao_psd.noise_psd(fxs, fys, d, sigma_rad) if ao.noise else np.zeros_like(fxs)
-        op = ao_psd.tomographic_operator(fxs, fys, ao, layers(atmosphere), r0, l0, noise)
+        op = ao_psd.tomographic_operator(
+            fxs, fys, ao, layers(atmosphere), r0, l0, noise, ao.lgs_height * airmass(atmosphere)
+        )
         if ao.cone_effect:
             cone = ConeGeometry(
                 lgs_directions=ao_psd.lgs_directions(ao),

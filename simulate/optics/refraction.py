@@ -35,6 +35,8 @@ __all__ = [
     "air_refractivity",
     "at_epoch",
     "band_refraction",
+    "band_response",
+    "photon_weights",
     "refraction",
     "saturation_vapour_pressure",
     "star_displacement",
@@ -197,8 +199,8 @@ def refraction(wavelength, settings: RefractionSettings):
     return n1 * np.tan(np.radians(settings.zenith_angle)) * _ARCSEC_PER_RAD
 
 
-def _band(settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Wavelengths [nm] and filter response on a fine grid."""
+def band_response(settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Wavelengths [nm] and relative filter response of the band on a fine grid."""
     if settings.band == "V":
         lam = np.linspace(BESSELL_V[0, 0], BESSELL_V[-1, 0], 461)
         return lam, np.interp(lam, BESSELL_V[:, 0], BESSELL_V[:, 1])
@@ -206,6 +208,32 @@ def _band(settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
         lam = np.linspace(settings.band_min, settings.band_max, 461)
         return lam, np.ones_like(lam)
     return np.array([settings.reference_wavelength]), np.ones(1)
+
+
+def photon_weights(teff, settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Detected-photon fractions of black bodies on the band's wavelength grid.
+
+    Parameters
+    ----------
+    teff : float or array
+        Effective temperature [K].
+    settings : RefractionSettings
+        The band.
+
+    Returns
+    -------
+    lam : numpy.ndarray (L,)
+        Wavelengths [nm] (:func:`band_response`).
+    weights : numpy.ndarray (N, L)
+        Fraction of each star's detected photons at each grid wavelength (rows sum to 1).
+    """
+    teff = np.atleast_1d(np.asarray(teff, float))
+    lam, response = band_response(settings)
+    x = _HC_OVER_K / (lam[None, :] * 1e-9 * teff[:, None])
+    # photons per unit wavelength of a black body: B_lambda * lambda ~ lambda^-4 / (e^x - 1)
+    with np.errstate(over="ignore"):
+        photons = response[None, :] * lam[None, :] ** -4 / np.expm1(np.minimum(x, 700.0))
+    return lam, photons / photons.sum(axis=1, keepdims=True)
 
 
 def band_refraction(teff, settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -222,14 +250,8 @@ def band_refraction(teff, settings: RefractionSettings) -> tuple[np.ndarray, np.
     mean, rms : numpy.ndarray
         [arcsec], absolute (not yet relative to the reference wavelength, no ADC).
     """
-    teff = np.atleast_1d(np.asarray(teff, float))
-    lam, response = _band(settings)
+    lam, w = photon_weights(teff, settings)
     r = refraction(lam, settings)
-    x = _HC_OVER_K / (lam[None, :] * 1e-9 * teff[:, None])
-    # photons per unit wavelength of a black body: B_lambda * lambda ~ lambda^-4 / (e^x - 1)
-    with np.errstate(over="ignore"):
-        photons = response[None, :] * lam[None, :] ** -4 / np.expm1(np.minimum(x, 700.0))
-    w = photons / photons.sum(axis=1, keepdims=True)
     mean = w @ r
     rms = np.sqrt(np.maximum(w @ r**2 - mean**2, 0.0))
     return mean, rms

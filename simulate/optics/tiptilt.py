@@ -12,6 +12,17 @@ covariance ``C = s^2 (C_tomo + C_noise + sigma_ws^2 I)``:
   elongated along the NGS-target axes (anisoplanatism).
 * NGS noise: photon and read noise of a centroid per loop frame from the H
   magnitude, reduced by the closed-loop noise gain g / (2 - g).
+* MCAO filter (optional, TIPTOP's ``[sensor_LO] filtZernikeCov``; off by default
+  because the paper's maps are reproduced without it, docs/optics.md): the
+  LGS tomography and the DMs correct every spatial frequency of the turbulence
+  except the lowest radial orders of the meta-pupil (piston, tilt, focus /
+  astigmatism: the modes the LGS cannot register, whose field derivatives are
+  the TT anisoplanatism), within the HO loop bandwidth. The tilt covariances
+  are computed from the turbulence spectrum times the rejection
+  ``1 - lpf(f) filt(f)`` of ``mastsel``'s ``zernikeCovarianceDfiltered``
+  (Sasiela 1993 radial-order filters on a meta-pupil of radius
+  ``D / 2 + h_mean tan(fov / 2)``; ``lpf = c / (f^2 + c)``,
+  ``c = 0.8 f_HO / v_mean^2``), so the NGS handle only what MCAO leaves.
 * ``sigma_ws``: residual windshake / telescope vibration of the TT loop.
 * ``s``: the scale factor (the x3 cases of the paper's simulation table).
 
@@ -25,10 +36,11 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy.special import j0, j1
+from scipy.special import j0, j1, jv
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import (
+    ARCSEC_PER_RAD,
     MAS_PER_RAD,
     REFERENCE_WAVELENGTH,
     AtmosphereSettings,
@@ -91,6 +103,15 @@ class TipTiltSettings:
         Pixels in the centroiding window.
     wfs_pixel : float
         LO WFS pixel (mas).
+    mcao_filter : bool
+        Remove from the tilt covariances what the MCAO high-order loop corrects
+        (see the module docstring); False for an NGS-only tip-tilt tomography of
+        the open-loop turbulence.
+    technical_fov : float
+        Diameter of the technical field that sets the meta-pupil (arcsec,
+        MAVIS.ini ``TechnicalFoV``).
+    ho_frame_rate : float
+        HO loop rate (Hz) of the MCAO filter's temporal rejection.
     """
 
     enabled: bool = True
@@ -105,6 +126,9 @@ class TipTiltSettings:
     read_noise: float = 0.5
     n_pixels: int = 16
     wfs_pixel: float = unit_field(25.0, "mas", "LO WFS pixel")
+    mcao_filter: bool = False
+    technical_fov: float = unit_field(120.0, "arcsec", "technical field diameter")
+    ho_frame_rate: float = unit_field(1000.0, "Hz", "HO loop rate")
 
     def __post_init__(self):
         if self.asterism == "custom" and not self.ngs:
@@ -121,6 +145,8 @@ class TipTiltSettings:
             raise ValueError("frame_rate, zeropoint and spot_fwhm must be > 0")
         if self.windshake < 0 or self.read_noise < 0 or self.n_pixels < 1:
             raise ValueError("windshake, read_noise must be >= 0 and n_pixels >= 1")
+        if self.technical_fov < 0 or not self.ho_frame_rate > 0:
+            raise ValueError("technical_fov must be >= 0 arcsec and ho_frame_rate > 0 Hz")
 
     def stars(self) -> tuple[tuple[float, float, float], ...]:
         """The asterism in use: (radius arcsec, angle deg, H mag) per NGS."""
@@ -214,9 +240,48 @@ class TiltCovariance:
         return out
 
 
+def mcao_rejection(
+    f: np.ndarray, meta_radius: float, ho_frame_rate: float, wind_speed: float
+) -> np.ndarray:
+    """Fraction of the turbulence spectrum the MCAO high-order loop leaves to the NGS.
+
+    ``1 - lpf(f) filt(f)`` (``mastsel`` ``zernikeCovarianceDfiltered``, TIPTOP
+    ``filtZernikeCov``): ``filt = 1 - [(2 J1(x))^2 + (4 J2(x))^2 + 9 (2 J3(x))^2] / x^2``,
+    ``x = 2 pi f R``, removes the piston, tilt and second radial order of the
+    meta-pupil of radius R (Sasiela 1993), the modes the LGS cannot register;
+    ``lpf = c / (f^2 + c)``, ``c = 0.8 f_HO / v^2``, is the HO loop's rejection
+    mapped to spatial frequency through the mean wind v.
+
+    Parameters
+    ----------
+    f : ndarray
+        Spatial frequency (m^-1), > 0.
+    meta_radius : float
+        Meta-pupil radius R (m).
+    ho_frame_rate : float
+        HO loop rate (Hz).
+    wind_speed : float
+        Turbulence-weighted mean wind speed (m/s).
+
+    Returns
+    -------
+    ndarray
+        In [0, 1]: 1 where the HO loop corrects nothing (low meta-pupil orders).
+    """
+    x = 2 * np.pi * np.asarray(f, float) * meta_radius
+    x = np.where(x > 1e-8, x, 1e-8)
+    low = ((2 * j1(x)) ** 2 + (4 * jv(2, x)) ** 2 + 9 * (2 * jv(3, x)) ** 2) / x**2
+    c = 0.8 * ho_frame_rate / wind_speed**2
+    lpf = c / (np.asarray(f, float) ** 2 + c)
+    return np.clip(1.0 - lpf * (1.0 - low), 0.0, 1.0)
+
+
 @functools.lru_cache(maxsize=16)
 def tilt_covariance_function(
-    atmosphere: AtmosphereSettings, pupil: PupilSettings, max_separation: float
+    atmosphere: AtmosphereSettings,
+    pupil: PupilSettings,
+    max_separation: float,
+    mcao: tuple[float, float] | None = None,
 ) -> TiltCovariance:
     """Tabulate the G-tilt covariance of the layered atmosphere.
 
@@ -228,6 +293,9 @@ def tilt_covariance_function(
         Pupil diameter and obscuration (the annular G-tilt averaging aperture).
     max_separation : float
         Largest angular separation needed (rad).
+    mcao : (float, float) or None
+        (technical field diameter arcsec, HO loop rate Hz) of the MCAO filter
+        :func:`mcao_rejection`; None for the open-loop turbulence.
     """
     lay = layers(atmosphere)
     r0 = fried_parameter(atmosphere, REFERENCE_WAVELENGTH)
@@ -239,6 +307,13 @@ def tilt_covariance_function(
     jinc_small = 2 * j1(eps * x) / (eps * x) if eps > 0 else np.zeros_like(x)
     filt = (jinc - eps**2 * jinc_small) / (1 - eps**2)
     s = (2 * np.pi) ** 2 * filt**2 * von_karman_psd(f**2, r0, atmosphere.outer_scale) * opd2
+    if mcao is not None:
+        fov, ho_rate = mcao
+        speed = np.hypot(lay.velocities[:, 0], lay.velocities[:, 1])
+        v_mean = float(np.sum(lay.weights * speed ** (5 / 3)) ** (3 / 5))
+        h_mean = float(np.sum(lay.weights * lay.heights ** (5 / 3)) ** (3 / 5))
+        meta = pupil.diameter / 2 + h_mean * np.tan(fov / 2 / ARCSEC_PER_RAD)
+        s = s * mcao_rejection(f, meta, ho_rate, v_mean)
     w = f**3 * s * np.gradient(f)
     rho_max = max(float(lay.heights.max()) * max_separation * 1.05, 1e-3)
     rho = np.linspace(0.0, rho_max, 400)
@@ -274,7 +349,8 @@ class TipTiltField:
         # tabulate to a generous, rounded separation so asterisms share the table
         needed = 2 * reach + 60.0 / 206265.0
         step = 100.0 / 206265.0
-        self._cov = tilt_covariance_function(atmosphere, pupil, step * np.ceil(needed / step))
+        mcao = (settings.technical_fov, settings.ho_frame_rate) if settings.mcao_filter else None
+        self._cov = tilt_covariance_function(atmosphere, pupil, step * np.ceil(needed / step), mcao)
         n = theta.shape[0]
         self._theta = theta
         css = np.zeros((2 * n, 2 * n))

@@ -21,9 +21,15 @@ from mavispm.core.catalogue import Catalogue, read_catalogue
 from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.frame import validate_truth
 from mavispm.core.products import write_product
 from mavispm.simulate.render.fits_output import write_frame_fits
-from mavispm.simulate.render.frame import Frame, make_renderer, render_frame
+from mavispm.simulate.render.frame import (
+    Frame,
+    RenderedStack,
+    make_renderer,
+    render_stack,
+)
 from mavispm.simulate.render.scene import SceneSettings, scene_from_mapping
 
 __all__ = [
@@ -163,14 +169,21 @@ def _select_epoch(cat: Catalogue, epoch: str):
 
 
 def write_frame(
-    frame: Frame, output, scene: SceneSettings, cat: Catalogue, seed, fits_path=None
+    frame: Frame | RenderedStack,
+    output,
+    scene: SceneSettings,
+    cat: Catalogue,
+    seed,
+    fits_path=None,
 ) -> Path:
     """Write a rendered frame as the ``frames`` product (and optionally FITS), atomically.
 
     Parameters
     ----------
-    frame : Frame
-        From :func:`~mavispm.simulate.render.frame.render_frame`.
+    frame : Frame or RenderedStack
+        From :func:`~mavispm.simulate.render.frame.render_frame` (or
+        :func:`~mavispm.simulate.render.frame.render_stack`, written without the
+        round trip through float64 electrons; the same file).
     output : path
         The HDF5 product.
     scene : SceneSettings
@@ -187,6 +200,10 @@ def write_frame(
     pathlib.Path
         ``output``.
     """
+    if isinstance(frame, RenderedStack):
+        adu, truth = frame.adu, validate_truth(frame.truth)
+    else:
+        adu, truth = frame.adu, frame.truth  # frame.adu: two full-frame passes, done once
     attrs = dict(frame.attrs)
     for key in ("distance", "ra_center", "dec_center"):
         if key in cat.attrs:
@@ -195,14 +212,14 @@ def write_frame(
     attrs["scene"] = scene_map
     if fits_path is not None:
         fits_attrs = {**attrs, "config": cat.attrs.get("config") or {}}  # OBJECT from the preset
-        write_frame_fits(fits_path, frame.adu, fits_attrs, scene_map, frame.saturated)
-    arrays = {"image": u.Quantity(frame.adu, u.adu, copy=False), "saturated": frame.saturated}
+        write_frame_fits(fits_path, adu, fits_attrs, scene_map, frame.saturated)
+    arrays = {"image": u.Quantity(adu, u.adu, copy=False), "saturated": frame.saturated}
     if scene.save_noiseless:
         arrays["noiseless"] = u.Quantity(frame.noiseless.astype(np.float32), u.electron)
     return write_product(
         output,
         FRAMES_KIND,
-        tables={"truth": frame.truth},
+        tables={"truth": truth},
         arrays=arrays,
         attrs=attrs,
         config={"scene": scene_map},
@@ -273,10 +290,10 @@ def run_stage(
         optics = build_scene_optics(settings, cache_dir, progress)
     if renderer is None:
         renderer = make_renderer(optics, settings, plan_cache_dir(optics, cache_dir))
-    frame = render_frame(
+    stack = render_stack(
         table, t, settings, optics, epoch_rng(seed, epoch), renderer=renderer, progress=progress
     )
-    return write_frame(frame, output, settings, cat, seed, fits_path)
+    return write_frame(stack, output, settings, cat, seed, fits_path)
 
 
 def _read_scene(path) -> tuple[dict, str]:

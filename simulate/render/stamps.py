@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import scipy.fft
 
 from mavispm.core.array_cache import content_key, load_arrays, save_arrays
 from mavispm.simulate.render.pixel_response import pixel_transfer
@@ -252,6 +251,14 @@ class StarRenderer:
         the PSF cube, the pixel scales and the knobs they depend on, so that other
         processes rendering the same scene (e.g. the other epochs of a workflow)
         load them instead of recomputing them. None: in memory only.
+    intrapixel_amplitude : float
+        Intra-pixel sensitivity dip (see ``pixel_response``).
+    slice_cubes : array (K, n_nodes_y, n_nodes_x, n, n), optional
+        Monochromatic grids at ``K`` wavelengths across the band, sampled like
+        ``psf_grid`` (which then only gives the node positions). Each batch of stars is
+        drawn with the broadband kernel ``sum_k w_k P_k(r - s_k)`` of its spectrum
+        (weights ``w_k``, shifts ``s_k``; see :mod:`mavispm.simulate.optics.broadband`),
+        mixed from the slice transforms at the stamp frequencies.
 
     Notes
     -----
@@ -266,6 +273,7 @@ class StarRenderer:
         params: RenderParams | None = None,
         cache_dir=None,
         intrapixel_amplitude: float = 0.0,
+        slice_cubes=None,
     ):
         self.psf_grid = psf_grid
         self.pixel_scale = float(pixel_scale)
@@ -277,6 +285,16 @@ class StarRenderer:
                 f"PSF grid cube must have shape (ny, nx, n, n) with n odd, got {cube.shape}"
             )
         self.n_nodes_y, self.n_nodes_x, n, _ = cube.shape
+        self.n_slices = 1
+        if slice_cubes is not None:
+            slices = np.asarray(slice_cubes, dtype=np.float64)
+            if slices.ndim != 5 or slices.shape[1:] != cube.shape:
+                raise ValueError(
+                    f"slice cubes must have shape (K, {', '.join(map(str, cube.shape))}), "
+                    f"got {slices.shape}"
+                )
+            self.n_slices = len(slices)
+            cube = slices
         self._cube = cube.reshape(-1, n, n)
         self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
         self._plans: dict[int, StampPlan] = {}
@@ -296,7 +314,9 @@ class StarRenderer:
                 + ([self.intrapixel_amplitude] if self.intrapixel_amplitude else []),
                 self._cube,
             )
-        self._envelope = self._cached_envelope()
+        radii, env = self._cached_envelope()
+        # a star's wing is at most the widest of its slices
+        self._envelope = radii, env.reshape(self.n_slices, -1, env.shape[-1]).max(axis=0)
 
     def _cached_envelope(self):
         """:func:`_wing_envelope` of the cube, kept in ``cache_dir`` next to the stamp plans."""
@@ -495,7 +515,17 @@ class StarRenderer:
 
     # ----------------------------------------------------------------- stamps
     def render_stamps(
-        self, m: int, x_pix, y_pix, x_field, y_field, cov, flux, floor=None, dtype=None
+        self,
+        m: int,
+        x_pix,
+        y_pix,
+        x_field,
+        y_field,
+        cov,
+        flux,
+        floor=None,
+        dtype=None,
+        spectrum=None,
     ):
         """Noise-free stamps of side ``m`` for a batch of stars.
 
@@ -515,6 +545,9 @@ class StarRenderer:
             Spectrum floor (default ``params.spectrum_floor``).
         dtype : {"float32", "float64"}, optional
             Precision (default ``params.dtype``).
+        spectrum : tuple of arrays, optional
+            ``(weights (K,), shifts (K, 2) [mas])`` of the batch's broadband kernel;
+            required (and only used) with ``slice_cubes``.
 
         Returns
         -------
@@ -545,13 +578,14 @@ class StarRenderer:
         sel = np.flatnonzero(damp > floor)
         u, v = plan.u[sel], plan.v[sel]
         node, w = self._node_weights(x_field, y_field)
+        transforms = self._mixed_transforms(plan.transforms[:, sel], u, v, spectrum)
         # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
         coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
         phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
         phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
         folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
         mix_kernel_fold(
-            np.ascontiguousarray(plan.transforms[:, sel], dtype=cplx), node,
+            np.ascontiguousarray(transforms, dtype=cplx), node,
             np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
             u.astype(real), v.astype(real), phx, phy, plan.col[sel], plan.row[sel],
             plan.target[sel], folded,
@@ -560,6 +594,24 @@ class StarRenderer:
         stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
         stamps *= np.asarray(flux, dtype=np.float64)[:, None, None].astype(stamps.dtype)
         return stamps.astype(real, copy=False), ixc - m // 2, iyc - m // 2
+
+    def _mixed_transforms(self, transforms, u, v, spectrum):
+        """Node transforms of the batch's kernel: the slices weighted and phase-shifted.
+
+        ``transforms`` (K * nodes, nsel) at frequencies ``u, v`` [cycles/mas]; one slice
+        without a spectrum is returned as is.
+        """
+        if self.n_slices == 1 and spectrum is None:
+            return transforms
+        if spectrum is None:
+            raise ValueError(f"a renderer with {self.n_slices} slices needs each batch's spectrum")
+        weights, shifts = (np.asarray(a, dtype=np.float64) for a in spectrum)
+        shifts = shifts.reshape(self.n_slices, 2)
+        if weights.shape != (self.n_slices,):
+            raise ValueError(f"spectrum weights must have {self.n_slices} entries")
+        phase = np.exp(-2j * np.pi * (np.outer(shifts[:, 0], u) + np.outer(shifts[:, 1], v)))
+        t = transforms.reshape(self.n_slices, -1, transforms.shape[-1])
+        return np.einsum("k,kns,ks->ns", weights, t, phase)
 
     def render(
         self,
@@ -573,6 +625,8 @@ class StarRenderer:
         sizes,
         noise_sigma=None,
         progress=False,
+        colour=None,
+        spectra=None,
     ):
         """Add stars to ``image`` in place (noise-free), batched by stamp size.
 
@@ -591,6 +645,11 @@ class StarRenderer:
             ``stamp_threshold * noise_sigma`` (float64 where float32 round-off would not).
         progress : bool
             Show a tqdm progress bar.
+        colour : ndarray (N,) int, optional
+            Colour bin of each star (index into ``spectra``).
+        spectra : list of tuple, optional
+            Broadband kernel ``(weights, shifts)`` of each colour bin (see
+            :meth:`render_stamps`); needed with ``slice_cubes``.
 
         Returns
         -------
@@ -615,17 +674,20 @@ class StarRenderer:
 
             bar = tqdm(total=int(todo.sum()), desc="stars", unit="star", leave=False)
         batch = self.params.batch_size
+        colour = np.zeros(len(flux), np.int64) if colour is None else np.asarray(colour, np.int64)
         jobs = []
         for m in np.unique(sizes[todo]):
-            idx = np.flatnonzero(todo & (sizes == m))
-            idx = idx[np.argsort(flux[idx], kind="stable")]
-            for a in range(0, len(idx), batch):
-                sel = idx[a : a + batch]  # similar fluxes (one floor/precision per batch),
-                # added in row order: neighbouring stamps share cached image rows
-                jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))]))
+            for b in np.unique(colour[todo & (sizes == m)]):
+                idx = np.flatnonzero(todo & (sizes == m) & (colour == b))
+                idx = idx[np.argsort(flux[idx], kind="stable")]
+                for a in range(0, len(idx), batch):
+                    sel = idx[a : a + batch]  # similar fluxes (one floor/precision per batch),
+                    # added in row order: neighbouring stamps share cached image rows
+                    jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))]))
 
         def work(job):
             m, sel = job
+            spectrum = None if spectra is None else spectra[colour[sel[0]]]
             floor, dtype = self._batch_accuracy(float(flux[sel].max()), noise_sigma)
             return self.render_stamps(
                 m,
@@ -637,6 +699,7 @@ class StarRenderer:
                 flux[sel],
                 floor=floor,
                 dtype=dtype,
+                spectrum=spectrum,
             )
 
         self.plans({m for m, _ in jobs})  # build plans once, before the threads share them
@@ -721,6 +784,8 @@ def _node_transforms_fft(cube, requests, chunk: int = 8, workers: int = 1) -> li
     every request; this is exact, not an approximation. Nodes are done a few at a
     time. Returns one (nodes, len(fy), len(fx)) complex array per request.
     """
+    import scipy.fft  # plans only (cached on disk): a warm frames process never imports it
+
     nodes = cube.shape[0]
     base = max(int(p) for p, _, _ in requests)
     outs, picks = [], []

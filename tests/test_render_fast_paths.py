@@ -1,0 +1,186 @@
+"""The per-process shortcuts of ``simulate frames`` against the library code they replace.
+
+* the halo convolution (numpy transforms) against ``scipy.signal.fftconvolve``;
+* ``next_fast_len`` against ``scipy.fft.next_fast_len(real=True)``;
+* the products' table header written without astropy's YAML machinery against
+  ``astropy.io.misc.hdf5.write_table_hdf5(serialize_meta=True)``, byte for byte, and
+  read back by astropy;
+* the frames product written from :func:`render_stack` equal to the one written from
+  the :class:`Frame` of :func:`render_frame`;
+* a frames process imports neither ``scipy.fft`` nor ``astropy.io.misc.yaml``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import astropy.units as u
+import h5py
+import numpy as np
+import pytest
+import scipy.fft
+import scipy.signal
+from astropy.io.misc.hdf5 import read_table_hdf5, write_table_hdf5
+from astropy.table import QTable, Table
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mavispm.core import products
+from mavispm.simulate.render.halo_convolution import _convolve_same, next_fast_len
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("shape, ksize", [((40, 57), 9), ((64, 64), 21), ((31, 90), 5)])
+def test_halo_convolution_equals_fftconvolve_away_from_the_rim(shape, ksize):
+    rng = np.random.default_rng(ksize)
+    field = rng.random(shape)
+    kernel = rng.random((ksize, ksize))
+    got = _convolve_same(field, kernel)
+    ref = scipy.signal.fftconvolve(field, kernel, mode="same")
+    h = ksize // 2
+    inner = (slice(h, shape[0] - h), slice(h, shape[1] - h))
+    assert got.shape == field.shape
+    np.testing.assert_allclose(got[inner], ref[inner], rtol=0, atol=1e-12 * ref.max())
+
+
+def test_next_fast_len_matches_scipy():
+    for n in range(1, 3001):
+        assert next_fast_len(n) == scipy.fft.next_fast_len(n, real=True), n
+
+
+def _astropy_header_and_data(table: QTable, tmp_path: Path):
+    """What astropy writes for the same columns (the path products.py took before)."""
+    out = Table()
+    for name in table.colnames:
+        arr, unit = products._column_values(table[name])
+        out[name] = arr
+        if unit:
+            out[name].unit = unit
+    path = tmp_path / "astropy.h5"
+    with h5py.File(path, "w") as f:
+        write_table_hdf5(out, f, path="t", serialize_meta=True)
+    with h5py.File(path) as f:
+        return f["t.__table_column_meta__"][()], f["t"][()]
+
+
+UNITS = [None, u.arcsec, u.mas / u.yr, u.electron, u.electron / u.adu, u.mag, u.K, u.mas**2,
+         u.solMass, u.km / u.s, u.pix, u.dimensionless_unscaled, u.erg / (u.s * u.cm**2)]  # fmt: skip
+DTYPES = [np.int64, np.int32, np.uint8, np.float64, np.float32, bool, "U3"]
+
+
+@given(
+    cols=st.lists(
+        st.tuples(
+            st.sampled_from(["id", "x", "x_pix", "flux", "mag", "pm_x", "yes", "null", "a1", "_k"]),
+            st.sampled_from(range(len(DTYPES))),
+            st.sampled_from(range(len(UNITS))),
+        ),
+        min_size=1,
+        max_size=6,
+        unique_by=lambda c: c[0],
+    ),
+    nrows=st.integers(0, 4),
+)
+@settings(max_examples=25, deadline=None)
+def test_table_header_equals_astropys(tmp_path_factory, cols, nrows):
+    tmp_path = tmp_path_factory.mktemp("hdr")
+    t = QTable()
+    for name, d, k in cols:
+        dtype, unit = DTYPES[d], UNITS[k]
+        if dtype == "U3":
+            t[name] = np.array(["ab", "c", "def", "g"][:nrows], dtype="U3")
+        elif unit is None or dtype is bool:
+            t[name] = np.arange(nrows).astype(dtype)
+        else:
+            t[name] = np.arange(nrows).astype(dtype) * unit
+    path = tmp_path / "ours.h5"
+    with h5py.File(path, "w") as f:
+        products._write_table(f, "t", t)
+    ref_header, ref_data = _astropy_header_and_data(t, tmp_path)
+    with h5py.File(path) as f:
+        header, data = f["t.__table_column_meta__"][()], f["t"][()]
+    assert list(header) == list(ref_header)
+    assert header.dtype == ref_header.dtype
+    assert data.dtype == ref_data.dtype
+    assert data.tobytes() == ref_data.tobytes()
+    back = read_table_hdf5(str(path), path="t")
+    for name, d, k in cols:
+        if UNITS[k] not in (None, u.dimensionless_unscaled) and DTYPES[d] not in (bool, "U3"):
+            assert back[name].unit == UNITS[k]
+
+
+def test_plain_header_left_to_astropy_when_yaml_would_quote():
+    arr = np.zeros(2)
+    assert products._simple_table_header({"yes": (arr, "")}) is None  # a YAML boolean
+    assert products._simple_table_header({"a b": (arr, "")}) is None
+    assert products._simple_table_header({"x": (arr.astype(complex), "")}) is None
+    assert products._simple_table_header({"x": (arr, "1 / s")}) is None  # starts with a digit
+    assert products._simple_table_header({"x": (arr, "mas / yr")}) == [
+        b"datatype:",
+        b"- {name: x, unit: mas / yr, datatype: float64}",
+    ]
+
+
+def test_stack_and_frame_write_the_same_product(tmp_path):
+    from render_helpers import ConstantTipTilt, RingHalo, epoch_table, make_optics
+
+    from mavispm.core.catalogue import Catalogue
+    from mavispm.core.products import read_product
+    from mavispm.simulate.render import cli
+    from mavispm.simulate.render.frame import render_frame, render_stack
+    from mavispm.simulate.render.scene import scene_from_mapping
+
+    optics = make_optics(
+        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
+        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
+    )
+    scene = scene_from_mapping({"detector": {"nx": 72, "ny": 64, "gain": 1.7}, "nexp": 4})
+    r = np.random.default_rng(3)
+    t = epoch_table(r.uniform(-0.25, 0.25, 12), r.uniform(-0.2, 0.2, 12), r.uniform(15, 23, 12))
+    cat = Catalogue(epochs={"e0": t}, attrs={})
+    args = (t, 0.0 * u.yr, scene, optics)
+    frame = render_frame(*args, cli.epoch_rng(5, "e0"))
+    stack = render_stack(*args, cli.epoch_rng(5, "e0"))
+    assert np.array_equal(frame.adu, stack.adu)  # the float64 electrons round trip is exact
+    assert np.array_equal(frame.image, stack.frame().image)
+    a = read_product(cli.write_frame(frame, tmp_path / "a.h5", scene, cat, 5), "frames")
+    b = read_product(cli.write_frame(stack, tmp_path / "b.h5", scene, cat, 5), "frames")
+    for name in ("image", "saturated"):
+        assert np.array_equal(a.arrays[name], b.arrays[name])
+    for name in a.tables["truth"].colnames:
+        assert np.array_equal(a.tables["truth"][name], b.tables["truth"][name])
+    assert a.tables["truth"].colnames == b.tables["truth"].colnames
+
+
+def test_frames_process_imports_neither_scipy_fft_nor_astropy_yaml(tmp_path):
+    """The modules of a warm ``simulate frames`` process, the halo convolution and a
+    product with a table written in a fresh interpreter."""
+    script = textwrap.dedent(
+        f"""
+        import sys
+        import numpy as np
+        import astropy.units as u
+        from astropy.table import QTable
+        import mavispm.simulate.render.cli
+        import mavispm.simulate.render.frame
+        import mavispm.simulate.optics.model
+        from mavispm.core.products import write_product
+        from mavispm.simulate.render.halo_convolution import _convolve_same
+        _convolve_same(np.ones((20, 20)), np.ones((5, 5)))
+        t = QTable({{"id": np.arange(3), "x": np.ones(3) * u.arcsec}})
+        write_product({str(tmp_path / "p.h5")!r}, "frames", tables={{"truth": t}})
+        print(sorted(m for m in ("scipy.fft", "astropy.io.misc.yaml", "astropy.coordinates")
+                     if m in sys.modules))
+        """
+    )
+    env = dict(os.environ)
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]"
