@@ -33,7 +33,18 @@ TEFF_EDGES = (0.0, 4000.0, 5000.0, 6000.0, 7500.0, 10000.0, math.inf)
 
 
 def teff_bin_label(lo: float, hi: float) -> str:
-    """Label of a temperature bin (``<4000 K``, ``4000-5000 K``, ``>=10000 K``)."""
+    """Label of a temperature bin (``<4000 K``, ``4000-5000 K``, ``>=10000 K``).
+
+    Parameters
+    ----------
+    lo, hi : float
+        Bin edges [K] (``lo <= 0``: open below; ``hi`` infinite: open above).
+
+    Returns
+    -------
+    str
+        The label.
+    """
     if lo <= 0:
         return f"<{hi:g} K"
     if math.isinf(hi):

@@ -870,7 +870,22 @@ def _sweep_number(value) -> float:
 
 
 def colour_shifts(summary: Mapping, rundir: Path, outdir: Path) -> str:
-    """Recipe: position and PM errors against colour (see :mod:`.colour_report`)."""
+    """Recipe: position and PM errors against colour (see :mod:`.colour_report`).
+
+    Parameters
+    ----------
+    summary : mapping
+        The run's ``summary.json``.
+    rundir : pathlib.Path
+        The run directory.
+    outdir : pathlib.Path
+        Where the section's CSV and PNG files go (``report/``).
+
+    Returns
+    -------
+    str
+        The Markdown section.
+    """
     from mavispm.workflows.colour_report import colour_shifts as recipe
 
     return recipe(summary, rundir, outdir)

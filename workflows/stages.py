@@ -338,7 +338,28 @@ def run_calibration(inputs, settings, params, seed, outdir: Path) -> dict:
     """Calibration mask of a scene (``[scenes.NAME.calibration]``): images the pinhole
     grid through the scene's distortion (``params["distortion"]``; rendered through the
     scene, ``params["scene"]``, when the mask's ``imaging`` is "rendered") and writes the
-    recovered distortion; the scene's frames take it as their ``calibration`` input."""
+    recovered distortion; the scene's frames take it as their ``calibration`` input.
+
+    Inputs: none used; products: ``main``.
+
+    Parameters
+    ----------
+    inputs : dict of str to Path or list of Path
+        Upstream products by input name.
+    settings : mapping
+        The stage's TOML table.
+    params : mapping
+        Node parameters (epoch, scene name, output switches).
+    seed : int or None
+        The node's seed.
+    outdir : pathlib.Path
+        Empty folder the products are written into.
+
+    Returns
+    -------
+    dict of str to Path
+        Product name to path; "main" feeds the downstream stages.
+    """
     out = _stage("calibration")(
         dict(settings),
         dict(params.get("distortion") or {}),

@@ -103,6 +103,21 @@ def epsf_shift(
     two may have different oversampling). A star fitted with ``epsf`` comes out
     ``s`` lower than with ``reference``.
 
+    Parameters
+    ----------
+    reference : ndarray
+        The reference ePSF image.
+    reference_os : int
+        Its oversampling.
+    epsf : ndarray
+        The ePSF image whose shift is measured.
+    oversampling : int
+        Its oversampling.
+    radius : float
+        Core radius of the fit [pixel].
+    iterations : int
+        Gauss-Newton iterations.
+
     Returns
     -------
     sx, sy : float
@@ -142,7 +157,22 @@ def epsf_shift(
 
 def shift_epsf(epsf: np.ndarray, oversampling: int, sx: float, sy: float) -> np.ndarray:
     """The ePSF moved by ``(-sx, -sy)`` pixels (cubic spline), renormalised: undoes a shift
-    ``(sx, sy)`` measured by :func:`epsf_shift`."""
+    ``(sx, sy)`` measured by :func:`epsf_shift`.
+
+    Parameters
+    ----------
+    epsf : ndarray
+        The ePSF image.
+    oversampling : int
+        Its oversampling.
+    sx, sy : float
+        The shift to undo [pixel].
+
+    Returns
+    -------
+    ndarray
+        The moved ePSF with the input's sum (the input itself for a zero shift).
+    """
     if sx == 0.0 and sy == 0.0:
         return epsf
     moved = ndimage.shift(epsf, (-sy * oversampling, -sx * oversampling), order=3, mode="constant")
@@ -154,7 +184,7 @@ def shift_epsf(epsf: np.ndarray, oversampling: int, sx: float, sy: float) -> np.
 class EarlierAnchor:
     """Anchors node ePSFs of a new frame to an earlier epoch's ePSF.
 
-    Attributes
+    Parameters
     ----------
     psf : VariableEPSF
         The earlier epoch's ePSF (its frame's pixels).
@@ -174,13 +204,35 @@ class EarlierAnchor:
     shifts: list = field(default_factory=list)
 
     def to_earlier(self, x: float, y: float) -> tuple[float, float]:
-        """A new-frame position [pixel] in the earlier frame (inverse of the affine map)."""
+        """A new-frame position [pixel] in the earlier frame (inverse of the affine map).
+
+        Parameters
+        ----------
+        x, y : float
+            Position in the new frame [pixel].
+
+        Returns
+        -------
+        tuple of float
+            Position in the earlier frame [pixel].
+        """
         m = np.array([[self.a[1], self.a[2]], [self.b[1], self.b[2]]])
         xe, ye = np.linalg.solve(m, [x - self.a[0], y - self.b[0]])
         return float(xe), float(ye)
 
     def to_earlier_many(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """New-frame positions [pixel] in the earlier frame (arrays)."""
+        """New-frame positions [pixel] in the earlier frame (arrays).
+
+        Parameters
+        ----------
+        x, y : ndarray
+            Positions in the new frame [pixel].
+
+        Returns
+        -------
+        tuple of ndarray
+            Positions in the earlier frame [pixel].
+        """
         m = np.array([[self.a[1], self.a[2]], [self.b[1], self.b[2]]])
         inv = np.linalg.inv(m)
         dx, dy = np.asarray(x, float) - self.a[0], np.asarray(y, float) - self.b[0]

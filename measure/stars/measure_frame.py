@@ -612,7 +612,22 @@ def earlier_anchor(
 ) -> EarlierAnchor | None:
     """The ePSF anchor of an observer-mode epoch: the earliest earlier epoch with an
     ePSF (its centre convention is the input list's), or None (``epsf_anchor =
-    "start"``, or no earlier ePSF known)."""
+    "start"``, or no earlier ePSF known).
+
+    Parameters
+    ----------
+    earlier : list of EarlierEpoch
+        The earlier epochs' measurements.
+    transforms : list of EpochTransform
+        Their affine maps to this frame, in time order of ``earlier``.
+    settings : MeasureSettings
+        ``epsf_anchor``.
+
+    Returns
+    -------
+    EarlierAnchor or None
+        The anchor.
+    """
     if settings.epsf_anchor != "earlier":
         return None
     for ep, tr in zip(sorted(earlier, key=_epoch), transforms):
@@ -623,7 +638,20 @@ def earlier_anchor(
 
 def anchor_summary(anchor: EarlierAnchor | None, pixel_scale: float) -> str:
     """JSON of the ePSF anchoring: ``"start"``, or ``"earlier"`` with the rms node shift
-    (x, y) [mas] over all node ePSFs built (quick start refinement, builds, halves)."""
+    (x, y) [mas] over all node ePSFs built (quick start refinement, builds, halves).
+
+    Parameters
+    ----------
+    anchor : EarlierAnchor or None
+        The anchor used.
+    pixel_scale : float
+        Detector pixel [arcsec].
+
+    Returns
+    -------
+    str
+        The JSON text.
+    """
     if anchor is None or not anchor.shifts:
         return json.dumps({"anchor": "start"})
     s = np.asarray(anchor.shifts)
@@ -637,7 +665,20 @@ def carried_truth_ids(earlier: list[EarlierEpoch], ids: np.ndarray) -> np.ndarra
     """Truth ids (scoring only) of carried stars: each id's ``id_true`` in the latest
     earlier epoch that has it (the id itself where the product has no ``id_true``:
     forced epochs and products written before the column; -1 for an earlier
-    detection without a truth match)."""
+    detection without a truth match).
+
+    Parameters
+    ----------
+    earlier : list of EarlierEpoch
+        The earlier epochs' measurements.
+    ids : ndarray of int
+        Ids of the carried stars.
+
+    Returns
+    -------
+    ndarray of int64
+        Truth id per star.
+    """
     lookup: dict[int, int] = {}
     for ep in sorted(earlier, key=_epoch):
         true = ep.ids if ep.ids_true is None else ep.ids_true

@@ -60,7 +60,7 @@ __all__ = [
 class BroadbandSettings:
     """Broadband PSF slicing (TOML table ``[scene.optics.broadband]``).
 
-    Attributes
+    Parameters
     ----------
     slices : int
         Monochromatic PSF slices across the band of ``[scene.optics.refraction]``
@@ -83,7 +83,7 @@ class BroadbandSettings:
 class SliceSpectrum:
     """Per-star slice weights and DAR shifts.
 
-    Attributes
+    Parameters
     ----------
     weights : numpy.ndarray (N, K)
         Photon fraction of each star in each sub-band (rows sum to 1).
@@ -138,7 +138,20 @@ def slice_groups(settings: RefractionSettings, n_slices: int) -> np.ndarray:
 
 
 def slice_wavelengths(settings: RefractionSettings, n_slices: int) -> np.ndarray:
-    """Response-weighted mean wavelength of each sub-band [nm] (where its PSF is computed)."""
+    """Response-weighted mean wavelength of each sub-band [nm] (where its PSF is computed).
+
+    Parameters
+    ----------
+    settings : RefractionSettings
+        The band (``band``, its limits) of ``[scene.optics.refraction]``.
+    n_slices : int
+        Number of sub-bands.
+
+    Returns
+    -------
+    ndarray, shape (n_slices,)
+        Wavelengths [nm].
+    """
     lam, response = band_response(settings)
     group = slice_groups(settings, n_slices)
     num = np.bincount(group, response * lam, n_slices)

@@ -73,7 +73,25 @@ def load_mask_settings(path: str | Path | None, overrides: Mapping | None = None
 
 
 def validate_settings(settings: Mapping | None, source=None) -> CalibrationMaskSettings:
-    """The :class:`CalibrationMaskSettings` of a ``[calibration]`` table (raises ConfigError)."""
+    """The :class:`CalibrationMaskSettings` of a ``[calibration]`` table.
+
+    Parameters
+    ----------
+    settings : mapping or CalibrationMaskSettings or None
+        The table (None: defaults); a settings object is returned as is.
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    CalibrationMaskSettings
+        The validated settings.
+
+    Raises
+    ------
+    ConfigError
+        Naming the first bad key.
+    """
     if isinstance(settings, CalibrationMaskSettings):
         return settings
     return from_mapping(
@@ -158,6 +176,20 @@ def write_report(paths, outdir) -> list[Path]:
 
 def hole_imager(mask: CalibrationMaskSettings, scene: Mapping | None, source=None):
     """The imager of ``mask`` (None: analytic centroid noise), rendering through ``scene``.
+
+    Parameters
+    ----------
+    mask : CalibrationMaskSettings
+        The mask (``imaging``, ``hole_magnitude``, ``seed``).
+    scene : mapping or None
+        The ``[scene]`` table the holes are rendered through.
+    source : str, optional
+        File named in error messages.
+
+    Returns
+    -------
+    callable or None
+        The rendered-hole imager; None for analytic imaging.
 
     Raises
     ------

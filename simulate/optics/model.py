@@ -149,6 +149,8 @@ class OpticsSettings:
         Plate-scale changes and telescope field distortion.
     image_motion : ImageMotionSettings
         Per-exposure image motion and dynamic distortion of stacks.
+    broadband : BroadbandSettings
+        Monochromatic PSF slices across the band.
     """
 
     atmosphere: AtmosphereSettings = field(default_factory=AtmosphereSettings)

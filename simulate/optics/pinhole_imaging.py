@@ -34,7 +34,7 @@ __all__ = ["HoleMeasurement", "measure_hole_images", "rendered_hole_imager"]
 class HoleMeasurement:
     """Measured hole images of one exposure of the mask.
 
-    Attributes
+    Parameters
     ----------
     x, y : numpy.ndarray
         Measured positions [arcsec] (NaN where the fit failed).

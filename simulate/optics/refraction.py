@@ -200,7 +200,21 @@ def refraction(wavelength, settings: RefractionSettings):
 
 
 def band_response(settings: RefractionSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Wavelengths [nm] and relative filter response of the band on a fine grid."""
+    """Wavelengths [nm] and relative filter response of the band on a fine grid.
+
+    Parameters
+    ----------
+    settings : RefractionSettings
+        ``band``: ``"V"`` (Bessell V), ``"tophat"`` (``band_min`` to ``band_max``) or
+        monochromatic (``reference_wavelength``).
+
+    Returns
+    -------
+    wavelength : ndarray
+        Wavelengths [nm] (461 samples; one for a monochromatic band).
+    response : ndarray
+        Relative response (dimensionless).
+    """
     if settings.band == "V":
         lam = np.linspace(BESSELL_V[0, 0], BESSELL_V[-1, 0], 461)
         return lam, np.interp(lam, BESSELL_V[:, 0], BESSELL_V[:, 1])

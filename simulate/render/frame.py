@@ -150,7 +150,7 @@ def check_drawable(stars, scene) -> None:
 class RenderedStack:
     """The arrays of one rendered stack, as written to the ``frames`` product.
 
-    Attributes
+    Parameters
     ----------
     adu : ndarray (ny, nx) float32
         The stacked image [adu].
@@ -190,6 +190,23 @@ def render_frame(
 
     :func:`render_stack` wrapped in a :class:`~mavispm.core.frame.Frame` (see there for
     the parameters).
+
+    Parameters
+    ----------
+    stars : QTable
+        Epoch table of the catalogue.
+    epoch : Quantity
+        Epoch [yr].
+    scene : SceneSettings
+        Exposure, detector, photometry and render knobs.
+    optics : Optics
+        The scene's optics.
+    rng : numpy.random.Generator
+        Source of the photon and read noise.
+    renderer : StarRenderer, optional
+        Reuse a renderer (cached PSF transforms) across epochs.
+    progress : bool
+        Progress bar (on a terminal only).
 
     Returns
     -------
