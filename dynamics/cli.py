@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import json
 from pathlib import Path
 
@@ -20,11 +21,12 @@ from mavispm.core.catalogue import read_catalogue
 from mavispm.core.cliargs import non_negative_int
 from mavispm.core.config import from_mapping, to_mapping
 from mavispm.core.errors import ConfigError, InputError
+from mavispm.core.knobs import gather_knobs
 from mavispm.core.products import TableSpec, read_product, validate_table, write_product
 from mavispm.dynamics.fit import compare, fit_models, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
-from mavispm.dynamics.settings import DynamicsSettings
+from mavispm.dynamics.settings import DYNAMICS_KNOB_HOMES, DynamicsSettings
 
 __all__ = [
     "DynamicsResult",
@@ -62,8 +64,10 @@ def validate_settings(settings=None, source=None) -> DynamicsSettings:
 
     Parameters
     ----------
-    settings : mapping, optional
-        The ``[dynamics]`` table (None: defaults).
+    settings : mapping or DynamicsSettings, optional
+        The ``[dynamics]`` table (None: defaults); its accuracy and speed knobs
+        (:class:`~mavispm.dynamics.settings.DynamicsKnobs`) flat or in a ``knobs``
+        table, not both for one knob. A settings object is returned as is.
     source : str, optional
         File named in error messages.
 
@@ -77,7 +81,20 @@ def validate_settings(settings=None, source=None) -> DynamicsSettings:
     ConfigError
         Naming the first bad key.
     """
-    return from_mapping(DynamicsSettings, settings or {}, prefix="dynamics", source=source)
+    if isinstance(settings, DynamicsSettings):
+        return settings
+    known = tuple(f.name for f in dataclasses.fields(DynamicsSettings))
+    mapping = gather_knobs(
+        settings, DYNAMICS_KNOB_HOMES, prefix="dynamics", source=source, known=known
+    )
+    knobs = mapping.pop("knobs", {})
+    for key in knobs:
+        if key not in DYNAMICS_KNOB_HOMES:
+            close = difflib.get_close_matches(key, list(DYNAMICS_KNOB_HOMES), n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            raise ConfigError(f"unknown knob{hint}", key=f"dynamics.knobs.{key}", source=source)
+    # the knobs are fields of DynamicsSettings (their flat home)
+    return from_mapping(DynamicsSettings, {**mapping, **knobs}, prefix="dynamics", source=source)
 
 
 def load_stars(path, settings: DynamicsSettings):

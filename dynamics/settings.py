@@ -14,6 +14,8 @@ from mavispm.dynamics.fast_stars import FastStarSettings
 from mavispm.dynamics.tracers import TRACERS
 
 __all__ = [
+    "DYNAMICS_KNOB_HOMES",
+    "DynamicsKnobs",
     "DynamicsSettings",
     "MODELS",
 ]
@@ -26,6 +28,63 @@ MODELS = {
     "imbh_dark": {"bh": True, "dark": True},
 }
 ANISOTROPY = ("constant", "osipkov-merritt", "general")
+
+
+@dataclass(frozen=True)
+class DynamicsKnobs:
+    """Accuracy and speed knobs of the dynamics stage (``[dynamics.knobs]``).
+
+    None of them changes the models, priors or data, only how accurately and how fast
+    the posteriors and evidences are computed (GalSim's GSParams pattern). They are
+    also fields of :class:`DynamicsSettings` (``settings.walkers`` is
+    ``settings.knobs.walkers``) and may be given as flat ``[dynamics]`` keys as before.
+
+    Parameters
+    ----------
+    grid_size : int
+        Output grid points in ln(R / a) of the Jeans model (>= 8).
+    projection_panels, projection_nodes : int
+        Gauss-Legendre panels and nodes per panel of the line-of-sight projection.
+    radial_points_per_efold : int
+        Radial grid of the Jeans integrals [points per unit ln r] (>= 4).
+    truncation : float
+        Outer truncation of the projection [scale radii] (>= 1e3).
+    bin_size, n_bootstrap : int
+        Stars per bin and bootstrap resamples of the binned dispersion profile.
+    walkers, max_steps, check_every : int
+        emcee walkers, step limit and steps between convergence checks.
+    tau_factor : float
+        Required emcee chain length [autocorrelation times].
+    posterior : {"emcee", "nested"}
+        Posterior from emcee, or from the nested-sampling run (no emcee).
+    nlive : int
+        dynesty live points.
+    dlogz : float
+        dynesty stopping criterion on the remaining ln Z.
+    workers : int
+        Models fitted in parallel processes (the result does not depend on it).
+    """
+
+    grid_size: int = 64
+    projection_panels: int = 16
+    projection_nodes: int = 6
+    radial_points_per_efold: int = 24
+    truncation: float = 1.0e4
+    bin_size: int = 300
+    n_bootstrap: int = 200
+    walkers: int = 32
+    max_steps: int = 20000
+    tau_factor: float = 50.0
+    check_every: int = 500
+    posterior: str = "emcee"
+    nlive: int = 250
+    dlogz: float = 0.1
+    workers: int = 1
+
+
+#: Knob -> its home before ``[dynamics.knobs]`` existed (a flat key of ``[dynamics]``).
+DYNAMICS_KNOB_HOMES = {f.name: () for f in dataclasses.fields(DynamicsKnobs)}
+_K = DynamicsKnobs
 
 
 @dataclass(frozen=True)
@@ -94,23 +153,23 @@ class DynamicsSettings:
     completeness: tuple[float, ...] | None = None
     kinematic_evidence: bool = True
     ambiguous_ln_b: float = 1.0
-    grid_size: int = 64
-    projection_panels: int = 16
-    projection_nodes: int = 6
-    radial_points_per_efold: int = 24
-    truncation: float = 1.0e4
-    bin_size: int = 300
-    n_bootstrap: int = 200
-    walkers: int = 32
-    max_steps: int = 20000
-    tau_factor: float = 50.0
-    check_every: int = 500
-    posterior: str = "emcee"
+    grid_size: int = _K.grid_size
+    projection_panels: int = _K.projection_panels
+    projection_nodes: int = _K.projection_nodes
+    radial_points_per_efold: int = _K.radial_points_per_efold
+    truncation: float = _K.truncation
+    bin_size: int = _K.bin_size
+    n_bootstrap: int = _K.n_bootstrap
+    walkers: int = _K.walkers
+    max_steps: int = _K.max_steps
+    tau_factor: float = _K.tau_factor
+    check_every: int = _K.check_every
+    posterior: str = _K.posterior
     evidence: bool = True
-    nlive: int = 250
-    dlogz: float = 0.1
+    nlive: int = _K.nlive
+    dlogz: float = _K.dlogz
     progress: bool = True
-    workers: int = 1
+    workers: int = _K.workers
     fast_stars: FastStarSettings | None = None
 
     def __post_init__(self):
@@ -206,6 +265,11 @@ class DynamicsSettings:
     def distance_sd(self, distance: float) -> float:
         """Gaussian prior width of the distance [kpc] (0: fixed)."""
         return 0.03 * distance if self.distance_error is None else float(self.distance_error)
+
+    @property
+    def knobs(self) -> DynamicsKnobs:
+        """The accuracy and speed knobs of these settings (:class:`DynamicsKnobs`)."""
+        return DynamicsKnobs(**{name: getattr(self, name) for name in DYNAMICS_KNOB_HOMES})
 
     def fast(self) -> DynamicsSettings:
         """Cheaper sampler settings for tests and quick looks (--fast)."""

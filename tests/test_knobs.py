@@ -14,6 +14,8 @@ import pytest
 from mavispm.core.config import to_mapping
 from mavispm.core.errors import ConfigError
 from mavispm.core.knobs import gather_knobs, scatter_knobs
+from mavispm.dynamics.cli import validate_settings as validate_dynamics
+from mavispm.dynamics.settings import DynamicsKnobs
 from mavispm.measure.propermotions.settings import ProperMotionKnobs
 from mavispm.measure.propermotions.settings import validate_settings as validate_pm
 from mavispm.simulate.cluster.cli import validate_settings as validate_cluster
@@ -42,6 +44,12 @@ STAGES = {
         "[knobs]\npupil_sampling = 64\nchunk = 4\n",
         "[psf]\npupil_sampling = 64\nchunk = 4\n",
     ),
+    "dynamics": (
+        validate_dynamics,
+        DynamicsKnobs,
+        '[knobs]\nnlive = 80\nposterior = "nested"\n',
+        'nlive = 80\nposterior = "nested"\n',
+    ),
     "propermotions": (
         validate_pm,
         ProperMotionKnobs,
@@ -58,7 +66,10 @@ def test_knobs_round_trip_from_toml(stage):
     provenance) read back equal."""
     validate, knobs_cls, nested, home = STAGES[stage]
     s = validate(tomllib.loads(nested))
-    expected = {"cluster": {"n_rows": 64, "n_energy": 300}}.get(
+    expected = {
+        "cluster": {"n_rows": 64, "n_energy": 300},
+        "dynamics": {"nlive": 80, "posterior": "nested"},
+    }.get(
         stage,
         {"pupil_sampling": 64, "chunk": 4}
         if stage == "optics"
@@ -102,6 +113,9 @@ def test_knobs_read_as_before():
         (validate_pm, {"knobs": {"clip_iteration": 5}}, "propermotions.knobs.clip_iteration"),
         (validate_pm, {"clip_iterationz": 5}, "propermotions.clip_iterationz"),
         (validate_pm, {"knobs": {"clip_iterations": 0}}, "propermotions.knobs"),
+        (validate_dynamics, {"knobs": {"nlivee": 80}}, "dynamics.knobs.nlivee"),
+        (validate_dynamics, {"knobs": {"nlive": 80}, "nlive": 80}, "dynamics.nlive"),
+        (validate_dynamics, {"knobs": 3}, "dynamics.knobs"),
     ],
 )
 def test_a_bad_knob_is_a_one_line_error_naming_the_key(validate, mapping, key):
@@ -144,8 +158,16 @@ def test_where_a_knob_is_written_changes_no_cache_key(tmp_path):
         QUICKSTART.replace("[propermotions]\n", "[propermotions]\nclip_iterations = 5\n")
         + "\n[cluster.resolution]\nn_rows = 64\n"
     )
-    nested = _drop(QUICKSTART, "n_nodes = 3\n", "pupil_sampling = 64\n", "epsf_iterations = 4\n")
+    nested = _drop(
+        QUICKSTART,
+        "n_nodes = 3\n",
+        "pupil_sampling = 64\n",
+        "epsf_iterations = 4\n",
+        "grid_size = 24\n",
+        "nlive = 30\n",
+    )
     nested += (
+        "\n[dynamics.knobs]\ngrid_size = 24\nnlive = 30\n"
         "\n[cluster.knobs]\nn_rows = 64\n"
         "\n[scene.optics.knobs]\nn_nodes = 3\npupil_sampling = 64\n"
         "\n[measure.knobs]\nepsf_iterations = 4\n"
@@ -168,6 +190,7 @@ def test_where_a_knob_is_written_changes_no_cache_key(tmp_path):
             {"optics", "frames", "stars", "propermotions", "dynamics"},
         ),
         ("[propermotions.knobs]\nclip_iterations = 3\n", {"propermotions", "dynamics"}),
+        ("[dynamics.knobs]\nradial_points_per_efold = 16\n", {"dynamics"}),
     ],
 )
 def test_a_knob_value_changes_its_node_and_the_nodes_downstream(tmp_path, table, changed):
@@ -194,6 +217,7 @@ def test_gather_and_scatter_are_inverse():
         ("cluster.md", ClusterKnobs, "[cluster.knobs]"),
         ("optics.md", OpticsKnobs, "[scene.optics.knobs]"),
         ("propermotions.md", ProperMotionKnobs, "[propermotions.knobs]"),
+        ("dynamics.md", DynamicsKnobs, "[dynamics.knobs]"),
     ],
 )
 def test_every_knob_is_documented_on_its_stage_page(page, knobs_cls, table):

@@ -43,6 +43,7 @@ __all__ = [
     "canonical_cluster",
     "canonical_frames",
     "canonical_optics",
+    "canonical_dynamics",
     "canonical_propermotions",
     "canonical_settings",
     "canonical_stars",
@@ -98,7 +99,7 @@ UI_KEYS = {
 
 #: Stages whose settings tables hold accuracy/speed knobs: their canonical spelling
 #: (:func:`canonical_settings`) is hashed, so where a knob is written does not matter.
-KNOB_STAGES = ("cluster", "optics", "frames", "stars", "propermotions")
+KNOB_STAGES = ("cluster", "optics", "frames", "stars", "propermotions", "dynamics")
 
 #: Files every stage's key depends on (the shared product format).
 COMMON_CODE = ("core/*.py",)
@@ -139,6 +140,8 @@ def _scatter(settings: Mapping, stage: str) -> dict:
         from mavispm.measure.stars.settings import KNOB_NAMES
 
         homes = {name: () for name in KNOB_NAMES}
+    elif stage == "dynamics":
+        from mavispm.dynamics.settings import DYNAMICS_KNOB_HOMES as homes
     else:
         from mavispm.measure.propermotions.settings import PM_KNOB_HOMES as homes
     return scatter_knobs(settings, homes)
@@ -149,7 +152,7 @@ def canonical_settings(settings: Mapping, stage: str) -> dict:
 
     ``[cluster.knobs]`` entries go to ``[cluster.resolution]``, ``[scene.optics.knobs]``
     to ``[scene.optics.psf]`` (also inside a frames node's scene table), and those of
-    ``[measure.knobs]`` and ``[propermotions.knobs]`` to flat keys: the spelling of
+    ``[measure.knobs]``, ``[propermotions.knobs]`` and ``[dynamics.knobs]`` to flat keys: the spelling of
     workflows written before the knobs tables, whose keys therefore stay the same.
 
     Parameters
@@ -252,6 +255,22 @@ def canonical_propermotions(settings: Mapping) -> dict:
         Its canonical spelling.
     """
     return canonical_settings(settings, "propermotions")
+
+
+def canonical_dynamics(settings: Mapping) -> dict:
+    """:func:`canonical_settings` of a ``[dynamics]`` table.
+
+    Parameters
+    ----------
+    settings : mapping
+        The table.
+
+    Returns
+    -------
+    dict
+        Its canonical spelling.
+    """
+    return canonical_settings(settings, "dynamics")
 
 
 def run_cluster(
