@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import difflib
 import json
 from pathlib import Path
 
@@ -26,7 +25,7 @@ from mavispm.core.products import TableSpec, read_product, validate_table, write
 from mavispm.dynamics.fit import compare, fit_models, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
-from mavispm.dynamics.settings import DYNAMICS_KNOB_HOMES, DynamicsSettings
+from mavispm.dynamics.settings import DYNAMICS_KNOB_HOMES, DynamicsKnobs, DynamicsSettings
 
 __all__ = [
     "DynamicsResult",
@@ -88,11 +87,8 @@ def validate_settings(settings=None, source=None) -> DynamicsSettings:
         settings, DYNAMICS_KNOB_HOMES, prefix="dynamics", source=source, known=known
     )
     knobs = mapping.pop("knobs", {})
-    for key in knobs:
-        if key not in DYNAMICS_KNOB_HOMES:
-            close = difflib.get_close_matches(key, list(DYNAMICS_KNOB_HOMES), n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else ""
-            raise ConfigError(f"unknown knob{hint}", key=f"dynamics.knobs.{key}", source=source)
+    # unknown knob names and wrong types are refused by the knobs object itself
+    from_mapping(DynamicsKnobs, knobs, prefix="dynamics.knobs", source=source)
     # the knobs are fields of DynamicsSettings (their flat home)
     return from_mapping(DynamicsSettings, {**mapping, **knobs}, prefix="dynamics", source=source)
 

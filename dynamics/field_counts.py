@@ -20,6 +20,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from mavispm.dynamics.star_sums import cubic_point_weights
+
 __all__ = [
     "ln_field_number",
 ]
@@ -29,19 +31,9 @@ _GL16_T, _GL16_W = np.polynomial.legendre.leggauss(16)
 
 @numba.njit(nogil=True, cache=True)
 def _cubic(values, x0, step, q):  # pragma: no cover - compiled
-    """4-point Lagrange interpolation of ``values`` on the uniform grid (clamped ends);
-    the same scheme as :func:`mavispm.dynamics.interpolation.cubic_weights`."""
-    n = values.size
-    pos = min(max((q - x0) / step, 0.0), n - 1.0)
-    j = min(max(int(np.floor(pos)), 1), n - 3)
-    s = pos - j
-    sm1, sm2, sp1 = s - 1.0, s - 2.0, s + 1.0
-    return (
-        -s * sm1 * sm2 / 6.0 * values[j - 1]
-        + sp1 * sm1 * sm2 / 2.0 * values[j]
-        - sp1 * s * sm2 / 2.0 * values[j + 1]
-        + sp1 * s * sm1 / 6.0 * values[j + 2]
-    )
+    """4-point Lagrange interpolation of ``values`` on the uniform grid (clamped ends)."""
+    j, w0, w1, w2, w3 = cubic_point_weights(q, x0, step, values.size)
+    return w0 * values[j - 1] + w1 * values[j] + w2 * values[j + 1] + w3 * values[j + 2]
 
 
 @numba.njit(nogil=True, cache=True)

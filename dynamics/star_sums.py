@@ -20,6 +20,7 @@ import numpy as np
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 
 __all__ = [
+    "cubic_point_weights",
     "star_sums",
     "star_sums_numpy",
     "stars_about",
@@ -52,6 +53,20 @@ def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
 
 
 @numba.njit(nogil=True, cache=True)
+def cubic_point_weights(q, x0, step, n):  # pragma: no cover - compiled
+    """Index ``j`` and 4-point Lagrange weights of grid points ``j-1 .. j+2`` at ``q``.
+
+    The compiled one-point form of :func:`mavispm.dynamics.interpolation.cubic_weights`
+    (same clamping at the ends of the uniform grid ``x0 + step * arange(n)``).
+    """
+    pos = min(max((q - x0) / step, 0.0), n - 1.0)
+    j = min(max(int(np.floor(pos)), 1), n - 3)
+    s = pos - j
+    sm1, sm2, sp1 = s - 1.0, s - 2.0, s + 1.0
+    return j, -s * sm1 * sm2 / 6.0, sp1 * sm1 * sm2 / 2.0, -sp1 * s * sm2 / 2.0, sp1 * s * sm1 / 6.0
+
+
+@numba.njit(nogil=True, cache=True)
 def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compiled
     """Fused :func:`star_sums_numpy` (same arguments, same clamping at the grid ends).
 
@@ -78,15 +93,7 @@ def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compile
     chi = 0.0
     lsig = 0.0
     for i in range(u.size):
-        pos = (u[i] - x0) / step
-        pos = min(max(pos, 0.0), n - 1.0)
-        j = min(max(int(np.floor(pos)), 1), n - 3)
-        s = pos - j
-        sm1, sm2, sp1 = s - 1.0, s - 2.0, s + 1.0
-        w0 = -s * sm1 * sm2 / 6.0
-        w1 = sp1 * sm1 * sm2 / 2.0
-        w2 = -sp1 * s * sm2 / 2.0
-        w3 = sp1 * s * sm1 / 6.0
+        j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
         for c in range(2):
             ln_v = (
                 w0 * ln_s2[c, j - 1]
