@@ -524,26 +524,61 @@ VALIDATION_CASES = {
     "core_collapse": {"core_collapse": True},
 }
 
+#: With an IMBH the generator's cusp is the IMBH's: these cases' IMBH catalogues are the
+#: segregated IMBH catalogues of the same seeds, run (and counted) once.
+SAME_AS_SEGREGATED = ("core_collapse",)
 
-def realistic_stars(seed, case="segregated", imbh_mass=0.0, radius=15.0, pm_error=0.015):
+
+#: An observer's NGC 3201 priors and their quoted errors (per trial the prior means are
+#: drawn about the truth with these widths, so that no prior sits on the truth): the
+#: photometric centre +- 0.5" per axis; the distance 4.74 +- 0.04 kpc (Baumgardt &
+#: Vasiliev 2021); the core radius 1.30' +- 0.05 dex (Harris 1996, 2010 edition) as a
+#: Plummer scale radius a = r_c / 0.644 (the projected half-density radius of a Plummer
+#: profile is 0.644 a), log10(121.1") = 2.083.
+OBSERVER_CENTRE_ERROR = 0.5
+OBSERVER_DISTANCE_ERROR = 0.04
+OBSERVER_LOG_SCALE_RADIUS = (float(np.log10(1.30 * 60.0 / 0.644)), 0.05)
+
+
+def observer_priors(seed, true_distance):
+    """An observer's prior means for one trial: the literature centre (offset [arcsec] of
+    the assumed centre from the true one), distance [kpc] and log10 Plummer scale radius
+    [arcsec], each drawn about the truth (or the photometric value) with its quoted error."""
+    rng = np.random.default_rng([seed, 17])
+    centre = OBSERVER_CENTRE_ERROR * rng.standard_normal(2)
+    distance = true_distance + OBSERVER_DISTANCE_ERROR * rng.standard_normal()
+    mean, sd = OBSERVER_LOG_SCALE_RADIUS
+    return centre, float(distance), float(mean + sd * rng.standard_normal())
+
+
+def realistic_stars(
+    seed, case="segregated", imbh_mass=0.0, radius=15.0, pm_error=0.015, centre=(0.0, 0.0)
+):
     """Luminous stars inside ``radius`` of an ``ngc3201-nbody`` catalogue, true motions plus
-    Gaussian errors of ``pm_error`` mas/yr per component, with positions (for the centre fit)."""
+    Gaussian errors of ``pm_error`` mas/yr per component, with positions (for the centre fit)
+    about the observer's assumed centre ``centre`` (its offset from the true centre [arcsec];
+    the field is centred there). Returns the sample and the true distance [kpc]."""
     import astropy.units as u
 
     from mavispm.dynamics.likelihood import StarSample
     from mavispm.simulate.cluster.generator import simulate_catalogue
     from mavispm.simulate.cluster.settings import ClusterSettings
 
+    # The field (square, about the true centre) must hold the offset circle; the star
+    # number scales with its area so that the surface density does not depend on the offset.
+    field = 2.0 * radius + 2.0 + 2.0 * np.ceil(np.hypot(*centre))
     s = ClusterSettings(
         preset="ngc3201-nbody",
         imbh_mass=imbh_mass,
         epochs=[0.0],
-        field_size=2.0 * radius + 2.0,
+        field_size=field,
+        n_stars=int(round(3500 * (field / (2.0 * radius + 2.0)) ** 2)),
         **VALIDATION_CASES[case],
     )
     epochs, attrs = simulate_catalogue(s, seed)
     t = next(iter(epochs.values()))
-    x, y = t["x"].to_value(u.arcsec), t["y"].to_value(u.arcsec)
+    x = t["x"].to_value(u.arcsec) - centre[0]
+    y = t["y"].to_value(u.arcsec) - centre[1]
     R = np.hypot(x, y)
     keep = np.asarray(t["luminous"], bool) & (R < radius)
     rng = np.random.default_rng([seed, 11])
@@ -568,34 +603,46 @@ def realistic_stars(seed, case="segregated", imbh_mass=0.0, radius=15.0, pm_erro
 
 def validation_settings(**knobs):
     """Dynamics settings of the validation matrix: the four models, Plummer tracer with a
-    free cusp, centre, distance and systemic motion fitted, the core-radius prior of
-    NGC 3201 from photometry (log10 of 1.30', Harris 1996, 2010 edition, +- 0.05 dex),
-    sampler knobs as given (default: emcee, 20 tau, nlive 100, dlogz 0.5)."""
+    free cusp, centre (prior sd 0.5"), distance (sd 0.04 kpc) and systemic motion fitted,
+    the scale-radius prior of the photometric core radius (``OBSERVER_LOG_SCALE_RADIUS``;
+    each trial replaces its mean by its own draw), nested-sampling posterior and
+    evidences (nlive 100, dlogz 0.5); ``knobs`` override any of these."""
     from mavispm.dynamics.settings import DynamicsSettings
 
     base = dict(
         progress=False,
+        posterior="nested",
         walkers=32,
         max_steps=4000,
         tau_factor=20.0,
         check_every=250,
         nlive=100,
         dlogz=0.5,
+        centre_error=OBSERVER_CENTRE_ERROR,
+        distance_error=OBSERVER_DISTANCE_ERROR,
         log_scale_radius_range=(1.0, 3.0),
-        log_scale_radius_prior=(1.892, 0.05),
+        log_scale_radius_prior=OBSERVER_LOG_SCALE_RADIUS,
     )
     return DynamicsSettings(**{**base, **knobs})
 
 
 def validation_trial(seed, case, imbh_mass, settings=None):
-    """Four-model comparison on one realistic cluster; the verdict numbers."""
+    """Four-model comparison on one realistic cluster from an observer's footing (prior
+    means of centre, distance and scale radius drawn by ``observer_priors``); the verdict
+    numbers."""
+    import dataclasses
     import time
 
     from mavispm.dynamics.fit import compare, fit_model, marginal_bh_samples
+    from mavispm.simulate.cluster.presets import get_preset
 
     t0 = time.process_time()
-    stars, dist = realistic_stars(seed, case, imbh_mass)
-    s = settings or validation_settings()
+    centre, dist, log_a = observer_priors(seed, get_preset("ngc3201-nbody").distance)
+    stars, true_distance = realistic_stars(seed, case, imbh_mass, centre=centre)
+    s = dataclasses.replace(
+        settings or validation_settings(),
+        log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
+    )
     fits = [fit_model(stars, s, dist, m, seed) for m in s.models]
     c = compare(fits, s.bh_mass_max, s.ambiguous_ln_b)
     bh = marginal_bh_samples(fits, seed)
@@ -605,6 +652,10 @@ def validation_trial(seed, case, imbh_mass, settings=None):
         "case": case,
         "imbh_mass": imbh_mass,
         "n_stars": int(stars.R.size),
+        "centre_offset": float(np.hypot(*centre)),
+        "distance_prior": dist,
+        "distance_true": true_distance,
+        "log_scale_radius_prior": log_a,
         "ln_b": c.ln_bayes_factor,
         "ln_b_kin": c.ln_bayes_factor_kinematic,
         "ln_b_dark": c.ln_b_dark_centre,

@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pytest
-from dynamics_helpers import VALIDATION_CASES, sbc_trial, validation_trial
+from dynamics_helpers import SAME_AS_SEGREGATED, VALIDATION_CASES, sbc_trial, validation_trial
 from scipy import stats
 
 
@@ -64,13 +64,17 @@ def test_sbc_rank_histogram_of_bh_mass_is_uniform():
 @pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(VALIDATION_CASES))
 def test_validation_matrix(case):
-    """Realistic ngc3201-nbody clusters (issue 12), 15 microarcsec/yr errors, 10 seeds: without
+    """Realistic ngc3201-nbody clusters (issue 12), 15 microarcsec/yr errors, 10 seeds, priors
+    of centre, distance and scale radius drawn about the truth with their literature errors
+    (``observer_priors``): without
     an IMBH ln B < 1 in >= 9/10; with 1500 Msun the 68% interval holds the truth in 5-9/10
     and the 95% interval in >= 9/10."""
     seeds = list(range(200, 200 + int(os.environ.get("DYN_VALIDATION_SEEDS", "10"))))
     null = _run(validation_trial, [(s, case, 0.0) for s in seeds])
     assert all(r["converged"] for r in null)
     assert sum(r["ln_b"] < 1.0 for r in null) >= 0.9 * len(seeds)
+    if case in SAME_AS_SEGREGATED:
+        return  # its IMBH catalogues are the segregated case's
     imbh = _run(validation_trial, [(s, case, 1500.0) for s in seeds])
     assert all(r["converged"] for r in imbh)
     in68 = sum(r["q16"] <= 1500.0 <= r["q84"] for r in imbh)
