@@ -41,6 +41,7 @@ import numpy as np
 from mavispm.dynamics.anisotropy import Anisotropy
 from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.interpolation import cubic_weights
+from mavispm.dynamics.jeans_kernel import log_dispersions, row_ranges
 from mavispm.dynamics.tracers import Plummer
 
 __all__ = [
@@ -162,6 +163,7 @@ class JeansProjector:
         self._k0 = operator(w_proj)  # int f
         self._k2 = operator(w_proj / cosh_t**2)  # int f R^2 / r^2
         self._kc = operator(w_cyl)
+        self._lo, self._hi = row_ranges(self._k0, self._k2, self._kc)
         self._evaluators = {}
         self._cache_key = None
         self._cache = None
@@ -217,10 +219,7 @@ class JeansProjector:
             Scale radius of the dark Plummer component in tracer scale radii
             (its moments are zero without it).
         """
-        if not isinstance(anisotropy, Anisotropy):
-            if not anisotropy < 1.0:
-                raise ValueError(f"anisotropy beta must be < 1, got {anisotropy}")
-            anisotropy = constant_anisotropy(float(anisotropy))
+        anisotropy = _checked(anisotropy, dark_radius)
         tab = self._tracer_tables(tracer)
         nu = tab["nu"]
         ln_fac = anisotropy.ln_factor(self.ln_r)
@@ -233,8 +232,6 @@ class JeansProjector:
         masses.append(None)
         ends.append(1.0)
         if dark_radius is not None:
-            if not dark_radius > 0:
-                raise ValueError(f"dark component radius must be > 0, got {dark_radius}")
             masses.append(Plummer().enclosed(self.r / dark_radius))
             ends.append(float(Plummer().enclosed(self.x_max / dark_radius)))
         beta = anisotropy.beta(self.r)
@@ -264,6 +261,70 @@ class JeansProjector:
             radial_dark=rad[:, 2] if has_dark else zero,
             tangential_dark=tan[:, 2] if has_dark else zero,
         )
+
+    def log_dispersions(self, tracer, anisotropy, dark_radius, weights):
+        """ln of the weighted model dispersions, compiled: the likelihood's hot path.
+
+        The same model as :meth:`moments` (its reference), with the components
+        weighted before the projection:
+        ``sigma^2 = w_cl S_cluster + w_bh S_bh + w_dark S_dark``
+        (:func:`mavispm.dynamics.jeans_kernel.log_dispersions`).
+
+        Parameters
+        ----------
+        tracer : profile from :mod:`mavispm.dynamics.tracers`
+            Tracer density, also the shape of the cluster's mass.
+        anisotropy : float or Anisotropy
+            Constant ``beta`` (< 1) or a radius-dependent :class:`Anisotropy`.
+        dark_radius : float or None
+            Scale radius of the dark Plummer component in tracer scale radii.
+        weights : array_like (3,)
+            ``w_cl, w_bh, w_dark``: the masses times ``G / a`` in the unit wanted
+            (``w_dark`` is ignored without a dark component).
+
+        Returns
+        -------
+        ln_s2 : ndarray (2, M)
+            ln radial and tangential dispersion squared at the output radii
+            (floored at the smallest normal double, as the likelihood does).
+        ln_sigma, ln_proj : ndarray (M,)
+            ln surface density and ln projected mass fraction (floored likewise).
+        """
+        anisotropy = _checked(anisotropy, dark_radius)
+        tab = self._tracer_tables(tracer)
+        tail_nu = anisotropy.tail(self.x_max, tracer.outer_slope) * tab["nu_end"]
+        return log_dispersions(
+            self.r,
+            self.ln_r,
+            self.step,
+            self.x_max,
+            tab["nu"],
+            tab["m"],
+            tab["m_end"],
+            tab["m_X"],
+            tail_nu,
+            float(anisotropy.beta_0),
+            float(anisotropy.beta_inf),
+            float(anisotropy.r_a),
+            -1.0 if dark_radius is None else float(dark_radius),
+            np.asarray(weights, dtype=float),
+            self._k0,
+            self._k2,
+            self._kc,
+            self._lo,
+            self._hi,
+        )
+
+
+def _checked(anisotropy, dark_radius):
+    """The anisotropy as an :class:`Anisotropy`; ValueError for beta >= 1 or b <= 0."""
+    if not isinstance(anisotropy, Anisotropy):
+        if not anisotropy < 1.0:
+            raise ValueError(f"anisotropy beta must be < 1, got {anisotropy}")
+        anisotropy = constant_anisotropy(float(anisotropy))
+    if dark_radius is not None and not dark_radius > 0:
+        raise ValueError(f"dark component radius must be > 0, got {dark_radius}")
+    return anisotropy
 
 
 def projected_dispersion(

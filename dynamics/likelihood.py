@@ -40,7 +40,7 @@ from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
-from mavispm.dynamics.star_sums import star_sums, stars_about
+from mavispm.dynamics.star_sums import star_sums, star_sums_about, stars_about
 from mavispm.dynamics.tracers import make_tracer
 
 __all__ = [
@@ -200,6 +200,7 @@ class DiscreteLikelihood:
         self._e2 = np.ascontiguousarray(np.stack([stars.e_r**2, stars.e_t**2]), dtype=float)
         if stars.x is not None:
             x, y = (np.ascontiguousarray(v, dtype=float) for v in (stars.x, stars.y))
+            self._xy = (x, y)
             R = np.maximum(np.hypot(x, y), 1e-12)
             cx, sy = x / R, y / R
             self._pm_x = stars.v_r * cx - stars.v_t * sy
@@ -285,19 +286,8 @@ class DiscreteLikelihood:
         ln_sigma, ln_proj : ndarray
             ln surface density (a = 1, unit mass) and ln projected mass fraction.
         """
-        log_m = theta[self._idx["log_mass"]]
-        ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
-        bh = self._value(theta, "bh_mass", 0.0)
-        dark = self._value(theta, "dark_mass", 0.0)
-        dist = self._value(theta, "distance", self.distance)
-        b = None
-        if "log_dark_radius" in self._idx:
-            b = 10.0 ** theta[self._idx["log_dark_radius"]] / np.exp(ln_a)
+        b, scale, (mass, bh, dark) = self._mass_model(theta)
         mom = self.projector.moments(self.tracer_of(theta), self.anisotropy_of(theta), b)
-        a_pc = np.exp(ln_a) * dist * PC_PER_ARCSEC_KPC
-        conv = (KMS_PER_MASYR_KPC * dist) ** 2
-        scale = G_PC_KMS2_MSUN / a_pc / conv
-        mass = 10.0**log_m
         radial = mass * mom.radial_cluster + bh * mom.radial_bh
         tangential = mass * mom.tangential_cluster + bh * mom.tangential_bh
         if b is not None:
@@ -310,6 +300,44 @@ class DiscreteLikelihood:
             np.maximum(s2, tiny),
             np.log(np.maximum(mom.surface_density, tiny)),
             np.log(np.maximum(mom.projected_enclosed, tiny)),
+        )
+
+    def _mass_model(self, theta):
+        """Dark radius [scale radii] (None), ``G / a`` [(mas/yr)^2 per solMass] and the
+        cluster, point and dark masses [solMass] of ``theta``."""
+        ln_a = np.log(10.0) * theta[self._idx["log_scale_radius"]]
+        dist = self._value(theta, "distance", self.distance)
+        b = None
+        if "log_dark_radius" in self._idx:
+            b = 10.0 ** theta[self._idx["log_dark_radius"]] / np.exp(ln_a)
+        a_pc = np.exp(ln_a) * dist * PC_PER_ARCSEC_KPC
+        conv = (KMS_PER_MASYR_KPC * dist) ** 2
+        masses = (
+            10.0 ** theta[self._idx["log_mass"]],
+            self._value(theta, "bh_mass", 0.0),
+            self._value(theta, "dark_mass", 0.0),
+        )
+        return b, G_PC_KMS2_MSUN / a_pc / conv, masses
+
+    def log_model_on_grid(self, theta):
+        """ln of the grid quantities of :meth:`model_on_grid` (its reference), compiled.
+
+        Parameters
+        ----------
+        theta : array_like
+            Physical parameter vector.
+
+        Returns
+        -------
+        ln_s2 : ndarray, shape (2, n)
+            ln radial and tangential model PM dispersion squared [ln (mas/yr)^2].
+        ln_sigma, ln_proj : ndarray
+            ln surface density (a = 1, unit mass) and ln projected mass fraction.
+        """
+        b, scale, masses = self._mass_model(theta)
+        weights = np.multiply(scale, masses)
+        return self.projector.log_dispersions(
+            self.tracer_of(theta), self.anisotropy_of(theta), b, weights
         )
 
     def dispersion_at(self, theta, R):
@@ -351,6 +379,34 @@ class DiscreteLikelihood:
             get(theta, "pm_x0", 0.0),
             get(theta, "pm_y0", 0.0),
             self.min_radius,
+        )
+
+    def _star_sums(self, theta, ln_a, ln_s2, ln_sig):
+        """``chi`` and the summed ln surface density of :func:`star_sums` for the stars
+        about the model centre and systemic motion of ``theta`` (one compiled pass)."""
+        x0 = self.lnX_grid[0]
+        if not self._moving:
+            return star_sums(self.lnR - ln_a, x0, self.step, ln_s2, ln_sig, self._v2, self._e2)
+        get = self._value
+        return star_sums_about(
+            self._xy[0],
+            self._xy[1],
+            self._pm_x,
+            self._pm_y,
+            self._cs[0],
+            self._cs[1],
+            self._e2[0],
+            self._e2[1],
+            float(get(theta, "x0", 0.0)),
+            float(get(theta, "y0", 0.0)),
+            float(get(theta, "pm_x0", 0.0)),
+            float(get(theta, "pm_y0", 0.0)),
+            self.min_radius,
+            float(ln_a),
+            x0,
+            self.step,
+            ln_s2,
+            ln_sig,
         )
 
     def _stars_about_numpy(self, theta):
@@ -420,10 +476,9 @@ class DiscreteLikelihood:
         offset = float(np.hypot(self._value(theta, "x0", 0.0), self._value(theta, "y0", 0.0)))
         if offset >= 0.5 * self.stars.field_radius:
             return -np.inf
-        lnX, s2, ln_sig, ln_proj = self.model_on_grid(theta)
+        ln_s2, ln_sig, ln_proj = self.log_model_on_grid(theta)
         ln_a = np.log(10.0) * log_a
-        lnR, v2, e2 = self._stars_about(theta)
-        chi, ln_sigma_stars = star_sums(lnR - ln_a, lnX[0], self.step, np.log(s2), ln_sig, v2, e2)
+        chi, ln_sigma_stars = self._star_sums(theta, ln_a, ln_s2, ln_sig)
         lnl = -0.5 * chi - self.n_stars * _LN_2PI
         if self.star_counts:
             ln_norm = self.ln_field_norm(ln_a, offset, ln_sig, ln_proj)

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from mavispm.dynamics.cusp_kernel import cusped_at_points
 from mavispm.dynamics.interpolation import cubic_weights
 
 __all__ = [
@@ -409,6 +410,8 @@ class _CuspMassGrid:
         ``4 pi x^3 nu_base(x)`` times the Gauss-Legendre weight (in ln x) at the nodes.
     inv_x2 : ndarray (P, n)
         ``1 / x^2`` at the nodes.
+    ln_inv_x2 : ndarray (P, n)
+        Its logarithm.
     nu0 : float
         Central density of the base profile.
     x_hi, m_out : float
@@ -418,6 +421,7 @@ class _CuspMassGrid:
     ln_edges: np.ndarray
     f_base: np.ndarray
     inv_x2: np.ndarray
+    ln_inv_x2: np.ndarray
     nu0: float
     x_hi: float
     m_out: float
@@ -453,6 +457,7 @@ def _cusp_mass_grid(base) -> _CuspMassGrid:
         ln_edges=edges,
         f_base=f,
         inv_x2=_inverse_square(x),
+        ln_inv_x2=np.log(_inverse_square(x)),
         nu0=float(base.density(0.0)),
         x_hi=x_hi,
         m_out=float(1.0 - base.enclosed(x_hi)),
@@ -544,8 +549,46 @@ class CuspedAtPoints(AtPoints):
         self._outer = base.enclosed(np.maximum(x, x_hi)) - base.enclosed(x_hi)
         self._base_nu = base.density(self.points)
         self._inv_x2 = _inverse_square(self.points)
+        self._ln_inv_x2 = np.log(self._inv_x2)
 
     def __call__(self, tracer):
+        """``(nu at points, m at mass points)`` of ``tracer`` (compiled; the same numerics
+        as :meth:`call_numpy`, see :mod:`mavispm.dynamics.cusp_kernel`)."""
+        grid = self.grid
+        return cusped_at_points(
+            float(tracer.gamma),
+            float(tracer.cusp_radius),
+            float(grid.ln_edges[0]),
+            grid.nu0,
+            grid.m_out,
+            grid.f_base,
+            grid.inv_x2,
+            grid.ln_inv_x2,
+            self._interp.indptr,
+            self._interp.indices,
+            self._interp.data,
+            self._below,
+            self._dln_below,
+            self._above,
+            self._outer,
+            self._base_nu,
+            self._inv_x2,
+            self._ln_inv_x2,
+        )
+
+    def call_numpy(self, tracer):
+        """Reference implementation of :meth:`__call__` (numpy, for the tests).
+
+        Parameters
+        ----------
+        tracer : Cusped
+            A profile of this family.
+
+        Returns
+        -------
+        nu, m : ndarray
+            Density at the points and enclosed mass fraction at the mass points.
+        """
         g, xc = tracer.gamma, tracer.cusp_radius
         cum, total = self.grid.cumulative(g, xc)
         m = np.exp(self._interp @ np.log(cum))

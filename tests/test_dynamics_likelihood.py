@@ -144,6 +144,76 @@ def test_fused_star_sums_match_numpy_reference(n, shift, err_scale, seed):
     np.testing.assert_allclose(fused, ref, rtol=1e-10, atol=1e-9)
 
 
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(1, 400),
+    ln_s2_shift=st.sampled_from([0.0, -300.0, -700.0, 250.0, 690.0]),
+    err_scale=st.sampled_from([0.0, 1e-60, 1e-3, 1e3, 1e80]),
+    seed=st.integers(0, 10_000),
+)
+def test_star_log_products_never_overflow(n, ln_s2_shift, err_scale, seed):
+    """ln var summed through running products equals the plain sum of logarithms, also for
+    variances far outside [1e-100, 1e100] and products that would under- or overflow."""
+    from mavispm.dynamics.star_sums import star_sums, star_sums_numpy
+
+    rng = np.random.default_rng(seed)
+    grid = np.linspace(-6.0, 2.0, 40)
+    ln_s2 = np.stack([-grid, 0.3 - grid]) + ln_s2_shift
+    ln_sig = -2.0 * np.log1p(np.exp(grid))
+    u_ = rng.uniform(-7.0, 3.0, n)
+    v2 = rng.normal(0, 0.4, (2, n)) ** 2
+    e2 = (err_scale * rng.uniform(0.5, 1.5, (2, n))) ** 2
+    fused = star_sums(u_, grid[0], grid[1] - grid[0], ln_s2, ln_sig, v2, e2)
+    ref = star_sums_numpy(u_, grid[0], grid[1] - grid[0], ln_s2, ln_sig, v2, e2)
+    if np.isfinite(ref[0]):
+        np.testing.assert_allclose(fused, ref, rtol=1e-12)
+    else:
+        assert fused[0] == ref[0]
+
+
+def test_star_sums_about_equal_moved_stars_then_numpy_sums():
+    """The one-pass moved-star sums equal the numpy star move followed by the numpy sums."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+    from mavispm.dynamics.star_sums import star_sums_numpy
+
+    _, stars = _mock_sample(n=300)
+    s = DynamicsSettings()
+    sp = parameter_space(s, 4.6, "imbh")
+    like = make_likelihood(stars, sp, s, 4.6)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        theta = sp.from_unit(rng.uniform(0.01, 0.99, len(sp)))
+        ln_s2, ln_sig, _ = like.log_model_on_grid(theta)
+        ln_a = np.log(10.0) * theta[sp.index("log_scale_radius")]
+        lnR, v2, e2 = like._stars_about_numpy(theta)
+        ref = star_sums_numpy(lnR - ln_a, like.lnX_grid[0], like.step, ln_s2, ln_sig, v2, e2)
+        np.testing.assert_allclose(like._star_sums(theta, ln_a, ln_s2, ln_sig), ref, rtol=1e-12)
+
+
+@pytest.mark.parametrize("aniso", ["constant", "osipkov-merritt", "general"])
+@pytest.mark.parametrize("tracer", ["plummer", "king62"])
+def test_compiled_grid_model_equals_numpy_model(aniso, tracer):
+    """The likelihood's compiled grid model equals the numpy one (Jeans moments weighted by
+    the masses) for every dark-centre model, at random prior draws."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    _, stars = _mock_sample(n=50)
+    s = DynamicsSettings(tracer=tracer, king_concentration=1.33, anisotropy=aniso)
+    rng = np.random.default_rng(11)
+    for model in ("none", "imbh", "dark", "imbh_dark"):
+        sp = parameter_space(s, 4.6, model)
+        like = make_likelihood(stars, sp, s, 4.6)
+        for _ in range(3):
+            theta = sp.from_unit(rng.uniform(0.01, 0.99, len(sp)))
+            _, s2, ln_sig, ln_proj = like.model_on_grid(theta)
+            got = like.log_model_on_grid(theta)
+            np.testing.assert_allclose(got[0], np.log(s2), rtol=0, atol=1e-11)
+            np.testing.assert_allclose(got[1], ln_sig, rtol=0, atol=1e-11)
+            np.testing.assert_allclose(got[2], ln_proj, rtol=0, atol=1e-11)
+
+
 def _mock_sample(n=400, seed=4):
     from dynamics_helpers import mock_pm_stars
 
