@@ -121,6 +121,16 @@ def bench_tracers(quick):
     t_nb = _time(lambda: star_sums(*args), 200)
     t_np = _time(lambda: star_sums_numpy(*args), 200)
     print(f"star sums (3,500 stars): numba {1e3 * t_nb:.3f} ms, numpy {1e3 * t_np:.3f} ms")
+    # the model on its grid: compiled (the likelihood's path) vs the numpy reference
+    settings = DynamicsSettings()
+    space = parameter_space(settings, 4.6, "imbh_dark")
+    like = make_likelihood(s, space, settings, 4.6)
+    thetas = space.from_scaled(rng.uniform(-0.5, 0.5, (n_calls, len(space))))
+    t_c = _time(lambda: [like.log_model_on_grid(v) for v in thetas], 1) / n_calls
+    t_n = _time(lambda: [like.model_on_grid(v) for v in thetas], 1) / n_calls
+    print(
+        f"grid model (imbh_dark, cusp): compiled {1e3 * t_c:.3f} ms, numpy moments {1e3 * t_n:.3f} ms"
+    )
 
 
 def _stars(n, seed=1):

@@ -145,6 +145,12 @@ class ParameterSpace:
     def __init__(self, params):
         self.params = list(params)
         self.names = [p.name for p in self.params]
+        # the unit-cube transform, vectorised (dynesty calls it once per proposal)
+        self._gauss = np.array([p.prior == "gaussian" for p in self.params], dtype=bool)
+        self._lo = np.array([p.lo for p in self.params], dtype=float)
+        self._span = np.array([p.hi - p.lo for p in self.params], dtype=float)
+        self._mean = np.array([p.mean for p in self.params], dtype=float)[self._gauss]
+        self._sd = np.array([p.sd for p in self.params], dtype=float)[self._gauss]
 
     def __len__(self):
         return len(self.params)
@@ -229,7 +235,11 @@ class ParameterSpace:
         ndarray, shape (n_params,)
             Physical vector.
         """
-        return np.array([p.from_unit(q[i]) for i, p in enumerate(self.params)])
+        q = np.asarray(q, dtype=float)
+        out = self._lo + self._span * q  # Parameter.from_unit, element by element
+        if self._mean.size:
+            out[self._gauss] = self._mean + self._sd * ndtri(q[self._gauss])
+        return out
 
     def as_dict(self, v: ArrayLike) -> dict:
         """Physical vector as {name: value}.

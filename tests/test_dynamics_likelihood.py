@@ -115,6 +115,8 @@ def test_parameter_scaling_round_trip_and_priors():
     v = np.array([3.0, 4.9])
     np.testing.assert_allclose(sp.from_scaled(sp.to_scaled(v)), v)
     np.testing.assert_allclose(sp.from_unit(np.array([0.5, 0.5])), [4.0, 4.6])
+    # the vectorised unit-cube transform: uniform quantile and the Gaussian 97.5% point
+    np.testing.assert_allclose(sp.from_unit([0.25, 0.975]), [3.0, 4.6 + 0.2 * 1.959963984540054])
     assert sp.log_prior_scaled(np.array([1.5, 0.0])) == -np.inf
     with pytest.raises(ValueError):
         Parameter("x", lo=1.0, hi=1.0)
