@@ -62,6 +62,14 @@ def _floor(v):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
+def _plummer_mass(x):  # pragma: no cover - compiled
+    """Plummer mass fraction ``x^3 (1 + x^2)^(-3/2)``, as ``t^(3/2)`` with ``t = x^2 / (1 + x^2)``
+    (a square root instead of a power: the same value to rounding)."""
+    t = x * x / (1.0 + x * x)
+    return t * np.sqrt(t)
+
+
+@numba.njit(nogil=True, cache=True)
 def _outside_in(f, h, out):  # pragma: no cover - compiled
     """``int_{r_j}^{x_max} f d ln r`` on the uniform grid (the 4th-order scheme of
     :meth:`mavispm.dynamics.jeans.JeansProjector._outside_in`), written into ``out``."""
@@ -161,16 +169,14 @@ def log_dispersions(
     dark = dark_radius > 0.0
     end = w_cl * m_end + w_bh
     if dark:
-        x = x_max / dark_radius
-        end += w_dk * (x**3 * (1.0 + x * x) ** -1.5)
+        end += w_dk * _plummer_mass(x_max / dark_radius)
     fac = np.empty(n)
     f = np.empty(n)
     for j in range(n):
         fac[j] = np.exp(ln_fac[j] - lf_end)
         mass = w_cl * m[j] + w_bh
         if dark:
-            x = r[j] / dark_radius
-            mass += w_dk * (x**3 * (1.0 + x * x) ** -1.5)
+            mass += w_dk * _plummer_mass(r[j] / dark_radius)
         f[j] = fac[j] * nu[j] / r[j] * mass
     acc = np.empty(n)
     _outside_in(f, step, acc)
