@@ -456,6 +456,41 @@ def _artificial_star_completeness(propermotions, artificial_stars, settings, fie
     return fitted, {"completeness": by_r, "completeness_mag": by_rm}
 
 
+def _prior_from_surface_density(path, settings):
+    """Settings with the scale-radius prior (and King62 concentration) fitted to the
+    surface-density profile at ``path``, and the product attributes recording it."""
+    from mavispm.dynamics.surface_density import fit_surface_density, read_surface_density
+
+    if settings.log_scale_radius_prior is not None:
+        raise ConfigError(
+            "give either log_scale_radius_prior or a surface-density profile, not both",
+            key="dynamics.log_scale_radius_prior",
+        )
+    fit = fit_surface_density(
+        *read_surface_density(path), tracer=settings.tracer, dehnen_gamma=settings.dehnen_gamma
+    )
+    lo, hi = settings.log_scale_radius_range
+    if not lo < fit.log_scale_radius < hi:
+        raise ConfigError(
+            f"the profile's log10 scale radius {fit.log_scale_radius:.3f} lies outside "
+            f"log_scale_radius_range [{lo}, {hi}]",
+            key="dynamics.log_scale_radius_range",
+        )
+    changes = {"log_scale_radius_prior": fit.prior}
+    attrs = {
+        "surface_density_profile": str(path),
+        "surface_density_log_scale_radius": fit.log_scale_radius,
+        "surface_density_log_scale_radius_err": fit.log_scale_radius_err,
+        "surface_density_chi2": fit.chi2,
+        "surface_density_dof": fit.dof,
+    }
+    if settings.tracer == "king62":
+        changes["king_concentration"] = fit.concentration
+        attrs["surface_density_concentration"] = fit.concentration
+        attrs["surface_density_concentration_err"] = fit.concentration_err
+    return dataclasses.replace(settings, **changes), attrs
+
+
 def run_stage(
     propermotions,
     settings,
@@ -468,6 +503,7 @@ def run_stage(
     epoch=None,
     pm_error: float = 0.001,
     artificial_stars=None,
+    surface_density=None,
 ):
     """Run the dynamics stage.
 
@@ -494,6 +530,10 @@ def run_stage(
         The catalogue product of the stars injected into the frames (in a simulation,
         the run's own catalogue): with ``completeness_source = "artificial_stars"`` the
         star-count term's completeness is measured from it.
+    surface_density : path, optional
+        An observed surface-density profile (``radius``, ``density``, ``density_err``):
+        the tracer law fitted to it gives the ``log_scale_radius`` prior (and the King62
+        concentration); see :mod:`mavispm.dynamics.surface_density`.
 
     Returns
     -------
@@ -504,6 +544,9 @@ def run_stage(
     requested = settings
     output = Path(output)
     completeness_tables = {}
+    profile_attrs = {}
+    if surface_density is not None:
+        settings, profile_attrs = _prior_from_surface_density(surface_density, settings)
     if from_catalogue is not None:
         stars, distance = load_catalogue_stars(from_catalogue, settings, epoch, pm_error)
         source = {"catalogue": str(from_catalogue), "pm_error": pm_error * u.mas / u.yr}
@@ -543,6 +586,7 @@ def run_stage(
     attrs = {
         **comp.as_attrs(),
         "completeness_source": requested.completeness_source,
+        **profile_attrs,
         "distance": distance * u.kpc,
         "field_radius": stars.field_radius * u.arcsec,
         "n_stars": int(stars.R.size),
@@ -654,6 +698,7 @@ def _handler(args) -> int:
         epoch=args.epoch,
         pm_error=0.001 if args.pm_error is None else args.pm_error,
         artificial_stars=args.artificial_stars,
+        surface_density=args.surface_density,
     )
     from mavispm.core.products import read_product as _read
 
@@ -716,6 +761,13 @@ def register(subparsers) -> argparse.ArgumentParser:
         metavar="CATALOGUE",
         help="catalogue of the stars injected into the frames (the run's own catalogue): "
         "the completeness of completeness_source = 'artificial_stars'",
+    )
+    p.add_argument(
+        "--surface-density",
+        default=None,
+        metavar="PROFILE",
+        help="observed surface-density profile (radius, density, density_err): the tracer "
+        "law fitted to it sets the log_scale_radius prior (and the King62 concentration)",
     )
     p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
     p.add_argument("--seed", type=non_negative_int, default=0)
