@@ -33,6 +33,7 @@ __all__ = [
     "PM_SPEC",
     "fit_dynamics",
     "load_catalogue_stars",
+    "load_sample_ids",
     "load_stars",
     "register",
     "run_stage",
@@ -93,32 +94,9 @@ def validate_settings(settings=None, source=None) -> DynamicsSettings:
     return from_mapping(DynamicsSettings, {**mapping, **knobs}, prefix="dynamics", source=source)
 
 
-def load_stars(path, settings: DynamicsSettings):
-    """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
-
-    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
-    error are dropped; stars outside the field radius are dropped. Errors become
-    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The ``propermotions`` product.
-    settings : DynamicsSettings
-        ``use_flagged``, the field radius and the error scale and floor.
-
-    Returns
-    -------
-    stars : StarSample
-        The usable stars.
-    distance : float
-        Distance [kpc].
-
-    Raises
-    ------
-    InputError
-        Missing columns or distance, negative errors, or no usable stars.
-    """
+def _usable_rows(path, settings: DynamicsSettings):
+    """The stars table of a propermotions product, its columns, the usable rows, the
+    distance [kpc] and the field radius [arcsec] (see :func:`load_stars`)."""
     prod = read_product(path, "propermotions", load_arrays=False)
     t = prod.tables.get("stars")
     if t is None:
@@ -154,6 +132,36 @@ def load_stars(path, settings: DynamicsSettings):
     ok &= cols["R"] <= field
     if ok.sum() < 2:
         raise InputError(f"only {int(ok.sum())} usable stars inside {field:.3g} arcsec", path=path)
+    return t, cols, ok, float(distance), field
+
+
+def load_stars(path, settings: DynamicsSettings):
+    """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
+
+    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
+    error are dropped; stars outside the field radius are dropped. Errors become
+    ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``propermotions`` product.
+    settings : DynamicsSettings
+        ``use_flagged``, the field radius and the error scale and floor.
+
+    Returns
+    -------
+    stars : StarSample
+        The usable stars.
+    distance : float
+        Distance [kpc].
+
+    Raises
+    ------
+    InputError
+        Missing columns or distance, negative errors, or no usable stars.
+    """
+    _, cols, ok, distance, field = _usable_rows(path, settings)
     scale, floor = settings.pm_error_scale, settings.pm_error_floor
     stars = StarSample(
         R=np.maximum(cols["R"][ok], settings.min_radius),
@@ -174,6 +182,27 @@ def load_stars(path, settings: DynamicsSettings):
                 column=name,
             )
     return stars, float(distance)
+
+
+def load_sample_ids(path, settings: DynamicsSettings) -> np.ndarray:
+    """Catalogue ids of the stars :func:`load_stars` fits (for the artificial-star test).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The ``propermotions`` product.
+    settings : DynamicsSettings
+        As for :func:`load_stars`.
+
+    Returns
+    -------
+    ndarray of int64
+        The ``id_true`` column (blind detection: -1 for a detection without a catalogue
+        star) or, without it, ``id`` (forced measurement of catalogue stars).
+    """
+    t, _, ok, _, _ = _usable_rows(path, settings)
+    column = "id_true" if "id_true" in t.colnames else "id"
+    return np.asarray(t[column], dtype=np.int64)[ok]
 
 
 def load_catalogue_stars(path, settings: DynamicsSettings, epoch=None, pm_error: float = 0.001):
@@ -381,6 +410,87 @@ def fit_dynamics(propermotions: QTable, settings=None, seed: int = 0, **kwargs) 
     return DynamicsResult(tables=prod.tables, attrs=prod.attrs)
 
 
+def _artificial_star_completeness(propermotions, artificial_stars, settings, field_radius):
+    """Settings with the completeness measured from the artificial-star catalogue, and the
+    product tables ``completeness`` (against radius) and ``completeness_mag`` (radius and
+    magnitude); see :mod:`mavispm.dynamics.completeness`."""
+    from mavispm.dynamics.completeness import (
+        completeness_by_radius,
+        completeness_by_radius_and_magnitude,
+        completeness_points,
+    )
+
+    if artificial_stars is None:
+        raise ConfigError(
+            "completeness_source = 'artificial_stars' needs the catalogue of the injected "
+            "stars (--artificial-stars CATALOGUE.h5; a workflow passes its own catalogue)",
+            key="dynamics.completeness_source",
+        )
+    cat = read_catalogue(artificial_stars)
+    t = next(iter(cat.epochs.values()))
+    keep = np.asarray(t["luminous"], bool) if "luminous" in t.colnames else np.ones(len(t), bool)
+    ids = np.asarray(t["id"], dtype=np.int64)[keep]
+    x, y = t["x"].to_value(u.arcsec)[keep], t["y"].to_value(u.arcsec)[keep]
+    mag = t["mag"].to_value(u.mag)[keep]
+    found = np.isin(ids, load_sample_ids(propermotions, settings))
+    if not np.any(found):
+        raise InputError(
+            "no fitted star is in the artificial-star catalogue (ids do not match)",
+            path=artificial_stars,
+            column="id",
+        )
+    limit = settings.completeness_mag_limit
+    if limit is None:
+        limit = float(np.max(mag[found]))
+    radius = np.hypot(x, y)
+    by_r = completeness_by_radius(radius, mag, found, field_radius, limit)
+    edges = np.concatenate(
+        [by_r["radius_lo"].to_value(u.arcsec), by_r["radius_hi"].to_value(u.arcsec)[-1:]]
+    )
+    mag_edges = np.arange(np.floor(np.min(mag[found])), np.floor(limit) + 1.5, 1.0)
+    by_rm = completeness_by_radius_and_magnitude(radius, mag, found, field_radius, mag_edges, edges)
+    r_pts, c_pts = completeness_points(by_r)
+    fitted = dataclasses.replace(
+        settings, completeness_source="table", completeness_radius=r_pts, completeness=c_pts
+    )
+    return fitted, {"completeness": by_r, "completeness_mag": by_rm}
+
+
+def _prior_from_surface_density(path, settings):
+    """Settings with the scale-radius prior (and King62 concentration) fitted to the
+    surface-density profile at ``path``, and the product attributes recording it."""
+    from mavispm.dynamics.surface_density import fit_surface_density, read_surface_density
+
+    if settings.log_scale_radius_prior is not None:
+        raise ConfigError(
+            "give either log_scale_radius_prior or a surface-density profile, not both",
+            key="dynamics.log_scale_radius_prior",
+        )
+    fit = fit_surface_density(
+        *read_surface_density(path), tracer=settings.tracer, dehnen_gamma=settings.dehnen_gamma
+    )
+    lo, hi = settings.log_scale_radius_range
+    if not lo < fit.log_scale_radius < hi:
+        raise ConfigError(
+            f"the profile's log10 scale radius {fit.log_scale_radius:.3f} lies outside "
+            f"log_scale_radius_range [{lo}, {hi}]",
+            key="dynamics.log_scale_radius_range",
+        )
+    changes = {"log_scale_radius_prior": fit.prior}
+    attrs = {
+        "surface_density_profile": str(path),
+        "surface_density_log_scale_radius": fit.log_scale_radius,
+        "surface_density_log_scale_radius_err": fit.log_scale_radius_err,
+        "surface_density_chi2": fit.chi2,
+        "surface_density_dof": fit.dof,
+    }
+    if settings.tracer == "king62":
+        changes["king_concentration"] = fit.concentration
+        attrs["surface_density_concentration"] = fit.concentration
+        attrs["surface_density_concentration_err"] = fit.concentration_err
+    return dataclasses.replace(settings, **changes), attrs
+
+
 def run_stage(
     propermotions,
     settings,
@@ -392,6 +502,8 @@ def run_stage(
     from_catalogue=None,
     epoch=None,
     pm_error: float = 0.001,
+    artificial_stars=None,
+    surface_density=None,
 ):
     """Run the dynamics stage.
 
@@ -414,6 +526,14 @@ def run_stage(
         Catalogue epoch (default: the first).
     pm_error : float
         Proper-motion error given to the catalogue's stars [mas/yr].
+    artificial_stars : path, optional
+        The catalogue product of the stars injected into the frames (in a simulation,
+        the run's own catalogue): with ``completeness_source = "artificial_stars"`` the
+        star-count term's completeness is measured from it.
+    surface_density : path, optional
+        An observed surface-density profile (``radius``, ``density``, ``density_err``):
+        the tracer law fitted to it gives the ``log_scale_radius`` prior (and the King62
+        concentration); see :mod:`mavispm.dynamics.surface_density`.
 
     Returns
     -------
@@ -421,13 +541,24 @@ def run_stage(
     """
     if not isinstance(settings, DynamicsSettings):
         settings = validate_settings(settings)
+    requested = settings
     output = Path(output)
+    completeness_tables = {}
+    profile_attrs = {}
+    if surface_density is not None:
+        settings, profile_attrs = _prior_from_surface_density(surface_density, settings)
     if from_catalogue is not None:
         stars, distance = load_catalogue_stars(from_catalogue, settings, epoch, pm_error)
         source = {"catalogue": str(from_catalogue), "pm_error": pm_error * u.mas / u.yr}
+        if settings.completeness_source == "artificial_stars":  # every star is in the sample
+            settings = dataclasses.replace(settings, completeness_source="table")
     else:
         stars, distance = load_stars(propermotions, settings)
         source = {"propermotions": str(propermotions)}
+        if settings.completeness_source == "artificial_stars":
+            settings, completeness_tables = _artificial_star_completeness(
+                propermotions, artificial_stars, settings, stars.field_radius
+            )
     if stars.R.size < MIN_FIT_STARS:
         raise InputError(
             f"only {stars.R.size} usable stars (finite, unflagged proper motions in the field); "
@@ -454,6 +585,8 @@ def run_stage(
     comp = compare(fits, settings.bh_mass_max, settings.ambiguous_ln_b)
     attrs = {
         **comp.as_attrs(),
+        "completeness_source": requested.completeness_source,
+        **profile_attrs,
         "distance": distance * u.kpc,
         "field_radius": stars.field_radius * u.arcsec,
         "n_stars": int(stars.R.size),
@@ -493,7 +626,7 @@ def run_stage(
         if fit.evidence_kinematic is not None:
             attrs[f"log_z_kinematic_{n}"] = fit.evidence_kinematic.log_z
             attrs[f"log_z_kinematic_err_{n}"] = fit.evidence_kinematic.log_z_err
-    tables = {"profile": profile, "summary": _summary_table(fits)}
+    tables = {"profile": profile, "summary": _summary_table(fits), **completeness_tables}
     for fit in fits:
         tables[f"posterior_{fit.name}"] = _posterior_table(fit)
     if bh.size:
@@ -510,7 +643,7 @@ def run_stage(
         tables["fast_stars"] = fast.table
         attrs.update(fast.attrs)
     path = write_product(
-        output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(settings), seed=seed
+        output, "dynamics", tables=tables, attrs=attrs, config=to_mapping(requested), seed=seed
     )
     if plots_dir is not None:
         from mavispm.dynamics.plots import corner_plot, profile_plot
@@ -564,6 +697,8 @@ def _handler(args) -> int:
         from_catalogue=args.from_catalogue,
         epoch=args.epoch,
         pm_error=0.001 if args.pm_error is None else args.pm_error,
+        artificial_stars=args.artificial_stars,
+        surface_density=args.surface_density,
     )
     from mavispm.core.products import read_product as _read
 
@@ -620,6 +755,20 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--plots", default=None, help="folder for PNG plots")
     p.add_argument("--truth", default=None, help="truth catalogue with the IMBH")
     p.add_argument("--truth-no-imbh", default=None, help="truth catalogue without IMBH")
+    p.add_argument(
+        "--artificial-stars",
+        default=None,
+        metavar="CATALOGUE",
+        help="catalogue of the stars injected into the frames (the run's own catalogue): "
+        "the completeness of completeness_source = 'artificial_stars'",
+    )
+    p.add_argument(
+        "--surface-density",
+        default=None,
+        metavar="PROFILE",
+        help="observed surface-density profile (radius, density, density_err): the tracer "
+        "law fitted to it sets the log_scale_radius prior (and the King62 concentration)",
+    )
     p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")

@@ -28,6 +28,8 @@ MODELS = {
     "imbh_dark": {"bh": True, "dark": True},
 }
 ANISOTROPY = ("constant", "osipkov-merritt", "general")
+#: Where the star-count term's completeness comes from.
+COMPLETENESS_SOURCES = ("table", "artificial_stars")
 
 
 @dataclass(frozen=True)
@@ -107,7 +109,11 @@ class DynamicsSettings:
     (Gaussian priors about 0; 0 fixes them). Data: ``field_radius``, ``min_radius``
     [arcsec], ``pm_error_scale``, ``pm_error_floor``, ``use_flagged``; ``star_counts``
     (the positional term), ``completeness_radius`` [arcsec] / ``completeness`` (tabulated
-    completeness of the sample vs radius), ``kinematic_evidence`` (also the evidence
+    completeness of the sample vs radius), ``completeness_source`` ("table": that table,
+    flat without one; "artificial_stars": measured from the artificial-star (truth)
+    catalogue of the run, :mod:`~mavispm.dynamics.completeness`, for the stars brighter
+    than ``completeness_mag_limit`` [mag], default the faintest fitted star),
+    ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
     ``projection_nodes``, ``radial_points_per_efold``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
@@ -151,6 +157,10 @@ class DynamicsSettings:
     star_counts: bool = True
     completeness_radius: tuple[float, ...] | None = None
     completeness: tuple[float, ...] | None = None
+    completeness_source: str = "table"
+    completeness_mag_limit: float | None = unit_field(
+        None, "mag", "faintest magnitude of the tracer population (artificial stars)"
+    )
     kinematic_evidence: bool = True
     ambiguous_ln_b: float = 1.0
     grid_size: int = _K.grid_size
@@ -218,6 +228,16 @@ class DynamicsSettings:
             raise ValueError("beta_inf_range must stay at or below 1")
         if not (0.0 <= self.gamma_range[0] and self.gamma_range[1] < 2.5):
             raise ValueError("gamma_range must lie in [0, 2.5)")
+        if self.completeness_source not in COMPLETENESS_SOURCES:
+            raise ValueError(
+                f"completeness_source must be one of {COMPLETENESS_SOURCES}, got "
+                f"{self.completeness_source!r}"
+            )
+        if self.completeness_source == "artificial_stars" and self.completeness is not None:
+            raise ValueError(
+                "completeness_source = 'artificial_stars' measures the completeness: "
+                "drop completeness_radius / completeness (or use completeness_source = 'table')"
+            )
         if (self.completeness_radius is None) != (self.completeness is None):
             raise ValueError("completeness_radius and completeness go together")
         if self.completeness is not None:

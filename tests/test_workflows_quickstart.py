@@ -49,6 +49,24 @@ def test_all_shipped_workflows_are_valid():
     assert len(detect.variants) == 15
 
 
+def test_imbh_workflows_measure_completeness_from_their_own_catalogue():
+    """The IMBH workflows' dynamics nodes get their own variant's catalogue as the
+    artificial-star test (``completeness_source = "artificial_stars"``); a workflow without
+    it gets no such input (its cache keys do not change)."""
+    from mavispm.workflows.graph import expand
+
+    for name in ("ngc3201_imbh", "imbh_detectability"):
+        nodes = expand(load_workflow(name))
+        dyn = [n for n in nodes.values() if n.stage == "dynamics"]
+        assert dyn
+        for node in dyn:
+            own = node.id.split("/dynamics/")[0] + "/cluster"
+            assert node.inputs["artificial_stars"] == own, node.id
+            assert node.inputs["propermotions"].startswith(node.id.split("/dynamics/")[0])
+    quick = expand(load_workflow("quickstart"))
+    assert all("artificial_stars" not in n.inputs for n in quick.values())
+
+
 def test_quickstart_end_to_end(tmp_path):
     wf = load_workflow("quickstart", overrides=FAST)  # found by name among the shipped files
     result = run_workflow(wf, workdir=tmp_path, progress=False)

@@ -340,6 +340,10 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
         out.append(pm)
         if v.dynamics is None:
             continue
+        refs = dict(truths)
+        if v.dynamics.get("completeness_source") == "artificial_stars":
+            # in a simulation the variant's own catalogue is the artificial-star test
+            refs["artificial_stars"] = catalogue_ref(v)
         out.append(
             make(
                 "dynamics",
@@ -349,9 +353,9 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
                 derive_seed(v.seed, "dynamics", scene.name),
                 inputs={
                     "propermotions": pm.id,
-                    **{k: ref for k, (kind, ref) in truths.items() if kind == "node"},
+                    **{k: ref for k, (kind, ref) in refs.items() if kind == "node"},
                 },
-                external={k: ref for k, (kind, ref) in truths.items() if kind == "file"},
+                external={k: ref for k, (kind, ref) in refs.items() if kind == "file"},
                 scene=scene.name,
             )
         )

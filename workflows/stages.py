@@ -552,7 +552,8 @@ def run_dynamics(
 ) -> dict:
     """Dynamical fit and IMBH model comparison (plots in ``plots/``).
 
-    Inputs: ``propermotions``, optional ``truth``, ``truth_no_imbh``; products: ``main`` and ``plot_<name>`` per PNG.
+    Inputs: ``propermotions``, optional ``truth``, ``truth_no_imbh``, ``artificial_stars``
+    (the variant's own catalogue, with ``completeness_source = "artificial_stars"``); products: ``main`` and ``plot_<name>`` per PNG.
 
     Parameters
     ----------
@@ -581,6 +582,7 @@ def run_dynamics(
         plots_dir=plots,
         truth=inputs.get("truth"),
         truth_no_imbh=inputs.get("truth_no_imbh"),
+        artificial_stars=inputs.get("artificial_stars"),
     )
     products = {"main": out}
     if plots is not None and plots.is_dir():
