@@ -173,6 +173,14 @@ def test_star_log_products_never_overflow(n, ln_s2_shift, err_scale, seed):
         assert fused[0] == ref[0]
 
 
+def test_star_sums_refuse_grids_too_short_for_cubic_weights():
+    from mavispm.dynamics.star_sums import star_sums
+
+    grid = np.linspace(0.0, 1.0, 3)
+    with pytest.raises(ValueError, match="n >= 4"):
+        star_sums(np.zeros(2), 0.0, 0.5, np.zeros((2, 3)), grid, np.ones((2, 2)), np.ones((2, 2)))
+
+
 def test_star_sums_about_equal_moved_stars_then_numpy_sums():
     """The one-pass moved-star sums equal the numpy star move followed by the numpy sums."""
     from mavispm.dynamics.fit import make_likelihood, parameter_space
