@@ -161,7 +161,14 @@ def load_stars(path, settings: DynamicsSettings):
     InputError
         Missing columns or distance, negative errors, or no usable stars.
     """
-    _, cols, ok, distance, field = _usable_rows(path, settings)
+    stars, distance, _ = _load_propermotions(path, settings)
+    return stars, distance
+
+
+def _load_propermotions(path, settings: DynamicsSettings):
+    """:func:`load_stars` plus the catalogue ids of its stars (:func:`load_sample_ids`),
+    from one read of the product."""
+    t, cols, ok, distance, field = _usable_rows(path, settings)
     scale, floor = settings.pm_error_scale, settings.pm_error_floor
     stars = StarSample(
         R=np.maximum(cols["R"][ok], settings.min_radius),
@@ -181,7 +188,7 @@ def load_stars(path, settings: DynamicsSettings):
                 path=path,
                 column=name,
             )
-    return stars, float(distance)
+    return stars, float(distance), _sample_ids(t, ok)
 
 
 def load_sample_ids(path, settings: DynamicsSettings) -> np.ndarray:
@@ -201,6 +208,11 @@ def load_sample_ids(path, settings: DynamicsSettings) -> np.ndarray:
         star) or, without it, ``id`` (forced measurement of catalogue stars).
     """
     t, _, ok, _, _ = _usable_rows(path, settings)
+    return _sample_ids(t, ok)
+
+
+def _sample_ids(t, ok) -> np.ndarray:
+    """``id_true`` (else ``id``) of the usable rows ``ok`` of a propermotions table."""
     column = "id_true" if "id_true" in t.colnames else "id"
     return np.asarray(t[column], dtype=np.int64)[ok]
 
@@ -410,7 +422,7 @@ def fit_dynamics(propermotions: QTable, settings=None, seed: int = 0, **kwargs) 
     return DynamicsResult(tables=prod.tables, attrs=prod.attrs)
 
 
-def _artificial_star_completeness(propermotions, artificial_stars, settings, field_radius):
+def _artificial_star_completeness(sample_ids, artificial_stars, settings, field_radius):
     """Settings with the completeness measured from the artificial-star catalogue, and the
     product tables ``completeness`` (against radius) and ``completeness_mag`` (radius and
     magnitude); see :mod:`mavispm.dynamics.completeness`."""
@@ -432,7 +444,7 @@ def _artificial_star_completeness(propermotions, artificial_stars, settings, fie
     ids = np.asarray(t["id"], dtype=np.int64)[keep]
     x, y = t["x"].to_value(u.arcsec)[keep], t["y"].to_value(u.arcsec)[keep]
     mag = t["mag"].to_value(u.mag)[keep]
-    found = np.isin(ids, load_sample_ids(propermotions, settings))
+    found = np.isin(ids, sample_ids)
     if not np.any(found):
         raise InputError(
             "no fitted star is in the artificial-star catalogue (ids do not match)",
@@ -553,11 +565,11 @@ def run_stage(
         if settings.completeness_source == "artificial_stars":  # every star is in the sample
             settings = dataclasses.replace(settings, completeness_source="table")
     else:
-        stars, distance = load_stars(propermotions, settings)
+        stars, distance, sample_ids = _load_propermotions(propermotions, settings)
         source = {"propermotions": str(propermotions)}
         if settings.completeness_source == "artificial_stars":
             settings, completeness_tables = _artificial_star_completeness(
-                propermotions, artificial_stars, settings, stars.field_radius
+                sample_ids, artificial_stars, settings, stars.field_radius
             )
     if stars.R.size < MIN_FIT_STARS:
         raise InputError(

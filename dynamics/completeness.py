@@ -22,7 +22,7 @@ from __future__ import annotations
 import astropy.units as u
 import numpy as np
 from astropy.stats import binom_conf_interval
-from astropy.table import QTable
+from astropy.table import QTable, vstack
 
 from mavispm.core.errors import InputError
 
@@ -199,8 +199,6 @@ def completeness_by_radius_and_magnitude(
         t["mag_lo"] = np.full(len(t), lo) * u.mag
         t["mag_hi"] = np.full(len(t), hi) * u.mag
         rows.append(t)
-    from astropy.table import vstack
-
     out = vstack(rows)
     return out[["mag_lo", "mag_hi", *[c for c in out.colnames if not c.startswith("mag_")]]]
 
