@@ -645,30 +645,10 @@ def build_field_epsf(
             f"unknown PSF variation '{options.variation}'; expected constant, grid or polynomial"
         )
     shape = image.shape
-    # flux SNR of a star in a ~ 10-pixel footprint over the background
-    min_flux = options.min_snr**2 / 2 * (1 + np.sqrt(1 + 4 * 10 * noise_floor / options.min_snr**2))
-    ratio = options.isolation_ratio if neighbour_model is None else options.neighbour_ratio
-    chosen = select_psf_stars(
-        x, y, flux, shape, bad, options.size, options.isolation, ratio, min_flux, neighbour_flux
+    members, gx, gy, nodes, n_chosen = choose_node_stars(
+        image, x, y, flux, bad, noise_floor, options, neighbour_model is not None, neighbour_flux
     )
-    if options.max_gradient > 0 and len(chosen):
-        flat = background_gradient(image, x[chosen], y[chosen], options.size)
-        chosen = chosen[flat <= options.max_gradient]
-    if len(chosen) < 3:
-        chosen = select_psf_stars(
-            x, y, flux, shape, bad, options.size, options.isolation / 2, 1.0, min_flux / 10
-        )
-    if len(chosen) < 1:
-        raise InputError(
-            "no usable PSF stars (bright, unsaturated, isolated, inside the frame) found"
-        )
-    if options.variation == "constant":
-        gx, gy = np.array([(shape[1] - 1) / 2.0]), np.array([(shape[0] - 1) / 2.0])
-    else:
-        gx, gy = node_positions(shape, options.grid)
-    nodes = np.array([(xi, yi) for yi in gy for xi in gx])
-    members = node_psf_stars(x, y, chosen, nodes, options.stars_per_node)
-    used_per_node = min(len(chosen) / len(nodes), float(options.stars_per_node))
+    used_per_node = min(n_chosen / len(nodes), float(options.stars_per_node))
     oversampling = resolve_oversampling(options.oversampling, used_per_node)
     options = replace(options, oversampling=oversampling)
     if half is not None:
@@ -698,6 +678,73 @@ def build_field_epsf(
         polynomial_epsf(epsfs, nodes[:, 0], nodes[:, 1], options.poly_order, shape, oversampling),
         used,
     )
+
+
+def choose_node_stars(
+    image: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    bad: np.ndarray,
+    noise_floor: float,
+    options: EPSFOptions,
+    neighbours_subtracted: bool = False,
+    neighbour_flux: np.ndarray | None = None,
+) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray, int]:
+    """The PSF stars of every ePSF node (the selection of :func:`build_field_epsf`).
+
+    Parameters
+    ----------
+    image : ndarray
+        Sky-subtracted frame [electron].
+    x, y, flux : ndarray
+        All known stars [pixel, pixel, electron].
+    bad : ndarray of bool
+        Unusable pixels.
+    noise_floor : float
+        Background variance per pixel [electron^2].
+    options : EPSFOptions
+    neighbours_subtracted : bool
+        Whether the neighbours were subtracted (relaxed isolation ratio).
+    neighbour_flux : ndarray, optional
+        Flux estimates of the stars as neighbours in the isolation test.
+
+    Returns
+    -------
+    members : list of ndarray of int
+        PSF stars of each node (nearest ``stars_per_node``).
+    gx, gy : ndarray
+        Node columns and rows [pixel].
+    nodes : ndarray (K, 2)
+        Node positions [pixel], row-major.
+    n_chosen : int
+        Usable PSF stars before the per-node cap.
+    """
+    shape = image.shape
+    # flux SNR of a star in a ~ 10-pixel footprint over the background
+    min_flux = options.min_snr**2 / 2 * (1 + np.sqrt(1 + 4 * 10 * noise_floor / options.min_snr**2))
+    ratio = options.neighbour_ratio if neighbours_subtracted else options.isolation_ratio
+    chosen = select_psf_stars(
+        x, y, flux, shape, bad, options.size, options.isolation, ratio, min_flux, neighbour_flux
+    )
+    if options.max_gradient > 0 and len(chosen):
+        flat = background_gradient(image, x[chosen], y[chosen], options.size)
+        chosen = chosen[flat <= options.max_gradient]
+    if len(chosen) < 3:
+        chosen = select_psf_stars(
+            x, y, flux, shape, bad, options.size, options.isolation / 2, 1.0, min_flux / 10
+        )
+    if len(chosen) < 1:
+        raise InputError(
+            "no usable PSF stars (bright, unsaturated, isolated, inside the frame) found"
+        )
+    if options.variation == "constant":
+        gx, gy = np.array([(shape[1] - 1) / 2.0]), np.array([(shape[0] - 1) / 2.0])
+    else:
+        gx, gy = node_positions(shape, options.grid)
+    nodes = np.array([(xi, yi) for yi in gy for xi in gx])
+    members = node_psf_stars(x, y, chosen, nodes, options.stars_per_node)
+    return members, gx, gy, nodes, len(chosen)
 
 
 def node_psf_stars(

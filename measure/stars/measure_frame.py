@@ -39,7 +39,7 @@ from mavispm.measure.stars.batched_fit import (
 )
 from mavispm.measure.stars.crlb import crlb
 from mavispm.measure.stars.detection import completeness, detect_sources, detection_scores
-from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf
+from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf, choose_node_stars
 from mavispm.measure.stars.epsf_anchor import EarlierAnchor
 from mavispm.measure.stars.error_model import (
     ErrorModel,
@@ -48,6 +48,7 @@ from mavispm.measure.stars.error_model import (
 )
 from mavispm.measure.stars.measured_table import MEASURED_SPEC
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
+from mavispm.measure.stars.psf_reconstruction import build_psfr_epsf, read_prior
 from mavispm.measure.stars.settings import MeasureSettings
 from mavispm.measure.stars.start_list import EarlierEpoch, start_from_earlier
 from mavispm.measure.stars.truth_match import match_to_truth
@@ -342,11 +343,14 @@ class FramePSF:
     halves : tuple of VariableEPSF or None
         ePSFs from the two halves of every node's PSF stars (None when not asked
         for, or with fewer than :data:`MIN_STARS_SPLIT` PSF stars per node).
+    psfr_kernels : ndarray (K, 3) or None
+        PSF-R model: the fitted correction kernels ``(cxx, cyy, cxy)`` [mas^2] per node.
     """
 
     psf: VariableEPSF
     n_psf_stars: int
     halves: tuple[VariableEPSF, VariableEPSF] | None = None
+    psfr_kernels: np.ndarray | None = None
 
 
 #: PSF stars per node needed to build the two half-set ePSFs of the error model.
@@ -384,6 +388,8 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     # as neighbours in the isolation test: not below the flux over the global sky
     # (a faint star's local background is raised by the bright candidate next to it)
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
+    if settings.psf_model == "psfr":
+        return build_psfr(frame, x0, y0, settings, flux, upper)
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
@@ -410,6 +416,102 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
         except InputError:  # a half too poor for an ePSF: chi^2 terms only
             halves = None
     return FramePSF(psf, len(used), halves)
+
+
+#: Oversampling of the PSF-R model ePSF with ``oversampling = "auto"``: the model is
+#: noise-free, so the finer sampling costs nothing in accuracy.
+PSFR_OVERSAMPLING = 4
+
+
+def build_psfr(
+    frame: Frame, x0, y0, settings: MeasureSettings, flux: np.ndarray, upper: np.ndarray
+) -> FramePSF:
+    """The PSF-R model (prior x fitted kernels) of the frame (``psf_model = "psfr"``).
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    x0, y0 : ndarray
+        Star positions [pixel] from which the PSF stars are chosen.
+    settings : MeasureSettings
+        The stage settings (``psf_prior``, ``psfr_width_error``, the PSF-star knobs).
+    flux, upper : ndarray
+        Box fluxes over the local / global sky [electron] (PSF-star selection).
+
+    Returns
+    -------
+    FramePSF
+        The model ePSF and the PSF stars used; with ``error_model = "epsf"`` the two
+        models whose kernels were fitted to each half of every node's PSF stars.
+    """
+    if not settings.psf_prior:
+        raise InputError("psf_model = 'psfr' needs psf_prior (a psfgrid product)", path=frame.path)
+    opts = epsf_options(settings)
+    data = frame.image - frame.sky
+    noise = frame.sky + frame.read_noise_var
+    ny, nx = frame.shape
+    ax, ay = frame.to_arcsec(np.array([0.0, nx - 1.0]), np.array([0.0, ny - 1.0]))
+    prior = read_prior(
+        settings.psf_prior, (ax.min(), ax.max()), (ay.min(), ay.max()), settings.psfr_width_error
+    )
+    members, gx, gy, _, _ = choose_node_stars(
+        data, x0, y0, flux, frame.bad, noise, opts, False, upper
+    )
+    os_ = PSFR_OVERSAMPLING if settings.oversampling == "auto" else int(settings.oversampling)
+    fit_opt = FitOptions(
+        radius=settings.stamp_radius,
+        iterations=4,
+        max_shift=1.0,
+        min_snr=0.0,
+        sky_gradient=settings.sky_gradient,
+    )
+
+    def fit_positions(psf, idx):
+        fit = fit_stars(
+            data,
+            psf,
+            x0[idx],
+            y0[idx],
+            read_noise_var=noise,
+            sky0=0.0,
+            flux0=flux[idx],
+            bad=frame.bad,
+            options=fit_opt,
+            return_model=False,
+            uncertainties=False,
+        )
+        ok = (fit.flag & FLAG_FAILED) == 0
+        return np.where(ok, fit.x, x0[idx]), np.where(ok, fit.y, y0[idx])
+
+    common = dict(
+        prior=prior,
+        image=data,
+        fit_positions=fit_positions,
+        x_all=x0,
+        y_all=y0,
+        correction_x=gx,
+        correction_y=gy,
+        to_arcsec=frame.to_arcsec,
+        to_pixel=frame.to_pixel,
+        bad=frame.bad,
+        noise_floor=noise,
+        detector_scale=frame.pixel_scale * 1000.0,
+        size=opts.size,
+        oversampling=os_,
+        radius=settings.stamp_radius,
+    )
+    psf, kernels = build_psfr_epsf(members=members, **common)
+    used = np.unique(np.concatenate(members))
+    halves = None
+    if settings.error_model == "epsf" and min(len(m) for m in members) >= MIN_STARS_SPLIT:
+        halves = tuple(
+            build_psfr_epsf(members=[m[h::2] for m in members], rounds=1, start=kernels, **common)[
+                0
+            ]
+            for h in (0, 1)
+        )
+    return FramePSF(psf, len(used), halves, kernels)
 
 
 def starting_positions(frame: Frame, settings: MeasureSettings, rng: np.random.Generator):
@@ -524,7 +626,8 @@ def error_terms(
     col = np.clip(np.nan_to_num(fit.x) * grid // nx, 0, grid - 1)
     row = np.clip(np.nan_to_num(fit.y) * grid // ny, 0, grid - 1)
     cells = (row * grid + col).astype(np.intp)
-    return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells)
+    relative = frame_psf.psfr_kernels is not None  # PSF-R model: chi^2 against its peers
+    return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=relative)
 
 
 def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):

@@ -204,6 +204,18 @@ class MeasureSettings:
     detection_model_error : float
         Fractional ePSF model error of the "psf" detector: a candidate must be
         significant against this fraction of its neighbours' model light too.
+    psf_model : {"epsf", "psfr"}
+        "epsf": the empirical ePSF built from the frame's PSF stars (``epsf_builder``);
+        "psfr": the AO PSF-reconstruction prior ``psf_prior`` (a ``psfgrid`` product,
+        width degraded by ``psfr_width_error``) convolved with a Gaussian kernel fitted
+        per ePSF node to the frame's PSF stars
+        (:mod:`mavispm.measure.stars.psf_reconstruction`).
+    psf_prior : str
+        The ``psfgrid`` product of the PSF-R prior (needed with ``psf_model = "psfr"``;
+        a workflow passes its scene's optics product).
+    psfr_width_error : float
+        Fractional width error given to the PSF-R prior (its PSFs are stretched by
+        ``1 + psfr_width_error``): an observer's reconstruction is not the true PSF.
     progress : bool
         Show progress bars.
     knobs : MeasureKnobs
@@ -231,6 +243,9 @@ class MeasureSettings:
     detection_method: Literal["psf", "daofind"] = "psf"
     detection_passes: int = 3
     detection_model_error: float = 0.03
+    psf_model: Literal["epsf", "psfr"] = "epsf"
+    psf_prior: str = ""
+    psfr_width_error: float = 0.03
     progress: bool = field(default=False)
     knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
 
@@ -268,6 +283,10 @@ class MeasureSettings:
             raise ConfigError(
                 f"a polynomial ePSF of order {self.psf_poly_order} needs psf_grid**2 >= {nterms}",
                 key="psf_grid",
+            )
+        if not -0.5 < self.psfr_width_error < 0.5:
+            raise ConfigError(
+                f"must be in (-0.5, 0.5), got {self.psfr_width_error}", key="psfr_width_error"
             )
         for key in ("match_radius", "crowding_radius"):
             if not getattr(self, key) > 0:
