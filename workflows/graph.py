@@ -317,6 +317,8 @@ def _variant_nodes(v: Variant, workflow: Workflow, truths: dict) -> list[Node]:
                 inputs={
                     "frames": frames.id,
                     **({"earlier": list(measured)} if observer and measured else {}),
+                    # the scene's PSF grid: the PSF-R prior of the measurement
+                    **({"psf_prior": psf_inputs["psf"]} if "psf" in psf_inputs else {}),
                 },
                 scene=scene.name,
                 epoch=epoch.name,

@@ -471,7 +471,8 @@ def run_stars(
     """Measured stars of one frame (observer mode: started from the ``earlier``
     epochs' measured products when the graph gives them).
 
-    Inputs: ``frames``, optional ``earlier`` (list of measured products).
+    Inputs: ``frames``, optional ``earlier`` (list of measured products), optional
+    ``psf_prior`` (the scene's optics product: the PSF-R prior, docs/measure.md).
 
     Parameters
     ----------
@@ -492,8 +493,14 @@ def run_stars(
         Product name to path; "main" feeds the downstream stages.
     """
     earlier = list(inputs.get("earlier") or ())
+    prior = inputs.get("psf_prior")
     out = _stage("stars")(
-        inputs["frames"], dict(settings), outdir / "measured.h5", seed, earlier=earlier
+        inputs["frames"],
+        dict(settings),
+        outdir / "measured.h5",
+        seed,
+        earlier=earlier,
+        psf_prior=Path(prior) if prior else None,
     )
     return {"main": out}
 

@@ -175,6 +175,7 @@ def run_stage(
     output: str | os.PathLike,
     seed: int | None = None,
     earlier: Sequence | None = None,
+    psf_prior: str | os.PathLike | None = None,
 ) -> Path:
     """Measure every star of a ``frames`` product and write the ``measured`` product.
 
@@ -192,12 +193,17 @@ def run_stage(
         ``measured`` products of earlier epochs. With ``later_epochs =
         "measured"`` (the default, observer mode) the frame starts from their
         measured positions instead of the truth (docs/measure.md).
+    psf_prior : path, optional
+        ``psfgrid`` product of the scene's optics (a workflow's optics node): the PSF-R
+        prior, used unless the settings name one (``psf_prior``) or ``psf_model = "epsf"``.
 
     Returns
     -------
     pathlib.Path
     """
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
+    if psf_prior is not None and not cfg.psf_prior:
+        cfg = cfg.replace(psf_prior=str(psf_prior))
     previous = [read_earlier(p) for p in (earlier or ())]
     carried = bool(previous) and cfg.later_epochs == "measured"
     frame = read_frame(frames, require_truth=not (cfg.blind or carried))
@@ -290,6 +296,8 @@ def _handler(args: argparse.Namespace) -> int:
         settings["psf_variation"] = args.psf
     if args.progress:
         settings["progress"] = True
+    if args.psf_prior is not None:
+        settings["psf_prior"] = args.psf_prior
     cfg = validate_settings(settings, source=args.config)
     out = run_stage(args.frames, cfg, args.output, args.seed, earlier=args.earlier)
     print(f"wrote {out}")
@@ -317,6 +325,12 @@ def register(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--engine", choices=("fast", "photutils"), default=None, help="fitting engine")
     p.add_argument(
         "--psf", choices=("constant", "grid", "polynomial"), default=None, help="ePSF variation"
+    )
+    p.add_argument(
+        "--psf-prior",
+        default=None,
+        metavar="PSFGRID",
+        help="psfgrid product of the optics (PSF-R prior): fit the PSF-R model instead of an ePSF",
     )
     p.add_argument("--blind", action="store_true", help="detect stars instead of forced positions")
     p.add_argument(

@@ -268,6 +268,8 @@ def estimate_error_model(
     cells: np.ndarray | None = None,
     min_per_bin: int = 20,
     relative_chi2: bool = False,
+    floor_fraction: float = 0.0,
+    fisher_position: np.ndarray | None = None,
 ) -> ErrorModel:
     """The ePSF error and chi^2 terms of every star.
 
@@ -296,6 +298,13 @@ def estimate_error_model(
         moving it: ``max(chi2, 1)`` made its error 2-4 x too large (normalised residuals
         0.2-0.3 at V 17-20), while stars fitted worse than their peers (blends) are
         still inflated.
+    floor_fraction : float
+        ``beta`` of the model-error floor added to the position term,
+        ``beta sigma_F^2 max(chi2_typ(F) - 1, 0)`` (``sigma_F``: ``fisher_position``):
+        the part of a model's misfit (its typical excess chi^2 at the star's flux) that
+        moves the star. 0: none.
+    fisher_position : ndarray, optional
+        Fisher position error per coordinate [pixel] (needed with ``floor_fraction``).
 
     Returns
     -------
@@ -315,7 +324,13 @@ def estimate_error_model(
     ratio = np.where(np.isfinite(chi2), np.maximum(chi2 / typical, 1.0), 1.0)
     if relative_chi2:
         inflation = ratio
+    floor = np.zeros(n)
+    if floor_fraction > 0 and fisher_position is not None:
+        sig = np.nan_to_num(np.asarray(fisher_position, float))
+        floor = np.sqrt(floor_fraction * np.maximum(typical - 1.0, 0.0)) * sig
     if shifts is None:
+        if floor_fraction > 0:
+            return ErrorModel(floor, np.zeros(n), ratio, inflation, "chi2")
         return ErrorModel.fisher_only(n, ratio, inflation)
     delta = np.column_stack([shifts[:, :2], shifts[:, 2] / f])
     cells = np.zeros(n, np.intp) if cells is None else np.asarray(cells)
@@ -323,5 +338,6 @@ def estimate_error_model(
         mine = cells == cell
         delta[mine] -= np.median(delta[mine & ref], axis=0)
     position = flux_trend(flux[ref], delta[ref, :2], _half_rms, min_per_bin)(f)
+    position = np.hypot(position, floor)
     relative = flux_trend(flux[ref], delta[ref, 2], _half_rms, min_per_bin)(f)
     return ErrorModel(position, relative * f, ratio, inflation)

@@ -388,7 +388,7 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     # as neighbours in the isolation test: not below the flux over the global sky
     # (a faint star's local background is raised by the bright candidate next to it)
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
-    if settings.psf_model == "psfr":
+    if settings.uses_psfr:
         return build_psfr(frame, x0, y0, settings, flux, upper)
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
@@ -514,6 +514,20 @@ def build_psfr(
     return FramePSF(psf, len(used), halves, kernels)
 
 
+def psfr_summary(frame_psf: FramePSF, settings: MeasureSettings) -> str | None:
+    """JSON of the PSF-R model (prior file, width error, kernels [mas^2]) or None."""
+    if frame_psf.psfr_kernels is None:
+        return None
+    return json.dumps(
+        {
+            "prior": str(settings.psf_prior),
+            "width_error": settings.psfr_width_error,
+            "kernels_mas2": np.round(frame_psf.psfr_kernels, 4).tolist(),
+            "kernel_columns": ["cxx", "cyy", "cxy"],
+        }
+    )
+
+
 def starting_positions(frame: Frame, settings: MeasureSettings, rng: np.random.Generator):
     """Forced starting positions [pixel] from the truth list, optionally perturbed.
 
@@ -626,8 +640,19 @@ def error_terms(
     col = np.clip(np.nan_to_num(fit.x) * grid // nx, 0, grid - 1)
     row = np.clip(np.nan_to_num(fit.y) * grid // ny, 0, grid - 1)
     cells = (row * grid + col).astype(np.intp)
-    relative = frame_psf.psfr_kernels is not None  # PSF-R model: chi^2 against its peers
-    return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=relative)
+    if frame_psf.psfr_kernels is None:
+        return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells)
+    # PSF-R model: chi^2 against the star's peers, plus the model-error floor
+    return estimate_error_model(
+        fit.flux,
+        fit.chi2,
+        usable,
+        shifts,
+        cells,
+        relative_chi2=True,
+        floor_fraction=settings.psfr_model_error,
+        fisher_position=np.hypot(fit.x_err, fit.y_err) / np.sqrt(2.0),
+    )
 
 
 def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
@@ -969,6 +994,8 @@ def measure_frame(
         "start": extra.pop("start"),
         "start_transform": extra.pop("start_transform", None),
         "epsf_anchor": anchor_summary(anchor, frame.pixel_scale),
+        "psf_model": "psfr" if frame_psf.psfr_kernels is not None else "epsf",
+        "psfr": psfr_summary(frame_psf, settings),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),
         "epsf_flux_fraction": extra.pop("epsf_flux_fraction", None),
         **{f"detect_{k}": v for k, v in extra.items()},

@@ -204,18 +204,25 @@ class MeasureSettings:
     detection_model_error : float
         Fractional ePSF model error of the "psf" detector: a candidate must be
         significant against this fraction of its neighbours' model light too.
-    psf_model : {"epsf", "psfr"}
+    psf_model : {"auto", "epsf", "psfr"}
         "epsf": the empirical ePSF built from the frame's PSF stars (``epsf_builder``);
         "psfr": the AO PSF-reconstruction prior ``psf_prior`` (a ``psfgrid`` product,
         width degraded by ``psfr_width_error``) convolved with a Gaussian kernel fitted
         per ePSF node to the frame's PSF stars
-        (:mod:`mavispm.measure.stars.psf_reconstruction`).
+        (:mod:`mavispm.measure.stars.psf_reconstruction`); "auto" (default): "psfr"
+        when a prior is given (a workflow gives its scene's optics product), else "epsf".
     psf_prior : str
         The ``psfgrid`` product of the PSF-R prior (needed with ``psf_model = "psfr"``;
         a workflow passes its scene's optics product).
     psfr_width_error : float
         Fractional width error given to the PSF-R prior (its PSFs are stretched by
         ``1 + psfr_width_error``): an observer's reconstruction is not the true PSF.
+    psfr_model_error : float
+        PSF-R model: the fraction ``beta`` of the typical excess chi^2 at a star's flux
+        that enters its position error as a model-error floor,
+        ``beta sigma_F^2 max(chi2_typ(F) - 1, 0)``
+        (:func:`mavispm.measure.stars.error_model.estimate_error_model`); 0.03 was
+        calibrated against the truth on one full NGC 3201 frame (docs/measure.md).
     progress : bool
         Show progress bars.
     knobs : MeasureKnobs
@@ -243,9 +250,10 @@ class MeasureSettings:
     detection_method: Literal["psf", "daofind"] = "psf"
     detection_passes: int = 3
     detection_model_error: float = 0.03
-    psf_model: Literal["epsf", "psfr"] = "epsf"
+    psf_model: Literal["auto", "epsf", "psfr"] = "auto"
     psf_prior: str = ""
     psfr_width_error: float = 0.03
+    psfr_model_error: float = 0.03
     progress: bool = field(default=False)
     knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
 
@@ -266,6 +274,11 @@ class MeasureSettings:
             changes["knobs"] = dataclasses.replace(self.knobs, **knobs)
         return dataclasses.replace(self, **changes)
 
+    @property
+    def uses_psfr(self) -> bool:
+        """Whether the PSF-R model is used (``psf_model``, resolving "auto")."""
+        return self.psf_model == "psfr" or (self.psf_model == "auto" and bool(self.psf_prior))
+
     def __getattr__(self, name):
         # only called when normal lookup fails: the knobs read as settings attributes
         if name in KNOB_NAMES:
@@ -284,6 +297,8 @@ class MeasureSettings:
                 f"a polynomial ePSF of order {self.psf_poly_order} needs psf_grid**2 >= {nterms}",
                 key="psf_grid",
             )
+        if not self.psfr_model_error >= 0:
+            raise ConfigError(f"must be >= 0, got {self.psfr_model_error}", key="psfr_model_error")
         if not -0.5 < self.psfr_width_error < 0.5:
             raise ConfigError(
                 f"must be in (-0.5, 0.5), got {self.psfr_width_error}", key="psfr_width_error"
