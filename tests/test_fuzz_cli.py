@@ -163,6 +163,7 @@ FILE_INPUTS = [
     ("optics scene", ["simulate", "optics", "--scene", "{IN}", "-o", "{OUT}"], ".toml"),
     ("frames scene", ["simulate", "frames", "{CAT}", "--scene", "{IN}", "-o", "{OUT}"], ".toml"),
     ("stars config", ["measure", "stars", "{CAT}", "--config", "{IN}", "-o", "{OUT}"], ".toml"),
+    ("stars psf prior", ["measure", "stars", "{CAT}", "--psf-prior", "{IN}", "-o", "{OUT}"], ".h5"),
     ("dynamics config", ["dynamics", "{CAT}", "--config", "{IN}", "-o", "{OUT}"], ".toml"),
     ("run workflow", ["run", "{IN}", "--workdir", "{OUTDIR}", "--dry-run"], ".toml"),
 ]

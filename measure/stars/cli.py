@@ -24,6 +24,7 @@ from mavispm.core.frame import Frame
 from mavispm.core.products import write_product
 from mavispm.measure.stars import accuracy_report
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
+from mavispm.measure.stars.psf_reconstruction import check_prior
 from mavispm.measure.stars.settings import MeasureSettings, nest_knobs
 from mavispm.measure.stars.start_list import read_earlier
 
@@ -204,6 +205,8 @@ def run_stage(
     cfg = settings if isinstance(settings, MeasureSettings) else validate_settings(settings)
     if psf_prior is not None and not cfg.psf_prior:
         cfg = cfg.replace(psf_prior=str(psf_prior))
+    if cfg.uses_psfr and cfg.psf_prior:
+        check_prior(cfg.psf_prior)  # before the frame is read: a bad prior costs nothing
     previous = [read_earlier(p) for p in (earlier or ())]
     carried = bool(previous) and cfg.later_epochs == "measured"
     frame = read_frame(frames, require_truth=not (cfg.blind or carried))

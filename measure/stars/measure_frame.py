@@ -343,8 +343,9 @@ class FramePSF:
     halves : tuple of VariableEPSF or None
         ePSFs from the two halves of every node's PSF stars (None when not asked
         for, or with fewer than :data:`MIN_STARS_SPLIT` PSF stars per node).
-    psfr_kernels : ndarray (K, 3) or None
-        PSF-R model: the fitted correction kernels ``(cxx, cyy, cxy)`` [mas^2] per node.
+    psfr_kernels : ndarray (K, 4) or None
+        PSF-R model: the fitted corrections per node, kernel ``(cxx, cyy, cxy)`` [mas^2]
+        and stretch of the prior.
     """
 
     psf: VariableEPSF
@@ -453,7 +454,11 @@ def build_psfr(
     ny, nx = frame.shape
     ax, ay = frame.to_arcsec(np.array([0.0, nx - 1.0]), np.array([0.0, ny - 1.0]))
     prior = read_prior(
-        settings.psf_prior, (ax.min(), ax.max()), (ay.min(), ay.max()), settings.psfr_width_error
+        settings.psf_prior,
+        (ax.min(), ax.max()),
+        (ay.min(), ay.max()),
+        settings.psfr_width_error,
+        settings.psfr_strehl_error,
     )
     members, gx, gy, _, _ = choose_node_stars(
         data, x0, y0, flux, frame.bad, noise, opts, False, upper
@@ -515,15 +520,16 @@ def build_psfr(
 
 
 def psfr_summary(frame_psf: FramePSF, settings: MeasureSettings) -> str | None:
-    """JSON of the PSF-R model (prior file, width error, kernels [mas^2]) or None."""
+    """JSON of the PSF-R model (prior file, width error, kernels [mas^2] and stretches)."""
     if frame_psf.psfr_kernels is None:
         return None
     return json.dumps(
         {
             "prior": str(settings.psf_prior),
             "width_error": settings.psfr_width_error,
-            "kernels_mas2": np.round(frame_psf.psfr_kernels, 4).tolist(),
-            "kernel_columns": ["cxx", "cyy", "cxy"],
+            "strehl_error": settings.psfr_strehl_error,
+            "kernels": np.round(frame_psf.psfr_kernels, 5).tolist(),
+            "kernel_columns": ["cxx", "cyy", "cxy", "stretch"],
         }
     )
 

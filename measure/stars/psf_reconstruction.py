@@ -11,7 +11,8 @@ of the frame:
   response. These are all left to the empirical correction below;
 * its width is wrong by ``width_error`` (PSF-R papers report Strehl / FWHM errors of a
   few per cent): the HO PSFs are stretched radially by ``1 + width_error``
-  (:func:`stretch_psf`) before use;
+  (:func:`stretch_psf`) before use; and its Strehl ratio by ``strehl_error``
+  (:func:`blur_core`: that fraction of the light moved into a blurred copy);
 * the measurement never reads the frame's rendered per-star PSF, the optics'
   tip-tilt map, the truth positions or fluxes.
 
@@ -46,6 +47,7 @@ from mavispm.measure.stars.variable_psf import (
 
 __all__ = [
     "PSFRPrior",
+    "check_prior",
     "fit_kernel",
     "model_epsf",
     "read_prior",
@@ -125,8 +127,42 @@ def stretch_psf(psf: np.ndarray, factor: float) -> np.ndarray:
     return out / out.sum()
 
 
+def blur_core(psf: np.ndarray, fraction: float, sigma_pix: float) -> np.ndarray:
+    """Move ``fraction`` of a PSF's light into a blurred copy (a Strehl error).
+
+    Parameters
+    ----------
+    psf : ndarray (n, n)
+        Centred PSF summing to 1.
+    fraction : float
+        Light moved (the Strehl ratio drops by about this fraction).
+    sigma_pix : float
+        Gaussian blur of the moved light [prior pixels].
+
+    Returns
+    -------
+    ndarray
+        ``(1 - fraction) psf + fraction psf (x) G(sigma)``, summing to 1.
+    """
+    if fraction == 0.0:
+        return psf
+    out = (1.0 - fraction) * psf + fraction * ndimage.gaussian_filter(
+        psf, sigma_pix, mode="constant"
+    )
+    return out / out.sum()
+
+
+#: Blur [mas] of the light moved by ``strehl_error`` (about the diffraction core width
+#: at 550 nm, lambda / D = 14 mas).
+STREHL_ERROR_BLUR = 15.0
+
+
 def read_prior(
-    path, x_range: tuple[float, float], y_range: tuple[float, float], width_error: float
+    path,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    width_error: float,
+    strehl_error: float = 0.0,
 ) -> PSFRPrior:
     """Read the PSF-R prior from a ``psfgrid`` product: the nodes that cover the frame.
 
@@ -139,6 +175,10 @@ def read_prior(
     width_error : float
         Fractional width error of the reconstruction (the PSFs are stretched by
         ``1 + width_error``).
+    strehl_error : float
+        Fraction of each PSF's light moved into a copy blurred by
+        :data:`STREHL_ERROR_BLUR` (:func:`blur_core`): a Strehl error of the
+        reconstruction that no stretch and Gaussian kernel undo exactly.
 
     Returns
     -------
@@ -153,30 +193,7 @@ def read_prior(
     """
     path = Path(path)
     with open_product(path, "psfgrid") as f:
-        for key in ("cube", "nodes_x", "nodes_y"):
-            if key not in f:
-                raise InputError(f"PSF-R prior: array '{key}' missing", path=path)
-        if "pixel_scale" not in f.attrs:
-            raise InputError("PSF-R prior: attribute 'pixel_scale' missing", path=path)
-        nx = np.asarray(f["nodes_x"], float)
-        ny = np.asarray(f["nodes_y"], float)
-        shape = f["cube"].shape
-        scale = float(f.attrs["pixel_scale"])
-        if (
-            len(shape) != 4
-            or shape[:2] != (ny.size, nx.size)
-            or shape[2] != shape[3]
-            or shape[2] % 2 == 0
-        ):
-            raise InputError(
-                f"PSF-R prior: 'cube' has shape {shape}; expected (len(nodes_y), "
-                "len(nodes_x), n, n) with n odd",
-                path=path,
-            )
-        if not (np.all(np.diff(nx) > 0) and np.all(np.diff(ny) > 0)):
-            raise InputError("PSF-R prior: 'nodes_x', 'nodes_y' must increase", path=path)
-        if not (np.isfinite(scale) and scale > 0):
-            raise InputError(f"PSF-R prior: 'pixel_scale' must be > 0, got {scale}", path=path)
+        nx, ny, scale = _header(f, path)
         jx = _bracket(nx, x_range)
         jy = _bracket(ny, y_range)
         cube = np.asarray(f["cube"][jy[0] : jy[1] + 1, jx[0] : jx[1] + 1], float)
@@ -186,10 +203,67 @@ def read_prior(
     if np.any(sums <= 0):
         raise InputError("PSF-R prior: a PSF of 'cube' has no positive flux", path=path)
     factor = 1.0 + float(width_error)
+    blur = STREHL_ERROR_BLUR / scale
     cube = np.array(
-        [[stretch_psf(p / s, factor) for p, s in zip(row, srow)] for row, srow in zip(cube, sums)]
+        [
+            [blur_core(stretch_psf(p / s, factor), strehl_error, blur) for p, s in zip(row, srow)]
+            for row, srow in zip(cube, sums)
+        ]
     )
     return PSFRPrior(cube, nx[jx[0] : jx[1] + 1], ny[jy[0] : jy[1] + 1], scale, path)
+
+
+def _header(f, path: Path) -> tuple[np.ndarray, np.ndarray, float]:
+    """Validated node positions [arcsec] and sampling [mas] of an open ``psfgrid`` product."""
+    for key in ("cube", "nodes_x", "nodes_y"):
+        if key not in f:
+            raise InputError(f"PSF-R prior: array '{key}' missing", path=path)
+    if "pixel_scale" not in f.attrs:
+        raise InputError("PSF-R prior: attribute 'pixel_scale' missing", path=path)
+    try:
+        nx = np.asarray(f["nodes_x"], float).ravel()
+        ny = np.asarray(f["nodes_y"], float).ravel()
+        scale = float(np.asarray(f.attrs["pixel_scale"]))
+    except (TypeError, ValueError):
+        raise InputError(
+            "PSF-R prior: 'nodes_x', 'nodes_y', 'pixel_scale' must be numbers", path=path
+        ) from None
+    shape = f["cube"].shape
+    if (
+        len(shape) != 4
+        or shape[:2] != (ny.size, nx.size)
+        or shape[2] != shape[3]
+        or shape[2] % 2 == 0
+    ):
+        raise InputError(
+            f"PSF-R prior: 'cube' has shape {shape}; expected (len(nodes_y), "
+            "len(nodes_x), n, n) with n odd",
+            path=path,
+        )
+    if not (np.all(np.isfinite(nx)) and np.all(np.isfinite(ny))):
+        raise InputError("PSF-R prior: 'nodes_x', 'nodes_y' hold NaN or infinite values", path=path)
+    if not (np.all(np.diff(nx) > 0) and np.all(np.diff(ny) > 0)):
+        raise InputError("PSF-R prior: 'nodes_x', 'nodes_y' must increase", path=path)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"PSF-R prior: 'pixel_scale' must be > 0, got {scale}", path=path)
+    return nx, ny, scale
+
+
+def check_prior(path) -> None:
+    """Refuse a PSF-R prior that is not a usable ``psfgrid`` product (before any work).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+
+    Raises
+    ------
+    InputError
+        Naming the file and the key (see :func:`read_prior`).
+    """
+    path = Path(path)
+    with open_product(path, "psfgrid") as f:
+        _header(f, path)
 
 
 def _bracket(nodes: np.ndarray, span: tuple[float, float]) -> tuple[int, int]:
@@ -242,19 +316,21 @@ def model_epsf(
     size: int,
     oversampling: int,
 ) -> np.ndarray:
-    """Pixel-integrated ``prior (x) Gaussian(cov)`` on the oversampled ePSF grid.
+    """Pixel-integrated ``stretched prior (x) Gaussian(cov)`` on the oversampled ePSF grid.
 
-    The spectrum ``OTF(f) exp(-2 pi^2 f^T C f) sinc(s f_x) sinc(s f_y)`` (``s`` the
-    detector pixel) is summed directly (matrix DFT) at the ePSF samples, offsets
-    ``k s / oversampling`` from the optical axis: exact for any ratio of the prior's
-    sampling to the detector's.
+    The spectrum ``OTF(f) exp(-2 pi^2 g^T C g) sinc(s g_x) sinc(s g_y)``, ``g = f / k``
+    (``s`` the detector pixel, ``k`` the stretch: the prior stretched radially by
+    ``k`` has the spectrum ``OTF(k g)`` at frequency ``g``), is summed directly
+    (matrix DFT) at the ePSF samples, offsets ``j s / oversampling`` from the optical
+    axis: exact for any ratio of the prior's sampling to the detector's.
 
     Parameters
     ----------
     node : NodeTransform
         The prior's transform at the field position.
-    cov : array_like, shape (3,)
-        ``(cxx, cyy, cxy)`` [mas^2] of the correction kernel.
+    cov : array_like, shape (3,) or (4,)
+        ``(cxx, cyy, cxy)`` [mas^2] of the correction kernel, optionally followed by
+        the stretch ``k`` of the prior (default 1).
     detector_scale : float
         Detector pixel [mas].
     size : int
@@ -267,8 +343,11 @@ def model_epsf(
         The ePSF (photutils convention), normalised so that its samples at integer
         pixel offsets sum to 1 over the footprint.
     """
-    cxx, cyy, cxy = (float(v) for v in cov)
-    f = node.freq
+    cxx, cyy, cxy = (float(v) for v in cov[:3])
+    stretch = float(cov[3]) if len(cov) > 3 else 1.0
+    if not 0.5 < stretch < 2.0:
+        raise InputError(f"the PSF-R stretch diverged ({stretch}); expected 0.5-2")
+    f = node.freq / stretch
     fx, fy = f[None, :], f[:, None]
     gauss = np.exp(-2 * np.pi**2 * (cxx * fx**2 + cyy * fy**2 + 2 * cxy * fx * fy))
     box = np.sinc(detector_scale * f)
@@ -281,6 +360,12 @@ def model_epsf(
     if not np.isfinite(total) or total <= 0:
         raise InputError("the PSF-R model ePSF has no positive flux (correction kernel diverged)")
     return epsf / total
+
+
+#: Prior width of the fitted stretch of the PSF-R prior (1-sigma, fractional): PSF-R
+#: reconstructions are good to a few per cent in width; the stretch and a round kernel
+#: are degenerate for a Gaussian prior, and this prior settles the split there.
+STRETCH_PRIOR = 0.05
 
 
 def _node_stamps(image, x, y, radius, bad):
@@ -336,13 +421,13 @@ def fit_kernel(
     oversampling : int
     radius : int
         Fit stamp half-width [pixel].
-    start : array_like (3,), optional
-        Starting kernel [mas^2] (default ``(s/3)^2`` on the diagonal).
+    start : array_like (4,), optional
+        Starting kernel [mas^2] and stretch (default ``(s/3)^2`` on the diagonal, 1).
 
     Returns
     -------
-    cov : ndarray (3,)
-        The kernel [mas^2].
+    cov : ndarray (4,)
+        The kernel ``(cxx, cyy, cxy)`` [mas^2] and the stretch of the prior.
     chi2 : float
         Reduced chi^2 of the stamps at the solution.
     """
@@ -362,8 +447,9 @@ def fit_kernel(
 
     def residuals(p):
         model = np.empty(data.shape)
+        par = np.concatenate([p[:3] * scale, [1.0 + p[3]]])
         for g, idx in groups:
-            epsf = model_epsf(transforms[g], p * scale, detector_scale, size, oversampling)
+            epsf = model_epsf(transforms[g], par, detector_scale, size, oversampling)
             sub = StampGeometry(geom.cx[idx], geom.cy[idx], radius)
             model[idx] = constant_epsf(epsf, oversampling).evaluate(
                 x[idx], y[idx], sub, derivatives=False
@@ -372,12 +458,17 @@ def fit_kernel(
         ata = np.einsum("nki,nkj->nij", a, a) + 1e-12 * np.eye(4)
         atb = np.einsum("nki,nk->ni", a, b)
         coef = np.linalg.solve(ata, atb[..., None])[..., 0]
-        return (b - np.einsum("nki,ni->nk", a, coef)).ravel()
+        res = (b - np.einsum("nki,ni->nk", a, coef)).ravel()
+        return np.append(res, p[3] / STRETCH_PRIOR)
 
-    p0 = np.array([1 / 9, 1 / 9, 0.0]) if start is None else np.asarray(start, float) / scale
-    sol = optimize.least_squares(residuals, p0, x_scale=0.05, diff_step=1e-3, max_nfev=40)
-    dof = max(int(valid.sum()) - 4 * len(x) - 3, 1)
-    return sol.x * scale, float(np.sum(sol.fun**2) / dof)
+    if start is None:
+        p0 = np.array([1 / 9, 1 / 9, 0.0, 0.0])
+    else:
+        p0 = np.concatenate([np.asarray(start[:3], float) / scale, [float(start[3]) - 1.0]])
+    sol = optimize.least_squares(residuals, p0, x_scale=0.05, diff_step=1e-3, max_nfev=50)
+    dof = max(int(valid.sum()) - 4 * len(x) - 4, 1)
+    out = np.concatenate([sol.x[:3] * scale, [1.0 + sol.x[3]]])
+    return out, float(np.sum(sol.fun[:-1] ** 2) / dof)
 
 
 def model_nodes(
@@ -416,7 +507,7 @@ def interpolate_kernels(
 
     Parameters
     ----------
-    kernels : ndarray (len(cy) * len(cx), 3)
+    kernels : ndarray (len(cy) * len(cx), C)
         Kernels on the correction grid, row-major [mas^2].
     cx, cy : ndarray
         Correction node columns / rows [pixel].
@@ -427,8 +518,8 @@ def interpolate_kernels(
     -------
     ndarray (len(x), 3)
     """
-    out = np.empty((len(x), 3))
-    grid = kernels.reshape(len(cy), len(cx), 3)
+    out = np.empty((len(x), kernels.shape[1]))
+    grid = kernels.reshape(len(cy), len(cx), kernels.shape[1])
     for n, (xi, yi) in enumerate(zip(np.asarray(x, float), np.asarray(y, float))):
         i, tx = _axis_weight(np.asarray(cx, float), xi)
         j, ty = _axis_weight(np.asarray(cy, float), yi)
@@ -486,15 +577,16 @@ def build_psfr_epsf(
         ePSF footprint [pixel], oversampling, fit stamp half-width [pixel].
     rounds : int
         Kernel fit / position refit rounds.
-    start : ndarray (K, 3), optional
+    start : ndarray (K, 4), optional
         Starting kernels [mas^2] (e.g. the full set's, for the half sets).
 
     Returns
     -------
     psf : VariableEPSF
         The model ePSF on the model grid (:func:`model_nodes`).
-    kernels : ndarray (K, 3)
-        The fitted kernels on the correction grid [mas^2].
+    kernels : ndarray (K, 4)
+        The fitted corrections on the correction grid: kernel ``(cxx, cyy, cxy)``
+        [mas^2] and stretch of the prior.
     """
     gx, gy = model_nodes(prior, correction_x, correction_y, to_pixel)
     mx, my = np.meshgrid(gx, gy)
@@ -504,7 +596,7 @@ def build_psfr_epsf(
         NodeTransform.of(prior.psf_at(float(a), float(b)), prior.pixel_scale)
         for a, b in zip(ax, ay)
     ]
-    k0 = [(detector_scale / 3) ** 2, (detector_scale / 3) ** 2, 0.0]
+    k0 = [(detector_scale / 3) ** 2, (detector_scale / 3) ** 2, 0.0, 1.0]
     kernels = np.tile(k0, (len(members), 1)) if start is None else np.array(start, float)
     px, py = x_all.copy(), y_all.copy()
 

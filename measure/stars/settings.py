@@ -217,12 +217,18 @@ class MeasureSettings:
     psfr_width_error : float
         Fractional width error given to the PSF-R prior (its PSFs are stretched by
         ``1 + psfr_width_error``): an observer's reconstruction is not the true PSF.
+    psfr_strehl_error : float
+        Strehl error given to the PSF-R prior: this fraction of each PSF's light is
+        moved into a copy blurred by 15 mas (a misfit no stretch and Gaussian kernel
+        undo exactly).
     psfr_model_error : float
         PSF-R model: the fraction ``beta`` of the typical excess chi^2 at a star's flux
         that enters its position error as a model-error floor,
         ``beta sigma_F^2 max(chi2_typ(F) - 1, 0)``
-        (:func:`mavispm.measure.stars.error_model.estimate_error_model`); 0.03 was
-        calibrated against the truth on one full NGC 3201 frame (docs/measure.md).
+        (:func:`mavispm.measure.stars.error_model.estimate_error_model`). Default 0:
+        with the prior's stretch fitted, the five full NGC 3201 frames of
+        docs/measure.md need no floor (0.01 made the tip-tilt scene's V 17-20 errors
+        20 % too large).
     progress : bool
         Show progress bars.
     knobs : MeasureKnobs
@@ -253,7 +259,8 @@ class MeasureSettings:
     psf_model: Literal["auto", "epsf", "psfr"] = "auto"
     psf_prior: str = ""
     psfr_width_error: float = 0.03
-    psfr_model_error: float = 0.03
+    psfr_model_error: float = 0.0
+    psfr_strehl_error: float = 0.0
     progress: bool = field(default=False)
     knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
 
@@ -299,6 +306,10 @@ class MeasureSettings:
             )
         if not self.psfr_model_error >= 0:
             raise ConfigError(f"must be >= 0, got {self.psfr_model_error}", key="psfr_model_error")
+        if not 0 <= self.psfr_strehl_error < 1:
+            raise ConfigError(
+                f"must be in [0, 1), got {self.psfr_strehl_error}", key="psfr_strehl_error"
+            )
         if not -0.5 < self.psfr_width_error < 0.5:
             raise ConfigError(
                 f"must be in (-0.5, 0.5), got {self.psfr_width_error}", key="psfr_width_error"
