@@ -297,7 +297,8 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
         return _fit_model(stars, settings, distance, model, seed, backend_path)
 
 
-def _fit_model(stars, settings, distance, model, seed, backend_path) -> ModelFit:
+def _fit_model(stars, settings, distance, model, seed, backend_path, kinematic=True) -> ModelFit:
+    """One model's posterior and evidence; its kinematics-only evidence too if ``kinematic``."""
     name = _model_name(model)
     space = parameter_space(settings, distance, name, positions=stars.x is not None)
     like = make_likelihood(stars, space, settings, distance)
@@ -324,11 +325,11 @@ def _fit_model(stars, settings, distance, model, seed, backend_path) -> ModelFit
         t0 = time.perf_counter()
         evid = run_dynesty(like, space, seed + 1, nlive=settings.nlive, dlogz=settings.dlogz)
         wall["evidence"] = time.perf_counter() - t0
-        if settings.kinematic_evidence and settings.star_counts:
-            t0 = time.perf_counter()
-            kin = make_likelihood(stars, space, settings, distance, star_counts=False)
-            evid_kin = run_dynesty(kin, space, seed + 2, nlive=settings.nlive, dlogz=settings.dlogz)
-            wall["evidence_kinematic"] = time.perf_counter() - t0
+        if _separate_kinematic_evidence(settings):
+            if kinematic:
+                evid_kin, wall["evidence_kinematic"] = _kinematic_evidence(
+                    stars, settings, distance, model, seed
+                )
         elif not settings.star_counts:
             evid_kin = evid
     if chain is None:
@@ -347,18 +348,42 @@ def _fit_model(stars, settings, distance, model, seed, backend_path) -> ModelFit
     )
 
 
+def _separate_kinematic_evidence(settings: DynamicsSettings) -> bool:
+    """Whether the kinematics-only evidence is a nested run of its own."""
+    return bool(settings.evidence and settings.kinematic_evidence and settings.star_counts)
+
+
+def _kinematic_evidence(stars, settings, distance, model, seed):
+    """The kinematics-only evidence (star-count term off) and its wall time [s]."""
+    space = parameter_space(settings, distance, _model_name(model), positions=stars.x is not None)
+    kin = make_likelihood(stars, space, settings, distance, star_counts=False)
+    t0 = time.perf_counter()
+    evid = run_dynesty(kin, space, seed + 2, nlive=settings.nlive, dlogz=settings.dlogz)
+    return evid, time.perf_counter() - t0
+
+
 def _n_extra(model: str) -> int:
     """Parameters a model adds to the cluster's (its relative cost)."""
     return int(MODELS[model]["bh"]) + 2 * int(MODELS[model]["dark"])
 
 
-def _fit_one(args) -> ModelFit:
-    stars, settings, distance, model, seed, backend_path = args
-    return fit_model(stars, settings, distance, model, seed, backend_path=backend_path)
+def _fit_part(args):
+    """One job of :func:`fit_models`: a model's fit (``part = "fit"``, its
+    kinematics-only evidence left out) or its kinematics-only evidence (``"kinematic"``)."""
+    from threadpoolctl import threadpool_limits
+
+    stars, settings, distance, model, seed, backend_path, part = args
+    with threadpool_limits(limits=1, user_api="blas"):
+        if part == "kinematic":
+            return _kinematic_evidence(stars, settings, distance, model, seed)
+        return _fit_model(stars, settings, distance, model, seed, backend_path, kinematic=False)
 
 
 def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     """Fit every model of ``settings.models`` (in ``settings.workers`` processes).
+
+    With more than one worker each model's fit and its kinematics-only evidence
+    are separate jobs, handed out longest first, so that the pool's tail is short.
 
     Parameters
     ----------
@@ -376,33 +401,44 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     list of ModelFit
         In the order of ``settings.models``; the result does not depend on ``workers``.
     """
+    import dataclasses
     from pathlib import Path
 
-    jobs = [
-        (
-            stars,
-            settings,
-            distance,
-            m,
-            seed,
-            None if backend_stem is None else Path(f"{backend_stem}-{m}.h5"),
-        )
-        for m in settings.models
-    ]
-    workers = min(int(settings.workers), len(jobs))
-    if workers <= 1:
-        return [_fit_one(j) for j in jobs]
+    def backend(m):
+        return None if backend_stem is None else Path(f"{backend_stem}-{m}.h5")
+
+    workers = int(settings.workers)
+    if workers <= 1 or len(settings.models) * (1 + _separate_kinematic_evidence(settings)) <= 1:
+        return [fit_model(stars, settings, distance, m, seed, backend(m)) for m in settings.models]
     import concurrent.futures as cf
-    import dataclasses
     import multiprocessing as mp
 
     quiet = dataclasses.replace(settings, progress=False)  # no bars from worker processes
-    jobs = [(j[0], quiet, *j[2:]) for j in jobs]
-    # the longest models (most parameters) first, so the pool's tail is short
-    order = sorted(range(len(jobs)), key=lambda i: -_n_extra(jobs[i][3]))
-    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = {i: pool.submit(_fit_one, jobs[i]) for i in order}
-        return [futures[i].result() for i in range(len(jobs))]
+    parts = ("fit", "kinematic") if _separate_kinematic_evidence(settings) else ("fit",)
+    jobs = [
+        (stars, quiet, distance, m, seed, backend(m), part)
+        for m in settings.models
+        for part in parts
+    ]
+    # the longest jobs (most parameters; an emcee fit before a lone evidence) first
+    order = sorted(range(len(jobs)), key=lambda i: (-_n_extra(jobs[i][3]), jobs[i][6]))
+    with cf.ProcessPoolExecutor(
+        min(workers, len(jobs)), mp_context=mp.get_context("spawn")
+    ) as pool:
+        futures = {i: pool.submit(_fit_part, jobs[i]) for i in order}
+        results = {(jobs[i][3], jobs[i][6]): futures[i].result() for i in order}
+    fits = []
+    for m in settings.models:
+        fit = results[(m, "fit")]
+        if "kinematic" in parts:
+            evid_kin, wall_kin = results[(m, "kinematic")]
+            fit = dataclasses.replace(
+                fit,
+                evidence_kinematic=evid_kin,
+                wall_s={**fit.wall_s, "evidence_kinematic": wall_kin},
+            )
+        fits.append(fit)
+    return fits
 
 
 def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:
