@@ -33,6 +33,7 @@ __all__ = [
     "ModelFit",
     "backend_key",
     "compare",
+    "evidence_strength",
     "fit_model",
     "make_likelihood",
     "marginal_bh_samples",
@@ -634,6 +635,28 @@ def compare(fits, bh_mass_max: float, ambiguous_ln_b: float = 1.0) -> Comparison
     return out
 
 
+def evidence_strength(ln_b: float) -> str:
+    """Kass & Raftery (1995) words for a Bayes factor: ``|ln B|`` < 1 "not worth more than
+    a bare mention", 1-3 "positive", 3-5 "strong", > 5 "very strong".
+
+    Parameters
+    ----------
+    ln_b : float
+        Natural log of the Bayes factor (either sign).
+
+    Returns
+    -------
+    str
+        The word for ``|ln B|``.
+    """
+    x = abs(float(ln_b))
+    if x < 1.0:
+        return "not worth more than a bare mention"
+    if x < 3.0:
+        return "positive"
+    return "strong" if x < 5.0 else "very strong"
+
+
 def _verdict(c: Comparison, unconverged, thr: float):
     """One word and one sentence for the product."""
     if unconverged:
@@ -656,13 +679,20 @@ def _verdict(c: Comparison, unconverged, thr: float):
             "a dark central mass is favoured, but the data cannot tell an IMBH from an "
             f"extended dark component (ln Z_imbh - ln Z_dark = {c.ln_b_imbh_vs_extended:.2f})"
         )
+    err = f" +- {c.ln_bayes_factor_err:.2f}" if np.isfinite(c.ln_bayes_factor_err) else ""
     if lnb > thr:
         word = "imbh"
-        head = f"IMBH favoured (ln B = {lnb:.2f}, best model {c.best_model})"
+        head = (
+            f"IMBH favoured, {evidence_strength(lnb)} evidence (ln B = {lnb:.2f}{err}, "
+            f"best model {c.best_model})"
+        )
     elif lnb < -thr:
         word = "no_imbh"
-        head = f"no IMBH favoured (ln B = {lnb:.2f}, best model {c.best_model})"
+        head = (
+            f"no IMBH favoured, {evidence_strength(lnb)} evidence (ln B = {lnb:.2f}{err}, "
+            f"best model {c.best_model})"
+        )
     else:
         word = "undecided"
-        head = f"the data cannot decide whether there is an IMBH (ln B = {lnb:.2f})"
+        head = f"the data cannot decide whether there is an IMBH (ln B = {lnb:.2f}{err})"
     return word, "; ".join([head + kin_txt, *parts])

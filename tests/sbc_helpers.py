@@ -232,3 +232,39 @@ def sbc_full_trial(seed, model="imbh", n_stars=800, n_ranks=99, velocities="proj
         "n_ranks": n_ranks,
         **{f"q{p:g}": float(v) for p, v in zip((2.5, 16, 50, 84, 97.5), q)},
     }
+
+
+def surface_density(p: dict, X: np.ndarray, n_t: int = 4000):
+    """Projected tracer density [per unit (R / a)^2, unit total number] at X = R / a."""
+    x, nu, _, _ = model_tables(p)
+    t = np.linspace(0.0, 1.0, n_t)[None, :] * np.arccosh(x[-1] / X)[:, None]
+    r = X[:, None] * np.cosh(t)
+    return 2.0 * trapezoid(np.exp(np.interp(np.log(r), np.log(x), np.log(nu))) * r, t, axis=1)
+
+
+def independent_ln_likelihood(p: dict, stars, n_r: int = 3000, n_phi: int = 1440):
+    """ln L of ``stars`` under parameters ``p``: the Gaussian proper-motion terms with the
+    projected dispersions above and the star counts ln[Sigma(R_i) / N_field], N_field a
+    midpoint sum over the field disc (``n_r`` x ``n_phi`` cells). Returns (kinematic,
+    star-count) parts."""
+    a = 10.0 ** p["log_scale_radius"]
+    dx, dy = stars.x - p["x0"], stars.y - p["y0"]
+    R = np.hypot(dx, dy)
+    c, s = dx / R, dy / R
+    cx, sy = stars.x / stars.R, stars.y / stars.R
+    pm_x = stars.v_r * cx - stars.v_t * sy - p["pm_x0"]
+    pm_y = stars.v_r * sy + stars.v_t * cx - p["pm_y0"]
+    v = (pm_x * c + pm_y * s, -pm_x * s + pm_y * c)
+    kin = 0.0
+    for vi, s2, e in zip(v, projected_dispersions(p, R / a), (stars.e_r, stars.e_t)):
+        var = s2 + e * e
+        kin -= 0.5 * np.sum(vi * vi / var + np.log(2.0 * np.pi * var))
+    rr = (np.arange(n_r) + 0.5) * stars.field_radius / n_r
+    ph = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
+    RR, PP = np.meshgrid(rr, ph, indexing="ij")
+    Rc = np.hypot(RR * np.cos(PP) - p["x0"], RR * np.sin(PP) - p["y0"]) / a
+    Xs = np.geomspace(Rc.min(), Rc.max(), 400)
+    sig = np.exp(np.interp(np.log(Rc), np.log(Xs), np.log(surface_density(p, Xs))))
+    n_field = np.sum(sig * RR) * (stars.field_radius / n_r) * (2.0 * np.pi / n_phi) / a**2
+    counts = np.sum(np.log(surface_density(p, R / a) / a**2 / n_field))
+    return kin, counts

@@ -284,3 +284,26 @@ def test_fit_models_in_worker_processes_equals_serial():
         assert a.evidence_kinematic is not a.evidence
         np.testing.assert_array_equal(a.chain.samples, b.chain.samples)
         assert set(b.wall_s) == {"evidence", "evidence_kinematic"}
+
+
+def test_verdict_words_follow_kass_raftery_and_quote_the_error():
+    """The verdict sentence grades ln B on the Kass & Raftery (1995) scale (2 ln B of 2, 6
+    and 10 bound positive, strong and very strong) and quotes its error."""
+    from mavispm.dynamics.fit import Comparison, _verdict, evidence_strength
+
+    assert evidence_strength(0.5) == "not worth more than a bare mention"
+    assert [evidence_strength(x) for x in (1.1, -2.9, 3.0, 4.99, -5.0, 40.0)] == [
+        "positive",
+        "positive",
+        "strong",
+        "strong",
+        "very strong",
+        "very strong",
+    ]
+    c = Comparison(ln_bayes_factor=1.10, ln_bayes_factor_err=0.96, best_model="imbh")
+    word, text = _verdict(c, [], 1.0)
+    assert word == "imbh" and "positive evidence" in text and "1.10 +- 0.96" in text
+    word, text = _verdict(Comparison(ln_bayes_factor=-6.0, best_model="none"), [], 1.0)
+    assert word == "no_imbh" and "very strong" in text and "+-" not in text
+    word, _ = _verdict(Comparison(ln_bayes_factor=0.4, ln_bayes_factor_err=0.2), [], 1.0)
+    assert word == "undecided"
