@@ -102,9 +102,12 @@ def _usable_rows(path, settings: DynamicsSettings):
     if t is None:
         raise InputError("table 'stars' missing", path=path)
     if "flag" in t.colnames and not settings.use_flagged:
-        # flagged rows are not used: drop them before validating (they may carry
-        # NaN in columns the fit needs, e.g. a detection without a truth match)
-        t = t[np.asarray(t["flag"]).astype(np.int64) == 0]
+        # rejected rows are not used: drop them before validating (they may carry
+        # NaN in columns the fit needs, e.g. a detection without a truth match). The
+        # product's ``flag_reject_mask`` names the bits that reject (a clipped reference
+        # star, often a fast one near the centre, is kept); without it any bit rejects.
+        mask = int(prod.attrs.get("flag_reject_mask", -1))
+        t = t[(np.asarray(t["flag"]).astype(np.int64) & mask) == 0]
     t = validate_table(t, PM_SPEC, path=path, table_name="stars")
     distance = settings.distance
     if distance is None:
@@ -121,8 +124,6 @@ def _usable_rows(path, settings: DynamicsSettings):
         if np.any(bad):
             raise InputError(f"{int(bad.sum())} negative errors", path=path, column=k)
     ok = np.all([np.isfinite(cols[k]) for k in ("pm_r", "pm_t", "pm_r_err", "pm_t_err")], axis=0)
-    if "flag" in t.colnames and not settings.use_flagged:
-        ok &= np.asarray(t["flag"]) == 0
     field = settings.field_radius
     if field is None:
         sel_x, sel_y = np.abs(cols["x"][ok]), np.abs(cols["y"][ok])
@@ -138,8 +139,9 @@ def _usable_rows(path, settings: DynamicsSettings):
 def load_stars(path, settings: DynamicsSettings):
     """Read a propermotions product into a :class:`StarSample` plus its distance [kpc].
 
-    Stars with a non-zero flag (unless ``use_flagged``) or a NaN proper motion or
-    error are dropped; stars outside the field radius are dropped. Errors become
+    Stars with a flag bit of the product's ``flag_reject_mask`` (any bit if the product
+    has none; nothing with ``use_flagged``) or a NaN proper motion or error are dropped;
+    stars outside the field radius are dropped. Errors become
     ``sqrt((pm_error_scale e)^2 + pm_error_floor^2)``.
 
     Parameters

@@ -307,3 +307,30 @@ def test_verdict_words_follow_kass_raftery_and_quote_the_error():
     assert word == "no_imbh" and "very strong" in text and "+-" not in text
     word, _ = _verdict(Comparison(ln_bayes_factor=0.4, ln_bayes_factor_err=0.2), [], 1.0)
     assert word == "undecided"
+
+
+def test_only_the_products_reject_bits_drop_stars(tmp_path):
+    """A star clipped from the alignment's reference set (flag 1) is kept, one flagged by
+    the measure stage (8) is dropped, as the product's ``flag_reject_mask`` says; a product
+    without the attribute drops every flagged star; the propermotions stage writes it."""
+    from mavispm.measure.propermotions.pipeline import PMFlag
+
+    path = write_mock_propermotions(tmp_path / "pm.h5", seed=3, n_field=200)
+    prod = read_product(path, "propermotions")
+    t = prod.tables["stars"]
+    t["flag"][:10] = PMFlag.CLIPPED
+    t["flag"][10:15] = PMFlag.INPUT_FLAGGED | PMFlag.CLIPPED
+    attrs = {k: v for k, v in prod.attrs.items() if k in ("distance", "epochs")}
+    s = validate_settings({"field_radius": "17 arcsec"})
+    with_mask = write_product(
+        tmp_path / "a.h5",
+        "propermotions",
+        tables={"stars": t},
+        attrs={**attrs, "flag_reject_mask": int(PMFlag.REJECT)},
+    )
+    assert load_stars(with_mask, s)[0].R.size == 195
+    without = write_product(tmp_path / "b.h5", "propermotions", tables={"stars": t}, attrs=attrs)
+    assert load_stars(without, s)[0].R.size == 185
+    everything = validate_settings({"field_radius": "17 arcsec", "use_flagged": True})
+    assert load_stars(with_mask, everything)[0].R.size == 200
+    assert PMFlag.REJECT & PMFlag.CLIPPED == 0 and PMFlag.REJECT & PMFlag.POOR_FIT

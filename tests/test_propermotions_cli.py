@@ -48,6 +48,7 @@ def test_cli_writes_product_per_formats_and_report(inputs, capsys):
         assert col in stars.colnames, col
     assert stars["pm_x"].unit == u.mas / u.yr and stars["R"].unit == u.arcsec
     np.testing.assert_allclose(prod.attrs["epochs"].to_value(u.yr), [0.0, 4.0, 10.0])
+    assert prod.attrs["flag_reject_mask"] == 4 + 8 + 16 + 64 + 128  # docs/formats.md
     assert prod.attrs["reference_epoch"].to_value(u.yr) == 0.0
     assert prod.attrs["distance"].to_value(u.kpc) == pytest.approx(4.6)  # from the inputs
     transform = json.loads(prod.attrs["transform"])

@@ -167,7 +167,13 @@ def run_stage(
     cfg = validate_settings(settings)
     epochs = [read_measured(p) for p in measured]
     stars = proper_motions(epochs, cfg, truth=truth)
-    attrs = {**stars.meta, "inputs": [str(p) for p in measured]}
+    from mavispm.measure.propermotions.pipeline import PMFlag
+
+    attrs = {
+        **stars.meta,
+        "inputs": [str(p) for p in measured],
+        "flag_reject_mask": int(PMFlag.REJECT),
+    }
     stars.meta.clear()
     return write_product(
         output,

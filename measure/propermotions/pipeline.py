@@ -55,6 +55,10 @@ class PMFlag:
     #: uncertainty exceeds the star's own measurement error (poorly constrained)
     EXTRAPOLATED = 64
     POOR_FIT = 128  #: multi-epoch positions inconsistent with a straight line
+    #: bits that make a proper motion unfit for science (written to the product as the
+    #: ``flag_reject_mask`` attribute); 1, 2 and 32 only describe the star's part in the
+    #: alignment or its place, and a clipped reference star is often just a fast one
+    REJECT = MISSING_EPOCHS | INPUT_FLAGGED | AMBIGUOUS | EXTRAPOLATED | POOR_FIT
 
 
 @dataclass
