@@ -99,32 +99,39 @@ def model_tables(p: dict):
     return x, nu, frac, nu_s2
 
 
+def _dispersion_unit(p: dict) -> float:
+    """G solMass / a_pc in (mas/yr)^2 (the unit of ``nu_s2 / nu``) at the distance of ``p``."""
+    a_pc = 10.0 ** p["log_scale_radius"] * p["distance"] * PC_PER_ARCSEC_KPC
+    return G / a_pc / (KMS * p["distance"]) ** 2
+
+
+def _line_of_sight(X: np.ndarray, x_max: float, n_t: int):
+    """Nodes t of x = X cosh t from the sky plane to ``x_max`` (x dx / sqrt(x^2 - X^2) = x dt)
+    and the radii x there, one row per X."""
+    t = np.linspace(0.0, 1.0, n_t)[None, :] * np.arccosh(x_max / X)[:, None]
+    return t, X[:, None] * np.cosh(t)
+
+
 def projected_dispersions(p: dict, X: np.ndarray, n_t: int = 3000):
     """Projected radial and tangential dispersions squared [(mas/yr)^2] at X = R / a."""
     x, nu, _, nu_s2 = model_tables(p)
     lx = np.log(x)
-    t_max = np.arccosh(x[-1] / X)
-    t = np.linspace(0.0, 1.0, n_t)[None, :] * t_max[:, None]
-    r = X[:, None] * np.cosh(t)
+    t, r = _line_of_sight(X, x[-1], n_t)
     lr = np.log(r)
-    w = r  # x dx / sqrt(x^2 - X^2) = x dt
-    sig = trapezoid(np.exp(np.interp(lr, lx, np.log(nu))) * w, t, axis=1)
-    s2 = np.exp(np.interp(lr, lx, np.log(nu_s2))) * w
+    sig = trapezoid(np.exp(np.interp(lr, lx, np.log(nu))) * r, t, axis=1)
+    s2 = np.exp(np.interp(lr, lx, np.log(nu_s2))) * r
     beta = p["beta"]
     t_part = (1.0 - beta) * trapezoid(s2, t, axis=1)
     r_part = t_part + beta * trapezoid(s2 / np.cosh(t) ** 2, t, axis=1)
-    a_pc = 10.0 ** p["log_scale_radius"] * p["distance"] * PC_PER_ARCSEC_KPC
-    scale = G / a_pc / (KMS * p["distance"]) ** 2
+    scale = _dispersion_unit(p)
     return scale * r_part / sig, scale * t_part / sig
 
 
 def sigma_r2_3d(p: dict, x3: np.ndarray):
     """3-D radial dispersion squared [(mas/yr)^2] at r / a = ``x3``."""
     x, nu, _, nu_s2 = model_tables(p)
-    lx = np.log(x)
-    a_pc = 10.0 ** p["log_scale_radius"] * p["distance"] * PC_PER_ARCSEC_KPC
-    scale = G / a_pc / (KMS * p["distance"]) ** 2
-    return scale * np.exp(np.interp(np.log(x3), lx, np.log(nu_s2) - np.log(nu)))
+    ln_s2 = np.interp(np.log(x3), np.log(x), np.log(nu_s2) - np.log(nu))
+    return _dispersion_unit(p) * np.exp(ln_s2)
 
 
 def draw_sample(p: dict, n_stars: int, rng, velocities: str = "projected"):
@@ -237,8 +244,7 @@ def sbc_full_trial(seed, model="imbh", n_stars=800, n_ranks=99, velocities="proj
 def surface_density(p: dict, X: np.ndarray, n_t: int = 4000):
     """Projected tracer density [per unit (R / a)^2, unit total number] at X = R / a."""
     x, nu, _, _ = model_tables(p)
-    t = np.linspace(0.0, 1.0, n_t)[None, :] * np.arccosh(x[-1] / X)[:, None]
-    r = X[:, None] * np.cosh(t)
+    t, r = _line_of_sight(X, x[-1], n_t)
     return 2.0 * trapezoid(np.exp(np.interp(np.log(r), np.log(x), np.log(nu))) * r, t, axis=1)
 
 

@@ -390,7 +390,7 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     # (a faint star's local background is raised by the bright candidate next to it)
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     if settings.uses_psfr:
-        return build_psfr(frame, x0, y0, settings, flux, upper)
+        return build_psfr(frame, x0, y0, settings, flux, upper, data, noise)
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
@@ -425,7 +425,14 @@ PSFR_OVERSAMPLING = 4
 
 
 def build_psfr(
-    frame: Frame, x0, y0, settings: MeasureSettings, flux: np.ndarray, upper: np.ndarray
+    frame: Frame,
+    x0,
+    y0,
+    settings: MeasureSettings,
+    flux: np.ndarray,
+    upper: np.ndarray,
+    data: np.ndarray,
+    noise,
 ) -> FramePSF:
     """The PSF-R model (prior x fitted kernels) of the frame (``psf_model = "psfr"``).
 
@@ -439,6 +446,10 @@ def build_psfr(
         The stage settings (``psf_prior``, ``psfr_width_error``, the PSF-star knobs).
     flux, upper : ndarray
         Box fluxes over the local / global sky [electron] (PSF-star selection).
+    data : ndarray
+        The sky-subtracted frame [electron].
+    noise : float or ndarray
+        Background variance per pixel [electron^2] (sky plus read noise).
 
     Returns
     -------
@@ -449,8 +460,6 @@ def build_psfr(
     if not settings.psf_prior:
         raise InputError("psf_model = 'psfr' needs psf_prior (a psfgrid product)", path=frame.path)
     opts = epsf_options(settings)
-    data = frame.image - frame.sky
-    noise = frame.sky + frame.read_noise_var
     ny, nx = frame.shape
     ax, ay = frame.to_arcsec(np.array([0.0, nx - 1.0]), np.array([0.0, ny - 1.0]))
     prior = read_prior(
