@@ -200,39 +200,42 @@ def line_of_sight_model(
     return mix_w, s2_r, s2_t, ln_sigma, ln_proj
 
 
-@numba.njit(nogil=True, cache=True)
-def _component(k, w0, w1, w2, w3, j, mix_w, s2_r, s2_t, e2r, e2t):  # pragma: no cover
-    """Weight and total radial / tangential variances of component ``k`` of one star,
-    interpolated from grid rows ``j-1 .. j+2`` with weights ``w0 .. w3``."""
-    wk = w0 * mix_w[j - 1, k] + w1 * mix_w[j, k] + w2 * mix_w[j + 1, k] + w3 * mix_w[j + 2, k]
-    sr = w0 * s2_r[j - 1, k] + w1 * s2_r[j, k] + w2 * s2_r[j + 1, k] + w3 * s2_r[j + 2, k]
-    st = w0 * s2_t[j - 1, k] + w1 * s2_t[j, k] + w2 * s2_t[j + 1, k] + w3 * s2_t[j + 2, k]
-    return wk, _floor(max(sr, 0.0) + e2r), _floor(max(st, 0.0) + e2t)
+@numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract", "arcp"})
+def _interpolate_rows(w0, w1, w2, w3, j, grid, out):  # pragma: no cover - compiled
+    """Cubic interpolation of every component of ``grid`` (M, K) between rows ``j-1 .. j+2``
+    (contiguous rows: the loop over components vectorises)."""
+    r0, r1, r2, r3 = grid[j - 1], grid[j], grid[j + 1], grid[j + 2]
+    for k in range(out.size):
+        out[k] = w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k]
 
 
 @numba.njit(nogil=True, cache=True)
-def _ln_mixture(w0, w1, w2, w3, j, mix_w, s2_r, s2_t, v2r, v2t, e2r, e2t):  # pragma: no cover
-    """ln of one star's mixture density (without ``-ln 2 pi``); in logarithms when the
-    direct sum underflows (a star far in the tails)."""
-    n_k = mix_w.shape[1]
+def _ln_mixture(wk, sr, st, v2r, v2t, e2r, e2t):  # pragma: no cover - compiled
+    """ln of one star's mixture density (without ``-ln 2 pi``) from its interpolated
+    component weights ``wk`` and variances ``sr``, ``st`` (errors added here; overwritten);
+    in logarithms when the direct sum underflows (a star far in the tails)."""
     total = 0.0
     wsum = 0.0
-    for k in range(n_k):
-        wk, vr, vt = _component(k, w0, w1, w2, w3, j, mix_w, s2_r, s2_t, e2r, e2t)
-        if wk > 0.0:
-            wsum += wk
-            total += wk * np.exp(-0.5 * (v2r / vr + v2t / vt)) / np.sqrt(vr * vt)
+    for k in range(wk.size):
+        sr[k] = _floor(max(sr[k], 0.0) + e2r)
+        st[k] = _floor(max(st[k], 0.0) + e2t)
+        if wk[k] > 0.0:
+            wsum += wk[k]
+            total += wk[k] * np.exp(-0.5 * (v2r / sr[k] + v2t / st[k])) / np.sqrt(sr[k] * st[k])
     if wsum <= 0.0:
         return -np.inf
     if total > 1e-280:
         return np.log(total / wsum)
-    terms = np.full(n_k, -np.inf)
-    for k in range(n_k):
-        wk, vr, vt = _component(k, w0, w1, w2, w3, j, mix_w, s2_r, s2_t, e2r, e2t)
-        if wk > 0.0:
-            terms[k] = np.log(wk) - 0.5 * (v2r / vr + v2t / vt + np.log(vr * vt))
-    best = terms.max()
-    return best + np.log(np.sum(np.exp(terms - best))) - np.log(wsum)
+    best = -np.inf
+    for k in range(wk.size):
+        if wk[k] > 0.0:
+            sr[k] = np.log(wk[k]) - 0.5 * (v2r / sr[k] + v2t / st[k] + np.log(sr[k] * st[k]))
+            best = max(best, sr[k])
+    acc = 0.0
+    for k in range(wk.size):
+        if wk[k] > 0.0:
+            acc += np.exp(sr[k] - best)
+    return best + np.log(acc) - np.log(wsum)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -256,18 +259,19 @@ def mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2):  # pragma: no 
         ``ln p(v_R,i, v_T,i | R_i)`` (components interpolated cubically in ``ln X``,
         clamped at the grid ends).
     """
-    n = mix_w.shape[0]
+    n, n_k = mix_w.shape
     if n < 4 or s2_r.shape != mix_w.shape or s2_t.shape != mix_w.shape:
         raise ValueError("the mixture needs components of one shape (M, K), M >= 4")
+    wk = np.empty(n_k)
+    sr = np.empty(n_k)
+    st = np.empty(n_k)
     out = np.empty(u.size)
     for i in range(u.size):
         j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
-        out[i] = (
-            _ln_mixture(
-                w0, w1, w2, w3, j, mix_w, s2_r, s2_t, v2[0, i], v2[1, i], e2[0, i], e2[1, i]
-            )
-            - _LN_2PI
-        )
+        _interpolate_rows(w0, w1, w2, w3, j, mix_w, wk)
+        _interpolate_rows(w0, w1, w2, w3, j, s2_r, sr)
+        _interpolate_rows(w0, w1, w2, w3, j, s2_t, st)
+        out[i] = _ln_mixture(wk, sr, st, v2[0, i], v2[1, i], e2[0, i], e2[1, i]) - _LN_2PI
     return out
 
 
