@@ -6,7 +6,8 @@ Run ``python benchmarks/bench_dynamics.py [--quick]`` from the repository root
 1. Jeans projection accuracy and time against the radial grid / quadrature knobs
    (error: max relative error of the projected dispersion against the analytic
    Plummer result and against a very fine reference for the point-mass term);
-2. one likelihood evaluation against the number of stars;
+2. one likelihood evaluation against the number of stars; the line-of-sight mixture's
+   cost and error against its nodes (and the Gaussian law's cost);
 3. emcee to convergence (walkers, steps, tau, wall time) and posterior width;
 4. dynesty evidence per model (calls, wall time, ln Z error);
 5. with ``--comparison``: the full four-model comparison against the number of
@@ -79,6 +80,43 @@ def bench_likelihood(quick):
             like = DiscreteLikelihood(s, sp1.names, distance=4.6, grid_size=grid)
             t = _time(lambda lk=like: lk(theta), 20 if quick else 200)
             print(f"{n:6d} {grid:5d} {1e3 * t:8.3f} {like(theta) - ref_like:17.2e}")
+
+
+def bench_line_of_sight(quick):
+    """Line-of-sight mixture: cost and error against its nodes, and the Gaussian law's cost.
+
+    Stars with 3-D Gaussian velocities from the SBC forward model (full model with an
+    IMBH and a dark component); error: the kinematic ln L minus the independent dense sum
+    over 4000 depths per star (``tests/sbc_helpers.py``)."""
+    import dataclasses
+
+    from sbc_helpers import (
+        SBC_DISTANCE,
+        draw_prior,
+        draw_sample,
+        independent_line_of_sight_ln_likelihood,
+        sbc_space,
+    )
+
+    from mavispm.dynamics.fit import make_likelihood
+
+    print("\n# line-of-sight mixture: nodes vs cost and |dlnL| (full model, 3-D velocities)")
+    space, s = sbc_space("imbh_dark")
+    rng = np.random.default_rng([1, 7])
+    p = draw_prior(space, rng)
+    theta = np.array([p[n] for n in space.names])
+    print(f"{'stars':>6} {'law':>14} {'nodes':>5} {'time/ms':>8} {'|dlnL| vs dense':>16}")
+    for n in [300, 3500]:
+        stars = draw_sample(p, n, rng, "3d")
+        ref = independent_line_of_sight_ln_likelihood(p, stars)
+        for law, nodes in [("gaussian", 0), *[("line_of_sight", k) for k in (8, 12, 16, 24)]]:
+            knobs = dict(velocity_law=law, line_of_sight_nodes=max(nodes, 2))
+            like = make_likelihood(
+                stars, space, dataclasses.replace(s, **knobs), SBC_DISTANCE, star_counts=False
+            )
+            t = _time(lambda lk=like: lk(theta), 20 if quick else 100)
+            err = abs(like(theta) - ref)
+            print(f"{n:6d} {law:>14} {nodes or '-':>5} {1e3 * t:8.3f} {err:16.2e}")
 
 
 def bench_tracers(quick):
@@ -222,6 +260,7 @@ def main(argv=None):
     print(f"mock: {RECOVERY_MOCK}")
     bench_projection(args.quick)
     bench_likelihood(args.quick)
+    bench_line_of_sight(args.quick)
     bench_tracers(args.quick)
     if not args.no_samplers:
         bench_samplers(args.quick)

@@ -180,6 +180,8 @@ def make_likelihood(
         x_max=s.truncation,
         star_counts=s.star_counts if star_counts is None else star_counts,
         completeness=completeness,
+        velocity_law=s.velocity_law,
+        line_of_sight_nodes=s.line_of_sight_nodes,
     )
 
 

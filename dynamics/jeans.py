@@ -42,6 +42,7 @@ from mavispm.dynamics.anisotropy import Anisotropy
 from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.interpolation import cubic_weights
 from mavispm.dynamics.jeans_kernel import log_dispersions, row_ranges
+from mavispm.dynamics.line_of_sight import line_of_sight_model, line_of_sight_nodes
 from mavispm.dynamics.tracers import Plummer
 
 __all__ = [
@@ -165,6 +166,7 @@ class JeansProjector:
         self._kc = operator(w_cyl)
         self._lo, self._hi = row_ranges(self._k0, self._k2, self._kc)
         self._evaluators = {}
+        self._los_nodes = {}
         self._cache_key = None
         self._cache = None
 
@@ -290,10 +292,49 @@ class JeansProjector:
         ln_sigma, ln_proj : ndarray (M,)
             ln surface density and ln projected mass fraction (floored likewise).
         """
+        return log_dispersions(*self._kernel_args(tracer, anisotropy, dark_radius, weights))
+
+    def line_of_sight(self, tracer, anisotropy, dark_radius, weights, n_nodes: int = 16):
+        """Line-of-sight velocity mixture on the output radii, compiled.
+
+        The model of :meth:`log_dispersions` at ``n_nodes`` depths along each line of
+        sight (:mod:`mavispm.dynamics.line_of_sight`) instead of projected.
+
+        Parameters
+        ----------
+        tracer, anisotropy, dark_radius, weights
+            As :meth:`log_dispersions`.
+        n_nodes : int
+            Gauss-Legendre nodes per line of sight (the nodes are built once per value).
+
+        Returns
+        -------
+        mix_w, s2_r, s2_t : ndarray (M, n_nodes)
+            Component weights (one per output radius in all) and sky-radial and
+            sky-tangential variances (unit of ``weights``).
+        ln_sigma, ln_proj : ndarray (M,)
+            ln surface density and ln projected mass fraction.
+        """
+        nodes = self._los_nodes.get(n_nodes)
+        if nodes is None:
+            nodes = line_of_sight_nodes(
+                self.X, self.ln_r[0], self.step, self.r.size, n_nodes, self.x_max
+            )
+            self._los_nodes[n_nodes] = nodes
+        return line_of_sight_model(
+            *self._kernel_args(tracer, anisotropy, dark_radius, weights),
+            nodes.index,
+            nodes.weight,
+            nodes.dz,
+            nodes.inv_cosh2,
+        )
+
+    def _kernel_args(self, tracer, anisotropy, dark_radius, weights):
+        """Arguments of the compiled Jeans kernels for this model."""
         anisotropy = _checked(anisotropy, dark_radius)
         tab = self._tracer_tables(tracer)
         tail_nu = anisotropy.tail(self.x_max, tracer.outer_slope) * tab["nu_end"]
-        return log_dispersions(
+        return (
             self.r,
             self.ln_r,
             self.step,

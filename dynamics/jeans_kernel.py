@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 __all__ = [
+    "jeans_columns",
     "log_dispersions",
     "row_ranges",
 ]
@@ -83,6 +84,61 @@ def _outside_in(f, h, out):  # pragma: no cover - compiled
         out[k] = acc
     acc += h24 * (9.0 * f[0] + 19.0 * f[1] - 5.0 * f[2] + f[3])
     out[0] = acc
+
+
+@numba.njit(nogil=True, cache=True)
+def jeans_columns(
+    r, ln_r, step, x_max, nu, m, m_end, tail_nu, beta_0, beta_inf, r_a, dark_radius, weights
+):  # pragma: no cover - compiled
+    """``(1 - beta) nu sigma_r^2`` and ``beta nu sigma_r^2`` of the whole mass model on the
+    radial grid (the arguments as :func:`log_dispersions`).
+
+    Returns
+    -------
+    col_t, col_r : ndarray (n_r,)
+        The tangential-type and radial-excess columns; ``nu sigma_r^2 = col_t + col_r``,
+        ``nu sigma_t^2 = col_t``.
+    """
+    n = r.size
+    const = beta_0 == beta_inf
+    ln_ra2 = 2.0 * np.log(r_a)
+    ra2 = r_a * r_a
+    ln_fac = np.empty(n)
+    beta = np.empty(n)
+    for j in range(n):
+        if const:
+            ln_fac[j] = 2.0 * beta_0 * ln_r[j]
+            beta[j] = beta_0
+        else:
+            ln_fac[j] = 2.0 * beta_0 * ln_r[j] + (beta_inf - beta_0) * np.logaddexp(
+                2.0 * ln_r[j], ln_ra2
+            )
+            r2 = r[j] * r[j]
+            beta[j] = beta_0 + (beta_inf - beta_0) * r2 / (r2 + ra2)
+    lf_end = ln_fac[n - 1]
+    tail = tail_nu / np.exp(lf_end)
+    w_cl, w_bh, w_dk = weights[0], weights[1], weights[2]
+    dark = dark_radius > 0.0
+    end = w_cl * m_end + w_bh
+    if dark:
+        end += w_dk * _plummer_mass(x_max / dark_radius)
+    fac = np.empty(n)
+    f = np.empty(n)
+    for j in range(n):
+        fac[j] = np.exp(ln_fac[j] - lf_end)
+        mass = w_cl * m[j] + w_bh
+        if dark:
+            mass += w_dk * _plummer_mass(r[j] / dark_radius)
+        f[j] = fac[j] * nu[j] / r[j] * mass
+    acc = np.empty(n)
+    _outside_in(f, step, acc)
+    col_t = np.empty(n)
+    col_r = np.empty(n)
+    for j in range(n):
+        p = (acc[j] + tail * end) / fac[j]
+        col_t[j] = (1.0 - beta[j]) * p
+        col_r[j] = beta[j] * p
+    return col_t, col_r
 
 
 @numba.njit(nogil=True, cache=True)
@@ -147,45 +203,9 @@ def log_dispersions(
     ln_sigma, ln_proj : ndarray (M,)
         ln surface density and ln projected mass fraction (floored likewise).
     """
-    n = r.size
-    const = beta_0 == beta_inf
-    ln_ra2 = 2.0 * np.log(r_a)
-    ra2 = r_a * r_a
-    ln_fac = np.empty(n)
-    beta = np.empty(n)
-    for j in range(n):
-        if const:
-            ln_fac[j] = 2.0 * beta_0 * ln_r[j]
-            beta[j] = beta_0
-        else:
-            ln_fac[j] = 2.0 * beta_0 * ln_r[j] + (beta_inf - beta_0) * np.logaddexp(
-                2.0 * ln_r[j], ln_ra2
-            )
-            r2 = r[j] * r[j]
-            beta[j] = beta_0 + (beta_inf - beta_0) * r2 / (r2 + ra2)
-    lf_end = ln_fac[n - 1]
-    tail = tail_nu / np.exp(lf_end)
-    w_cl, w_bh, w_dk = weights[0], weights[1], weights[2]
-    dark = dark_radius > 0.0
-    end = w_cl * m_end + w_bh
-    if dark:
-        end += w_dk * _plummer_mass(x_max / dark_radius)
-    fac = np.empty(n)
-    f = np.empty(n)
-    for j in range(n):
-        fac[j] = np.exp(ln_fac[j] - lf_end)
-        mass = w_cl * m[j] + w_bh
-        if dark:
-            mass += w_dk * _plummer_mass(r[j] / dark_radius)
-        f[j] = fac[j] * nu[j] / r[j] * mass
-    acc = np.empty(n)
-    _outside_in(f, step, acc)
-    col_t = np.empty(n)
-    col_r = np.empty(n)
-    for j in range(n):
-        p = (acc[j] + tail * end) / fac[j]
-        col_t[j] = (1.0 - beta[j]) * p
-        col_r[j] = beta[j] * p
+    col_t, col_r = jeans_columns(
+        r, ln_r, step, x_max, nu, m, m_end, tail_nu, beta_0, beta_inf, r_a, dark_radius, weights
+    )
     n_out = k0.shape[0]
     ln_s2 = np.empty((2, n_out))
     ln_sigma = np.empty(n_out)

@@ -5,8 +5,14 @@ relative to the model centre ``(x0, y0)`` and systemic motion ``(mu_x0, mu_y0)``
 (fitted nuisances, or fixed at 0), the projected radius ``R_i`` and the radial and
 tangential components ``v_R, v_T`` with errors ``e_R, e_T`` give
 
-    ln L = sum_i  ln N(v_R,i | 0, sigma_R(R_i)^2 + e_R,i^2) + ln N(v_T,i | 0, sigma_T(R_i)^2 + e_T,i^2)
+    ln L = sum_i  ln p(v_R,i, v_T,i | R_i)                   (kinematics)
          + sum_i  ln [ Sigma(R_i) c(R_i) / N_field ]             (star counts, optional)
+
+with ``p`` the mixture over the star's depth on the line of sight of Gaussian 3-D
+velocities convolved with the errors (``velocity_law = "line_of_sight"``, the default;
+:mod:`mavispm.dynamics.line_of_sight`), or the Gaussian with the projected dispersions
+``N(v_R | 0, sigma_R(R)^2 + e_R^2) N(v_T | 0, sigma_T(R)^2 + e_T^2)``
+(``velocity_law = "gaussian"``).
 
 ``N_field = int_field Sigma c dA`` is the tracer number inside the circular
 field of radius ``R_field`` about the *field* centre (exact for a model centre
@@ -40,10 +46,12 @@ from mavispm.dynamics.anisotropy import constant as constant_anisotropy
 from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
+from mavispm.dynamics.line_of_sight import mixture_star_sums, mixture_star_sums_about
 from mavispm.dynamics.star_sums import star_sums, star_sums_about, stars_about
 from mavispm.dynamics.tracers import make_tracer
 
 __all__ = [
+    "VELOCITY_LAWS",
     "DiscreteLikelihood",
     "PC_PER_ARCSEC_KPC",
     "StarSample",
@@ -53,6 +61,8 @@ __all__ = [
 PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 _LN_2PI = np.log(2.0 * np.pi)
 _GL16 = np.polynomial.legendre.leggauss(16)
+#: Proper-motion distributions of a star at a projected radius (see DiscreteLikelihood).
+VELOCITY_LAWS = ("line_of_sight", "gaussian")
 
 
 @dataclass(frozen=True)
@@ -130,6 +140,13 @@ class DiscreteLikelihood:
     completeness : (radii, values), optional
         Completeness of the sample against projected radius [arcsec] (linear
         interpolation, constant beyond the ends); used by the star-count term.
+    velocity_law : {"line_of_sight", "gaussian"}
+        Each star's proper-motion distribution: the mixture over its depth on the line
+        of sight of Gaussian 3-D velocities (:mod:`mavispm.dynamics.line_of_sight`), or
+        a Gaussian with the projected dispersions (faster, calibrated only for data
+        drawn from that Gaussian).
+    line_of_sight_nodes : int
+        Gauss-Legendre nodes of the line-of-sight mixture (accuracy knob).
     """
 
     def __init__(
@@ -149,6 +166,8 @@ class DiscreteLikelihood:
         star_counts: bool = True,
         points_per_efold: int = 24,
         completeness=None,
+        velocity_law: str = "line_of_sight",
+        line_of_sight_nodes: int = 16,
     ):
         self.stars = stars
         self.names = list(names)
@@ -159,6 +178,14 @@ class DiscreteLikelihood:
         self.distance = distance
         self.star_counts = star_counts
         self.min_radius = max(min_radius, 1e-6)
+        if velocity_law not in VELOCITY_LAWS:
+            raise InputError(
+                f"velocity_law must be one of {', '.join(VELOCITY_LAWS)}, got {velocity_law!r}"
+            )
+        if line_of_sight_nodes < 2:
+            raise InputError(f"line_of_sight_nodes must be >= 2, got {line_of_sight_nodes}")
+        self.velocity_law = velocity_law
+        self.line_of_sight_nodes = int(line_of_sight_nodes)
         self._fixed_tracer = make_tracer(tracer, gamma, concentration)
         for req in ("log_mass", "log_scale_radius"):
             if req not in self._idx:
@@ -340,6 +367,31 @@ class DiscreteLikelihood:
             self.tracer_of(theta), self.anisotropy_of(theta), b, weights
         )
 
+    def line_of_sight_on_grid(self, theta):
+        """Line-of-sight mixture components on the grid for ``theta``, compiled.
+
+        Parameters
+        ----------
+        theta : array_like
+            Physical parameter vector.
+
+        Returns
+        -------
+        mix_w, s2_r, s2_t : ndarray (M, K)
+            Component weights and sky-radial / sky-tangential variances [(mas/yr)^2]
+            (:meth:`mavispm.dynamics.jeans.JeansProjector.line_of_sight`).
+        ln_sigma, ln_proj : ndarray (M,)
+            ln surface density (a = 1, unit mass) and ln projected mass fraction.
+        """
+        b, scale, masses = self._mass_model(theta)
+        return self.projector.line_of_sight(
+            self.tracer_of(theta),
+            self.anisotropy_of(theta),
+            b,
+            np.multiply(scale, masses),
+            self.line_of_sight_nodes,
+        )
+
     def dispersion_at(self, theta, R):
         """Model radial and tangential PM dispersions [mas/yr] at radii ``R`` [arcsec].
 
@@ -406,6 +458,38 @@ class DiscreteLikelihood:
             x0,
             self.step,
             ln_s2,
+            ln_sig,
+        )
+
+    def _mixture_sums(self, theta, ln_a, mix_w, s2_r, s2_t, ln_sig):
+        """Summed ln mixture density and ln surface density of the stars about the model
+        centre and systemic motion of ``theta`` (:func:`mixture_star_sums`)."""
+        x0 = self.lnX_grid[0]
+        if not self._moving:
+            return mixture_star_sums(
+                self.lnR - ln_a, x0, self.step, mix_w, s2_r, s2_t, ln_sig, self._v2, self._e2
+            )
+        get = self._value
+        return mixture_star_sums_about(
+            self._xy[0],
+            self._xy[1],
+            self._pm_x,
+            self._pm_y,
+            self._cs[0],
+            self._cs[1],
+            self._e2[0],
+            self._e2[1],
+            float(get(theta, "x0", 0.0)),
+            float(get(theta, "y0", 0.0)),
+            float(get(theta, "pm_x0", 0.0)),
+            float(get(theta, "pm_y0", 0.0)),
+            self.min_radius,
+            float(ln_a),
+            x0,
+            self.step,
+            mix_w,
+            s2_r,
+            s2_t,
             ln_sig,
         )
 
@@ -476,10 +560,14 @@ class DiscreteLikelihood:
         offset = float(np.hypot(self._value(theta, "x0", 0.0), self._value(theta, "y0", 0.0)))
         if offset >= 0.5 * self.stars.field_radius:
             return -np.inf
-        ln_s2, ln_sig, ln_proj = self.log_model_on_grid(theta)
         ln_a = np.log(10.0) * log_a
-        chi, ln_sigma_stars = self._star_sums(theta, ln_a, ln_s2, ln_sig)
-        lnl = -0.5 * chi - self.n_stars * _LN_2PI
+        if self.velocity_law == "line_of_sight":
+            mix_w, s2_r, s2_t, ln_sig, ln_proj = self.line_of_sight_on_grid(theta)
+            lnl, ln_sigma_stars = self._mixture_sums(theta, ln_a, mix_w, s2_r, s2_t, ln_sig)
+        else:
+            ln_s2, ln_sig, ln_proj = self.log_model_on_grid(theta)
+            chi, ln_sigma_stars = self._star_sums(theta, ln_a, ln_s2, ln_sig)
+            lnl = -0.5 * chi - self.n_stars * _LN_2PI
         if self.star_counts:
             ln_norm = self.ln_field_norm(ln_a, offset, ln_sig, ln_proj)
             lnl += ln_sigma_stars - self.n_stars * (2.0 * ln_a + ln_norm)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from mavispm.core.config import unit_field
 from mavispm.dynamics.fast_stars import FastStarSettings
+from mavispm.dynamics.likelihood import VELOCITY_LAWS
 from mavispm.dynamics.tracers import TRACERS
 
 __all__ = [
@@ -51,6 +52,9 @@ class DynamicsKnobs:
         Radial grid of the Jeans integrals [points per unit ln r] (>= 4).
     truncation : float
         Outer truncation of the projection [scale radii] (>= 1e3).
+    line_of_sight_nodes : int
+        Gauss-Legendre depths per line of sight of the line-of-sight velocity mixture
+        (>= 2; used with ``velocity_law = "line_of_sight"``).
     bin_size, n_bootstrap : int
         Stars per bin and bootstrap resamples of the binned dispersion profile.
     walkers, max_steps, check_every : int
@@ -72,6 +76,7 @@ class DynamicsKnobs:
     projection_nodes: int = 6
     radial_points_per_efold: int = 24
     truncation: float = 1.0e4
+    line_of_sight_nodes: int = 16
     bin_size: int = 300
     n_bootstrap: int = 200
     walkers: int = 32
@@ -115,7 +120,10 @@ class DynamicsSettings:
     than ``completeness_mag_limit`` [mag], default the faintest fitted star),
     ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
-    ``projection_nodes``, ``radial_points_per_efold``, ``truncation``. Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    ``projection_nodes``, ``radial_points_per_efold``, ``truncation``,
+    ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("line_of_sight": each star's
+    motion is the mixture over its depth of Gaussian 3-D velocities; "gaussian": a
+    Gaussian with the projected dispersions). Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
     "nested": the posterior from the nested-sampling run, no emcee). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
@@ -138,6 +146,7 @@ class DynamicsSettings:
     dark_mass_max: float = unit_field(2.0e4, "solMass", "upper edge of the uniform M_dark prior")
     log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
     anisotropy: str = "constant"
+    velocity_law: str = "line_of_sight"
     beta_range: tuple[float, float] = (-0.5, 0.5)
     log_anisotropy_radius_range: tuple[float, float] = (0.0, 3.0)
     beta_inf_range: tuple[float, float] = (-0.5, 0.95)
@@ -168,6 +177,7 @@ class DynamicsSettings:
     projection_nodes: int = _K.projection_nodes
     radial_points_per_efold: int = _K.radial_points_per_efold
     truncation: float = _K.truncation
+    line_of_sight_nodes: int = _K.line_of_sight_nodes
     bin_size: int = _K.bin_size
     n_bootstrap: int = _K.n_bootstrap
     walkers: int = _K.walkers
@@ -194,6 +204,10 @@ class DynamicsSettings:
             raise ValueError(f"posterior must be 'emcee' or 'nested', got {self.posterior!r}")
         if self.posterior == "nested" and not self.evidence:
             raise ValueError("posterior = 'nested' needs evidence = true")
+        if self.velocity_law not in VELOCITY_LAWS:
+            raise ValueError(
+                f"velocity_law must be one of {VELOCITY_LAWS}, got {self.velocity_law!r}"
+            )
         if self.anisotropy not in ANISOTROPY:
             raise ValueError(f"anisotropy must be one of {ANISOTROPY}, got {self.anisotropy!r}")
         models = tuple(self.models)
@@ -256,6 +270,7 @@ class DynamicsSettings:
             "grid_size": self.grid_size - 7,
             "projection_panels": self.projection_panels,
             "projection_nodes": self.projection_nodes,
+            "line_of_sight_nodes": self.line_of_sight_nodes - 1,
             "radial_points_per_efold": self.radial_points_per_efold - 3,
             "walkers": self.walkers,
             "max_steps": self.max_steps,

@@ -64,16 +64,24 @@ def test_sbc_rank_histogram_of_bh_mass_is_uniform():
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "model, velocities", [("imbh", "projected"), ("imbh_dark", "projected"), ("imbh", "3d")]
+    "model, velocities, law",
+    [
+        ("imbh", "3d", "line_of_sight"),
+        ("imbh_dark", "3d", "line_of_sight"),
+        ("imbh", "projected", "gaussian"),
+    ],
 )
-def test_sbc_of_the_full_model(model, velocities):
+def test_sbc_of_the_full_model(model, velocities, law):
     """>= 100 fits of the full model (cusp, anisotropy, distance, centre, systemic motion;
     with ``imbh_dark`` the extended dark component too), every parameter drawn from the
     fit's prior and the stars from an independently written forward model
     (``sbc_helpers``): the rank histogram of the true M_bh is uniform (chi^2 p > 0.01).
-    ``velocities = "3d"`` draws 3-D velocities (a real cluster's line-of-sight mixture)."""
+    ``velocities = "3d"`` draws 3-D Gaussian velocities at each star's depth (a real
+    cluster's line-of-sight mixture), fitted with the default line-of-sight law;
+    ``"projected"`` draws the Gaussian of the projected dispersions, fitted with the
+    Gaussian law."""
     n = int(os.environ.get("DYN_SBC_N", "100"))
-    fn = functools.partial(sbc_full_trial, model=model, velocities=velocities)
+    fn = functools.partial(sbc_full_trial, model=model, velocities=velocities, velocity_law=law)
     rows = _run(fn, [(s,) for s in range(3000, 3000 + n)])
     p = rank_uniformity_p([r["rank"] for r in rows], rows[0]["n_ranks"])
     cov68 = np.mean([r["q16"] <= r["bh_true"] <= r["q84"] for r in rows])

@@ -24,9 +24,10 @@ def _stars(n=50, seed=0, R=None, err=0.05):
 
 
 def test_likelihood_matches_brute_force():
-    """Per-star sum written out directly with the unit-aware model and analytic Plummer counts."""
+    """Per-star sum written out directly with the unit-aware model and analytic Plummer counts
+    (the Gaussian velocity law)."""
     s = _stars(40, R=np.linspace(0.2, 16.9, 40))
-    like = DiscreteLikelihood(s, NAMES, distance=4.6)
+    like = DiscreteLikelihood(s, NAMES, distance=4.6, velocity_law="gaussian")
     theta = np.array([5.0, 1.6, 2000.0, 0.2])
     a = 10**1.6
     sr, st_ = projected_dispersion(
