@@ -49,6 +49,10 @@ class LinearMotion:
         Chi-square of the linear fit (both axes), 0 for two epochs.
     dof : ndarray of int
         Its degrees of freedom, ``2 (n_epochs - 2)``.
+    coef_x, coef_y : ndarray, shape (n, n_epochs), optional
+        ``d pm / d X_k``: the weights [1/yr] that turn a change of each epoch's aligned
+        position into a change of the proper motion (0 where not valid), for
+        propagating errors shared between stars.
     """
 
     pm_x: np.ndarray
@@ -61,6 +65,8 @@ class LinearMotion:
     n_epochs: np.ndarray
     chi2: np.ndarray
     dof: np.ndarray
+    coef_x: np.ndarray | None = None
+    coef_y: np.ndarray | None = None
 
     def poor_fit(self, p_min: float = 1e-3) -> np.ndarray:
         """Stars whose motion is inconsistent with a straight line (chi-square p < ``p_min``).
@@ -144,6 +150,8 @@ def fit_linear_motion(
         n_epochs=n_valid,
         chi2=chix + chiy,
         dof=2 * (n_valid - 2),
+        coef_x=cx,
+        coef_y=cy,
     )
 
 

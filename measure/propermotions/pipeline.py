@@ -37,6 +37,7 @@ __all__ = [
     "PMFlag",
     "ProperMotionResult",
     "derive_proper_motions",
+    "extrapolated",
 ]
 
 MAS = 1e3  # mas per arcsec
@@ -51,8 +52,9 @@ class PMFlag:
     INPUT_FLAGGED = 8  #: the measure stage flagged it in a used epoch
     AMBIGUOUS = 16  #: positional match had a competing candidate
     AT_CENTRE = 32  #: at the centre: radial/tangential directions undefined (x axis used)
-    #: outside the reference stars' area in some epoch, or where the transformation's
-    #: uncertainty exceeds the star's own measurement error (poorly constrained)
+    #: the transformation is extrapolated at the star in some epoch: outside the bounding
+    #: box of the reference stars, or where the transformation's (measurement) variance
+    #: exceeds its largest value at any reference star (:func:`extrapolated`)
     EXTRAPOLATED = 64
     POOR_FIT = 128  #: multi-epoch positions inconsistent with a straight line
     #: bits that make a proper motion unfit for science (written to the product as the
@@ -211,6 +213,7 @@ def derive_proper_motions(
     vy = np.where(valid, sy**2, 1.0)
     vxy = np.zeros_like(vx)
     fits: list[AlignmentFit | None] = [None] * n_ep
+    frame_sd = np.zeros((x.shape[0], n_ep, 2))
     flag = np.zeros(x.shape[0], np.int64)
     ever_candidate = np.zeros(x.shape[0], bool)
     for k in range(n_ep):
@@ -236,10 +239,11 @@ def derive_proper_motions(
         fits[k] = fit
         _note_order(fit, x[:, k], y[:, k], x[:, ref], y[:, ref], t[k], notes)
         flag[cand & ~fit.used] |= PMFlag.CLIPPED
-        ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k], poorly = _aligned(
+        ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k], tvar = _aligned(
             fit, x[:, k], y[:, k], sx[:, k], sy[:, k], valid[:, k]
         )
-        flag[valid[:, k] & (poorly | _outside(fit, x[:, k], y[:, k]))] |= PMFlag.EXTRAPOLATED
+        flag[valid[:, k] & extrapolated(fit, x[:, k], y[:, k], *tvar)] |= PMFlag.EXTRAPOLATED
+        frame_sd[:, k] = _frame_sd(fit, x[:, k], y[:, k], valid[:, k], t[k] - t[ref])
 
     keep = np.count_nonzero(valid, axis=1) >= 2
     n_dropped = int(np.count_nonzero(~keep))
@@ -256,6 +260,15 @@ def derive_proper_motions(
     flag[np.any((flag_in[keep] != 0) & valid[keep], axis=1)] |= PMFlag.INPUT_FLAGGED
     flag[match.ambiguous[keep]] |= PMFlag.AMBIGUOUS
     flag[motion.poor_fit(settings.poor_fit_p)] |= PMFlag.POOR_FIT
+    # the frame error is fully correlated between epochs (the same reference stars'
+    # motions, growing with the time from the reference epoch): add it linearly
+    fsd = frame_sd[keep]
+    frame_pm = np.column_stack(
+        [
+            np.abs(np.sum(motion.coef_x * fsd[:, :, 0], axis=1)),
+            np.abs(np.sum(motion.coef_y * fsd[:, :, 1], axis=1)),
+        ]
+    )
 
     distance = settings.distance
     if distance is None:
@@ -264,6 +277,16 @@ def derive_proper_motions(
             notes.append(f"epochs disagree on the distance {sorted(found)} kpc; using the first")
         distance = next((e.distance for e in epochs if e.distance is not None), None)
     stars = _stars_table(match.ids[keep], motion, mag[keep], flag, settings, distance, notes)
+    stars.add_column(
+        frame_pm[:, 0] * MAS * u.mas / u.yr,
+        name="pm_x_err_frame",
+        index=stars.colnames.index("pm_t_err") + 1,
+    )
+    stars.add_column(
+        frame_pm[:, 1] * MAS * u.mas / u.yr,
+        name="pm_y_err_frame",
+        index=stars.colnames.index("pm_x_err_frame") + 1,
+    )
     truth_ids = _truth_ids(epochs, match, ref)
     if truth_ids is not None:  # scoring only (blind epochs: the detections' truth matches)
         stars.add_column(truth_ids[keep], name="id_true", index=1)
@@ -304,15 +327,42 @@ def _note_order(fit, x, y, x_ref, y_ref, epoch, notes) -> None:
         )
 
 
-def _outside(fit: AlignmentFit, x, y) -> np.ndarray:
-    """Positions outside the bounding box of the fit's reference stars."""
-    xs, ys = x[fit.used], y[fit.used]
-    return (x < xs.min()) | (x > xs.max()) | (y < ys.min()) | (y > ys.max())
+def extrapolated(fit: AlignmentFit, x, y, tx, ty) -> np.ndarray:
+    """Where a star's position needs the transformation beyond what its reference stars tie down.
+
+    The rule of flag 64 (:attr:`PMFlag.EXTRAPOLATED`): the position lies outside the
+    bounding box of the fit's reference stars, or the variance the transformation's
+    measurement covariance gives there (``tx``, ``ty``) exceeds its largest value at
+    any reference star (in either axis) - a position of higher leverage than every
+    star that constrains the fit, where the polynomial is extrapolated. The
+    transformation's variance is part of every star's error; it is not compared with
+    the star's own error (that flagged the best-measured stars, whose PMs are fine).
+
+    Parameters
+    ----------
+    fit : AlignmentFit
+        The epoch's transformation (its ``used`` reference stars).
+    x, y : ndarray
+        Epoch-frame positions [arcsec] of all stars (any value where not valid).
+    tx, ty : ndarray
+        The transformation's position variance at each star [arcsec^2]
+        (:meth:`TransformModel.position_covariance` of ``measurement_covariance``).
+
+    Returns
+    -------
+    ndarray of bool
+    """
+    used = fit.used
+    xs, ys = x[used], y[used]
+    out = (x < xs.min()) | (x > xs.max()) | (y < ys.min()) | (y > ys.max())
+    lim_x, lim_y = np.max(tx[used]), np.max(ty[used])
+    tol = 1.0 + 1e-9  # round-off at the reference star that sets the limit
+    return out | (tx > lim_x * tol) | (ty > lim_y * tol)
 
 
 def _aligned(fit: AlignmentFit, x, y, sx, sy, valid):
-    """Aligned positions, their covariance (measurement + transformation), and where
-    the transformation's variance exceeds the measurement variance."""
+    """Aligned positions, their covariance (measurement + transformation), and the
+    transformation's own position variances ``(tx, ty)`` [arcsec^2]."""
     xx = np.where(valid, x, 0.0)
     yy = np.where(valid, y, 0.0)
     mx, my = fit.apply(xx, yy)
@@ -323,8 +373,24 @@ def _aligned(fit: AlignmentFit, x, y, sx, sy, valid):
     var_y = jac[:, 1, 0] ** 2 * s2x + jac[:, 1, 1] ** 2 * s2y
     cov = jac[:, 0, 0] * jac[:, 1, 0] * s2x + jac[:, 0, 1] * jac[:, 1, 1] * s2y
     tx, ty, txy = fit.model.position_covariance(fit.measurement_covariance, xx, yy)
-    poorly = (tx > var_x) | (ty > var_y)
-    return mx, my, var_x + tx, var_y + ty, cov + txy, poorly
+    return mx, my, var_x + tx, var_y + ty, cov + txy, (tx, ty)
+
+
+def _frame_sd(fit: AlignmentFit, x, y, valid, dt: float) -> np.ndarray:
+    """Signed frame error at each star [arcsec], shape (n, 2).
+
+    The part of the transformation's covariance from the sampling of the reference
+    stars' internal motions (full minus measurement covariance) at the star's
+    position; it grows with the epoch's distance ``dt`` [yr] from the reference
+    epoch (the same stars' motions), so it carries the sign of ``dt`` for the
+    fully correlated propagation into the proper motion.
+    """
+    frame_cov = fit.covariance - fit.measurement_covariance
+    xx = np.where(valid, x, 0.0)
+    yy = np.where(valid, y, 0.0)
+    fx, fy, _ = fit.model.position_covariance(frame_cov, xx, yy)
+    sign = np.sign(dt)
+    return np.where(valid[:, None], sign * np.sqrt(np.column_stack([fx, fy])), 0.0)
 
 
 def _stars_table(ids, motion, mag, flag, settings, distance, notes) -> QTable:

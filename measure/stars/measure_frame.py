@@ -745,6 +745,7 @@ def blind_detection(frame: Frame, settings: MeasureSettings):
         fwhm=fwhm,
         passes=settings.detection_passes,
         model_error=settings.detection_model_error,
+        wing_radius=int(round(settings.detection_wing_radius)),
     )
     x0, y0, info = detect_stars(frame, settings, build_psf, run_engine, opts)
     return x0, y0, {"first_pass": info["n_first"], "passes": json.dumps(info["n_pass"])}

@@ -28,6 +28,13 @@ DAOPhot's FIND + ALLSTAR loop, vectorised:
    32 x 32 pixel tiles: structured light the model does not hold (a cluster's
    PSF halo beyond the ePSF footprint) raises the threshold where it is.
    Steps 2-3 repeat ``passes - 1`` times or until nothing new is found.
+4. **PSF wings.** Beyond the ePSF footprint the AO PSF keeps speckles and the
+   control-radius ring out to ~40 pixels (0.3"), unmodelled and unsubtracted.
+   Their standard deviation per unit flux, ``s(r)`` out to ``wing_radius``, is
+   measured on the bright stars' residuals (:func:`wing_profile`); every fitted
+   star's ``F s(r)`` (:func:`wing_image`) is added to the model error of the
+   residual passes' significance, and ``wing_prune_scale`` of its 3 x 3 core sum
+   to the neighbours' model error of the pruning test.
 
 The functions take the frame and stage callables from
 :mod:`mavispm.measure.stars.measure_frame`; no truth is used.
@@ -65,6 +72,8 @@ __all__ = [
     "sampled_epsf",
     "significance",
     "useful_psfs",
+    "wing_image",
+    "wing_profile",
 ]
 
 
@@ -98,6 +107,14 @@ class DetectionOptions:
     noise_tile : int
         Tile [pixel] in which the significance is divided by its own robust
         scatter (:func:`locally_normalised`; 0: none).
+    wing_radius : int
+        Outer radius [pixel] of the structured PSF wing beyond the ePSF footprint
+        that counts as a star's model error (:func:`wing_profile`; 0: none).
+    wing_prune_scale : float
+        Factor on the neighbours' wing structure summed linearly over a candidate's
+        3 x 3 core in the pruning test (independent pixels would give
+        ``3 sqrt(pi / 2) / 9 = 0.42``; the local noise scale already holds part of
+        the structure). The residual passes count the wing per pixel in full.
     """
 
     threshold: float = 5.0
@@ -110,6 +127,8 @@ class DetectionOptions:
     bad_margin: int = 2
     background_box: int = 9
     noise_tile: int = 32
+    wing_radius: int = 48
+    wing_prune_scale: float = 0.25
 
 
 def _gaussian_kernel(fwhm: float) -> np.ndarray:
@@ -377,6 +396,138 @@ def model_error_profile(
     return np.clip(np.nan_to_num(alpha, nan=floor), floor, 1.0)
 
 
+def wing_profile(
+    residual: np.ndarray,
+    variance: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    r_in: int,
+    r_out: int,
+    n_stars: int = 50,
+) -> np.ndarray:
+    """Structured light of a star's PSF wing beyond the ePSF footprint, per unit flux.
+
+    The ePSF describes a star's light only inside its footprint; beyond it the AO
+    PSF keeps speckles and the control-radius ring, which the fit neither holds nor
+    subtracts. For the ``n_stars`` brightest stars with the whole annulus ``r_out``
+    inside the frame, per 1-pixel annulus: the structure's variance ``sigma_s^2``
+    from the *median* absolute residual, ``(med |r| / 0.6745)^2 = sigma_s^2 +
+    sigma_n^2`` (``sigma_n^2`` the median noise variance there), leaving out the
+    pixels within ``r_in`` of another star at least 1e-3 as bright (its own model
+    error is :func:`model_error_profile`'s); ``s = sigma_s / F``, the median over the
+    stars; zero inside ``r_in``.
+
+    Parameters
+    ----------
+    residual : ndarray
+        Residual image after the fit, its running median removed [electron].
+    variance : ndarray
+        Per-pixel noise variance of the frame [electron^2].
+    x, y : ndarray
+        Fitted positions [pixel].
+    flux : ndarray
+        Fitted fluxes [electron].
+    r_in, r_out : int
+        Radii [pixel]: the ePSF footprint (its model error is
+        :func:`model_error_profile`'s) and the outer edge.
+    n_stars : int
+        Number of bright stars used.
+
+    Returns
+    -------
+    ndarray
+        ``s[k]`` [1/pixel] for radii ``k .. k + 1`` pixels, ``k = 0 .. r_out``: the
+        structure's standard deviation per pixel is ``F s``.
+    """
+    ny, nx = residual.shape
+    flux = np.nan_to_num(np.asarray(flux, float))
+    off = np.arange(-r_out, r_out + 1)
+    ring = np.hypot(off[:, None], off[None, :]).astype(int).ravel()
+    order = np.argsort(ring, kind="stable")
+    bounds = np.searchsorted(ring[order], np.arange(r_out + 2))
+    lo = max(r_in, 0)
+    ok = np.isfinite(x) & np.isfinite(y) & (flux > 0)
+    tree = cKDTree(np.column_stack([x[ok], y[ok]]))
+    xo, yo, fo = x[ok], y[ok], flux[ok]
+    prof = []
+    for i in np.argsort(-flux)[:n_stars]:
+        cx, cy = int(np.rint(x[i])), int(np.rint(y[i]))
+        if not (r_out <= cx < nx - r_out and r_out <= cy < ny - r_out) or flux[i] <= 0:
+            continue
+        cut = np.abs(residual[cy - r_out : cy + r_out + 1, cx - r_out : cx + r_out + 1])
+        var = variance[cy - r_out : cy + r_out + 1, cx - r_out : cx + r_out + 1]
+        # the other stars' footprints (their model error is alpha's) are not this wing
+        keep = np.ones(cut.shape, bool)
+        for j in tree.query_ball_point([x[i], y[i]], r_out + lo):
+            if fo[j] < 1e-3 * flux[i] or (xo[j] == x[i] and yo[j] == y[i]):
+                continue
+            keep &= np.hypot(off[None, :] + cx - xo[j], off[:, None] + cy - yo[j]) > lo
+        cut, var, kp = cut.ravel()[order], var.ravel()[order], keep.ravel()[order]
+        row = np.full(r_out + 1, np.nan)
+        for k in range(lo, r_out + 1):
+            a, b = bounds[k], bounds[k + 1]
+            m = kp[a:b]
+            if np.count_nonzero(m) < 8:
+                continue
+            total = (np.median(cut[a:b][m]) / 0.6745) ** 2 - np.median(var[a:b][m])
+            row[k] = np.sqrt(max(total, 0.0)) / flux[i]
+        prof.append(row)
+    if not prof:
+        return np.zeros(r_out + 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        s = np.nan_to_num(np.nanmedian(np.array(prof), axis=0))
+    s[:lo] = 0.0
+    return s
+
+
+def wing_image(
+    shape: tuple[int, int], x, y, flux, profile: np.ndarray, min_amplitude: float = 0.0
+) -> np.ndarray:
+    """Image of the stars' wing structure ``sum_i F_i s(|p - p_i|)`` [electron/pixel].
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Frame shape ``(ny, nx)``.
+    x, y : ndarray
+        Star positions [pixel].
+    flux : ndarray
+        Fluxes [electron] (non-positive or non-finite ones count as 0).
+    profile : ndarray
+        :func:`wing_profile` ``s`` [1/pixel].
+    min_amplitude : float
+        Stars whose wing peaks below this [electron/pixel] (``F max(s)``) are left out.
+
+    Returns
+    -------
+    ndarray
+        The wing structure's amplitude per pixel [electron].
+    """
+    ny, nx = shape
+    out = np.zeros(shape)
+    r_out = len(profile) - 1
+    f = np.clip(np.nan_to_num(np.asarray(flux, float)), 0.0, None)
+    peak = float(np.max(profile)) if r_out >= 1 else 0.0
+    use = np.flatnonzero((f > 0) & (f * peak > min_amplitude)) if peak > 0 else []
+    if len(use) == 0:
+        return out
+    off = np.arange(-r_out, r_out + 1)
+    r = np.hypot(off[:, None], off[None, :])
+    kernel = np.where(r <= r_out, profile[np.clip(r.astype(int), 0, r_out)], 0.0)
+    for i in use:
+        cx, cy = int(np.rint(x[i])), int(np.rint(y[i]))
+        x0, x1 = max(cx - r_out, 0), min(cx + r_out + 1, nx)
+        y0, y1 = max(cy - r_out, 0), min(cy + r_out + 1, ny)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        out[y0:y1, x0:x1] += (
+            f[i] * kernel[y0 - cy + r_out : y1 - cy + r_out, x0 - cx + r_out : x1 - cx + r_out]
+        )
+    return out
+
+
 #: Beyond the first radius where the model error exceeds this fraction of the model,
 #: the detector neither subtracts the model nor counts its error (it does more harm).
 MAX_USEFUL_ERROR = 0.5
@@ -429,6 +580,7 @@ def prune(
     shape: tuple[int, int],
     options: DetectionOptions,
     scale: np.ndarray | None = None,
+    wing: np.ndarray | None = None,
 ):
     """Candidates that survive the joint fit (see the module docstring).
 
@@ -452,6 +604,9 @@ def prune(
         The detection threshold.
     scale : ndarray, optional
         Local excess scatter of the significance map.
+    wing : ndarray, optional
+        The known stars' wing structure beyond the ePSF footprint
+        (:func:`wing_image`) [electron/pixel], counted with the model error.
 
     Returns
     -------
@@ -470,6 +625,8 @@ def prune(
     core3 = float(sampled_epsf(psf, cx, cy, 1).sum())
     own = used * float(sampled_epsf(err_psf, cx, cy, 1).sum())
     neighbours = np.clip(_core_sum(error, fit.x, fit.y) - own, 0.0, None)
+    if wing is not None:  # zero within the footprint: a star's own wing is not in its core
+        neighbours = neighbours + _core_sum(wing, fit.x, fit.y)
     with np.errstate(invalid="ignore", divide="ignore"):
         snr = flux / np.hypot(fit.flux_err, neighbours / core3)
     if scale is not None:  # the local excess scatter of the significance (noise_scale)
@@ -543,6 +700,8 @@ def detect_stars(
     kernel = psf_kernel(psf, frame.shape[1] / 2, frame.shape[0] / 2)
     radius = int(np.floor(psf.radius_pix))
     err_psf = None
+    wing_s = None
+    wing_floor = 0.05 * float(np.sqrt(np.median(base_var)))  # a wing below 5% of the noise
     for p in range(max(1, options.passes)):
         fit = run_engine(frame, psf, x, y, quick, engine="fast", return_model=False)
         if err_psf is None:  # the model error, measured on the bright stars' residuals
@@ -554,12 +713,31 @@ def detect_stars(
             )
             info["model_error_profile"] = [round(float(a), 4) for a in alpha]
             model_psf, err_psf = useful_psfs(psf, alpha)
-        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options, scale)
+            if options.wing_radius > radius:
+                wing_s = wing_profile(
+                    resid,
+                    base_var + np.clip(data, 0, None),
+                    fit.x,
+                    fit.y,
+                    flux,
+                    radius + 1,
+                    options.wing_radius,
+                )
+                info["wing_profile"] = [round(float(a), 7) for a in wing_s]
+        wing = None
+        if wing_s is not None:  # the wings of every star fitted in this pass
+            good = (fit.flag & FLAG_FAILED) == 0
+            wing = wing_image(
+                frame.shape, fit.x, fit.y, np.where(good, fit.flux, 0.0), wing_s, wing_floor
+            )
+        pw = None if wing is None else options.wing_prune_scale * wing
+        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options, scale, pw)
         x, y = fit.x[keep], fit.y[keep]
         info["n_pass"].append(int(len(x)))
         if p == options.passes - 1:
             break
-        var = base_var + np.clip(model, 0, None) + error**2
+        structure = error if wing is None else error + wing
+        var = base_var + np.clip(model, 0, None) + structure**2
         resid = local_background_subtracted(data - model, options.background_box)
         snr = significance(resid, var, kernel)
         scale = noise_scale(snr, options.noise_tile)

@@ -204,6 +204,10 @@ class MeasureSettings:
     detection_model_error : float
         Fractional ePSF model error of the "psf" detector: a candidate must be
         significant against this fraction of its neighbours' model light too.
+    detection_wing_radius : float [pix]
+        Outer radius of the structured PSF wing (speckles, the AO control-radius
+        ring) beyond the ePSF footprint that the "psf" detector measures on the
+        bright stars' residuals and counts as their neighbours' model error; 0: off.
     psf_model : {"auto", "epsf", "psfr"}
         "epsf": the empirical ePSF built from the frame's PSF stars (``epsf_builder``);
         "psfr": the AO PSF-reconstruction prior ``psf_prior`` (a ``psfgrid`` product,
@@ -256,6 +260,7 @@ class MeasureSettings:
     detection_method: Literal["psf", "daofind"] = "psf"
     detection_passes: int = 3
     detection_model_error: float = 0.03
+    detection_wing_radius: float = unit_field(48.0, "pix")
     psf_model: Literal["auto", "epsf", "psfr"] = "auto"
     psf_prior: str = ""
     psfr_width_error: float = 0.03
@@ -317,7 +322,13 @@ class MeasureSettings:
         for key in ("match_radius", "crowding_radius"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=key)
-        for key in ("perturbation", "detection_fwhm", "crowding_ratio", "detection_model_error"):
+        for key in (
+            "perturbation",
+            "detection_fwhm",
+            "crowding_ratio",
+            "detection_model_error",
+            "detection_wing_radius",
+        ):
             if not getattr(self, key) >= 0:
                 raise ConfigError(f"must be >= 0, got {getattr(self, key)}", key=key)
 
