@@ -637,6 +637,8 @@ def run_stage(
         if fit.evidence is not None:
             attrs[f"log_z_{n}"] = fit.evidence.log_z
             attrs[f"log_z_err_{n}"] = fit.evidence.log_z_err
+            attrs[f"evidence_method_{n}"] = fit.evidence.method
+            attrs[f"pareto_k_{n}"] = float(fit.evidence.pareto_k)
         if fit.evidence_kinematic is not None:
             attrs[f"log_z_kinematic_{n}"] = fit.evidence_kinematic.log_z
             attrs[f"log_z_kinematic_err_{n}"] = fit.evidence_kinematic.log_z_err

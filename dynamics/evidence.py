@@ -52,6 +52,10 @@ class EvidenceResult:
     samples: np.ndarray | None = None
     #: physical parameters of the highest-likelihood point
     best: np.ndarray | None = None
+    #: "direct", or "reweighted" (a proposal run importance-reweighted to the likelihood)
+    method: str = "direct"
+    #: Pareto shape of the importance ratios' tail (reweighted runs; NaN otherwise)
+    pareto_k: float = float("nan")
 
 
 def run_dynesty(
@@ -61,8 +65,14 @@ def run_dynesty(
     nlive: int = 250,
     dlogz: float = 0.1,
     progress: bool = False,
+    target: Callable[[np.ndarray], float] | None = None,
+    n_draws: int = 4000,
 ):
     """Evidence of one model with dynesty's static nested sampler.
+
+    With ``target``, ``loglike`` is a cheap proposal: its run's posterior draws are
+    importance-reweighted to ``target`` (:mod:`mavispm.dynamics.reweighting`), and where
+    the ratios' Pareto shape exceeds 0.7 ``target`` is sampled directly instead.
 
     Parameters
     ----------
@@ -77,6 +87,10 @@ def run_dynesty(
         Stopping criterion on the remaining evidence.
     progress : bool
         Print dynesty's progress line.
+    target : callable, optional
+        The likelihood wanted, when ``loglike`` is its cheap proposal.
+    n_draws : int
+        Proposal posterior draws reweighted to ``target``.
     """
     import dynesty
 
@@ -93,6 +107,8 @@ def run_dynesty(
     )
     sampler.run_nested(dlogz=dlogz, print_progress=progress)
     res = sampler.results
+    if target is not None:
+        return _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws)
     return EvidenceResult(
         log_z=float(res.logz[-1]),
         log_z_err=float(res.logzerr[-1]),
@@ -100,6 +116,32 @@ def run_dynesty(
         max_log_like=float(np.max(res.logl)),
         samples=np.asarray(res.samples_equal(rstate=np.random.default_rng(seed))),
         best=np.asarray(res.samples[int(np.argmax(res.logl))]),
+    )
+
+
+def _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws):
+    """The proposal run ``res`` reweighted to ``target``, or a direct run of ``target`` when
+    the reweighting is unreliable (Pareto shape > :data:`~mavispm.dynamics.reweighting.K_MAX`)."""
+    from mavispm.dynamics.reweighting import K_MAX, reweight_samples
+
+    rng = np.random.default_rng([seed, 71])
+    logw = res.logwt - res.logz[-1]
+    pick = rng.choice(logw.size, size=n_draws, replace=True, p=np.exp(logw) / np.exp(logw).sum())
+    rw = reweight_samples(res.samples[pick], res.logl[pick], target, rng)
+    if not rw["pareto_k"] <= K_MAX:
+        direct = run_dynesty(target, space, seed, nlive=nlive, dlogz=dlogz, progress=progress)
+        direct.n_calls += int(np.sum(res.ncall)) + rw["n_calls"]
+        direct.pareto_k = rw["pareto_k"]
+        return direct
+    return EvidenceResult(
+        log_z=float(res.logz[-1]) + rw["log_mean_ratio"],
+        log_z_err=float(np.hypot(res.logzerr[-1], rw["log_mean_ratio_err"])),
+        n_calls=int(np.sum(res.ncall)) + rw["n_calls"],
+        max_log_like=rw["max_log_like"],
+        samples=rw["samples"],
+        best=rw["best"],
+        method="reweighted",
+        pareto_k=rw["pareto_k"],
     )
 
 

@@ -13,7 +13,7 @@ A fit whose chains have not converged gives no headline numbers (NaN) and says s
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -326,7 +326,7 @@ def _fit_model(stars, settings, distance, model, seed, backend_path, kinematic=T
     evid = evid_kin = None
     if settings.evidence:
         t0 = time.perf_counter()
-        evid = run_dynesty(like, space, seed + 1, nlive=settings.nlive, dlogz=settings.dlogz)
+        evid = _run_evidence(stars, space, settings, distance, like, seed + 1)
         wall["evidence"] = time.perf_counter() - t0
         if _separate_kinematic_evidence(settings):
             if kinematic:
@@ -361,8 +361,19 @@ def _kinematic_evidence(stars, settings, distance, model, seed):
     space = parameter_space(settings, distance, _model_name(model), positions=stars.x is not None)
     kin = make_likelihood(stars, space, settings, distance, star_counts=False)
     t0 = time.perf_counter()
-    evid = run_dynesty(kin, space, seed + 2, nlive=settings.nlive, dlogz=settings.dlogz)
+    evid = _run_evidence(stars, space, settings, distance, kin, seed + 2, star_counts=False)
     return evid, time.perf_counter() - t0
+
+
+def _run_evidence(stars, space, settings, distance, like, seed, star_counts=None):
+    """dynesty on ``like``; with ``reweight`` (and the line-of-sight law) a run with the
+    Gaussian law reweighted to ``like`` (:func:`mavispm.dynamics.evidence.run_dynesty`)."""
+    target = None
+    if settings.reweight and settings.velocity_law == "line_of_sight":
+        target = like
+        gaussian = replace(settings, velocity_law="gaussian")
+        like = make_likelihood(stars, space, gaussian, distance, star_counts=star_counts)
+    return run_dynesty(like, space, seed, nlive=settings.nlive, dlogz=settings.dlogz, target=target)
 
 
 def _n_extra(model: str) -> int:

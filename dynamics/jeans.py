@@ -305,7 +305,8 @@ class JeansProjector:
         tracer, anisotropy, dark_radius, weights
             As :meth:`log_dispersions`.
         n_nodes : int
-            Gauss-Legendre nodes per line of sight (the nodes are built once per value).
+            Gauss-Legendre nodes per line of sight (built once per value and tracer
+            extent: a truncated tracer's lines of sight end at its tidal radius).
 
         Returns
         -------
@@ -315,12 +316,14 @@ class JeansProjector:
         ln_sigma, ln_proj : ndarray (M,)
             ln surface density and ln projected mass fraction.
         """
-        nodes = self._los_nodes.get(n_nodes)
+        base = getattr(tracer, "base", tracer)
+        r_end = base.tidal_radius if np.isinf(base.outer_slope) else None
+        nodes = self._los_nodes.get((n_nodes, r_end))
         if nodes is None:
             nodes = line_of_sight_nodes(
-                self.X, self.ln_r[0], self.step, self.r.size, n_nodes, self.x_max
+                self.X, self.ln_r[0], self.step, self.r.size, n_nodes, self.x_max, r_end
             )
-            self._los_nodes[n_nodes] = nodes
+            self._los_nodes[(n_nodes, r_end)] = nodes
         return line_of_sight_model(
             *self._kernel_args(tracer, anisotropy, dark_radius, weights),
             nodes.index,

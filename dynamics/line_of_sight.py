@@ -24,8 +24,9 @@ intervals too narrow on 3-D Gaussian velocities); this mixture is the model's ow
 
 Numerics. With ``r = X cosh t`` (``X = R / a``), ``dz = X cosh t dt`` and the integrand
 is regular at ``z = 0``. ``K`` Gauss-Legendre nodes in ``t`` on
-``[0, arccosh(z_max / X)]`` with ``z_max = max(100, 10 X)`` scale radii (the tracer
-beyond holds < 1e-6 of any line of sight of the profiles offered) give the mixture's
+``[0, arccosh(r_end / X)]`` with ``r_end = max(100, 10 X)`` scale radii (the tracer
+beyond holds < 1e-6 of any line of sight of the profiles offered), or the tidal radius of
+a truncated (King 1962) tracer, give the mixture's
 components on the likelihood's output grid ``X_j``: weights ``W_jk`` (normalised to
 one per ``j``) and variances ``s_R^2``, ``s_T^2``. The tracer density and the Jeans
 columns at the nodes come from the projector's radial grid by cubic interpolation.
@@ -57,8 +58,9 @@ __all__ = [
 ]
 
 _LN_2PI = np.log(2.0 * np.pi)
-#: Least end of every line of sight [scale radii]: beyond it < 1e-6 of the tracer.
-Z_MAX = 100.0
+#: Least 3-D radius where every line of sight ends [scale radii]: beyond it < 1e-6 of an
+#: untruncated tracer.
+R_END = 100.0
 
 
 @dataclass(frozen=True)
@@ -84,7 +86,9 @@ class LineOfSightNodes:
     inv_cosh2: np.ndarray
 
 
-def line_of_sight_nodes(X, ln_r0: float, step: float, n_r: int, n_nodes: int, x_max: float):
+def line_of_sight_nodes(
+    X, ln_r0: float, step: float, n_r: int, n_nodes: int, x_max: float, r_end: float | None = None
+):
     """Build :class:`LineOfSightNodes` for output radii ``X`` on a uniform ``ln r`` grid.
 
     Parameters
@@ -97,6 +101,9 @@ def line_of_sight_nodes(X, ln_r0: float, step: float, n_r: int, n_nodes: int, x_
         Gauss-Legendre nodes per line of sight (>= 2).
     x_max : float
         End of the radial grid [scale radii]; nodes stay inside it.
+    r_end : float, optional
+        3-D radius where the tracer ends [scale radii] (a tidal radius; None: untruncated,
+        the lines of sight end at ``max(100, 10 X)``).
 
     Returns
     -------
@@ -105,8 +112,9 @@ def line_of_sight_nodes(X, ln_r0: float, step: float, n_r: int, n_nodes: int, x_
     if n_nodes < 2:
         raise ValueError(f"line_of_sight_nodes must be >= 2, got {n_nodes}")
     X = np.asarray(X, dtype=float)
-    z_max = np.minimum(np.maximum(Z_MAX, 10.0 * X), 0.999 * x_max)
-    t_max = np.arccosh(np.maximum(z_max / X, 1.0 + 1e-12))
+    end = np.maximum(R_END, 10.0 * X) if r_end is None else np.full(X.shape, float(r_end))
+    end = np.minimum(end, 0.999 * x_max)
+    t_max = np.arccosh(np.maximum(end / X, 1.0 + 1e-12))
     g, gw = np.polynomial.legendre.leggauss(n_nodes)
     t = 0.5 * t_max[:, None] * (g[None, :] + 1.0)
     cosh_t = np.cosh(t)

@@ -55,6 +55,9 @@ class DynamicsKnobs:
     line_of_sight_nodes : int
         Gauss-Legendre depths per line of sight of the line-of-sight velocity mixture
         (>= 2; used with ``velocity_law = "line_of_sight"``).
+    reweight : bool
+        Nested sampling with the Gaussian law, its posterior draws importance-reweighted
+        to the line-of-sight law (a direct run where the ratios' Pareto shape > 0.7).
     bin_size, n_bootstrap : int
         Stars per bin and bootstrap resamples of the binned dispersion profile.
     walkers, max_steps, check_every : int
@@ -77,6 +80,7 @@ class DynamicsKnobs:
     radial_points_per_efold: int = 24
     truncation: float = 1.0e4
     line_of_sight_nodes: int = 16
+    reweight: bool = False
     bin_size: int = 300
     n_bootstrap: int = 200
     walkers: int = 32
@@ -178,6 +182,7 @@ class DynamicsSettings:
     radial_points_per_efold: int = _K.radial_points_per_efold
     truncation: float = _K.truncation
     line_of_sight_nodes: int = _K.line_of_sight_nodes
+    reweight: bool = _K.reweight
     bin_size: int = _K.bin_size
     n_bootstrap: int = _K.n_bootstrap
     walkers: int = _K.walkers

@@ -51,10 +51,10 @@ def test_ln_likelihood_matches_independent_line_of_sight_integral(model):
         assert kin16 == pytest.approx(ref, abs=0.05)
 
 
-def _projector_and_mixture(beta=0.2, bh=0.02, dark=None, n_nodes=16):
+def _projector_and_mixture(beta=0.2, bh=0.02, dark=None, n_nodes=16, tracer=None):
     X = np.geomspace(1e-3, 5.0, 24)
     proj = JeansProjector(X, n_panels=24, n_gl=6)
-    tracer = make_tracer("plummer", 0.8, 1.5, cusp_radius=0.1)
+    tracer = tracer or make_tracer("plummer", 0.8, 1.5, cusp_radius=0.1)
     weights = np.array([1.0, bh, 0.05])
     aniso = Anisotropy(beta, beta, 1.0) if np.isscalar(beta) else beta
     mix = proj.line_of_sight(tracer, aniso, dark, weights, n_nodes)
@@ -70,6 +70,19 @@ def test_mixture_second_moments_are_the_projected_dispersions(beta):
     np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-12)
     np.testing.assert_allclose(np.sum(w * s2r, axis=1), np.exp(ln_s2[0]), rtol=5e-5)
     np.testing.assert_allclose(np.sum(w * s2t, axis=1), np.exp(ln_s2[1]), rtol=5e-5)
+
+
+@pytest.mark.parametrize(
+    "name, gamma, tol",
+    [("king62", 0.0, 1e-5), ("king62", 1.0, 1e-5), ("dehnen", 1.2, 2e-4)],
+)
+def test_truncated_and_dehnen_tracers_keep_the_second_moments(name, gamma, tol):
+    """King62 (lines of sight end at its tidal radius; measured 1.6e-6) and Dehnen (r^-4
+    tail beyond 100 scale radii left out; 7.6e-5) with 32 nodes."""
+    tracer = make_tracer(name, gamma, 1.5, cusp_radius=0.1 if name == "king62" and gamma else None)
+    _, (w, s2r, s2t, _, _), ln_s2 = _projector_and_mixture(0.3, dark=0.3, n_nodes=32, tracer=tracer)
+    np.testing.assert_allclose(np.sum(w * s2r, axis=1), np.exp(ln_s2[0]), rtol=tol)
+    np.testing.assert_allclose(np.sum(w * s2t, axis=1), np.exp(ln_s2[1]), rtol=tol)
 
 
 def test_mixture_density_integrates_to_one_and_has_heavy_tails():
