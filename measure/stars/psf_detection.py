@@ -203,10 +203,22 @@ def significance(residual: np.ndarray, variance: np.ndarray, kernel: np.ndarray)
     ndarray
         Significance [sigma]; 0 where the variance sum is 0.
     """
-    num = ndimage.correlate(residual, kernel, mode="constant")
-    den = np.sqrt(ndimage.correlate(variance, kernel**2, mode="constant"))
+    num = _correlate(residual, kernel)
+    den = np.sqrt(_correlate(variance, kernel**2))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, num / den, 0.0)
+
+
+def _correlate(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``ndimage.correlate(image, kernel, mode="constant")``; a separable (rank-1) kernel,
+    such as the bright pass's Gaussian, as two 1-D passes (equal to rounding, ~4x faster
+    for a 7 x 7 kernel)."""
+    u, sv, vt = np.linalg.svd(kernel)
+    if len(sv) > 1 and sv[1] > 1e-12 * sv[0]:
+        return ndimage.correlate(image, kernel, mode="constant")
+    col, row = u[:, 0] * np.sqrt(sv[0]), vt[0] * np.sqrt(sv[0])
+    out = ndimage.correlate1d(image, col, axis=0, mode="constant")
+    return ndimage.correlate1d(out, row, axis=1, mode="constant")
 
 
 def peaks(snr: np.ndarray, threshold: float, box: int, usable: np.ndarray):
@@ -231,9 +243,8 @@ def peaks(snr: np.ndarray, threshold: float, box: int, usable: np.ndarray):
     snr : ndarray
         Significance at each peak's pixel [sigma].
     """
-    is_max = (snr == ndimage.maximum_filter(snr, size=box, mode="constant")) & (snr > threshold)
-    ys, xs = np.nonzero(is_max & usable)
     ny, nx = snr.shape
+    ys, xs = _local_maxima(snr, threshold, box, usable)
     xc, yc = xs.astype(float), ys.astype(float)
     inner = (xs > 0) & (xs < nx - 1) & (ys > 0) & (ys < ny - 1)
     i, j = ys[inner], xs[inner]
@@ -245,6 +256,27 @@ def peaks(snr: np.ndarray, threshold: float, box: int, usable: np.ndarray):
     xc[inner] += np.clip(np.nan_to_num(dx), -0.5, 0.5)
     yc[inner] += np.clip(np.nan_to_num(dy), -0.5, 0.5)
     return xc, yc, snr[ys, xs]
+
+
+def _local_maxima(snr: np.ndarray, threshold: float, box: int, usable: np.ndarray):
+    """Rows and columns of the usable pixels above ``threshold`` that equal the maximum
+    of their ``box`` x ``box`` window (outside the frame counts as 0), in row-major
+    order: ``ndimage.maximum_filter`` tested at the few pixels above the threshold
+    instead of filtering the whole frame."""
+    ny, nx = snr.shape
+    ys, xs = np.nonzero((snr > threshold) & usable)
+    best = snr[ys, xs]
+    is_max = np.ones(len(ys), bool)
+    lo = -(box // 2)
+    for dy in range(lo, lo + box):
+        for dx in range(lo, lo + box):
+            if dx == 0 and dy == 0:
+                continue
+            r, c = ys + dy, xs + dx
+            inside = (r >= 0) & (r < ny) & (c >= 0) & (c < nx)
+            other = np.where(inside, snr[np.clip(r, 0, ny - 1), np.clip(c, 0, nx - 1)], 0.0)
+            is_max &= best >= other
+    return ys[is_max], xs[is_max]
 
 
 def local_background_subtracted(residual: np.ndarray, box: int) -> np.ndarray:
@@ -303,13 +335,36 @@ def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
     padded = np.full((ty * tile, tx * tile), np.nan)
     padded[:ny, :nx] = snr
     blocks = padded.reshape(ty, tile, tx, tile).transpose(0, 2, 1, 3).reshape(ty, tx, -1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(blocks, axis=2)
-        mad = np.nanmedian(np.abs(blocks - med[:, :, None]), axis=2)
+    med, mad = _tile_median(blocks)
     scale = np.clip(np.nan_to_num(1.4826 * mad, nan=1.0), 1.0, None)
     full = ndimage.zoom(scale, (ny / ty, nx / tx), order=1, mode="nearest", grid_mode=True)
     return full[:ny, :nx]
+
+
+def _tile_median(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median and median absolute deviation of each tile (last axis), NaNs ignored.
+
+    ``np.nanmedian`` falls back to one Python-level median per tile for tiles of
+    600 or more samples (~90,000 calls on a 4000 x 4000 frame in 32 x 32 tiles,
+    ~3 s); the tiles without NaN (all but the frame's edge tiles) take the
+    vectorised ``np.median`` instead, with identical values.
+    """
+    finite = np.isfinite(blocks).all(axis=-1)
+    med = np.full(blocks.shape[:-1], np.nan)
+    mad = np.full(blocks.shape[:-1], np.nan)
+    full = blocks[finite]
+    if len(full):
+        m = np.median(full, axis=-1)
+        med[finite] = m
+        mad[finite] = np.median(np.abs(full - m[:, None]), axis=-1)
+    if not finite.all():
+        part = blocks[~finite]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m = np.nanmedian(part, axis=-1)
+            med[~finite] = m
+            mad[~finite] = np.nanmedian(np.abs(part - m[:, None]), axis=-1)
+    return med, mad
 
 
 def locally_normalised(snr: np.ndarray, tile: int) -> np.ndarray:
@@ -567,10 +622,15 @@ def useful_psfs(psf: VariableEPSF, alpha: np.ndarray) -> tuple[VariableEPSF, Var
 def _core_sum(image: np.ndarray, x, y) -> np.ndarray:
     """3 x 3 sums of ``image`` around the pixels nearest to (x, y)."""
     ny, nx = image.shape
-    box = ndimage.uniform_filter(image, size=3, mode="constant") * 9
     cx = np.clip(np.rint(np.nan_to_num(x)).astype(int), 0, nx - 1)
     cy = np.clip(np.rint(np.nan_to_num(y)).astype(int), 0, ny - 1)
-    return box[cy, cx]
+    total = np.zeros(len(cx))
+    for dy in (-1, 0, 1):  # pixels outside the frame count as 0
+        for dx in (-1, 0, 1):
+            r, c = cy + dy, cx + dx
+            inside = (r >= 0) & (r < ny) & (c >= 0) & (c < nx)
+            total += np.where(inside, image[np.clip(r, 0, ny - 1), np.clip(c, 0, nx - 1)], 0.0)
+    return total
 
 
 def prune(
@@ -581,6 +641,7 @@ def prune(
     options: DetectionOptions,
     scale: np.ndarray | None = None,
     wing: np.ndarray | None = None,
+    model_image: bool = True,
 ):
     """Candidates that survive the joint fit (see the module docstring).
 
@@ -607,19 +668,21 @@ def prune(
     wing : ndarray, optional
         The known stars' wing structure beyond the ePSF footprint
         (:func:`wing_image`) [electron/pixel], counted with the model error.
+    model_image : bool
+        Whether to render the kept stars' model image (the last pass needs only ``keep``).
 
     Returns
     -------
     keep : ndarray of bool
     model, error : ndarray
-        Images [electron] of the kept stars and of their model error (full ePSF
-        footprint).
+        Images [electron] of the kept stars (None without ``model_image``) and of their
+        model error (full ePSF footprint).
     """
     flux = np.nan_to_num(fit.flux)
     ok = ((fit.flag & FLAG_FAILED) == 0) & (flux > 0) & np.isfinite(fit.flux_err)
     radius = int(np.floor(psf.radius_pix))
     used = np.where(ok, flux, 0.0)
-    model = render_model(shape, psf, fit.x, fit.y, used, radius)
+    model = render_model(shape, psf, fit.x, fit.y, used, radius) if model_image else None
     error = render_model(shape, err_psf, fit.x, fit.y, used, radius)
     cx, cy = shape[1] / 2, shape[0] / 2
     core3 = float(sampled_epsf(psf, cx, cy, 1).sum())
@@ -648,7 +711,8 @@ def prune(
     dropped = ok & ~keep
     if np.any(dropped):
         xd, yd, fd = fit.x[dropped], fit.y[dropped], flux[dropped]
-        model -= render_model(shape, psf, xd, yd, fd, radius)
+        if model is not None:
+            model -= render_model(shape, psf, xd, yd, fd, radius)
         error -= render_model(shape, err_psf, xd, yd, fd, radius)
     return keep, model, error
 
@@ -731,10 +795,13 @@ def detect_stars(
                 frame.shape, fit.x, fit.y, np.where(good, fit.flux, 0.0), wing_s, wing_floor
             )
         pw = None if wing is None else options.wing_prune_scale * wing
-        keep, model, error = prune(fit, model_psf, err_psf, frame.shape, options, scale, pw)
+        last = p == max(1, options.passes) - 1
+        keep, model, error = prune(
+            fit, model_psf, err_psf, frame.shape, options, scale, pw, model_image=not last
+        )
         x, y = fit.x[keep], fit.y[keep]
         info["n_pass"].append(int(len(x)))
-        if p == options.passes - 1:
+        if last:
             break
         structure = error if wing is None else error + wing
         var = base_var + np.clip(model, 0, None) + structure**2
