@@ -466,12 +466,17 @@ def wing_profile(
     The ePSF describes a star's light only inside its footprint; beyond it the AO
     PSF keeps speckles and the control-radius ring, which the fit neither holds nor
     subtracts. For the ``n_stars`` brightest stars with the whole annulus ``r_out``
-    inside the frame, per 1-pixel annulus: the structure's variance ``sigma_s^2``
-    from the *median* absolute residual, ``(med |r| / 0.6745)^2 = sigma_s^2 +
-    sigma_n^2`` (``sigma_n^2`` the median noise variance there), leaving out the
-    pixels within ``r_in`` of another star at least 1e-3 as bright (its own model
-    error is :func:`model_error_profile`'s); ``s = sigma_s / F``, the median over the
-    stars; zero inside ``r_in``.
+    inside the frame, per 1-pixel annulus: the excess variance ``e_i`` of the
+    residual over the noise, from the *median* absolute residual, ``e_i = (med |r| /
+    0.6745)^2 - sigma_n^2`` (``sigma_n^2`` the median noise variance there), leaving
+    out the pixels within ``r_in`` of another fitted star at least 1e-3 as bright (its
+    own model error is :func:`model_error_profile`'s). The wing is the part of that
+    excess that grows with the star's flux: ``e_i = a + s^2 F_i^2`` fitted by least
+    squares over the stars (one 3-sigma clip of the residuals, robust scatter), so a
+    flux-independent excess ``a`` (stars not yet fitted, background structure, a
+    misestimated noise) is not taken for a wing. ``s^2`` is kept only where it is at
+    least :data:`WING_SIGNIFICANCE` times its own standard error from the fit's
+    residuals, else 0 (a positive part of noise is not a wing); zero inside ``r_in``.
 
     Parameters
     ----------
@@ -505,7 +510,7 @@ def wing_profile(
     ok = np.isfinite(x) & np.isfinite(y) & (flux > 0)
     tree = cKDTree(np.column_stack([x[ok], y[ok]]))
     xo, yo, fo = x[ok], y[ok], flux[ok]
-    prof = []
+    excess, fluxes = [], []
     for i in np.argsort(-flux)[:n_stars]:
         cx, cy = int(np.rint(x[i])), int(np.rint(y[i]))
         if not (r_out <= cx < nx - r_out and r_out <= cy < ny - r_out) or flux[i] <= 0:
@@ -525,16 +530,50 @@ def wing_profile(
             m = kp[a:b]
             if np.count_nonzero(m) < 8:
                 continue
-            total = (np.median(cut[a:b][m]) / 0.6745) ** 2 - np.median(var[a:b][m])
-            row[k] = np.sqrt(max(total, 0.0)) / flux[i]
-        prof.append(row)
-    if not prof:
-        return np.zeros(r_out + 1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        s = np.nan_to_num(np.nanmedian(np.array(prof), axis=0))
-    s[:lo] = 0.0
+            row[k] = (np.median(cut[a:b][m]) / 0.6745) ** 2 - np.median(var[a:b][m])
+        excess.append(row)
+        fluxes.append(flux[i])
+    s = np.zeros(r_out + 1)
+    if not excess:
+        return s
+    excess, f2 = np.array(excess), np.array(fluxes) ** 2
+    for k in range(lo, r_out + 1):
+        s[k] = np.sqrt(_flux_scaled_excess(excess[:, k], f2))
     return s
+
+
+#: A wing variance is kept only where it is at least this many standard errors above 0.
+WING_SIGNIFICANCE = 3.0
+
+
+def _flux_scaled_excess(e: np.ndarray, f2: np.ndarray) -> float:
+    """The slope ``s^2`` of ``e = a + s^2 f2`` where significant, else 0 (:func:`wing_profile`).
+
+    Least squares over the finite ``e``, refitted once without the points beyond 3
+    robust standard deviations of the residuals; ``s^2`` is returned when it is at least
+    :data:`WING_SIGNIFICANCE` times its standard error (from the refit's residuals).
+    """
+    ok = np.isfinite(e)
+    e, f2 = e[ok], f2[ok]
+    if len(e) < 4 or np.ptp(f2) <= 0:  # two parameters and their scatter
+        return 0.0
+    scale = float(np.max(f2))
+    design = np.column_stack([np.ones(len(e)), f2 / scale])
+    coef = np.linalg.lstsq(design, e, rcond=None)[0]
+    res = e - design @ coef
+    mad = 1.4826 * np.median(np.abs(res - np.median(res)))
+    good = np.abs(res) <= 3.0 * mad if mad > 0 else np.ones(len(e), bool)
+    design, e = design[good], e[good]
+    if len(e) < 4 or np.ptp(design[:, 1]) <= 0:
+        return 0.0
+    coef = np.linalg.lstsq(design, e, rcond=None)[0]
+    res = e - design @ coef
+    var = float(res @ res) / (len(e) - 2)
+    se = np.sqrt(var * np.linalg.inv(design.T @ design)[1, 1])
+    slope = float(coef[1])
+    if not slope > 0 or slope < WING_SIGNIFICANCE * se:
+        return 0.0
+    return slope / scale
 
 
 def wing_image(
