@@ -10,7 +10,8 @@ Run ``python benchmarks/bench_dynamics.py [--quick]`` from the repository root
    cost and error against its nodes (and the Gaussian law's cost);
 3. emcee to convergence (walkers, steps, tau, wall time) and posterior width;
 4. dynesty evidence per model (calls, wall time, ln Z error);
-5. with ``--comparison``: the full four-model comparison against the number of
+5. with ``--comparison``: one model's evidence with each velocity law (Gaussian,
+   line-of-sight direct, reweighted) and the full four-model comparison against the number of
    stars and with the cheap knobs (no cusp, centre/systemic fixed, no kinematic
    evidence).
 
@@ -213,6 +214,40 @@ def bench_comparison(quick, n_stars=(1000, 3500), **knobs):
         )
 
 
+def bench_velocity_laws():
+    """One model's nested evidence at 3,500 stars with the Gaussian law, the line-of-sight
+    law run directly and the Gaussian run reweighted to it (same stars, settings, seed)."""
+    import dataclasses
+
+    from dynamics_helpers import realistic_stars, validation_settings
+
+    from mavispm.dynamics.fit import fit_model
+
+    print("\n# velocity laws: one imbh evidence, 3,500 stars (CPU and wall seconds)")
+    stars, dist = realistic_stars(200, "segregated", 1500.0)
+    idx = np.random.default_rng(0).choice(stars.R.size, 3500, replace=True)
+    s = StarSample(
+        stars.R[idx], stars.v_r[idx], stars.v_t[idx], stars.e_r[idx], stars.e_t[idx],
+        stars.field_radius, x=stars.x[idx], y=stars.y[idx],
+    )  # fmt: skip
+    base = dataclasses.replace(validation_settings(workers=1), kinematic_evidence=False)
+    for name, knobs in (
+        ("gaussian", {"velocity_law": "gaussian"}),
+        ("reweighted", {"reweight": True}),
+        ("line_of_sight", {}),
+    ):
+        c0, t0 = time.process_time(), time.perf_counter()
+        f = fit_model(s, dataclasses.replace(base, **knobs), dist, "imbh", 200)
+        cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+        bh = np.percentile(f.chain.samples[:, f.space.index("bh_mass")], [16, 50, 84])
+        ev = f.evidence
+        print(
+            f"{name:14s} CPU {cpu:7.1f} s, wall {wall:7.1f} s, calls {ev.n_calls}, "
+            f"ln Z {ev.log_z:.2f} +- {ev.log_z_err:.2f} ({ev.method}, k {ev.pareto_k:.2f}), "
+            f"M_bh {bh[1]:.0f} ({bh[0]:.0f}-{bh[2]:.0f})"
+        )
+
+
 def bench_samplers(quick):
     print("\n# samplers on the recovery mock (2000 stars, M_bh = 1500 Msun)")
     _, (sp1, l1), (sp0, l0) = mock_likelihoods(1, 1500.0)
@@ -265,6 +300,7 @@ def main(argv=None):
     if not args.no_samplers:
         bench_samplers(args.quick)
     if args.comparison:
+        bench_velocity_laws()
         bench_comparison(args.quick)
         fast = {"cusp": False, "centre_error": 0.0, "systemic_error": 0.0}
         bench_comparison(args.quick, n_stars=(3500,), kinematic_evidence=False, **fast)
