@@ -433,14 +433,11 @@ class DiscreteLikelihood:
             self.min_radius,
         )
 
-    def _star_sums(self, theta, ln_a, ln_s2, ln_sig):
-        """``chi`` and the summed ln surface density of :func:`star_sums` for the stars
-        about the model centre and systemic motion of ``theta`` (one compiled pass)."""
-        x0 = self.lnX_grid[0]
-        if not self._moving:
-            return star_sums(self.lnR - ln_a, x0, self.step, ln_s2, ln_sig, self._v2, self._e2)
+    def _about_args(self, theta, ln_a):
+        """Leading arguments of the compiled ``*_about`` sums: the stars, the model centre and
+        systemic motion of ``theta``, the radius floor and ``ln a``."""
         get = self._value
-        return star_sums_about(
+        return (
             self._xy[0],
             self._xy[1],
             self._pm_x,
@@ -455,6 +452,16 @@ class DiscreteLikelihood:
             float(get(theta, "pm_y0", 0.0)),
             self.min_radius,
             float(ln_a),
+        )
+
+    def _star_sums(self, theta, ln_a, ln_s2, ln_sig):
+        """``chi`` and the summed ln surface density of :func:`star_sums` for the stars
+        about the model centre and systemic motion of ``theta`` (one compiled pass)."""
+        x0 = self.lnX_grid[0]
+        if not self._moving:
+            return star_sums(self.lnR - ln_a, x0, self.step, ln_s2, ln_sig, self._v2, self._e2)
+        return star_sums_about(
+            *self._about_args(theta, ln_a),
             x0,
             self.step,
             ln_s2,
@@ -469,22 +476,8 @@ class DiscreteLikelihood:
             return mixture_star_sums(
                 self.lnR - ln_a, x0, self.step, mix_w, s2_r, s2_t, ln_sig, self._v2, self._e2
             )
-        get = self._value
         return mixture_star_sums_about(
-            self._xy[0],
-            self._xy[1],
-            self._pm_x,
-            self._pm_y,
-            self._cs[0],
-            self._cs[1],
-            self._e2[0],
-            self._e2[1],
-            float(get(theta, "x0", 0.0)),
-            float(get(theta, "y0", 0.0)),
-            float(get(theta, "pm_x0", 0.0)),
-            float(get(theta, "pm_y0", 0.0)),
-            self.min_radius,
-            float(ln_a),
+            *self._about_args(theta, ln_a),
             x0,
             self.step,
             mix_w,

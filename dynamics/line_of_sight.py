@@ -42,8 +42,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy.special import logsumexp
 
-from mavispm.dynamics.interpolation import cubic_weights
+from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans_kernel import _floor, _project_row, jeans_columns
 from mavispm.dynamics.star_sums import cubic_point_weights, stars_about
 
@@ -344,10 +345,6 @@ def mixture_star_sums_numpy(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):
 
     Parameters and returns as :func:`mixture_star_sums`.
     """
-    from scipy.special import logsumexp
-
-    from mavispm.dynamics.interpolation import interpolate
-
     idx, w = cubic_weights(x0, step, ln_sig.size, u)
     wk = np.maximum(interpolate(mix_w.T, idx, w), 0.0)  # (K, N)
     vr = np.maximum(np.maximum(interpolate(s2_r.T, idx, w), 0.0) + e2[0], np.finfo(float).tiny)

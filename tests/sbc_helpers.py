@@ -256,22 +256,32 @@ def surface_density(p: dict, X: np.ndarray, n_t: int = 4000):
     return 2.0 * trapezoid(np.exp(np.interp(np.log(r), np.log(x), np.log(nu))) * r, t, axis=1)
 
 
-def independent_ln_likelihood(p: dict, stars, n_r: int = 3000, n_phi: int = 1440):
-    """ln L of ``stars`` under parameters ``p``: the Gaussian proper-motion terms with the
-    projected dispersions above and the star counts ln[Sigma(R_i) / N_field], N_field a
-    midpoint sum over the field disc (``n_r`` x ``n_phi`` cells). Returns (kinematic,
-    star-count) parts."""
-    a = 10.0 ** p["log_scale_radius"]
+def _about_centre(p: dict, stars):
+    """Projected radius [arcsec], radial / tangential motions [mas/yr] and squared errors of
+    ``stars`` about the model centre and systemic motion of ``p`` (the errors, given about
+    the field centre, rotated to the model centre's directions)."""
     dx, dy = stars.x - p["x0"], stars.y - p["y0"]
     R = np.hypot(dx, dy)
     c, s = dx / R, dy / R
     cx, sy = stars.x / stars.R, stars.y / stars.R
     pm_x = stars.v_r * cx - stars.v_t * sy - p["pm_x0"]
     pm_y = stars.v_r * sy + stars.v_t * cx - p["pm_y0"]
-    v = (pm_x * c + pm_y * s, -pm_x * s + pm_y * c)
+    cos2 = (cx * c + sy * s) ** 2
+    e2_R = stars.e_r**2 * cos2 + stars.e_t**2 * (1.0 - cos2)
+    e2_T = stars.e_r**2 * (1.0 - cos2) + stars.e_t**2 * cos2
+    return R, pm_x * c + pm_y * s, -pm_x * s + pm_y * c, e2_R, e2_T
+
+
+def independent_ln_likelihood(p: dict, stars, n_r: int = 3000, n_phi: int = 1440):
+    """ln L of ``stars`` under parameters ``p``: the Gaussian proper-motion terms with the
+    projected dispersions above and the star counts ln[Sigma(R_i) / N_field], N_field a
+    midpoint sum over the field disc (``n_r`` x ``n_phi`` cells). Returns (kinematic,
+    star-count) parts."""
+    a = 10.0 ** p["log_scale_radius"]
+    R, v_R, v_T, e2_R, e2_T = _about_centre(p, stars)
     kin = 0.0
-    for vi, s2, e in zip(v, projected_dispersions(p, R / a), (stars.e_r, stars.e_t)):
-        var = s2 + e * e
+    for vi, s2, e2 in zip((v_R, v_T), projected_dispersions(p, R / a), (e2_R, e2_T)):
+        var = s2 + e2
         kin -= 0.5 * np.sum(vi * vi / var + np.log(2.0 * np.pi * var))
     rr = (np.arange(n_r) + 0.5) * stars.field_radius / n_r
     ph = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
@@ -293,17 +303,7 @@ def independent_line_of_sight_ln_likelihood(p: dict, stars, n_t: int = 4000):
 
     x, nu, _, nu_s2 = model_tables(p)
     a = 10.0 ** p["log_scale_radius"]
-    dx, dy = stars.x - p["x0"], stars.y - p["y0"]
-    R = np.hypot(dx, dy)
-    c, s = dx / R, dy / R
-    cx, sy = stars.x / stars.R, stars.y / stars.R
-    pm_x = stars.v_r * cx - stars.v_t * sy - p["pm_x0"]
-    pm_y = stars.v_r * sy + stars.v_t * cx - p["pm_y0"]
-    v_R, v_T = pm_x * c + pm_y * s, -pm_x * s + pm_y * c
-    # the errors about the field centre, rotated to the model centre's directions
-    cos2 = (cx * c + sy * s) ** 2
-    e2_R = stars.e_r**2 * cos2 + stars.e_t**2 * (1.0 - cos2)
-    e2_T = stars.e_r**2 * (1.0 - cos2) + stars.e_t**2 * cos2
+    R, v_R, v_T, e2_R, e2_T = _about_centre(p, stars)
     t, r = _line_of_sight(R / a, x[-1], n_t)
     lx, lr = np.log(x), np.log(r)
     ln_w = np.interp(lr, lx, np.log(nu)) + np.log(r)  # nu dz / dt = nu x
