@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
@@ -163,16 +164,31 @@ def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
     pairs = cKDTree(np.column_stack([x, y])).query_pairs(distance, output_type="ndarray")
     if len(pairs) == 0:
         return colour
-    neighbours: list[list[int]] = [[] for _ in range(n)]
-    for i, j in pairs:
-        neighbours[i].append(j)
-        neighbours[j].append(i)
-    colour[:] = -1
-    order = np.argsort([-len(nb) for nb in neighbours], kind="stable")
+    # adjacency lists in CSR form, each list in the order the pairs were found
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    degree = np.bincount(both[:, 0], minlength=n)
+    indptr = np.concatenate([[0], np.cumsum(degree)])
+    order = np.argsort(-degree, kind="stable")
+    return _greedy_colours(
+        order.astype(np.intp), indptr.astype(np.intp), both[:, 1].astype(np.intp)
+    )
+
+
+@numba.njit(nogil=True, cache=True)
+def _greedy_colours(order, indptr, neighbours):
+    """Greedy colouring in ``order``: each star takes the lowest colour none of its
+    already coloured neighbours has (O(sum of degrees))."""
+    n = len(order)
+    colour = np.full(n, -1, dtype=np.intp)
+    used = np.full(int(np.max(indptr[1:] - indptr[:-1])) + 2, -1, dtype=np.intp)
     for i in order:
-        used = {colour[j] for j in neighbours[i]}
+        for k in range(indptr[i], indptr[i + 1]):
+            c = colour[neighbours[k]]
+            if c >= 0:
+                used[c] = i  # marks colour c as taken for star i
         c = 0
-        while c in used:
+        while used[c] == i:
             c += 1
         colour[i] = c
     return colour

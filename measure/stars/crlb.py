@@ -118,7 +118,11 @@ def safe_inverse(matrix: np.ndarray, rcond: float = 1e-12) -> tuple[np.ndarray, 
     scale = np.where(ok[:, None], 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
     scaled = matrix * scale[:, :, None] * scale[:, None, :]
     scaled[~ok] = np.eye(matrix.shape[1])
-    cond = np.linalg.cond(scaled)
+    # 2-norm condition number of a symmetric matrix from its eigenvalues (equal to
+    # numpy's cond, which takes an SVD, at half the cost)
+    eig = np.abs(np.linalg.eigvalsh(scaled))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = eig.max(axis=1) / eig.min(axis=1)
     ok &= np.isfinite(cond) & (cond < 1.0 / rcond)
     scaled[~ok] = np.eye(matrix.shape[1])
     inv = np.linalg.inv(scaled) * scale[:, :, None] * scale[:, None, :]
