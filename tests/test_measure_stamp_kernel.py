@@ -143,3 +143,37 @@ def test_edges_and_phases_match_map_coordinates(x, y, ox, oy):
     value = psf.evaluate(xs, ys, geom, derivatives=False)
     ref = _reference(psf, xs, ys, geom)
     assert np.max(np.abs(value - ref)) <= 1e-12 * max(np.max(np.abs(ref)), 1e-300)
+
+
+@pytest.mark.parametrize("gradient", [False, True])
+def test_fused_normal_equations_equal_numpy(gradient):
+    """The fused weights, residuals, J W J^T and J W r against the explicit numpy algebra."""
+    from mavispm.measure.stars.crlb import fisher_matrix, jacobian, sky_plane_basis
+    from mavispm.measure.stars.stamp_kernel import normal_equations
+
+    rng = np.random.default_rng(7)
+    psf = _grid_psf()
+    x, y, geom = _stars(rng, 200)
+    v, dvx, dvy = (a.reshape(200, -1) for a in psf.evaluate(x, y, geom))
+    flux = rng.uniform(1e3, 1e6, 200)
+    sky = rng.uniform(10, 500, 200)
+    slope = rng.normal(0, 5, (200, 2))
+    own = flux[:, None] * v
+    model_all = own + rng.uniform(0, 300, own.shape)
+    valid = rng.uniform(size=own.shape) > 0.05
+    data = model_all + sky[:, None] + rng.normal(0, 30, own.shape)
+    basis = sky_plane_basis(geom.size)
+    a, b, w, r = normal_equations(
+        v, dvx, dvy, data, model_all, own, valid, flux, sky, slope if gradient else None, basis, 9.0
+    )
+    back = sky[:, None] + (slope @ basis if gradient else 0.0)
+    r_ref = data - model_all - back
+    w_ref = valid / (np.maximum(model_all + back, 0.0) + 9.0)
+    s = geom.size
+    jac = jacobian(flux, *(q.reshape(-1, s, s) for q in (v, dvx, dvy)), sky_gradient=gradient)
+    np.testing.assert_allclose(r, r_ref, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(w, w_ref, rtol=1e-12)
+    np.testing.assert_allclose(a, fisher_matrix(jac, w_ref), rtol=1e-10)
+    np.testing.assert_allclose(
+        b, np.einsum("nkm,nm->nk", jac, w_ref * r_ref), rtol=1e-8, atol=1e-12
+    )

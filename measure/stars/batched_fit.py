@@ -27,7 +27,8 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from mavispm.core.errors import InputError
-from mavispm.measure.stars.crlb import fisher_matrix, jacobian, safe_inverse, sky_plane_basis
+from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
+from mavispm.measure.stars.stamp_kernel import normal_equations as fused_normal_equations
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
 __all__ = [
@@ -423,23 +424,25 @@ def fit_stars(
 
     def normal_equations(idx, fix_positions):
         v, dvx, dvy = (a.reshape(len(idx), -1) for a in evaluate(idx))
-        neigh = model[flat[idx]] - own[idx]
-        mod_star = flux[idx, None] * v
-        background = sky[idx, None] + slope[idx] @ plane_basis
-        resid = data[idx] - neigh - mod_star - background
-        var = np.maximum(model[flat[idx]] - own[idx] + mod_star + background, 0.0)
-        w = valid[idx] / (var + read_noise_var)
-        jac = jacobian(
+        a, b, w, resid = fused_normal_equations(
+            v,
+            dvx,
+            dvy,
+            data[idx],
+            model[flat[idx]],
+            own[idx],
+            valid[idx],
             flux[idx],
-            v.reshape(-1, s, s),
-            dvx.reshape(-1, s, s),
-            dvy.reshape(-1, s, s),
-            sky_gradient=opt.sky_gradient,
+            sky[idx],
+            slope[idx] if opt.sky_gradient else None,
+            plane_basis,
+            read_noise_var,
         )
         if fix_positions is not None:
-            jac[fix_positions, :2] = 0.0
-        a = fisher_matrix(jac, w)
-        b = np.einsum("nkm,nm->nk", jac, w * resid)
+            fix = np.flatnonzero(fix_positions)
+            a[fix, :2, :] = 0.0
+            a[fix, :, :2] = 0.0
+            b[fix, :2] = 0.0
         return v, dvx, dvy, a, b, w, resid
 
     # initial fluxes: linear fit at fixed positions (positions frozen)

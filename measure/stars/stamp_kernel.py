@@ -158,3 +158,110 @@ def evaluate_stamps(
     if not derivatives:
         return value
     return value, dvx, dvy
+
+
+@numba.njit(nogil=True, cache=True)
+def _normal(value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basis, rn2, a, b, w, r):
+    n, m = value.shape
+    npar = a.shape[1]
+    jac = np.empty(npar)
+    for k in range(n):
+        for p in range(npar):
+            b[k, p] = 0.0
+            for q in range(npar):
+                a[k, p, q] = 0.0
+        for i in range(m):
+            neigh = model_all[k, i] - own[k, i]
+            star = flux[k] * value[k, i]
+            back = sky[k]
+            if npar == 6:
+                back += slope[k, 0] * basis[0, i] + slope[k, 1] * basis[1, i]
+            res = data[k, i] - neigh - star - back
+            var = neigh + star + back
+            if var < 0.0:
+                var = 0.0
+            wi = valid[k, i] / (var + rn2)
+            w[k, i] = wi
+            r[k, i] = res
+            if wi == 0.0:
+                continue
+            jac[0] = flux[k] * dvx[k, i]
+            jac[1] = flux[k] * dvy[k, i]
+            jac[2] = value[k, i]
+            jac[3] = 1.0
+            if npar == 6:
+                jac[4] = basis[0, i]
+                jac[5] = basis[1, i]
+            for p in range(npar):
+                jw = jac[p] * wi
+                b[k, p] += jw * res
+                for q in range(p + 1):
+                    a[k, p, q] += jw * jac[q]
+        for p in range(npar):
+            for q in range(p):
+                a[k, q, p] = a[k, p, q]
+
+
+def normal_equations(value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basis, rn2):
+    """Weights, residuals and the normal equations of N stars on their stamps, fused.
+
+    The model of star k's stamp is its own ``flux value`` plus the neighbours'
+    (``model_all - own``) plus its sky (a level, and a plane when ``slope`` has two
+    columns used: ``basis`` is :func:`~mavispm.measure.stars.crlb.sky_plane_basis`);
+    the weights are ``valid / (max(model, 0) + rn2)``; the parameters ``(x, y, flux,
+    sky[, sky_x, sky_y])``, the Jacobian as :func:`~mavispm.measure.stars.crlb.jacobian`.
+
+    Parameters
+    ----------
+    value, dvx, dvy : ndarray, shape (N, M)
+        Unit-flux ePSF on the M stamp pixels and its position derivatives [1/pixel].
+    data : ndarray, shape (N, M)
+        Stamp pixels [electron].
+    model_all, own : ndarray, shape (N, M)
+        All stars' model on the stamp pixels, and this star's part of it [electron].
+    valid : ndarray, shape (N, M)
+        1 for pixels used, 0 for masked ones.
+    flux, sky : ndarray, shape (N,)
+        [electron], [electron / pixel].
+    slope : ndarray, shape (N, 2) or None
+        Sky slopes [electron / pixel^2]; None for a constant sky (4 parameters).
+    basis : ndarray, shape (2, M)
+        Pixel offsets of the stamp from its centre [pixel].
+    rn2 : float
+        Read-noise variance [electron^2].
+
+    Returns
+    -------
+    a : ndarray, shape (N, P, P)
+        ``J W J^T``.
+    b : ndarray, shape (N, P)
+        ``J W r``.
+    w, r : ndarray, shape (N, M)
+        Weights [1/electron^2] and residuals [electron].
+    """
+    n, m = value.shape
+    npar = 4 if slope is None else 6
+    a = np.empty((n, npar, npar))
+    b = np.empty((n, npar))
+    w = np.empty((n, m))
+    r = np.empty((n, m))
+    f64 = np.float64
+    _normal(
+        np.ascontiguousarray(value, f64),
+        np.ascontiguousarray(dvx, f64),
+        np.ascontiguousarray(dvy, f64),
+        np.ascontiguousarray(data, f64),
+        np.ascontiguousarray(model_all, f64),
+        np.ascontiguousarray(own, f64),
+        np.ascontiguousarray(valid, f64),
+        np.ascontiguousarray(flux, f64),
+        np.ascontiguousarray(sky, f64),
+        np.zeros((n, 2)) if slope is None else np.ascontiguousarray(slope, f64),
+        np.ascontiguousarray(basis, f64),
+        float(rn2),
+        a,
+        b,
+        w,
+        r,
+    )
+    return a, b, w, r
