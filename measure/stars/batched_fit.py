@@ -370,11 +370,16 @@ def fit_stars(
     inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
     # work on the pixels the stamps touch only (compact index), never on full-frame
     # arrays: the ePSF builder fits a few hundred stars of a 4k x 4k frame many times
+    # 32-bit pixel indices where the frame allows (half the memory of the N x S^2 index
+    # arrays: ~100 MB each at 1e5 stars)
+    itype = np.int32 if ny * nx < 2**31 else np.intp
     frame_index = (
-        np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
+        np.clip(rows, 0, ny - 1).astype(itype)[:, :, None] * itype(nx)
+        + np.clip(cols, 0, nx - 1).astype(itype)[:, None, :]
     ).reshape(n, -1)
     pixels, flat = np.unique(frame_index, return_inverse=True)
-    flat = flat.reshape(n, -1)
+    del frame_index
+    flat = flat.reshape(n, -1).astype(itype)
     values = np.asarray(image.reshape(-1)[pixels], dtype=float)
     sat_pix = (
         np.zeros(len(pixels), bool)
