@@ -458,15 +458,12 @@ def fit_stars(
 
     # initial fluxes: linear fit at fixed positions (positions frozen)
     sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
-    steps = np.zeros(n)  # position step of the sweep [pixel]
+    steps = np.zeros(n)
     thresh = np.full(n, opt.tolerance)
-    flux_steps = np.zeros(n)  # |flux step| of the sweep [electron]
-    flux_thresh = np.full(n, np.inf)
     done = 0
     bar = tqdm(sweeps, desc="fit sweeps", disable=not opt.progress, leave=False)
     for fixed in bar:
         steps[:] = 0.0
-        flux_steps[:] = 0.0
         for group in groups:
             group = group[active[group]]
             for idx in _chunks(group, opt.chunk):
@@ -483,11 +480,6 @@ def fit_stars(
                     sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
                     thresh[idx] = np.maximum(
                         opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos)
-                    )
-                    # a flux that still changes by more than the same fraction of its
-                    # error is not converged either (nor are its neighbours' fits)
-                    flux_thresh[idx] = opt.relative_tolerance * np.sqrt(
-                        np.abs(np.nan_to_num(cov[:, 2, 2], nan=np.inf))
                     )
                     lowsnr = ~ok | ~(snr > opt.min_snr)
                     step[lowsnr, :2] = 0.0
@@ -518,12 +510,11 @@ def fit_stars(
                 dx = dx - off_x * (1 - pull)
                 dy = dy - off_y * (1 - pull)
                 steps[idx] = np.hypot(dx, dy)
-                flux_steps[idx] = np.abs(step[:, 2])
                 new = flux[idx, None] * (v + dvx * dx[:, None] + dvy * dy[:, None])
                 deposit(idx, new)
         done += 0 if fixed else 1
         # converged stars rest until they or an overlapping neighbour move again
-        moved = usable & ((steps >= thresh) | (flux_steps >= flux_thresh))
+        moved = usable & (steps >= thresh)
         active = moved.copy()
         if len(pairs):
             active[pairs[:, 0]] |= moved[pairs[:, 1]]
@@ -569,7 +560,7 @@ def fit_stars(
         err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
         x_err[all_idx], y_err[all_idx], f_err[all_idx], s_err[all_idx] = err.T
         flag[all_idx[~ok_plain]] |= FLAG_FAILED
-    flag[usable & ((steps >= thresh) | (flux_steps >= flux_thresh))] |= FLAG_NOT_CONVERGED
+    flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0)
     if uncertainties:
         failed |= ~np.isfinite(x_err) | ~(flux / f_err > opt.min_snr)
