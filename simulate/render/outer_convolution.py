@@ -218,7 +218,10 @@ class OuterConvolver:
         c = (a.shape[-1] - 1) // 2
         fy = np.fft.fftfreq(ly)
         fx = np.fft.rfftfreq(lx)
-        out = np.zeros((ly, lx // 2 + 1), dtype=np.complex128)
+        import scipy.fft  # 4x faster than numpy's rfft2 here (numpy's column pass is strided)
+
+        real = np.float32 if dtype == np.complex64 else np.float64
+        out = np.zeros((ly, lx // 2 + 1), dtype=dtype)
         for ry in range(k):
             sub_y = a[ry::k]
             qy, fracy = divmod(ry - c, k)
@@ -227,17 +230,19 @@ class OuterConvolver:
                 sub = sub_y[:, rx::k]
                 qx, fracx = divmod(rx - c, k)
                 ix = (np.arange(sub.shape[1]) + qx) % lx
-                buf = np.zeros((ly, lx))
+                buf = np.zeros((ly, lx), dtype=real)
                 buf[np.ix_(iy, ix)] = sub
-                spec = np.fft.rfft2(buf)
+                spec = scipy.fft.rfft2(buf)
                 if fracy or fracx:
-                    spec *= np.exp(-2j * np.pi * (fy[:, None] * fracy + fx[None, :] * fracx) / k)
+                    spec *= np.exp(
+                        (-2j * np.pi / k) * (fy[:, None] * fracy + fx[None, :] * fracx)
+                    ).astype(dtype)
                 out += spec
         s, g = self.pixel_scale, self.grid
         # the convolution is light per grid pixel: a detector pixel holds (s / g)^2 = 4 of them
-        out *= 4.0 * pixel_transfer(fy / g, s, self.amplitude)[:, None]
-        out *= pixel_transfer(fx / g, s, self.amplitude)[None, :]
-        return out.astype(dtype)
+        out *= (4.0 * pixel_transfer(fy / g, s, self.amplitude)[:, None]).astype(real)
+        out *= pixel_transfer(fx / g, s, self.amplitude)[None, :].astype(real)
+        return out
 
     def add(self, image, x_pix, y_pix, node, w, cov, flux, dtype="float32", threads=1) -> None:
         """Add the outer parts of the stars to ``image`` (in place).
@@ -263,6 +268,8 @@ class OuterConvolver:
         """
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
+
+        import scipy.fft
 
         ny, nx = image.shape
         x_pix = np.asarray(x_pix, float)
@@ -312,22 +319,24 @@ class OuterConvolver:
             g, ns = groups[i], nodes_of[i]
             y0 = int(np.floor(y_pix[g].min())) - pad
             x0 = int(np.floor(x_pix[g].min())) - pad
-            slot_of = {int(n_): t for t, n_ in enumerate(ns)}
             nd = np.asarray(node)[g]
             ww = np.asarray(w)[g]
-            slot = np.array([[slot_of.get(int(v), -1) for v in row] for row in nd], np.int64)
-            slot[ww <= 0] = -1
-            fields = np.zeros((len(ns), ly, lx), dtype=np.float64)
+            slot = np.minimum(np.searchsorted(ns, nd), len(ns) - 1)
+            slot[(ns[slot] != nd) | (ww <= 0)] = -1
+            fields = np.zeros((len(ns), ly, lx), dtype=real)
             deposit_gaussians(
                 fields, slot, ww * flux[g][:, None], 2.0 * (x_pix[g] - x0),
                 2.0 * (y_pix[g] - y0), inv[g], norm[g], half[g],
             )  # fmt: skip
             spec = None
             for t, n_ in enumerate(ns):
-                term = np.fft.rfft2(fields[t].astype(real))
+                term = scipy.fft.rfft2(fields[t])
                 term *= kernels[int(n_)]
-                spec = term if spec is None else spec + term
-            out = np.fft.irfft2(spec, s=(ly, lx))
+                if spec is None:
+                    spec = term
+                else:
+                    spec += term
+            out = scipy.fft.irfft2(spec, s=(ly, lx))
             return y0, x0, out[::2, ::2]
 
         def add_done(item):
