@@ -8,7 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from render_helpers import brute_force_stamp, make_optics
 
-from mavispm.simulate.render.outer_convolution import OuterConvolver, radial_taper, split_cube
+from mavispm.simulate.render.outer_convolution import (
+    OuterConvolver,
+    _even_samples,
+    radial_taper,
+    split_cube,
+)
 from mavispm.simulate.render.stamps import RenderParams, StarRenderer
 
 SCALE = 7.5  # mas
@@ -69,6 +74,15 @@ def test_kernel_transform_is_the_dft_of_the_samples():
     want = ey @ outer[0] @ ex
     want *= 4.0 * np.sinc(2 * fy)[:, None] * np.sinc(2 * fx)[None, :]
     assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+
+
+@settings(max_examples=20, deadline=None)
+@given(ly=st.integers(1, 40), lx=st.integers(1, 40), seed=st.integers(0, 99))
+def test_even_samples_equal_the_full_inverse_transform(ly, lx, seed):
+    ly, lx = 4 * ly, 4 * lx
+    a = np.random.default_rng(seed).random((ly, lx))
+    got = _even_samples(np.fft.rfft2(a), ly, lx)
+    assert np.abs(got - a[::2, ::2]).max() < 1e-12
 
 
 def test_split_equals_full_stamps_across_cells_and_edges(optics):
@@ -174,3 +188,12 @@ def test_knob_validation_and_auto(optics):
     args = (np.array([20.3, 30.0]), np.array([21.0, 9.0]), np.zeros(2), np.zeros(2),
             np.tile(np.eye(2) * 25.0, (2, 1, 1)), np.array([1e4, 1e3]))  # fmt: skip
     assert np.array_equal(_render(auto, (40, 40), *args), _render(off, (40, 40), *args))
+
+
+def test_vectorised_stamp_sizes_equal_the_scalar_rule():
+    from mavispm.simulate.render.stamps import _stamp_size_at_least, _stamp_sizes_at_least
+
+    n = np.concatenate([np.linspace(0, 700, 7001), [511.5, 512, 512.0001, 513, 7.9]])
+    for floor in (2, 16, 40):
+        want = [_stamp_size_at_least(v, floor) for v in n]
+        assert _stamp_sizes_at_least(n, floor).tolist() == want

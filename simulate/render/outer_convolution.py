@@ -230,9 +230,12 @@ class OuterConvolver:
                 sub = sub_y[:, rx::k]
                 qx, fracx = divmod(rx - c, k)
                 ix = (np.arange(sub.shape[1]) + qx) % lx
-                buf = np.zeros((ly, lx), dtype=real)
-                buf[np.ix_(iy, ix)] = sub
-                spec = scipy.fft.rfft2(buf)
+                # only the rows holding samples need the row transform
+                rows = np.zeros((len(iy), lx), dtype=real)
+                rows[:, ix] = sub
+                spec = np.zeros((ly, lx // 2 + 1), dtype=dtype)
+                spec[iy] = scipy.fft.rfft(rows, axis=1)
+                spec = scipy.fft.fft(spec, axis=0, overwrite_x=True)
                 if fracy or fracx:
                     spec *= np.exp(
                         (-2j * np.pi / k) * (fy[:, None] * fracy + fx[None, :] * fracx)
@@ -300,10 +303,8 @@ class OuterConvolver:
             (np.ceil(y_pix[g].max()) - np.floor(y_pix[g].min()), np.ceil(x_pix[g].max())
              - np.floor(x_pix[g].min())) for g in groups
         ]  # fmt: skip
-        ly = next_fast_len(int(2 * (max(s[0] for s in spans) + 2 * pad) + 2))
-        lx = next_fast_len(int(2 * (max(s[1] for s in spans) + 2 * pad) + 2))
-        ly += ly % 2
-        lx += lx % 2
+        ly = _fast_multiple_of_4(int(2 * (max(s[0] for s in spans) + 2 * pad) + 2))
+        lx = _fast_multiple_of_4(int(2 * (max(s[1] for s in spans) + 2 * pad) + 2))
         real = np.float32 if dtype == "float32" else np.float64
         cplx = np.complex64 if real is np.float32 else np.complex128
         last_use = {}
@@ -336,8 +337,7 @@ class OuterConvolver:
                     spec = term
                 else:
                     spec += term
-            out = scipy.fft.irfft2(spec, s=(ly, lx))
-            return y0, x0, out[::2, ::2]
+            return y0, x0, _even_samples(spec, ly, lx)
 
         def add_done(item):
             i, fut = item
@@ -362,3 +362,38 @@ class OuterConvolver:
                     add_done(pending.popleft())
             while pending:
                 add_done(pending.popleft())
+
+
+def _fast_multiple_of_4(n: int) -> int:
+    """Smallest multiple of 4 >= ``n`` with prime factors 2, 3, 5 (a fast FFT length)."""
+    m = next_fast_len(n)
+    while m % 4:
+        m = next_fast_len(m + 1)
+    return m
+
+
+def _even_samples(spec, ly: int, lx: int):
+    """``irfft2(spec, s=(ly, lx))[::2, ::2]`` by one transform of a quarter of the size.
+
+    Sampling every second point folds the spectrum: ``Y(k) = X(k) + X(k + L/2)`` per
+    axis (along x the upper half comes from the conjugate-symmetric lower half), and
+    the inverse transform of length ``L/2`` carries a factor 2 per axis.
+
+    Parameters
+    ----------
+    spec : ndarray (ly, lx // 2 + 1) complex
+        rfft2 of a real ``ly x lx`` array (``ly``, ``lx`` multiples of 4).
+    ly, lx : int
+        Its shape.
+
+    Returns
+    -------
+    ndarray (ly // 2, lx // 2)
+    """
+    import scipy.fft
+
+    hy, hx = ly // 2, lx // 2
+    yf = spec[:hy] + spec[hy:]  # (hy, lx // 2 + 1)
+    flip = yf[(-np.arange(hy)) % hy]  # row -ky
+    z = yf[:, : hx // 2 + 1] + np.conj(flip[:, hx - np.arange(hx // 2 + 1)])
+    return scipy.fft.irfft2(z, s=(hy, hx)) * 0.25

@@ -236,6 +236,15 @@ def _stamp_size_at_least(n: int, floor: int) -> int:
     return n + (n % 2)
 
 
+def _stamp_sizes_at_least(n, floor: int) -> np.ndarray:
+    """:func:`_stamp_size_at_least` of every element of ``n`` (vectorised; the same sizes)."""
+    need = np.maximum(np.ceil(np.asarray(n, dtype=float)), floor).astype(np.int64)
+    table = np.asarray(STAMP_SIZES, dtype=np.int64)
+    pos = np.searchsorted(table, need, side="left")
+    beyond = need + need % 2
+    return np.where(pos < len(table), table[np.minimum(pos, len(table) - 1)], beyond)
+
+
 def _folding_frequencies(m: int, k: int):
     """Integer frequencies (units of 1/(m s)) evaluated for a stamp of side ``m``.
 
@@ -414,10 +423,7 @@ class StarRenderer:
                     pos[sel] = np.maximum(pos[sel], here)
         radius_pix = radii[np.minimum(pos, len(radii) - 1)]
         half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
-        sizes = np.array(
-            [_stamp_size_at_least(2 * h, self.params.min_stamp) for h in half], dtype=int
-        )
-        return np.minimum(sizes, biggest)
+        return np.minimum(_stamp_sizes_at_least(2 * half, self.params.min_stamp), biggest)
 
     # ------------------------------------------------------------- transforms
     def plan(self, m: int) -> StampPlan:
