@@ -157,8 +157,8 @@ class RenderParams:
     poisson_skew_limit: float = 0.1
     threads: int = 0
     outer_convolution: Literal["auto", "on", "off"] = "auto"
-    split_radius: float = 12.0
-    split_min_stars: int = 30000
+    split_radius: float = 8.0
+    split_min_stars: int = 50000
 
     def __post_init__(self):
         if self.oversampling < 1:
