@@ -198,20 +198,41 @@ class OuterConvolver:
         """
         lam = np.clip(np.linalg.eigvalsh(np.asarray(cov_mas2, float))[:, 0], 0, None)
         s2 = lam / self.grid**2
+        if len(s2) == 0:
+            return s2
         f, tail = self._tail
         keep = f <= np.sqrt(0.5)  # the grid's band (corners included)
         f, tail = f[keep], tail[keep]
         step = max(1, len(f) // 512)
         f, tail = f[::step], tail[::step]
-        d = np.where(f <= 0.5, 1.0 - f, f)
-        g = np.exp(-2 * np.pi**2 * np.outer(s2, d**2))
-        return 4.0 * (g * tail[None, :]).max(axis=1)
+        d2 = np.where(f <= 0.5, 1.0 - f, f) ** 2
+        # the estimate falls with sigma: tabulate it on a fine grid of sigma^2 and give each
+        # star the value at the grid point at or below its own (an upper estimate; memory
+        # and time independent of the number of stars)
+        lo, hi = float(s2.min()), float(s2.max())
+        grid = np.unique(np.concatenate([[lo], np.geomspace(max(lo, 1e-6), max(hi, 1e-6), 256)]))
+        table = (np.exp(-2 * np.pi**2 * np.outer(grid, d2)) * tail[None, :]).max(axis=1)
+        at = np.clip(np.searchsorted(grid, s2, side="right") - 1, 0, len(grid) - 1)
+        return 4.0 * table[at]
 
     def kernel_transform(self, node: int, ly: int, lx: int, dtype=np.complex64):
         """rfft2 (ly, lx // 2 + 1) of node ``node``'s outer part times the pixel response.
 
         The exact DFT of the PSF samples at the grid frequencies (period ``ly`` x ``lx``
         grid pixels), the optical axis at grid pixel [0, 0].
+
+        Parameters
+        ----------
+        node : int
+            PSF-grid node (flat index).
+        ly, lx : int
+            Transform shape [grid pixel].
+        dtype : numpy dtype
+            ``complex64`` (float32 transforms) or ``complex128``.
+
+        Returns
+        -------
+        ndarray (ly, lx // 2 + 1)
         """
         a = self.outer[node]
         k = self.k
