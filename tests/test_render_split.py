@@ -11,6 +11,7 @@ from render_helpers import brute_force_stamp, make_optics
 from mavispm.simulate.render.outer_convolution import (
     OuterConvolver,
     _even_samples,
+    deposit_gaussians,
     radial_taper,
     split_cube,
 )
@@ -197,3 +198,27 @@ def test_vectorised_stamp_sizes_equal_the_scalar_rule():
     for floor in (2, 16, 40):
         want = [_stamp_size_at_least(v, floor) for v in n]
         assert _stamp_sizes_at_least(n, floor).tolist() == want
+
+
+@pytest.mark.parametrize(
+    "cov", [[[4.0, 0.5], [0.5, 3.0]], [[9.0, -2.0], [-2.0, 5.0]], [[2.0, 1.9], [1.9, 2.0]]]
+)
+def test_gaussian_deposit_equals_direct_evaluation(cov):
+    """The running-product deposit equals exp() at every sample (and sums to 1 when resolved)."""
+    c = np.array(cov)
+    inv = np.linalg.inv(c)
+    norm = 1 / (2 * np.pi * np.sqrt(np.linalg.det(c)))
+    h = int(np.ceil(7 * np.sqrt(c.max()))) + 1
+    f = np.zeros((2, 64, 64))
+    deposit_gaussians(
+        f, np.array([[1, -1]]), np.array([[2.0, 5.0]]), np.array([31.3]), np.array([30.8]),
+        np.array([[inv[0, 0], inv[0, 1], inv[1, 1]]]), np.array([norm]), np.array([h]),
+    )  # fmt: skip
+    yy, xx = np.mgrid[0:64, 0:64]
+    dx, dy = xx - 31.3, yy - 30.8
+    g = norm * np.exp(-0.5 * (inv[0, 0] * dx * dx + 2 * inv[0, 1] * dx * dy + inv[1, 1] * dy * dy))
+    g *= (np.abs(xx - 31) <= h) & (np.abs(yy - 31) <= h)
+    assert not f[0].any()
+    assert np.abs(f[1] - 2.0 * g).max() < 1e-14
+    if np.linalg.eigvalsh(c)[0] > 1.0:  # resolved on the grid: the samples sum to 1
+        assert abs(f[1].sum() / 2.0 - 1) < 1e-9

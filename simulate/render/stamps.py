@@ -417,8 +417,12 @@ class StarRenderer:
             node, w = self._node_weights(x_field, y_field)
             pos = np.zeros(len(flux), dtype=np.int64)
             for k in range(node.shape[1]):
-                for n in np.unique(node[:, k]):
-                    sel = np.flatnonzero((node[:, k] == n) & (w[:, k] > 0))
+                # stars grouped by node through one sort (not one pass over all per node)
+                order = np.argsort(node[:, k], kind="stable")
+                nodes, first = np.unique(node[order, k], return_index=True)
+                for n, a, b in zip(nodes, first, np.append(first[1:], len(order))):
+                    sel = order[a:b]
+                    sel = sel[w[sel, k] > 0]
                     here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
                     pos[sel] = np.maximum(pos[sel], here)
         radius_pix = radii[np.minimum(pos, len(radii) - 1)]
