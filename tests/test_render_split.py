@@ -222,3 +222,22 @@ def test_gaussian_deposit_equals_direct_evaluation(cov):
     assert np.abs(f[1] - 2.0 * g).max() < 1e-14
     if np.linalg.eigvalsh(c)[0] > 1.0:  # resolved on the grid: the samples sum to 1
         assert abs(f[1].sum() / 2.0 - 1) < 1e-9
+
+
+def test_tilt_table_cache_equals_the_computed_table(tmp_path):
+    """A frames process loads the tip-tilt table (no Bessel functions, no scipy.special)."""
+    from mavispm.simulate.optics import model
+    from mavispm.simulate.optics.tiptilt import TipTiltField
+
+    s = model.validate_settings({})
+    fresh = TipTiltField(s.tiptilt, s.atmosphere, s.pupil)
+    first = TipTiltField(s.tiptilt, s.atmosphere, s.pupil, cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("tiltcov-*.npz"))) == 1
+    loaded = TipTiltField(s.tiptilt, s.atmosphere, s.pupil, cache_dir=tmp_path)
+    x, y = np.array([0.0, 3.2, -11.0]), np.array([0.0, -7.5, 14.0])
+    want = fresh.covariance(x, y)
+    assert np.array_equal(first.covariance(x, y), want)
+    assert np.array_equal(loaded.covariance(x, y), want)
+    other = replace(s.atmosphere, seeing=s.atmosphere.seeing * 1.1)
+    TipTiltField(s.tiptilt, other, s.pupil, cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("tiltcov-*.npz"))) == 2  # other settings, other key
