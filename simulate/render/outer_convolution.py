@@ -126,12 +126,22 @@ def deposit_gaussians(fields, slot, weight, xg, yg, inv, norm, half) -> None:  #
             dx = dx0 + i
             ex[i] = np.exp(-0.5 * a * dx * dx)
         geometric = abs(b) * (h + 1.0) ** 2 < 300.0  # no overflow of the running factor
+        cut2 = GAUSS_CUT * GAUSS_CUT
+        cond = c - b * b / a  # exponent of the row's peak: -cond dy^2 / 2
         for iy in range(max(cy - h, 0), min(cy + h + 1, ly)):
             dy = iy - yg[s]
+            # only the samples inside the GAUSS_CUT ellipse (the square's corners are < e^-24)
+            room = cut2 - cond * dy * dy
+            if room <= 0.0:
+                continue
+            mid = xg[s] - b * dy / a
+            width = np.sqrt(room / a) + 1.0
+            i0 = max(int(np.floor(mid - width)) - x_lo, 0)
+            i1 = min(int(np.ceil(mid + width)) + 1 - x_lo, x_hi - x_lo)
             # exp(-b dx dy) along the row: a geometric sequence (no exp per sample)
             step = np.exp(-b * dy)
-            cross = norm[s] * np.exp(-0.5 * c * dy * dy - b * dx0 * dy)
-            for i in range(x_hi - x_lo):
+            cross = norm[s] * np.exp(-0.5 * c * dy * dy - b * (dx0 + i0) * dy)
+            for i in range(i0, i1):
                 if geometric:
                     g = ex[i] * cross
                     cross *= step
