@@ -47,6 +47,7 @@ from scipy.special import logsumexp
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans_kernel import _floor, _project_row, jeans_columns
 from mavispm.dynamics.star_sums import cubic_point_weights, stars_about
+from mavispm.dynamics.vector_exp import exp_nonpositive
 
 __all__ = [
     "LineOfSightNodes",
@@ -218,31 +219,45 @@ def _interpolate_rows(w0, w1, w2, w3, j, grid, out):  # pragma: no cover - compi
         out[k] = w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k]
 
 
-@numba.njit(nogil=True, cache=True)
-def _ln_mixture(wk, sr, st, v2r, v2t, e2r, e2t):  # pragma: no cover - compiled
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _ln_mixture(wk, sr, st, tk, v2r, v2t, e2r, e2t):  # pragma: no cover - compiled
     """ln of one star's mixture density (without ``-ln 2 pi``) from its interpolated
-    component weights ``wk`` and variances ``sr``, ``st`` (errors added here; overwritten);
-    in logarithms when the direct sum underflows (a star far in the tails)."""
+    component weights ``wk`` and variances ``sr``, ``st`` (errors added here; the three
+    are overwritten, ``tk`` is scratch); in logarithms when the direct sum underflows (a
+    star far in the tails).
+
+    The loops over the components are branch-free and free of reductions and call the
+    vectorising :func:`~mavispm.dynamics.vector_exp.exp_nonpositive` (``numpy.exp`` in
+    numba is a scalar library call), so they run on the CPU's vector units; the sums
+    follow in order.
+    """
+    n_k = wk.size
+    for k in range(n_k):  # wk: weight >= 0, sr: exponent, st: weight / sqrt(var_R var_T)
+        ir = 1.0 / _floor(max(sr[k], 0.0) + e2r)
+        it = 1.0 / _floor(max(st[k], 0.0) + e2t)
+        w = max(wk[k], 0.0)
+        wk[k] = w
+        sr[k] = -0.5 * (v2r * ir + v2t * it)
+        st[k] = w * np.sqrt(ir * it)
+    for k in range(n_k):
+        tk[k] = st[k] * exp_nonpositive(sr[k])
     total = 0.0
     wsum = 0.0
-    for k in range(wk.size):
-        sr[k] = _floor(max(sr[k], 0.0) + e2r)
-        st[k] = _floor(max(st[k], 0.0) + e2t)
-        if wk[k] > 0.0:
-            wsum += wk[k]
-            total += wk[k] * np.exp(-0.5 * (v2r / sr[k] + v2t / st[k])) / np.sqrt(sr[k] * st[k])
+    for k in range(n_k):
+        total += tk[k]
+        wsum += wk[k]
     if wsum <= 0.0:
         return -np.inf
     if total > 1e-280:
         return np.log(total / wsum)
     best = -np.inf
-    for k in range(wk.size):
-        if wk[k] > 0.0:
-            sr[k] = np.log(wk[k]) - 0.5 * (v2r / sr[k] + v2t / st[k] + np.log(sr[k] * st[k]))
+    for k in range(n_k):
+        if st[k] > 0.0:
+            sr[k] += np.log(st[k])
             best = max(best, sr[k])
     acc = 0.0
-    for k in range(wk.size):
-        if wk[k] > 0.0:
+    for k in range(n_k):
+        if st[k] > 0.0:
             acc += np.exp(sr[k] - best)
     return best + np.log(acc) - np.log(wsum)
 
@@ -274,13 +289,14 @@ def mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2):  # pragma: no 
     wk = np.empty(n_k)
     sr = np.empty(n_k)
     st = np.empty(n_k)
+    tk = np.empty(n_k)
     out = np.empty(u.size)
     for i in range(u.size):
         j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
         _interpolate_rows(w0, w1, w2, w3, j, mix_w, wk)
         _interpolate_rows(w0, w1, w2, w3, j, s2_r, sr)
         _interpolate_rows(w0, w1, w2, w3, j, s2_t, st)
-        out[i] = _ln_mixture(wk, sr, st, v2[0, i], v2[1, i], e2[0, i], e2[1, i]) - _LN_2PI
+        out[i] = _ln_mixture(wk, sr, st, tk, v2[0, i], v2[1, i], e2[0, i], e2[1, i]) - _LN_2PI
     return out
 
 
