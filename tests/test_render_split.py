@@ -214,6 +214,7 @@ def test_gaussian_deposit_equals_direct_evaluation(cov):
     deposit_gaussians(
         f, np.array([[1, -1]]), np.array([[2.0, 5.0]]), np.array([31.3]), np.array([30.8]),
         np.array([[inv[0, 0], inv[0, 1], inv[1, 1]]]), np.array([norm]), np.array([h]),
+        np.array([GAUSS_CUT]),
     )  # fmt: skip
     yy, xx = np.mgrid[0:64, 0:64]
     dx, dy = xx - 31.3, yy - 30.8
@@ -222,10 +223,12 @@ def test_gaussian_deposit_equals_direct_evaluation(cov):
     g *= (np.abs(xx - 31) <= h) & (np.abs(yy - 31) <= h)
     assert not f[0].any()
     inside = q < GAUSS_CUT**2  # the deposit keeps the samples inside this ellipse
-    assert np.abs(f[1] - 2.0 * g)[inside].max() < 1e-14
-    assert np.abs(f[1] - 2.0 * g).max() <= 2.0 * norm * np.exp(-0.5 * GAUSS_CUT**2)
-    if np.linalg.eigvalsh(c)[0] > 1.0:  # resolved on the grid: the samples sum to 1
-        assert abs(f[1].sum() / 2.0 - 1) < 1e-9
+    g_kept = g * (f[1] > 0)
+    assert abs(f[1].sum() / 2.0 - 1) < 1e-12  # scaled to the star's flux exactly
+    assert np.abs(f[1] - 2.0 * g_kept / g_kept.sum())[inside].max() < 1e-14
+    if np.linalg.eigvalsh(c)[0] > 1.0:  # resolved: the scale is 1 to the Gaussian's aliasing
+        assert abs(g_kept.sum() - 1) < 1e-9
+        assert np.abs(f[1] - 2.0 * g).max() <= 2.0 * norm * np.exp(-0.5 * GAUSS_CUT**2) + 1e-11
 
 
 def test_tilt_table_cache_equals_the_computed_table(tmp_path):
@@ -245,3 +248,18 @@ def test_tilt_table_cache_equals_the_computed_table(tmp_path):
     other = replace(s.atmosphere, seeing=s.atmosphere.seeing * 1.1)
     TipTiltField(s.tiptilt, other, s.pupil, cache_dir=tmp_path)
     assert len(list(tmp_path.glob("tiltcov-*.npz"))) == 2  # other settings, other key
+
+
+def test_shorter_gaussian_cut_keeps_the_flux():
+    """A deposit cut at 4 sigma keeps its flux; it moves at most exp(-8) from wing to core."""
+    c = np.array([[9.0, -2.0], [-2.0, 5.0]])
+    inv = np.linalg.inv(c)
+    norm = 1 / (2 * np.pi * np.sqrt(np.linalg.det(c)))
+    args = (np.array([[0]]), np.array([[1.0]]), np.array([31.3]), np.array([30.8]),
+            np.array([[inv[0, 0], inv[0, 1], inv[1, 1]]]), np.array([norm]), np.array([22]))  # fmt: skip
+    short, full = np.zeros((1, 64, 64)), np.zeros((1, 64, 64))
+    deposit_gaussians(short, *args, np.array([4.0]))
+    deposit_gaussians(full, *args, np.array([GAUSS_CUT]))
+    assert abs(short.sum() - 1) < 1e-12 and abs(full.sum() - 1) < 1e-12
+    moved = np.abs(short - full).sum() / 2
+    assert 1e-6 < moved <= np.exp(-8)

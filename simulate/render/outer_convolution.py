@@ -42,8 +42,10 @@ __all__ = [
     "split_cube",
 ]
 
-#: The deposit Gaussians are cut where they fall below exp(-GAUSS_CUT**2 / 2).
+#: The deposit Gaussians are cut where they fall below exp(-cut**2 / 2): at most at
+#: GAUSS_CUT, less (not below MIN_GAUSS_CUT) where the light left out is below the budget.
 GAUSS_CUT = 7.0
+MIN_GAUSS_CUT = 4.0
 
 
 def radial_taper(r, r_split: float) -> np.ndarray:
@@ -91,7 +93,9 @@ def split_cube(cube, psf_scale: float, pixel_scale: float, r_split: float):
 
 
 @numba.njit(nogil=True, cache=True)
-def deposit_gaussians(fields, slot, weight, xg, yg, inv, norm, half) -> None:  # pragma: no cover
+def deposit_gaussians(
+    fields, slot, weight, xg, yg, inv, norm, half, cut
+) -> None:  # pragma: no cover
     """Add each star's Gaussian, times its node weights, into the node fields (in place).
 
     Parameters
@@ -110,9 +114,17 @@ def deposit_gaussians(fields, slot, weight, xg, yg, inv, norm, half) -> None:  #
         ``1 / (2 pi sqrt(det C))`` [grid pixel^-2].
     half : ndarray (S,) int
         Half-size of each star's window [grid pixel].
+    cut : ndarray (S,)
+        Each Gaussian is kept inside the ellipse ``d^T C^-1 d < cut^2`` (about, with a
+        margin of a sample per row); the kept samples are scaled to sum to 1, so every
+        star keeps its flux exactly and the ``exp(-cut^2 / 2)`` left out is spread over
+        the kept samples in proportion.
     """
     ly, lx = fields.shape[1], fields.shape[2]
     ex = np.empty(2 * half.max() + 1)
+    buf = np.empty((2 * half.max() + 1, 2 * half.max() + 1))
+    lo = np.zeros(2 * half.max() + 1, dtype=np.int64)
+    hi = np.zeros(2 * half.max() + 1, dtype=np.int64)
     for s in range(xg.shape[0]):
         cx = int(np.floor(xg[s] + 0.5))
         cy = int(np.floor(yg[s] + 0.5))
@@ -126,11 +138,15 @@ def deposit_gaussians(fields, slot, weight, xg, yg, inv, norm, half) -> None:  #
             dx = dx0 + i
             ex[i] = np.exp(-0.5 * a * dx * dx)
         geometric = abs(b) * (h + 1.0) ** 2 < 300.0  # no overflow of the running factor
-        cut2 = GAUSS_CUT * GAUSS_CUT
+        cut2 = cut[s] * cut[s]
         cond = c - b * b / a  # exponent of the row's peak: -cond dy^2 / 2
-        for iy in range(max(cy - h, 0), min(cy + h + 1, ly)):
-            dy = iy - yg[s]
-            # only the samples inside the GAUSS_CUT ellipse (the square's corners are < e^-24)
+        y_lo, y_hi = max(cy - h, 0), min(cy + h + 1, ly)
+        total = 0.0
+        for r in range(y_hi - y_lo):  # pass 1: the samples, and their sum
+            dy = y_lo + r - yg[s]
+            lo[r] = 0
+            hi[r] = 0
+            # only the samples inside the star's cut ellipse (not the window's corners)
             room = cut2 - cond * dy * dy
             if room <= 0.0:
                 continue
@@ -138,6 +154,8 @@ def deposit_gaussians(fields, slot, weight, xg, yg, inv, norm, half) -> None:  #
             width = np.sqrt(room / a) + 1.0
             i0 = max(int(np.floor(mid - width)) - x_lo, 0)
             i1 = min(int(np.ceil(mid + width)) + 1 - x_lo, x_hi - x_lo)
+            lo[r] = i0
+            hi[r] = max(i1, i0)
             # exp(-b dx dy) along the row: a geometric sequence (no exp per sample)
             step = np.exp(-b * dy)
             cross = norm[s] * np.exp(-0.5 * c * dy * dy - b * (dx0 + i0) * dy)
@@ -148,6 +166,15 @@ def deposit_gaussians(fields, slot, weight, xg, yg, inv, norm, half) -> None:  #
                 else:
                     dx = dx0 + i
                     g = norm[s] * np.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
+                buf[r, i] = g
+                total += g
+        if total <= 0.0:
+            continue
+        scale = 1.0 / total  # the kept samples carry the whole flux (exact to round-off)
+        for r in range(y_hi - y_lo):  # pass 2: add them to the node fields
+            iy = y_lo + r
+            for i in range(lo[r], hi[r]):
+                g = buf[r, i] * scale
                 for j in range(slot.shape[1]):
                     t = slot[s, j]
                     if t >= 0:
@@ -294,7 +321,9 @@ class OuterConvolver:
         out *= pixel_transfer(fx / g, s, self.amplitude)[None, :].astype(real)
         return out
 
-    def add(self, image, x_pix, y_pix, node, w, cov, flux, dtype="float32", threads=1) -> None:
+    def add(
+        self, image, x_pix, y_pix, node, w, cov, flux, dtype="float32", threads=1, allowed=None
+    ) -> None:
         """Add the outer parts of the stars to ``image`` (in place).
 
         Parameters
@@ -315,6 +344,12 @@ class OuterConvolver:
             Precision of the deposits and transforms.
         threads : int
             Cells transformed at once (results do not depend on it).
+        allowed : float, optional
+            Error allowed per pixel [flux units] for cutting each deposit Gaussian short of
+            ``GAUSS_CUT``: the light moved from its wing to its core, ``exp(-cut^2 / 2) F``,
+            spread by the largest outer-kernel pixel, stays below it (cut at least
+            ``MIN_GAUSS_CUT``; the flux is kept exactly). None: every Gaussian is cut at
+            ``GAUSS_CUT``.
         """
         from collections import deque
         from concurrent.futures import ThreadPoolExecutor
@@ -335,7 +370,12 @@ class OuterConvolver:
         inv = np.stack([cg[:, 1, 1], -cg[:, 0, 1], cg[:, 0, 0]], axis=1) / det[:, None]
         norm = 1.0 / (2 * np.pi * np.sqrt(det))
         sig = np.sqrt(np.maximum(cg[:, 0, 0], cg[:, 1, 1]))
-        half = np.ceil(GAUSS_CUT * sig).astype(np.int64) + 1
+        cut = np.full(len(flux), GAUSS_CUT)
+        if allowed is not None and allowed > 0:
+            kmax = 4.0 * self.k**2 * float(self.outer.max())  # per unit flux, per pixel
+            ratio = np.maximum(flux * kmax / allowed, 1.0)
+            cut = np.clip(np.sqrt(2.0 * np.log(ratio)), MIN_GAUSS_CUT, GAUSS_CUT)
+        half = np.ceil(cut * sig).astype(np.int64) + 1
         reach = (self.radius + half.max() + 2) / 2.0 + 1  # detector pixels
         near = (x_pix > -reach) & (x_pix < nx - 1 + reach) & (y_pix > -reach)
         near &= (y_pix < ny - 1 + reach) & (flux > 0)
@@ -374,7 +414,7 @@ class OuterConvolver:
             fields = np.zeros((len(ns), ly, lx), dtype=real)
             deposit_gaussians(
                 fields, slot, ww * flux[g][:, None], 2.0 * (x_pix[g] - x0),
-                2.0 * (y_pix[g] - y0), inv[g], norm[g], half[g],
+                2.0 * (y_pix[g] - y0), inv[g], norm[g], half[g], cut[g],
             )  # fmt: skip
             spec = None
             for t, n_ in enumerate(ns):

@@ -763,9 +763,12 @@ class StarRenderer:
         if split.any():
             node, w = self._node_weights(x_field[split], y_field[split])
             _, dtype = self._batch_accuracy(float(flux[split].max()), noise_sigma)
+            allowed = None
+            if noise_sigma is not None and noise_sigma > 0:
+                allowed = 0.05 * self.params.stamp_threshold * noise_sigma
             outer.add(
                 image, x_pix[split], y_pix[split], node, w, cov[split], flux[split],
-                dtype=dtype, threads=threads,
+                dtype=dtype, threads=threads, allowed=allowed,
             )  # fmt: skip
         if bar is not None:
             bar.close()
