@@ -214,6 +214,37 @@ def bench_comparison(quick, n_stars=(1000, 3500), **knobs):
         )
 
 
+def bench_reweighting_overlap(n_seeds=12):
+    """Does the Gaussian law's nested posterior cover the line-of-sight law's? For SBC draws
+    of ``imbh`` (800 stars, 3-D Gaussian velocities, ``tests/sbc_helpers.py``, seeds
+    3000...): the Pareto shape of the importance ratios (reliable below 0.7), their
+    effective sample size over 4,000 draws and ln E[L_los / L_gauss]."""
+    import dataclasses
+
+    from sbc_helpers import SBC_DISTANCE, draw_prior, draw_sample, sbc_space
+
+    from mavispm.dynamics.fit import make_likelihood
+    from mavispm.dynamics.reweighting import reweight_samples
+
+    print("\n# reweighting the Gaussian law's nested run to the line-of-sight law (SBC draws)")
+    print(f"{'seed':>5} {'M_bh':>7} {'pareto_k':>8} {'ESS':>7} {'ln E[ratio]':>11}")
+    for seed in range(3000, 3000 + n_seeds):
+        rng = np.random.default_rng([seed, 17])
+        space, s = sbc_space("imbh", "line_of_sight")
+        truth = draw_prior(space, rng)
+        stars = draw_sample(truth, 800, rng, "3d")
+        target = make_likelihood(stars, space, s, SBC_DISTANCE)
+        gauss = dataclasses.replace(s, velocity_law="gaussian")
+        proposal = make_likelihood(stars, space, gauss, SBC_DISTANCE)
+        run = run_dynesty(proposal, space, seed, nlive=s.nlive, dlogz=s.dlogz)
+        draws = run.samples[np.random.default_rng([seed, 71]).choice(len(run.samples), 4000)]
+        rw = reweight_samples(draws, np.array([proposal(v) for v in draws]), target, rng)
+        print(
+            f"{seed:5d} {truth['bh_mass']:7.0f} {rw['pareto_k']:8.2f} {rw['ess']:7.1f} "
+            f"{rw['log_mean_ratio']:11.2f}"
+        )
+
+
 def bench_velocity_laws():
     """One model's nested evidence at 3,500 stars with the Gaussian law, the line-of-sight
     law run directly and the Gaussian run reweighted to it (same stars, settings, seed)."""
@@ -291,6 +322,11 @@ def main(argv=None):
     parser.add_argument(
         "--comparison", action="store_true", help="time the four-model comparison (slow)"
     )
+    parser.add_argument(
+        "--reweighting",
+        action="store_true",
+        help="overlap of the Gaussian and line-of-sight posteriors on SBC draws (slow)",
+    )
     args = parser.parse_args(argv)
     print(f"mock: {RECOVERY_MOCK}")
     bench_projection(args.quick)
@@ -299,6 +335,8 @@ def main(argv=None):
     bench_tracers(args.quick)
     if not args.no_samplers:
         bench_samplers(args.quick)
+    if args.reweighting:
+        bench_reweighting_overlap()
     if args.comparison:
         bench_velocity_laws()
         bench_comparison(args.quick)

@@ -314,8 +314,10 @@ TABLE_META_SUFFIX = ".__table_column_meta__"
 
 _PLAIN_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _PLAIN_UNIT = re.compile(r"[A-Za-z][A-Za-z0-9_ /().*]*[A-Za-z0-9)]\Z|[A-Za-z]\Z")
-#: Plain words that YAML reads as booleans or null (astropy's dumper quotes them).
-_YAML_WORDS = {"y", "n", "yes", "no", "true", "false", "on", "off", "null"}
+#: Plain words that YAML reads as booleans or null (astropy's dumper quotes them; it
+#: writes ``y`` and ``n`` unquoted, as PyYAML reads them as strings: the column ``y`` of
+#: every truth and catalogue table stays on the fast path).
+_YAML_WORDS = {"yes", "no", "true", "false", "on", "off", "null"}
 
 
 def _plain_yaml(text: str, pattern) -> bool:

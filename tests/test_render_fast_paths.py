@@ -76,7 +76,9 @@ DTYPES = [np.int64, np.int32, np.uint8, np.float64, np.float32, bool, "U3"]
 @given(
     cols=st.lists(
         st.tuples(
-            st.sampled_from(["id", "x", "x_pix", "flux", "mag", "pm_x", "yes", "null", "a1", "_k"]),
+            st.sampled_from(
+                ["id", "x", "y", "n", "x_pix", "flux", "mag", "pm_x", "yes", "null", "a1", "_k"]
+            ),
             st.sampled_from(range(len(DTYPES))),
             st.sampled_from(range(len(UNITS))),
         ),

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.special import j1
 
 __all__ = [
     "cone_psd",
@@ -68,6 +67,8 @@ def pupil_coherence(q: ArrayLike, diameter: float, obscuration: float = 0.0) -> 
     """
     if not 0 <= obscuration < 1:
         raise ValueError(f"obscuration ratio must be in [0, 1), got {obscuration}")
+
+    from scipy.special import j1  # ~0.3-0.5 s to import: only when computed
 
     def jinc(x):
         small = np.abs(x) < 1e-6

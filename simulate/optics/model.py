@@ -486,7 +486,9 @@ def build_optics(
     if s.halo.enabled:
         halo = cached_halo(s, result, path)
         grid = taper_grid(grid, halo)
-    tiptilt = TipTiltField(s.tiptilt, s.atmosphere, s.pupil)
+    tiptilt = TipTiltField(
+        s.tiptilt, s.atmosphere, s.pupil, cache_dir=None if path is None else Path(path).parent
+    )
     slices = lam_k = None
     slice_paths = []
     if s.broadband.slices > 1:

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.special import j0
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import ARCSEC_PER_RAD, MAS_PER_RAD, von_karman_psd
@@ -213,6 +212,8 @@ def build_halo(
     oversampling : float
         Sampling of the Hankel integrals relative to Nyquist (accuracy knob).
     """
+    from scipy.special import j0  # ~0.3-0.5 s to import: only when the halo is computed
+
     # radial PSD over a wide log grid
     f_hi = 4 * (settings.size / 2 / ARCSEC_PER_RAD) / wavelength
     f = np.geomspace(1e-3, max(f_hi, 10.0), 6000)

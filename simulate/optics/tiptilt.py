@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy.special import j0, j1, jv
 
 from mavispm.core.config import unit_field
 from mavispm.simulate.optics.atmosphere import (
@@ -268,6 +267,8 @@ def mcao_rejection(
     ndarray
         In [0, 1]: 1 where the HO loop corrects nothing (low meta-pupil orders).
     """
+    from scipy.special import j1, jv
+
     x = 2 * np.pi * np.asarray(f, float) * meta_radius
     x = np.where(x > 1e-8, x, 1e-8)
     low = ((2 * j1(x)) ** 2 + (4 * jv(2, x)) ** 2 + 9 * (2 * jv(3, x)) ** 2) / x**2
@@ -297,6 +298,8 @@ def tilt_covariance_function(
         (technical field diameter arcsec, HO loop rate Hz) of the MCAO filter
         :func:`mcao_rejection`; None for the open-loop turbulence.
     """
+    from scipy.special import j0, j1  # ~0.3-0.5 s to import: a warm process loads the table
+
     lay = layers(atmosphere)
     r0 = fried_parameter(atmosphere, REFERENCE_WAVELENGTH)
     opd2 = (REFERENCE_WAVELENGTH / (2 * np.pi)) ** 2  # rad^2 -> m^2 of OPD
@@ -327,6 +330,57 @@ def tilt_covariance_function(
     return TiltCovariance(rho, a, b, lay.heights, lay.weights)
 
 
+#: Version of the tilt-covariance table computation (part of its disk-cache key).
+TILT_CACHE_VERSION = 1
+
+
+def cached_tilt_covariance(
+    atmosphere: AtmosphereSettings,
+    pupil: PupilSettings,
+    max_separation: float,
+    mcao: tuple[float, float] | None = None,
+    cache_dir=None,
+) -> TiltCovariance:
+    """:func:`tilt_covariance_function`, kept in ``cache_dir`` (when given).
+
+    The table is a pure function of its arguments (the cache key); loading it spares a
+    frames process the Bessel functions and the ``scipy.special`` import (~0.3-0.5 s).
+
+    Parameters
+    ----------
+    atmosphere, pupil, max_separation, mcao
+        As :func:`tilt_covariance_function`.
+    cache_dir : path, optional
+        Folder of the cache file ``tiltcov-<key>.npz``; None: computed.
+
+    Returns
+    -------
+    TiltCovariance
+    """
+    if cache_dir is None:
+        return tilt_covariance_function(atmosphere, pupil, max_separation, mcao)
+    import dataclasses
+    from pathlib import Path
+
+    from mavispm.core.array_cache import content_key, load_arrays, save_arrays
+
+    key = content_key(
+        TILT_CACHE_VERSION,
+        dataclasses.asdict(atmosphere),
+        dataclasses.asdict(pupil),
+        float(max_separation),
+        None if mcao is None else [float(v) for v in mcao],
+    )
+    path = Path(cache_dir) / f"tiltcov-{key}.npz"
+    names = [f.name for f in dataclasses.fields(TiltCovariance)]
+    stored = load_arrays(path)
+    if stored is not None and set(stored) == set(names):
+        return TiltCovariance(**{n: np.array(stored[n]) for n in names})
+    table = tilt_covariance_function(atmosphere, pupil, max_separation, mcao)
+    save_arrays(path, {n: np.asarray(getattr(table, n)) for n in names})
+    return table
+
+
 class TipTiltField:
     """Field-dependent TT residual covariance for one asterism.
 
@@ -335,10 +389,16 @@ class TipTiltField:
     settings : TipTiltSettings
     atmosphere : AtmosphereSettings
     pupil : PupilSettings
+    cache_dir : path, optional
+        Keep the tilt-covariance table there (:func:`cached_tilt_covariance`).
     """
 
     def __init__(
-        self, settings: TipTiltSettings, atmosphere: AtmosphereSettings, pupil: PupilSettings
+        self,
+        settings: TipTiltSettings,
+        atmosphere: AtmosphereSettings,
+        pupil: PupilSettings,
+        cache_dir=None,
     ):
         self.settings = settings
         self.ngs_xy, self.ngs_mag = ngs_positions(settings)
@@ -350,7 +410,9 @@ class TipTiltField:
         needed = 2 * reach + 60.0 / 206265.0
         step = 100.0 / 206265.0
         mcao = (settings.technical_fov, settings.ho_frame_rate) if settings.mcao_filter else None
-        self._cov = tilt_covariance_function(atmosphere, pupil, step * np.ceil(needed / step), mcao)
+        self._cov = cached_tilt_covariance(
+            atmosphere, pupil, step * np.ceil(needed / step), mcao, cache_dir
+        )
         n = theta.shape[0]
         self._theta = theta
         css = np.zeros((2 * n, 2 * n))

@@ -130,6 +130,17 @@ class RenderParams:
         largest skewness of the default MAVIS stack (120 x 30 s, 3 e- read noise)
         is 0.012, so the default 0.1 draws no Poisson variates there. With
         ``gaussian_skew_limit = 0`` every pixel is drawn exactly.
+    outer_convolution : {"auto", "on", "off"}
+        Split rendering (``simulate/render/outer_convolution.py``): each star's PSF
+        inside ``split_radius`` on a small exact stamp, the rest for all stars of a
+        PSF-grid cell by one FFT convolution per node. Stars whose aliasing bound
+        exceeds a tenth of ``stamp_threshold`` x the noise keep full stamps. ``auto``
+        splits when at least ``split_min_stars`` stars qualify (the convolutions cost a
+        few seconds per frame, the full stamps ~0.5 ms per star).
+    split_radius : float
+        Radius [pixel] where the inner part ends (raised-cosine taper from half of it).
+    split_min_stars : int
+        Stars needed for ``outer_convolution = "auto"`` to split.
     """
 
     oversampling: int = 2
@@ -145,6 +156,9 @@ class RenderParams:
     gaussian_skew_limit: float = 0.01
     poisson_skew_limit: float = 0.1
     threads: int = 0
+    outer_convolution: Literal["auto", "on", "off"] = "auto"
+    split_radius: float = 8.0
+    split_min_stars: int = 50000
 
     def __post_init__(self):
         if self.oversampling < 1:
@@ -167,6 +181,14 @@ class RenderParams:
             raise ValueError("render.threads must be >= 0 (0: all cores)")
         if self.batch_size < 1:
             raise ValueError("render.batch_size must be >= 1")
+        if self.outer_convolution not in ("auto", "on", "off"):
+            raise ValueError(
+                f"render.outer_convolution must be auto, on or off, got {self.outer_convolution!r}"
+            )
+        if not self.split_radius >= 2:
+            raise ValueError(f"render.split_radius must be >= 2 pixels, got {self.split_radius}")
+        if self.split_min_stars < 0:
+            raise ValueError("render.split_min_stars must be >= 0")
 
 
 @dataclass
@@ -212,6 +234,15 @@ def _stamp_size_at_least(n: int, floor: int) -> int:
         if size >= n:
             return size
     return n + (n % 2)
+
+
+def _stamp_sizes_at_least(n, floor: int) -> np.ndarray:
+    """:func:`_stamp_size_at_least` of every element of ``n`` (vectorised; the same sizes)."""
+    need = np.maximum(np.ceil(np.asarray(n, dtype=float)), floor).astype(np.int64)
+    table = np.asarray(STAMP_SIZES, dtype=np.int64)
+    pos = np.searchsorted(table, need, side="left")
+    beyond = need + need % 2
+    return np.where(pos < len(table), table[np.minimum(pos, len(table) - 1)], beyond)
 
 
 def _folding_frequencies(m: int, k: int):
@@ -386,16 +417,17 @@ class StarRenderer:
             node, w = self._node_weights(x_field, y_field)
             pos = np.zeros(len(flux), dtype=np.int64)
             for k in range(node.shape[1]):
-                for n in np.unique(node[:, k]):
-                    sel = np.flatnonzero((node[:, k] == n) & (w[:, k] > 0))
+                # stars grouped by node through one sort (not one pass over all per node)
+                order = np.argsort(node[:, k], kind="stable")
+                nodes, first = np.unique(node[order, k], return_index=True)
+                for n, a, b in zip(nodes, first, np.append(first[1:], len(order))):
+                    sel = order[a:b]
+                    sel = sel[w[sel, k] > 0]
                     here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
                     pos[sel] = np.maximum(pos[sel], here)
         radius_pix = radii[np.minimum(pos, len(radii) - 1)]
         half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
-        sizes = np.array(
-            [_stamp_size_at_least(2 * h, self.params.min_stamp) for h in half], dtype=int
-        )
-        return np.minimum(sizes, biggest)
+        return np.minimum(_stamp_sizes_at_least(2 * half, self.params.min_stamp), biggest)
 
     # ------------------------------------------------------------- transforms
     def plan(self, m: int) -> StampPlan:
@@ -675,21 +707,34 @@ class StarRenderer:
             bar = tqdm(total=int(todo.sum()), desc="stars", unit="star", leave=False)
         batch = self.params.batch_size
         colour = np.zeros(len(flux), np.int64) if colour is None else np.asarray(colour, np.int64)
+        # split rendering: small stamps of the inner PSF, the outer PSF by convolution
+        split = self._split_mask(flux, cov, noise_sigma, todo)
+        parts = {False: self}
+        if split.any():
+            inner, outer = self._split_parts()
+            parts[True] = inner
+            sig = np.sqrt(np.clip(np.linalg.eigvalsh(cov[split])[:, -1], 0, None))
+            sizes = sizes.copy()
+            sizes[split] = inner.stamp_sizes(
+                flux[split], noise_sigma or 1e-300, sig, x_field[split], y_field[split]
+            )
         jobs = []
-        for m in np.unique(sizes[todo]):
-            for b in np.unique(colour[todo & (sizes == m)]):
-                idx = np.flatnonzero(todo & (sizes == m) & (colour == b))
-                idx = idx[np.argsort(flux[idx], kind="stable")]
-                for a in range(0, len(idx), batch):
-                    sel = idx[a : a + batch]  # similar fluxes (one floor/precision per batch),
-                    # added in row order: neighbouring stamps share cached image rows
-                    jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))]))
+        for part, renderer in parts.items():
+            mine = todo & (split == part)
+            for m in np.unique(sizes[mine]):
+                for b in np.unique(colour[mine & (sizes == m)]):
+                    idx = np.flatnonzero(mine & (sizes == m) & (colour == b))
+                    idx = idx[np.argsort(flux[idx], kind="stable")]
+                    for a in range(0, len(idx), batch):
+                        sel = idx[a : a + batch]  # similar fluxes (one floor/precision per
+                        # batch), added in row order: neighbouring stamps share image rows
+                        jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))], renderer))
 
         def work(job):
-            m, sel = job
+            m, sel, renderer = job
             spectrum = None if spectra is None else spectra[colour[sel[0]]]
-            floor, dtype = self._batch_accuracy(float(flux[sel].max()), noise_sigma)
-            return self.render_stamps(
+            floor, dtype = renderer._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            return renderer.render_stamps(
                 m,
                 x_pix[sel],
                 y_pix[sel],
@@ -702,7 +747,8 @@ class StarRenderer:
                 spectrum=spectrum,
             )
 
-        self.plans({m for m, _ in jobs})  # build plans once, before the threads share them
+        for renderer in parts.values():  # build plans once, before the threads share them
+            renderer.plans({m for m, _, r in jobs if r is renderer})
         threads = self.params.threads or os.cpu_count() or 1
         with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
             # at most 2 batches per thread in flight (bounded memory); stamps are added
@@ -714,14 +760,75 @@ class StarRenderer:
                     self._add_done(image, pending.popleft(), bar)
             while pending:
                 self._add_done(image, pending.popleft(), bar)
+        if split.any():
+            node, w = self._node_weights(x_field[split], y_field[split])
+            _, dtype = self._batch_accuracy(float(flux[split].max()), noise_sigma)
+            allowed = None
+            if noise_sigma is not None and noise_sigma > 0:
+                allowed = 0.05 * self.params.stamp_threshold * noise_sigma
+            outer.add(
+                image, x_pix[split], y_pix[split], node, w, cov[split], flux[split],
+                dtype=dtype, threads=threads, allowed=allowed,
+            )  # fmt: skip
         if bar is not None:
             bar.close()
         return overlaps
 
+    # ------------------------------------------------------------ split rendering
+    def _split_parts(self):
+        """(inner renderer, :class:`OuterConvolver`) of split rendering (built once)."""
+        if getattr(self, "_split", None) is None:
+            from dataclasses import replace
+
+            from mavispm.simulate.render.outer_convolution import OuterConvolver, split_cube
+
+            n = self._cube.shape[-1]
+            inner, outer = split_cube(
+                self._cube, self.psf_pixel_scale, self.pixel_scale, self.params.split_radius
+            )
+            grid = _TaperedGrid(self.psf_grid, inner.reshape(self.n_nodes_y, self.n_nodes_x, n, n))
+            params = replace(self.params, outer_convolution="off")
+            self._split = (
+                StarRenderer(grid, self.pixel_scale, params, self.cache_dir,
+                             intrapixel_amplitude=self.intrapixel_amplitude),
+                OuterConvolver(outer, self.psf_pixel_scale, self.pixel_scale,
+                               self.intrapixel_amplitude),
+            )  # fmt: skip
+        return self._split
+
+    def split_possible(self) -> bool:
+        """Whether split rendering applies (one PSF slice; half a pixel = whole PSF samples)."""
+        k = 0.5 * self.pixel_scale / self.psf_pixel_scale
+        return self.n_slices == 1 and k >= 1 - 1e-9 and abs(k - round(k)) <= 1e-9 * k
+
+    def _split_mask(self, flux, cov, noise_sigma, todo) -> np.ndarray:
+        """Stars to render split (inner stamp + outer convolution); see ``RenderParams``."""
+        mode = self.params.outer_convolution
+        none = np.zeros(len(flux), dtype=bool)
+        if mode == "off" or not todo.any():
+            return none
+        if not self.split_possible():
+            if mode == "on":
+                raise ValueError(
+                    "render.outer_convolution = 'on' needs one PSF slice and half a detector "
+                    "pixel equal to a whole number of PSF samples"
+                )
+            return none
+        if mode == "auto" and todo.sum() < self.params.split_min_stars:
+            return none
+        _, outer = self._split_parts()
+        mask = todo.copy()
+        if noise_sigma is not None and noise_sigma > 0:
+            allowed = 0.1 * self.params.stamp_threshold * noise_sigma
+            mask &= flux * outer.alias_bound(cov) <= allowed
+        if mode == "auto" and mask.sum() < self.params.split_min_stars:
+            return none
+        return mask
+
     @staticmethod
     def _add_done(image, item, bar) -> None:
         """Wait for one batch of stamps and add it to the image."""
-        (_, sel), future = item
+        (_, sel, _), future = item
         stamps, x0, y0 = future.result()
         add_stamps(image, stamps, x0, y0)
         if bar is not None:
@@ -736,6 +843,18 @@ class StarRenderer:
         if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
             dtype = "float64"
         return min(floor, allowed), dtype
+
+
+class _TaperedGrid:
+    """A PSF grid with the nodes replaced by their inner parts (same node positions)."""
+
+    def __init__(self, grid, cube):
+        self._grid = grid
+        self.cube = cube
+        self.pixel_scale = grid.pixel_scale
+
+    def bilinear_weights(self, x, y):
+        return self._grid.bilinear_weights(x, y)
 
 
 def stamp_centre(pix) -> np.ndarray:
