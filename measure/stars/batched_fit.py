@@ -21,12 +21,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from mavispm.core.errors import InputError
-from mavispm.measure.stars.crlb import fisher_matrix, jacobian, safe_inverse, sky_plane_basis
+from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
+from mavispm.measure.stars.stamp_kernel import normal_equations as fused_normal_equations
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
 __all__ = [
@@ -163,16 +165,31 @@ def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
     pairs = cKDTree(np.column_stack([x, y])).query_pairs(distance, output_type="ndarray")
     if len(pairs) == 0:
         return colour
-    neighbours: list[list[int]] = [[] for _ in range(n)]
-    for i, j in pairs:
-        neighbours[i].append(j)
-        neighbours[j].append(i)
-    colour[:] = -1
-    order = np.argsort([-len(nb) for nb in neighbours], kind="stable")
+    # adjacency lists in CSR form, each list in the order the pairs were found
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    degree = np.bincount(both[:, 0], minlength=n)
+    indptr = np.concatenate([[0], np.cumsum(degree)])
+    order = np.argsort(-degree, kind="stable")
+    return _greedy_colours(
+        order.astype(np.intp), indptr.astype(np.intp), both[:, 1].astype(np.intp)
+    )
+
+
+@numba.njit(nogil=True, cache=True)
+def _greedy_colours(order, indptr, neighbours):
+    """Greedy colouring in ``order``: each star takes the lowest colour none of its
+    already coloured neighbours has (O(sum of degrees))."""
+    n = len(order)
+    colour = np.full(n, -1, dtype=np.intp)
+    used = np.full(int(np.max(indptr[1:] - indptr[:-1])) + 2, -1, dtype=np.intp)
     for i in order:
-        used = {colour[j] for j in neighbours[i]}
+        for k in range(indptr[i], indptr[i + 1]):
+            c = colour[neighbours[k]]
+            if c >= 0:
+                used[c] = i  # marks colour c as taken for star i
         c = 0
-        while c in used:
+        while used[c] == i:
             c += 1
         colour[i] = c
     return colour
@@ -353,11 +370,16 @@ def fit_stars(
     inside = ((rows >= 0) & (rows < ny))[:, :, None] & ((cols >= 0) & (cols < nx))[:, None, :]
     # work on the pixels the stamps touch only (compact index), never on full-frame
     # arrays: the ePSF builder fits a few hundred stars of a 4k x 4k frame many times
+    # 32-bit pixel indices where the frame allows (half the memory of the N x S^2 index
+    # arrays: ~100 MB each at 1e5 stars)
+    itype = np.int32 if ny * nx < 2**31 else np.intp
     frame_index = (
-        np.clip(rows, 0, ny - 1)[:, :, None] * nx + np.clip(cols, 0, nx - 1)[:, None, :]
+        np.clip(rows, 0, ny - 1).astype(itype)[:, :, None] * itype(nx)
+        + np.clip(cols, 0, nx - 1).astype(itype)[:, None, :]
     ).reshape(n, -1)
     pixels, flat = np.unique(frame_index, return_inverse=True)
-    flat = flat.reshape(n, -1)
+    del frame_index
+    flat = flat.reshape(n, -1).astype(itype)
     values = np.asarray(image.reshape(-1)[pixels], dtype=float)
     sat_pix = (
         np.zeros(len(pixels), bool)
@@ -386,7 +408,13 @@ def fit_stars(
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
     model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
     colour = colour_stars(x, y, 2 * r + 1.0)
+    # each colour in bands of rows, left to right: consecutive stars then read the same
+    # few basis ePSFs (the evaluation is bound by memory reads; 27 -> 18 us per star
+    # with an 11 x 11 grid). Stars of one colour do not overlap: the order changes
+    # nothing but rounding.
+    band = np.floor(y / 64.0)
     groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
+    groups = [g[np.lexsort((x[g], band[g]))] for g in groups]
     pairs = (
         cKDTree(np.column_stack([x, y])).query_pairs(2 * r + 1.0, output_type="ndarray")
         if n > 1
@@ -407,23 +435,25 @@ def fit_stars(
 
     def normal_equations(idx, fix_positions):
         v, dvx, dvy = (a.reshape(len(idx), -1) for a in evaluate(idx))
-        neigh = model[flat[idx]] - own[idx]
-        mod_star = flux[idx, None] * v
-        background = sky[idx, None] + slope[idx] @ plane_basis
-        resid = data[idx] - neigh - mod_star - background
-        var = np.maximum(model[flat[idx]] - own[idx] + mod_star + background, 0.0)
-        w = valid[idx] / (var + read_noise_var)
-        jac = jacobian(
+        a, b, w, resid = fused_normal_equations(
+            v,
+            dvx,
+            dvy,
+            data[idx],
+            model[flat[idx]],
+            own[idx],
+            valid[idx],
             flux[idx],
-            v.reshape(-1, s, s),
-            dvx.reshape(-1, s, s),
-            dvy.reshape(-1, s, s),
-            sky_gradient=opt.sky_gradient,
+            sky[idx],
+            slope[idx] if opt.sky_gradient else None,
+            plane_basis,
+            read_noise_var,
         )
         if fix_positions is not None:
-            jac[fix_positions, :2] = 0.0
-        a = fisher_matrix(jac, w)
-        b = np.einsum("nkm,nm->nk", jac, w * resid)
+            fix = np.flatnonzero(fix_positions)
+            a[fix, :2, :] = 0.0
+            a[fix, :, :2] = 0.0
+            b[fix, :2] = 0.0
         return v, dvx, dvy, a, b, w, resid
 
     # initial fluxes: linear fit at fixed positions (positions frozen)

@@ -257,6 +257,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         radius=settings.stamp_radius,
         iterations=settings.iterations,
         tolerance=settings.tolerance,
+        relative_tolerance=settings.relative_tolerance,
         max_shift=settings.max_shift,
         min_snr=settings.min_snr,
         chunk=settings.chunk,

@@ -1,0 +1,104 @@
+"""Scale benchmark of the stars stage (issue 14, deliverable 4; docs/measure.md, "Scale").
+
+Run ``python benchmarks/bench_scale.py --n 10000 30000 100000 [--work DIR]`` with the
+repository on PYTHONPATH as ``mavispm``. For each N it makes (once, cached in the work
+folder) the NGC 3201 preset catalogue with N stars over 30" (epoch 0), the default
+optics' PSF grid and the rendered frame, then measures the frame forced with the stage
+defaults and the grid as the PSF-R prior, and prints the stage times, the peak RSS of
+the process so far, the failed / not-converged fractions among stars with V < 25 whose
+centres lie inside the frame (those outside fail by design), and the robust scatter
+over the CRLB per magnitude bin. Run each N in its own process (``/usr/bin/time -v``)
+for a clean peak memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mavispm.measure.stars.cli import validate_settings
+from mavispm.measure.stars.measure_frame import measure_frame, read_frame
+
+
+def _run(*args):
+    subprocess.run([sys.executable, "-m", "mavispm.workflows.cli", *args], check=True)
+
+
+def make_frame(n: int, work: Path) -> Path:
+    """The catalogue, PSF grid and frame of ``n`` stars in ``work`` (made once)."""
+    work.mkdir(parents=True, exist_ok=True)
+    psf, cat, frame = work / "psf.h5", work / f"cat_{n}.h5", work / f"f_{n}.h5"
+    if not psf.exists():
+        _run("simulate", "optics", "-o", str(psf), "--quiet")
+    if not cat.exists():
+        _run(
+            "simulate",
+            "cluster",
+            "-o",
+            str(cat),
+            "--n-stars",
+            str(n),
+            "--epochs",
+            "0",
+            "--seed",
+            "1",
+        )
+    if not frame.exists():
+        _run("simulate", "frames", str(cat), "--epoch", "e0", "-o", str(frame))
+    return frame
+
+
+def robust_sigma(a):
+    a = a[np.isfinite(a)]
+    return 1.4826 * np.median(np.abs(a - np.median(a))) if len(a) else np.nan
+
+
+def measure(path: Path, prior: Path) -> None:
+    frame = read_frame(path)
+    cfg = validate_settings({"psf_prior": str(prior)})
+    t0 = time.perf_counter()
+    stars, attrs, _ = measure_frame(frame, cfg, 0)
+    wall = time.perf_counter() - t0
+    ny, nx = frame.shape
+    tx = np.asarray(frame.truth["x_pix"], float)
+    ty = np.asarray(frame.truth["y_pix"], float)
+    mag = frame.truth["mag"].value
+    flag = np.asarray(stars["flag"])
+    inside = (tx > -0.5) & (tx < nx - 0.5) & (ty > -0.5) & (ty < ny - 0.5)
+    sel = inside & (mag < 25)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    print(
+        f"{path.name}: {len(tx)} stars ({inside.sum()} inside), stage {wall:.1f} s "
+        f"(PSF {attrs['time_epsf'].value:.1f}, fit {attrs['time_fit'].value:.1f}, errors "
+        f"{attrs['time_errors'].value:.1f}), peak RSS {peak:.2f} GB; V < 25 inside: "
+        f"failed {np.mean(flag[sel] & 32 > 0):.2%}, not converged {np.mean(flag[sel] & 1 > 0):.2%}"
+    )
+    scale = frame.pixel_scale
+    ok = inside & (flag & 32 == 0)
+    for lo, hi in ((17, 20), (20, 22), (22, 24), (24, 25), (25, 26)):
+        b = ok & (mag >= lo) & (mag < hi)
+        dx = np.asarray(stars["x_pix"])[b] - tx[b]
+        dy = np.asarray(stars["y_pix"])[b] - ty[b]
+        cx = np.median(stars["crlb_x"].value[b]) / scale
+        cy = np.median(stars["crlb_y"].value[b]) / scale
+        print(f"  V {lo}-{hi}: {b.sum()} stars, scatter / CRLB x / y "
+              f"{robust_sigma(dx) / cx:.2f} / {robust_sigma(dy) / cy:.2f}")  # fmt: skip
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, nargs="+", default=[10000, 30000, 100000])
+    ap.add_argument("--work", type=Path, default=Path("bench_scale_work"))
+    args = ap.parse_args(argv)
+    for n in args.n:
+        measure(make_frame(n, args.work), args.work / "psf.h5")
+
+
+if __name__ == "__main__":
+    main()
