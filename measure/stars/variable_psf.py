@@ -221,6 +221,13 @@ class VariableEPSF:
         return np.tensordot(w[0], self.basis[idx[0]], axes=1)
 
     # ------------------------------------------------------------ evaluation
+    def _stars_and_mix(self, x0, y0, mix):
+        """Star centres as float arrays and their mixing (``mix``, or computed)."""
+        x0 = np.atleast_1d(np.asarray(x0, dtype=float))
+        y0 = np.atleast_1d(np.asarray(y0, dtype=float))
+        idx, wmix = self.mixing(x0, y0) if mix is None else mix
+        return x0, y0, idx, wmix
+
     def evaluate(
         self,
         x0: np.ndarray,
@@ -250,9 +257,7 @@ class VariableEPSF:
         dx, dy : ndarray, shape (N, S, S)
             Derivatives with respect to x0 and y0 (only if ``derivatives``).
         """
-        x0 = np.atleast_1d(np.asarray(x0, dtype=float))
-        y0 = np.atleast_1d(np.asarray(y0, dtype=float))
-        idx, wmix = self.mixing(x0, y0) if mix is None else mix
+        x0, y0, idx, wmix = self._stars_and_mix(x0, y0, mix)
         return evaluate_stamps(
             self._coef,
             idx,
@@ -280,9 +285,7 @@ class VariableEPSF:
         Parameters and returns as :meth:`evaluate`; agrees with it to float32 rounding
         (relative ~1e-6 of the peak).
         """
-        x0 = np.asarray(x0, dtype=float)
-        y0 = np.asarray(y0, dtype=float)
-        idx, wmix = self.mixing(x0, y0) if mix is None else mix
+        x0, y0, idx, wmix = self._stars_and_mix(x0, y0, mix)
         os_ = self.oversampling
         # oversampled coordinate of each stamp column / row in the padded grid
         u = (geometry.columns() - x0[:, None]) * os_ + self._centre[0]

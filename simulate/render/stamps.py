@@ -329,6 +329,7 @@ class StarRenderer:
         self._cube = cube.reshape(-1, n, n)
         self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
         self._plans: dict[int, StampPlan] = {}
+        self._split = None  # (inner renderer, OuterConvolver), built on first split render
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._cache_key = None
         if self.cache_dir is not None:
@@ -777,7 +778,7 @@ class StarRenderer:
     # ------------------------------------------------------------ split rendering
     def _split_parts(self):
         """(inner renderer, :class:`OuterConvolver`) of split rendering (built once)."""
-        if getattr(self, "_split", None) is None:
+        if self._split is None:
             from dataclasses import replace
 
             from mavispm.simulate.render.outer_convolution import OuterConvolver, split_cube
