@@ -212,54 +212,97 @@ def line_of_sight_model(
 
 @numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract", "arcp"})
 def _interpolate_rows(w0, w1, w2, w3, j, grid, out):  # pragma: no cover - compiled
-    """Cubic interpolation of every component of ``grid`` (M, K) between rows ``j-1 .. j+2``
-    (contiguous rows: the loop over components vectorises)."""
+    """Cubic interpolation of every column of ``grid`` between rows ``j-1 .. j+2``
+    (contiguous rows: the loop over columns vectorises)."""
     r0, r1, r2, r3 = grid[j - 1], grid[j], grid[j + 1], grid[j + 2]
     for k in range(out.size):
         out[k] = w0 * r0[k] + w1 * r1[k] + w2 * r2[k] + w3 * r3[k]
 
 
-@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
-def _ln_mixture(wk, sr, st, tk, v2r, v2t, e2r, e2t):  # pragma: no cover - compiled
-    """ln of one star's mixture density (without ``-ln 2 pi``) from its interpolated
-    component weights ``wk`` and variances ``sr``, ``st`` (errors added here; the three
-    are overwritten, ``tk`` is scratch); in logarithms when the direct sum underflows (a
-    star far in the tails).
+@numba.njit(nogil=True, cache=True)
+def _component_table(mix_w, s2_r, s2_t):  # pragma: no cover - compiled
+    """The three (M, K) component tables side by side in one contiguous (M, 3K) table, so
+    that a star's components are one interpolation over ``3K`` columns."""
+    n, n_k = mix_w.shape
+    table = np.empty((n, 3 * n_k))
+    for i in range(n):
+        for k in range(n_k):
+            table[i, k] = mix_w[i, k]
+            table[i, n_k + k] = s2_r[i, k]
+            table[i, 2 * n_k + k] = s2_t[i, k]
+    return table
 
-    The loops over the components are branch-free and free of reductions and call the
-    vectorising :func:`~mavispm.dynamics.vector_exp.exp_nonpositive` (``numpy.exp`` in
-    numba is a scalar library call), so they run on the CPU's vector units; the sums
-    follow in order.
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _sum4(x, n):  # pragma: no cover - compiled
+    """Sum of ``x[:n]`` in four interleaved partial sums (four independent addition chains
+    instead of one: the same sum to rounding, a quarter of the latency)."""
+    t0 = t1 = t2 = t3 = 0.0
+    k = 0
+    while k + 4 <= n:
+        t0 += x[k]
+        t1 += x[k + 1]
+        t2 += x[k + 2]
+        t3 += x[k + 3]
+        k += 4
+    while k < n:
+        t0 += x[k]
+        k += 1
+    return (t0 + t1) + (t2 + t3)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _star_terms(buf, n_k, tk, v2r, v2t, e2r, e2t):  # pragma: no cover - compiled
+    """One star's mixture terms from its interpolated components ``buf`` (weights,
+    ``s_R^2``, ``s_T^2`` side by side; errors added here).
+
+    On return ``buf`` holds the weights clipped at zero, the exponents
+    ``-(v_R^2 / V_R + v_T^2 / V_T) / 2`` and the amplitudes ``w / sqrt(V_R V_T)``, and
+    ``tk`` the terms ``amplitude * exp(exponent)`` (the caller sums ``tk`` and the
+    weights with :func:`_sum4`: with the sums in the caller the star loop ran ~10% faster).
+
+    The loops are branch-free and free of reductions, with one division per component
+    (``1 / (V_R V_T)``, each variance floored at ``_LEAST_VARIANCE`` so that the
+    product stays a normal double) and the vectorising
+    :func:`~mavispm.dynamics.vector_exp.exp_nonpositive` (``numpy.exp`` in numba is a
+    scalar library call), so they run on the CPU's vector units.
     """
-    n_k = wk.size
-    for k in range(n_k):  # wk: weight >= 0, sr: exponent, st: weight / sqrt(var_R var_T)
-        ir = 1.0 / _floor(max(sr[k], 0.0) + e2r)
-        it = 1.0 / _floor(max(st[k], 0.0) + e2t)
-        w = max(wk[k], 0.0)
-        wk[k] = w
-        sr[k] = -0.5 * (v2r * ir + v2t * it)
-        st[k] = w * np.sqrt(ir * it)
     for k in range(n_k):
-        tk[k] = st[k] * exp_nonpositive(sr[k])
-    total = 0.0
-    wsum = 0.0
+        vr = max(buf[n_k + k], 0.0) + e2r
+        vt = max(buf[2 * n_k + k], 0.0) + e2t
+        vr = _LEAST_VARIANCE if vr < _LEAST_VARIANCE else vr  # NaN propagates
+        vt = _LEAST_VARIANCE if vt < _LEAST_VARIANCE else vt
+        inv = 1.0 / (vr * vt)
+        w = max(buf[k], 0.0)
+        buf[k] = w
+        buf[n_k + k] = -0.5 * (v2r * vt + v2t * vr) * inv
+        buf[2 * n_k + k] = w * np.sqrt(inv)
     for k in range(n_k):
-        total += tk[k]
-        wsum += wk[k]
-    if wsum <= 0.0:
-        return -np.inf
-    if total > 1e-280:
-        return np.log(total / wsum)
+        tk[k] = buf[2 * n_k + k] * exp_nonpositive(buf[n_k + k])
+
+
+@numba.njit(nogil=True, cache=True)
+def _ln_underflowed(buf, n_k):  # pragma: no cover - compiled
+    """ln of the summed terms in logarithms (log-sum-exp), for a star whose direct sum
+    underflows (far in the tails); ``buf`` as :func:`_star_terms` leaves it."""
     best = -np.inf
     for k in range(n_k):
-        if st[k] > 0.0:
-            sr[k] += np.log(st[k])
-            best = max(best, sr[k])
+        if buf[2 * n_k + k] > 0.0:
+            buf[n_k + k] += np.log(buf[2 * n_k + k])
+            best = max(best, buf[n_k + k])
     acc = 0.0
     for k in range(n_k):
-        if st[k] > 0.0:
-            acc += np.exp(sr[k] - best)
-    return best + np.log(acc) - np.log(wsum)
+        if buf[2 * n_k + k] > 0.0:
+            acc += np.exp(buf[n_k + k] - best)
+    return best + np.log(acc)
+
+
+#: Least variance of a component [(mas/yr)^2]: physically zero, and the product of two
+#: stays a normal double.
+_LEAST_VARIANCE = 1e-150
+
+#: Summed terms below this are treated as underflowed (terms of ``exp(-708)`` and less).
+_UNDERFLOW = 1e-280
 
 
 @numba.njit(nogil=True, cache=True)
@@ -286,23 +329,33 @@ def mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2):  # pragma: no 
     n, n_k = mix_w.shape
     if n < 4 or s2_r.shape != mix_w.shape or s2_t.shape != mix_w.shape:
         raise ValueError("the mixture needs components of one shape (M, K), M >= 4")
-    wk = np.empty(n_k)
-    sr = np.empty(n_k)
-    st = np.empty(n_k)
+    table = _component_table(mix_w, s2_r, s2_t)
+    buf = np.empty(3 * n_k)
     tk = np.empty(n_k)
     out = np.empty(u.size)
     for i in range(u.size):
         j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
-        _interpolate_rows(w0, w1, w2, w3, j, mix_w, wk)
-        _interpolate_rows(w0, w1, w2, w3, j, s2_r, sr)
-        _interpolate_rows(w0, w1, w2, w3, j, s2_t, st)
-        out[i] = _ln_mixture(wk, sr, st, tk, v2[0, i], v2[1, i], e2[0, i], e2[1, i]) - _LN_2PI
+        _interpolate_rows(w0, w1, w2, w3, j, table, buf)
+        _star_terms(buf, n_k, tk, v2[0, i], v2[1, i], e2[0, i], e2[1, i])
+        total, wsum = _sum4(tk, n_k), _sum4(buf, n_k)
+        if not wsum > 0.0:
+            out[i] = -np.inf
+        elif total > _UNDERFLOW:
+            out[i] = np.log(total / wsum) - _LN_2PI
+        else:
+            out[i] = _ln_underflowed(buf, n_k) - np.log(wsum) - _LN_2PI
     return out
 
 
 @numba.njit(nogil=True, cache=True)
 def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma: no cover
     """Summed ln mixture density of the stars and their summed ln surface density.
+
+    The sum of :func:`mixture_ln_densities` in one pass, with the logarithms of the
+    stars' densities taken as the logarithm of running products (one ``log`` per many
+    stars instead of one per star; a product is logged and restarted when it leaves
+    [1e-150, 1e150], a density outside [1e-100, 1e100] is logged on its own): the same
+    sum to rounding.
 
     Parameters
     ----------
@@ -317,15 +370,37 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
         ``sum_i ln p(v_R,i, v_T,i | R_i)`` (including ``-ln 2 pi`` per star) and
         ``sum_i ln Sigma(R_i)``.
     """
-    n = ln_sig.size
-    if mix_w.shape[0] != n:
+    n, n_k = mix_w.shape
+    if ln_sig.size != n:
         raise ValueError("ln_sig and the mixture components need one grid")
-    ln_kin = np.sum(mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2))
+    if n < 4 or s2_r.shape != mix_w.shape or s2_t.shape != mix_w.shape:
+        raise ValueError("the mixture needs components of one shape (M, K), M >= 4")
+    table = _component_table(mix_w, s2_r, s2_t)
+    buf = np.empty(3 * n_k)
+    tk = np.empty(n_k)
+    prod = 1.0
+    ln_acc = 0.0
     lsig = 0.0
     for i in range(u.size):
         j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
         lsig += w0 * ln_sig[j - 1] + w1 * ln_sig[j] + w2 * ln_sig[j + 1] + w3 * ln_sig[j + 2]
-    return ln_kin, lsig
+        _interpolate_rows(w0, w1, w2, w3, j, table, buf)
+        _star_terms(buf, n_k, tk, v2[0, i], v2[1, i], e2[0, i], e2[1, i])
+        total, wsum = _sum4(tk, n_k), _sum4(buf, n_k)
+        if not wsum > 0.0:
+            return -np.inf, lsig
+        if not total > _UNDERFLOW:
+            ln_acc += _ln_underflowed(buf, n_k) - np.log(wsum)
+            continue
+        f = total / wsum
+        if not 1e-100 <= f <= 1e100:  # also NaN: logged, and it propagates
+            ln_acc += np.log(f)
+            continue
+        prod *= f
+        if not 1e-150 < prod < 1e150:
+            ln_acc += np.log(prod)
+            prod = 1.0
+    return ln_acc + np.log(prod) - u.size * _LN_2PI, lsig
 
 
 @numba.njit(nogil=True, cache=True)

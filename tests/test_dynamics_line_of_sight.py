@@ -119,6 +119,30 @@ def test_compiled_mixture_sums_equal_numpy_reference_and_survive_far_outliers():
     np.testing.assert_allclose(got, ref, rtol=1e-10)
 
 
+@pytest.mark.parametrize("scale", [1e-2, 1e-120])
+def test_compiled_sums_of_products_equal_the_sum_of_logs(scale):
+    """The compiled sums take the stars' logarithms as logarithms of running products:
+    6,000 stars at the centre of their distribution with the variances scaled by 1e-2
+    (densities ~1e2 each: the product leaves [1e-150, 1e150] many times) or by 1e-120
+    (densities above 1e100, logged one by one) equal the per-star log-sum-exp reference to
+    1e-12."""
+    proj, (w, s2r, s2t, ln_sig, _), _ = _projector_and_mixture()
+    lnx = np.log(proj.X)
+    rng = np.random.default_rng(5)
+    u = rng.uniform(lnx[0], lnx[-1], 6000)
+    v2 = np.zeros((2, 6000))
+    e2 = np.full((2, 6000), 1e-8 * scale)
+    args = (u, lnx[0], lnx[1] - lnx[0], w, s2r * scale, s2t * scale, ln_sig, v2, e2)
+    got = mixture_star_sums(*args)
+    per_star = mixture_ln_densities(*args[:6], v2, e2)
+    if scale < 1e-100:
+        assert np.min(per_star) > np.log(1e100)
+    else:
+        assert np.sum(per_star) > 10 * np.log(1e150) and np.max(per_star) < np.log(1e100)
+    np.testing.assert_allclose(got, mixture_star_sums_numpy(*args), rtol=1e-12)
+    np.testing.assert_allclose(got[0], np.sum(per_star), rtol=1e-12)
+
+
 def test_large_errors_reach_the_gaussian_law():
     """With errors 30x the dispersion the mixture is Gaussian to O((sigma / e)^4): the two
     velocity laws agree to 1e-4 per star."""
