@@ -245,22 +245,67 @@ def bench_reweighting_overlap(n_seeds=12):
         )
 
 
-def bench_velocity_laws():
-    """One model's nested evidence at 3,500 stars with the Gaussian law, the line-of-sight
-    law run directly and the Gaussian run reweighted to it (same stars, settings, seed)."""
-    import dataclasses
+def _target_stars():
+    """The 3,500 stars of issue 13's speed target: the luminous stars of an
+    ``ngc3201-nbody`` catalogue (segregated, 1500 solMass IMBH, seed 200) inside 15",
+    resampled with replacement to 3,500; and the true distance [kpc]."""
+    from dynamics_helpers import realistic_stars
 
-    from dynamics_helpers import realistic_stars, validation_settings
-
-    from mavispm.dynamics.fit import fit_model
-
-    print("\n# velocity laws: one imbh evidence, 3,500 stars (CPU and wall seconds)")
     stars, dist = realistic_stars(200, "segregated", 1500.0)
     idx = np.random.default_rng(0).choice(stars.R.size, 3500, replace=True)
     s = StarSample(
         stars.R[idx], stars.v_r[idx], stars.v_t[idx], stars.e_r[idx], stars.e_t[idx],
         stars.field_radius, x=stars.x[idx], y=stars.y[idx],
     )  # fmt: skip
+    return s, dist
+
+
+def bench_target_comparison(**knobs):
+    """Issue 13's speed target: the four-model comparison (8 nested runs with the
+    kinematics-only evidences) of the 3,500 target stars in two worker processes
+    (``validation_settings(workers=2)``), wall and CPU seconds of this process and its
+    workers."""
+    import resource
+
+    from dynamics_helpers import validation_settings
+
+    from mavispm.dynamics.fit import compare, fit_models
+
+    settings = validation_settings(workers=2, **knobs)
+    s, dist = _target_stars()
+    print(f"\n# four-model comparison, 3,500 target stars, workers 2, knobs {knobs or 'default'}")
+
+    def cpu():
+        own = resource.getrusage(resource.RUSAGE_SELF)
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+    c0, t0 = cpu(), time.perf_counter()
+    fits = fit_models(s, settings, dist, 200)
+    comp = compare(fits, settings.bh_mass_max)
+    wall, used = time.perf_counter() - t0, cpu() - c0
+    calls = sum(
+        f.evidence.n_calls + (f.evidence_kinematic.n_calls if f.evidence_kinematic else 0)
+        for f in fits
+    )
+    print(
+        f"wall {wall:.1f} s ({wall / 60:.2f} min), CPU {used:.1f} s, {calls} likelihood calls "
+        f"({1e3 * used / calls:.2f} CPU ms per call); ln B {comp.ln_bayes_factor:.2f}, "
+        f"kinematics-only {comp.ln_bayes_factor_kinematic:.2f}, verdict {comp.verdict}"
+    )
+
+
+def bench_velocity_laws():
+    """One model's nested evidence at 3,500 stars with the Gaussian law, the line-of-sight
+    law run directly and the Gaussian run reweighted to it (same stars, settings, seed)."""
+    import dataclasses
+
+    from dynamics_helpers import validation_settings
+
+    from mavispm.dynamics.fit import fit_model
+
+    print("\n# velocity laws: one imbh evidence, 3,500 stars (CPU and wall seconds)")
+    s, dist = _target_stars()
     base = dataclasses.replace(validation_settings(workers=1), kinematic_evidence=False)
     for name, knobs in (
         ("gaussian", {"velocity_law": "gaussian"}),
@@ -323,6 +368,11 @@ def main(argv=None):
         "--comparison", action="store_true", help="time the four-model comparison (slow)"
     )
     parser.add_argument(
+        "--target",
+        action="store_true",
+        help="time issue 13's speed target, the four-model comparison at 3,500 stars (slow)",
+    )
+    parser.add_argument(
         "--reweighting",
         action="store_true",
         help="overlap of the Gaussian and line-of-sight posteriors on SBC draws (slow)",
@@ -337,6 +387,8 @@ def main(argv=None):
         bench_samplers(args.quick)
     if args.reweighting:
         bench_reweighting_overlap()
+    if args.target:
+        bench_target_comparison()
     if args.comparison:
         bench_velocity_laws()
         bench_comparison(args.quick)
