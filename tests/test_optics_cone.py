@@ -18,7 +18,13 @@ References written here, independently of ``simulate.optics.cone_effect``:
   ``s = h / H``, ``eps ~ s x.grad(phi)`` and the Zernike filters of Noll (1976),
   piston ``s^2 int 2 pi f W 4 J2(x)^2 df`` (a Weber-Schafheitlin closed form) and
   tilt ``s^2 int 2 pi f W 16 [J3(x) - J2(x) / x]^2 df``, ``x = pi D f``: they grow
-  as ``s^2``, faster than the ``s^(5/3)`` of the whole error (Sasiela 1994).
+  as ``s^2``, faster than the ``s^(5/3)`` of the whole error (Sasiela 1994);
+* for several LGS, the premise of the footprint-gap model itself by brute force:
+  one layer's phase known exactly on the grid points inside the union of the LGS
+  footprints, its MMSE (kriging) extrapolation onto the science footprint with the
+  von Karman covariance, piston and tilt removed over the pupil's grid points.
+  Conditioning on a grid subset of the known region can only raise each point's
+  variance, so on a coarse grid this is close to an upper bound.
 """
 
 from __future__ import annotations
@@ -28,7 +34,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
-from scipy.special import gamma, jn_zeros, jv
+from scipy.linalg import cho_factor, cho_solve
+from scipy.special import gamma, jn_zeros, jv, kv
 
 from mavispm.simulate.optics import psf_grid
 from mavispm.simulate.optics.ao_psd import AOSettings, lgs_directions
@@ -269,3 +276,78 @@ def test_hypothesis_coverage_bounded(x, y, h):
     for remove_tilt in (True, False):
         p = cone_psd(f, w, gaps, unc, D, 0.16, remove_tilt)
         assert np.all(p >= 0) and np.all(p <= 1 + 1e-12) and p[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def _von_karman_covariance(r: np.ndarray, r0: float, l0: float) -> np.ndarray:
+    """Phase covariance (rad^2) of von Karman turbulence at separations r (m)
+    (variance 0.0863 (L0 / r0)^(5/3))."""
+    c = (l0 / r0) ** (5 / 3) * 2 ** (-5 / 6) * gamma(11 / 6) / np.pi ** (8 / 3)
+    c *= (24 / 5 * gamma(6 / 5)) ** (5 / 6)
+    x = 2 * np.pi * np.maximum(r, 1e-12) / l0
+    return c * x ** (5 / 6) * kv(5 / 6, x)
+
+
+def _brute_force_extrapolation(h, direction, step=0.25, r0=R0, l0=25.0, eps=0.16):
+    """Piston-and-tilt-removed pupil variance (rad^2) of one layer at distance h (m),
+    known on the grid points inside the MAVIS LGS footprints, in direction (rad)."""
+    atm, ao = AtmosphereSettings(), AOSettings()
+    lgs_range = ao.lgs_height / np.cos(np.radians(atm.zenith_angle))
+    centres = h * lgs_directions(ao)
+    g = np.arange(-12.0, 12.0 + step / 2, step)
+    pts = np.stack([a.ravel() for a in np.meshgrid(g, g)], -1)
+    shift = h * np.asarray(direction)
+    r_sci = np.hypot(*(pts - shift).T)
+    sci = (r_sci <= D / 2) & (r_sci >= eps * D / 2)
+    known = np.zeros(len(pts), bool)
+    for c in centres:
+        known |= np.hypot(*(pts - c).T) <= D / 2 * (1 - h / lgs_range)
+    known &= r_sci <= D / 2 + 2.0  # the extrapolation only needs the neighbourhood
+
+    def cov(a, b):
+        return _von_karman_covariance(
+            np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1]), r0, l0
+        )
+
+    s_pts, k_pts = pts[sci], pts[known]
+    ckk = cov(k_pts, k_pts) + 1e-9 * np.eye(len(k_pts))
+    csk = cov(s_pts, k_pts)
+    x = cho_solve(cho_factor(ckk), csk.T)
+    diag = _von_karman_covariance(np.zeros(1), r0, l0)[0] - np.einsum("sk,ks->s", csk, x)
+    q = np.linalg.qr(np.column_stack([np.ones(len(s_pts)), s_pts - shift]))[0]
+    qpq = q.T @ cov(s_pts, s_pts) @ q - (q.T @ csk) @ (x @ q)
+    return (diag.sum() - np.trace(qpq)) / len(s_pts)
+
+
+def _gap_model_layer(h, direction, r0=R0, l0=25.0, eps=0.16):
+    """The code's cone variance (rad^2) for one layer of Fried parameter r0, MAVIS LGS."""
+    atm, ao = AtmosphereSettings(), AOSettings()
+    lgs_range = ao.lgs_height / np.cos(np.radians(atm.zenith_angle))
+    gaps, area = footprint_coverage(
+        np.asarray(direction), lgs_directions(ao), np.array([h]), lgs_range, D
+    )
+    f = np.geomspace(1e-6, 200.0, 40000)
+    w = von_karman_psd(f**2, r0, l0)[:, None]
+    return float(np.trapezoid(2 * np.pi * f * cone_psd(f, w, gaps, area, D, eps), f))
+
+
+def test_brute_force_extrapolation_reference():
+    """The reference's own checks: no error where every footprint covers the science
+    footprint (ground layer, centre); the structure function of the covariance is
+    Kolmogorov's 6.88 (r / r0)^(5/3) well inside L0 (corrections ~ (r / L0)^(1/3))."""
+    assert _brute_force_extrapolation(100.0, np.zeros(2), step=0.4) == pytest.approx(0, abs=1e-6)
+    c0, c = _von_karman_covariance(np.array([0.0, 0.01]), R0, 1e5)
+    assert 2 * (c0 - c) == pytest.approx(6.88 * (0.01 / R0) ** (5 / 3), rel=0.01)
+    assert c0 == pytest.approx(0.0863 * (1e5 / R0) ** (5 / 3), rel=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="footprint-gap model 3.9 / 4.3x the brute-force extrapolation variance of the "
+    "16.2 / 12.7 km layers at (-15, -15) (3.9-8.7x over the layers at both positions; "
+    "all layers: 96 / 55 nm against 46 / 23 nm): the multi-LGS cone term is too large",
+)
+def test_gap_model_against_brute_force_extrapolation():
+    corner = np.array([-15.0, -15.0]) / 206264.8
+    for h in layers(AtmosphereSettings()).heights[-1:-3:-1]:  # 16.2 and 12.7 km
+        assert _gap_model_layer(h, corner) <= 1.2 * _brute_force_extrapolation(h, corner)
