@@ -10,7 +10,21 @@ References written here, independently of ``simulate.optics.cone_effect``:
 * Fried's closed form for small h / H, ``sigma^2 = (D / d0)^(5/3)`` with
   ``d0 = lambda^(6/5) [19.77 int Cn^2(h) (h / H)^(5/3) dh]^(-3/5)``
   (Fried & Belsher 1994; Tyler 1994 for the small-h/H limit), with
-  ``int Cn^2 dh = r0^(-5/3) / (0.423 k^2)``.
+  ``int Cn^2 dh = r0^(-5/3) / (0.423 k^2)``;
+* the exact piston-and-tilt-removed variance, the same Monte-Carlo quadrature
+  with the tilt projections ``E[<eps Z_j>^2] = -1/2 <D_eps(x, y) Z_j(x) Z_j(y)>``
+  of the unit-RMS pupil tilts ``Z_j`` subtracted (tilt fitted out over the pupil);
+* the small-h/H law of the piston and tilt that the LGS do not see: with
+  ``s = h / H``, ``eps ~ s x.grad(phi)`` and the Zernike filters of Noll (1976),
+  piston ``s^2 int 2 pi f W 4 J2(x)^2 df`` (a Weber-Schafheitlin closed form) and
+  tilt ``s^2 int 2 pi f W 16 [J3(x) - J2(x) / x]^2 df``, ``x = pi D f``: they grow
+  as ``s^2``, faster than the ``s^(5/3)`` of the whole error (Sasiela 1994);
+* for several LGS, the premise of the footprint-gap model itself by brute force:
+  one layer's phase known exactly on the grid points inside the union of the LGS
+  footprints, its MMSE (kriging) extrapolation onto the science footprint with the
+  von Karman covariance, piston and tilt removed over the pupil's grid points.
+  Conditioning on a grid subset of the known region can only raise each point's
+  variance, so on a coarse grid this is close to an upper bound.
 """
 
 from __future__ import annotations
@@ -19,12 +33,20 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.special import jn_zeros
+from scipy.integrate import quad
+from scipy.linalg import cho_factor, cho_solve
+from scipy.special import gamma, jn_zeros, jv, kv
 
 from mavispm.simulate.optics import psf_grid
 from mavispm.simulate.optics.ao_psd import AOSettings, lgs_directions
 from mavispm.simulate.optics.atmosphere import AtmosphereSettings, layers, von_karman_psd
-from mavispm.simulate.optics.cone_effect import cone_psd, footprint_coverage, pupil_coherence
+from mavispm.simulate.optics.cone_effect import (
+    cone_filter,
+    cone_psd,
+    footprint_coverage,
+    pupil_coherence,
+    pupil_coherence_slope,
+)
 from mavispm.simulate.optics.psf_grid import PSFSettings, grid_key, residual_psd_model
 from mavispm.simulate.optics.pupil import PupilSettings
 
@@ -32,12 +54,15 @@ D = 8.0
 R0 = 0.2  # m, at the phase wavelength
 
 
-def _brute_force_fa(shrink: float, n: int = 400_000, seed: int = 3) -> float:
-    """Piston-removed variance (rad^2) of phi(x) - phi((1 - shrink) x) over the disc."""
+def _brute_force_fa(
+    shrink: float, n: int = 400_000, seed: int = 3, eps: float = 0.0, reps: int = 5
+) -> tuple[float, float]:
+    """Piston-removed and piston-and-tilt-removed variances (rad^2) of
+    phi(x) - phi((1 - shrink) x) over the (annular) pupil."""
     rng = np.random.default_rng(seed)
 
-    def disc(k):
-        r = np.sqrt(rng.random(k)) * D / 2
+    def pupil(k):
+        r = np.sqrt(eps**2 + (1 - eps**2) * rng.random(k)) * D / 2
         t = rng.random(k) * 2 * np.pi
         return np.stack([r * np.cos(t), r * np.sin(t)], -1)
 
@@ -45,9 +70,10 @@ def _brute_force_fa(shrink: float, n: int = 400_000, seed: int = 3) -> float:
         return 6.88 * (np.hypot(v[..., 0], v[..., 1]) / R0) ** (5 / 3)
 
     a = 1 - shrink
-    total = 0.0
-    for _ in range(5):
-        x, y = disc(n), disc(n)
+    x2 = (D / 4) ** 2 * (1 + eps**2)  # <x^2> over the annulus: Z_x = x / sqrt(x2)
+    piston, tilt = 0.0, 0.0
+    for _ in range(reps):
+        x, y = pupil(n), pupil(n)
         d_eps = (
             sf(x - y)
             + sf(a * (x - y))
@@ -56,8 +82,10 @@ def _brute_force_fa(shrink: float, n: int = 400_000, seed: int = 3) -> float:
             + sf(shrink * x)
             + sf(shrink * y)
         )
-        total += 0.5 * d_eps.mean()
-    return total / 5
+        zz = (x[:, 0] * y[:, 0] + x[:, 1] * y[:, 1]) / x2  # sum_j Z_j(x) Z_j(y)
+        piston += 0.5 * d_eps.mean()
+        tilt += 0.5 * (d_eps * zz).mean()
+    return piston / reps, (piston + tilt) / reps
 
 
 def _fried_fa(shrink: float) -> float:
@@ -67,18 +95,25 @@ def _fried_fa(shrink: float) -> float:
     return D ** (5 / 3) * 19.77 * shrink ** (5 / 3) * k2_int_cn2 / (4 * np.pi**2)
 
 
-def _code_fa(shrink: float) -> float:
+def _code_fa(shrink: float, eps: float = 0.0, **kw) -> float:
     """The code's single on-axis LGS cone PSD, integrated over frequency (rad^2).
 
     The PSD is isotropic, so a fine logarithmic radial grid integrates the
-    low-frequency cusp (1 - gamma^2) W ~ f^(-5/3) accurately.
+    low-frequency cusp (1 - gamma^2) W ~ f^(-5/3) accurately; it starts far below
+    1 / D, with an outer scale farther still, because the tilt part converges
+    slowly (its integrand goes as f^(-2/3), its integral from 0 as f^(1/3)). Keywords go to
+    :func:`cone_filter` (``remove_tilt``, ``coefficient``); without them the
+    code's own path (:func:`cone_psd`, tilt removed) is used.
     """
     h = 10000.0
     lgs_range = h / shrink
     gaps, area = footprint_coverage(np.zeros(2), np.zeros((1, 2)), np.array([h]), lgs_range, D)
-    f = np.geomspace(1e-5, 200.0, 40000)
-    w = von_karman_psd(f**2, R0, 1e6)[:, None]
-    psd = cone_psd(f, w, gaps, area, D)
+    f = np.geomspace(1e-12, 200.0, 60000)
+    w = von_karman_psd(f**2, R0, 1e15)[:, None]
+    if kw:
+        psd = w[:, 0] * cone_filter(f, 2 * gaps[0] / D, D, eps, **kw)
+    else:
+        psd = cone_psd(f, w, gaps, area, D, eps)
     return float(np.trapezoid(2 * np.pi * f * psd, f))
 
 
@@ -106,18 +141,75 @@ def test_single_lgs_gap_is_the_cone_annulus():
 
 @pytest.mark.parametrize("shrink", [0.05, 0.1, 0.2])
 def test_single_lgs_matches_focal_anisoplanatism(shrink):
-    code = _code_fa(shrink)
+    code = _code_fa(shrink, remove_tilt=False)
     # exact piston-removed pupil integral: within 10% (the MMSE correction
     # (1 - gamma^2) is slightly better than the plain LGS correction)
-    assert code == pytest.approx(_brute_force_fa(shrink), rel=0.10)
+    assert code == pytest.approx(_brute_force_fa(shrink)[0], rel=0.10)
     # Fried's closed form (D/d0)^(5/3), a small-h/H result: within 15% for h/H <= 0.1
     if shrink <= 0.1:
         assert code == pytest.approx(_fried_fa(shrink), rel=0.15)
 
 
+@pytest.mark.parametrize("shrink, eps", [(0.05, 0.0), (0.1, 0.16), (0.2, 0.16)])
+def test_tilt_removed_focal_anisoplanatism_is_the_pupil_integral(shrink, eps):
+    """Plain LGS correction (c = 1): the mode-by-mode piston and tilt removal is exact,
+    so it must give the brute-force tilt-fitted pupil integral (its MC error ~0.1%)."""
+    _, exact = _brute_force_fa(shrink, n=200_000, reps=3, eps=eps)
+    assert _code_fa(shrink, eps, coefficient=1.0) == pytest.approx(exact, rel=0.02)
+    # the default (MMSE coefficient) path is the model's: below the plain correction
+    default = _code_fa(shrink)
+    assert 0.7 * exact < default < exact
+
+
+def test_tilt_is_a_large_part_of_focal_anisoplanatism():
+    """The tilt the NGS handle: 28% / 36% / 47% of the piston-removed error at
+    h/H = 0.05 / 0.1 / 0.2 in the brute-force integral, growing as (h/H)^(1/3)."""
+    fractions = []
+    for shrink in (0.05, 0.2):
+        piston_removed, tilt_removed = _brute_force_fa(shrink, n=200_000, reps=2)
+        fractions.append(1 - tilt_removed / piston_removed)
+        code = _code_fa(shrink) / _code_fa(shrink, remove_tilt=False)
+        assert code < 1 - 0.8 * fractions[-1]  # the code removes at least as much
+    assert fractions[1] / fractions[0] == pytest.approx(4 ** (1 / 3), rel=0.10)
+
+
+def test_removed_piston_and_tilt_follow_the_small_h_over_h_law():
+    """What the removal takes out (plain correction, small h/H) against the Noll-filter
+    expansion: piston 4 J2^2 (Weber-Schafheitlin closed form) plus tilt
+    16 [J3 - J2 / x]^2, both times s^2; Kolmogorov W = 0.023 r0^(-5/3) f^(-11/3)."""
+    # int 2 pi f W F(pi D f) df = 0.023 2 pi (pi D / r0)^(5/3) int x^(-8/3) F(x) dx
+    pref = 0.023 * 2 * np.pi * (np.pi * D / R0) ** (5 / 3)
+    lam, nu = 8 / 3, 2  # int x^-lam J_nu^2 dx (Gradshteyn & Ryzhik 6.574.2)
+    ws = gamma(lam) * gamma(nu + (1 - lam) / 2)
+    ws /= 2**lam * gamma((1 + lam) / 2) ** 2 * gamma(nu + (1 + lam) / 2)
+    tilt = sum(
+        quad(lambda x: x ** (-lam) * 16 * (jv(3, x) - jv(2, x) / x) ** 2, lo, hi, limit=2000)[0]
+        for lo, hi in ((0, 50), (50, 2000), (2000, 20000))
+    )
+    for shrink in (0.01, 0.02):
+        expect = pref * (4 * ws + tilt) * shrink**2
+        removed = _code_fa(shrink, coefficient=1.0, remove_tilt=False) - _code_fa(
+            shrink, coefficient=1.0
+        )
+        assert removed == pytest.approx(expect, rel=0.03)
+
+
+def test_pupil_coherence_slope_is_the_derivative():
+    q = np.array([0.0, 0.01, 0.07, 0.3, 1.1])
+    h = 1e-6
+    for eps in (0.0, 0.16):
+        num = (pupil_coherence(q + h, D, eps) - pupil_coherence(np.abs(q - h), D, eps)) / (2 * h)
+        num[0] = 0.0
+        assert pupil_coherence_slope(q, D, eps) == pytest.approx(num, rel=1e-5, abs=1e-9)
+    # tilt of a plane wave over the disc: Noll's |Q|^2 = 16 J2(x)^2 / x^2 (both axes)
+    x = np.pi * D * q[1:]
+    tilt = pupil_coherence_slope(q[1:], D) ** 2 / (4 * np.pi**2 * (D / 4) ** 2)
+    assert tilt == pytest.approx(16 * jv(2, x) ** 2 / x**2, rel=1e-9)
+
+
 def test_cone_scales_as_five_thirds_of_h_over_h():
     """(D / d0)^(5/3) with d0 ~ (h/H)^-1: sigma^2 ~ (h/H)^(5/3) for small h/H."""
-    ratio = _code_fa(0.04) / _code_fa(0.02)
+    ratio = _code_fa(0.04, remove_tilt=False) / _code_fa(0.02, remove_tilt=False)
     assert ratio == pytest.approx(2 ** (5 / 3), rel=0.05)
 
 
@@ -144,6 +236,8 @@ def test_cone_term_in_budget_and_switch():
     corner = on.budget((-15.0, -15.0))["cone"]
     assert corner > 20.0  # nm
     assert off.budget((-15.0, -15.0))["cone"] == 0.0
+    kept = residual_psd_model(psf, pupil, atm, AOSettings(cone_remove_tilt=False))
+    assert 0 < corner < kept.budget((-15.0, -15.0))["cone"]
 
 
 def test_cache_key_changes_with_the_physics(monkeypatch):
@@ -152,6 +246,12 @@ def test_cache_key_changes_with_the_physics(monkeypatch):
     assert (
         grid_key(
             PSFSettings(), PupilSettings(), AtmosphereSettings(), AOSettings(cone_effect=False)
+        )
+        != key
+    )
+    assert (
+        grid_key(
+            PSFSettings(), PupilSettings(), AtmosphereSettings(), AOSettings(cone_remove_tilt=False)
         )
         != key
     )
@@ -173,5 +273,81 @@ def test_hypothesis_coverage_bounded(x, y, h):
     assert 0 <= unc[0] <= 1 and 0 <= gaps[0] <= D
     f = np.array([0.0, 0.1, 1.0, 5.0])
     w = np.ones((4, 1))
-    p = cone_psd(f, w, gaps, unc, D, 0.16)
-    assert np.all(p >= 0) and np.all(p <= 1 + 1e-12) and p[0] == pytest.approx(0.0, abs=1e-12)
+    for remove_tilt in (True, False):
+        p = cone_psd(f, w, gaps, unc, D, 0.16, remove_tilt)
+        assert np.all(p >= 0) and np.all(p <= 1 + 1e-12) and p[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def _von_karman_covariance(r: np.ndarray, r0: float, l0: float) -> np.ndarray:
+    """Phase covariance (rad^2) of von Karman turbulence at separations r (m)
+    (variance 0.0863 (L0 / r0)^(5/3))."""
+    c = (l0 / r0) ** (5 / 3) * 2 ** (-5 / 6) * gamma(11 / 6) / np.pi ** (8 / 3)
+    c *= (24 / 5 * gamma(6 / 5)) ** (5 / 6)
+    x = 2 * np.pi * np.maximum(r, 1e-12) / l0
+    return c * x ** (5 / 6) * kv(5 / 6, x)
+
+
+def _brute_force_extrapolation(h, direction, step=0.25, r0=R0, l0=25.0, eps=0.16):
+    """Piston-and-tilt-removed pupil variance (rad^2) of one layer at distance h (m),
+    known on the grid points inside the MAVIS LGS footprints, in direction (rad)."""
+    atm, ao = AtmosphereSettings(), AOSettings()
+    lgs_range = ao.lgs_height / np.cos(np.radians(atm.zenith_angle))
+    centres = h * lgs_directions(ao)
+    g = np.arange(-12.0, 12.0 + step / 2, step)
+    pts = np.stack([a.ravel() for a in np.meshgrid(g, g)], -1)
+    shift = h * np.asarray(direction)
+    r_sci = np.hypot(*(pts - shift).T)
+    sci = (r_sci <= D / 2) & (r_sci >= eps * D / 2)
+    known = np.zeros(len(pts), bool)
+    for c in centres:
+        known |= np.hypot(*(pts - c).T) <= D / 2 * (1 - h / lgs_range)
+    known &= r_sci <= D / 2 + 2.0  # the extrapolation only needs the neighbourhood
+
+    def cov(a, b):
+        return _von_karman_covariance(
+            np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1]), r0, l0
+        )
+
+    s_pts, k_pts = pts[sci], pts[known]
+    ckk = cov(k_pts, k_pts) + 1e-9 * np.eye(len(k_pts))
+    csk = cov(s_pts, k_pts)
+    x = cho_solve(cho_factor(ckk), csk.T)
+    diag = _von_karman_covariance(np.zeros(1), r0, l0)[0] - np.einsum("sk,ks->s", csk, x)
+    q = np.linalg.qr(np.column_stack([np.ones(len(s_pts)), s_pts - shift]))[0]
+    qpq = q.T @ cov(s_pts, s_pts) @ q - (q.T @ csk) @ (x @ q)
+    return (diag.sum() - np.trace(qpq)) / len(s_pts)
+
+
+def _gap_model_layer(h, direction, r0=R0, l0=25.0, eps=0.16):
+    """The code's cone variance (rad^2) for one layer of Fried parameter r0, MAVIS LGS."""
+    atm, ao = AtmosphereSettings(), AOSettings()
+    lgs_range = ao.lgs_height / np.cos(np.radians(atm.zenith_angle))
+    gaps, area = footprint_coverage(
+        np.asarray(direction), lgs_directions(ao), np.array([h]), lgs_range, D
+    )
+    f = np.geomspace(1e-6, 200.0, 40000)
+    w = von_karman_psd(f**2, r0, l0)[:, None]
+    return float(np.trapezoid(2 * np.pi * f * cone_psd(f, w, gaps, area, D, eps), f))
+
+
+def test_brute_force_extrapolation_reference():
+    """The reference's own checks: no error where every footprint covers the science
+    footprint (ground layer, centre); the structure function of the covariance is
+    Kolmogorov's 6.88 (r / r0)^(5/3) well inside L0 (corrections ~ (r / L0)^(1/3))."""
+    assert _brute_force_extrapolation(100.0, np.zeros(2), step=0.4) == pytest.approx(0, abs=1e-6)
+    c0, c = _von_karman_covariance(np.array([0.0, 0.01]), R0, 1e5)
+    assert 2 * (c0 - c) == pytest.approx(6.88 * (0.01 / R0) ** (5 / 3), rel=0.01)
+    assert c0 == pytest.approx(0.0863 * (1e5 / R0) ** (5 / 3), rel=0.01)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="footprint-gap model 3.9 / 4.3x the brute-force extrapolation variance of the "
+    "16.2 / 12.7 km layers at (-15, -15) (3.9-8.7x over the layers at both positions; "
+    "all layers: 96 / 55 nm against 46 / 23 nm): the multi-LGS cone term is too large",
+)
+def test_gap_model_against_brute_force_extrapolation():
+    corner = np.array([-15.0, -15.0]) / 206264.8
+    for h in layers(AtmosphereSettings()).heights[-1:-3:-1]:  # 16.2 and 12.7 km
+        assert _gap_model_layer(h, corner) <= 1.2 * _brute_force_extrapolation(h, corner)

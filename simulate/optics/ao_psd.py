@@ -132,6 +132,10 @@ class AOSettings:
         Switches of the residual terms. With ``tomography`` off the correction
         is perfect in every direction apart from the other terms (and the cone
         effect is not modelled).
+    cone_remove_tilt : bool
+        Leave the pupil piston and tilt of the cone-effect residual out of the
+        high-order PSD (default): the LGS do not sense tilt, the NGS tip-tilt
+        model handles it. False keeps them (the former model, a cross-check).
     """
 
     n_actuators: int = 40
@@ -164,6 +168,7 @@ class AOSettings:
     servo_lag: bool = True
     tomography: bool = True
     cone_effect: bool = True
+    cone_remove_tilt: bool = True
     control_region: Literal["square", "circle"] = "circle"
     layer_stretch: Literal["none", "lgs", "all"] = "none"
     servo_model: Literal["integrator", "pure_delay"] = "integrator"

@@ -32,7 +32,24 @@ one on-axis LGS, 0 when covered). The PSD of direction alpha is
 ``W_cone(f, alpha) = sum_l A_l(alpha) c_l W(f) [1 - gamma(s_l(alpha) f)^2]``
 
 inside the control region (outside it the fitting error already holds the whole
-spectrum). Lengths in m, frequencies in m^-1, angles in rad, PSDs in rad^2 m^2.
+spectrum).
+
+Piston and tilt. The LGS cannot sense tip-tilt (its launch jitter hides it): in
+MCAO the tilt of every direction comes from the NGS through the tip-tilt model
+(``simulate.optics.tiptilt``), and piston does not matter. The residual of a
+layer mode is not a plane wave, ``r_f(x) = exp(2 pi i f.x) - c exp(2 pi i a f.x)``
+with the reconstructor coefficient ``c = gamma(s f)``, and its pupil piston and
+tilt are known in closed form from the pupil transform and its derivative:
+piston ``gamma(f) - c gamma(a f)``, tilt (both axes, unit-RMS modes)
+``[gamma'(f) - c gamma'(a f)]^2 / (4 pi^2 <x^2>)``, ``<x^2>`` the pupil's second
+moment along one axis. Since the turbulence modes are independent, removing them
+mode by mode gives the exact piston-and-tilt-removed variance (with c = 1 it is
+the brute-force pupil integral of ``phi(x) - phi(a x)`` with tilt fitted out,
+tests/test_optics_cone.py). The low-frequency part of the cone error is pure
+tilt (``r_f ~ 2 pi i s f.x`` for ``f << 1/D``), so without the removal the HO PSD
+would blur the PSF by a tilt the NGS loop corrects. ``remove_tilt = False``
+keeps the former filter ``1 - gamma(s f)^2`` (piston and tilt included) as a
+cross-check. Lengths in m, frequencies in m^-1, angles in rad, PSDs in rad^2 m^2.
 """
 
 from __future__ import annotations
@@ -41,10 +58,17 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 __all__ = [
+    "cone_filter",
     "cone_psd",
     "footprint_coverage",
     "pupil_coherence",
+    "pupil_coherence_slope",
 ]
+
+
+def _check_obscuration(obscuration: float) -> None:
+    if not 0 <= obscuration < 1:
+        raise ValueError(f"obscuration ratio must be in [0, 1), got {obscuration}")
 
 
 def pupil_coherence(q: ArrayLike, diameter: float, obscuration: float = 0.0) -> np.ndarray:
@@ -65,9 +89,7 @@ def pupil_coherence(q: ArrayLike, diameter: float, obscuration: float = 0.0) -> 
         ``[jinc(pi D q) - eps^2 jinc(pi eps D q)] / (1 - eps^2)`` with
         ``jinc(x) = 2 J1(x) / x``; exactly 1 at q = 0.
     """
-    if not 0 <= obscuration < 1:
-        raise ValueError(f"obscuration ratio must be in [0, 1), got {obscuration}")
-
+    _check_obscuration(obscuration)
     from scipy.special import j1  # ~0.3-0.5 s to import: only when computed
 
     def jinc(x):
@@ -78,6 +100,90 @@ def pupil_coherence(q: ArrayLike, diameter: float, obscuration: float = 0.0) -> 
     x = np.pi * diameter * np.asarray(q, float)
     eps = obscuration
     return (jinc(x) - eps**2 * jinc(eps * x)) / (1 - eps**2)
+
+
+def pupil_coherence_slope(q: ArrayLike, diameter: float, obscuration: float = 0.0) -> np.ndarray:
+    """Derivative of :func:`pupil_coherence` with respect to q (m).
+
+    ``<x exp(2 pi i q.x)>_pupil = gamma'(|q|) cos(theta_q) / (2 pi i)``, so this
+    gives the tilt content of a plane wave over the pupil.
+
+    Parameters
+    ----------
+    q : array_like
+        Spatial-frequency modulus (m^-1).
+    diameter : float
+        Pupil diameter D (m).
+    obscuration : float
+        Central obstruction ratio eps, 0 <= eps < 1.
+
+    Returns
+    -------
+    ndarray
+        ``pi D [djinc(pi D q) - eps^3 djinc(pi eps D q)] / (1 - eps^2)`` with
+        ``djinc(x) = -2 J2(x) / x`` (m); 0 at q = 0.
+    """
+    _check_obscuration(obscuration)
+    from scipy.special import j0, j1  # J2 = 2 J1 / x - J0: 10x faster than jv(2, x)
+
+    def djinc(x):
+        small = np.abs(x) < 1e-2  # series where the recurrence cancels
+        safe = np.where(small, 1.0, x)
+        series = -x / 4 + x**3 / 48 - x**5 / 1536
+        return np.where(small, series, -2 * (2 * j1(safe) / safe - j0(safe)) / safe)
+
+    x = np.pi * diameter * np.asarray(q, float)
+    eps = obscuration
+    return np.pi * diameter * (djinc(x) - eps**3 * djinc(eps * x)) / (1 - eps**2)
+
+
+def cone_filter(
+    f: ArrayLike,
+    shrink: ArrayLike,
+    diameter: float,
+    obscuration: float = 0.0,
+    remove_tilt: bool = True,
+    coefficient: ArrayLike | None = None,
+) -> np.ndarray:
+    """Fraction of a layer's spectrum the cone effect leaves, per frequency.
+
+    Parameters
+    ----------
+    f : array_like
+        Spatial-frequency modulus (m^-1).
+    shrink : array_like
+        Footprint mismatch ``s = 1 - a`` (dimensionless), broadcast against ``f``.
+    diameter, obscuration : float
+        Pupil diameter (m) and obstruction ratio.
+    remove_tilt : bool
+        Remove the residual's pupil piston and tilt (default); False: the
+        former ``1 - gamma(s f)^2``.
+    coefficient : array_like or None
+        Reconstructor coefficient c of the compressed mode; None: the MMSE
+        ``gamma(s f)``. ``c = 1`` is the plain LGS correction ``phi(x) - phi(a x)``.
+
+    Returns
+    -------
+    ndarray
+        ``<|r_f|^2> - |piston|^2 - |tilt|^2`` (>= 0, dimensionless), with
+        ``<|r_f|^2> = 1 - 2 c gamma(s f) + c^2``.
+    """
+    f = np.asarray(f, float)
+    shrink = np.asarray(shrink, float)
+    g_s = pupil_coherence(shrink * f, diameter, obscuration)
+    c = g_s if coefficient is None else np.asarray(coefficient, float)
+    out = 1.0 - 2.0 * c * g_s + c**2
+    if remove_tilt:
+        a_f = (1.0 - shrink) * f
+        piston = pupil_coherence(f, diameter, obscuration) - c * pupil_coherence(
+            a_f, diameter, obscuration
+        )
+        slope = pupil_coherence_slope(f, diameter, obscuration) - c * pupil_coherence_slope(
+            a_f, diameter, obscuration
+        )
+        x2 = (diameter / 4) ** 2 * (1 + obscuration**2)  # <x^2> over the annulus
+        out = out - piston**2 - slope**2 / (4 * np.pi**2 * x2)
+    return np.maximum(out, 0.0)
 
 
 def _disc_points(diameter: float, n_ring: int = 48) -> tuple[np.ndarray, np.ndarray]:
@@ -162,6 +268,7 @@ def cone_psd(
     area: np.ndarray,
     diameter: float,
     obscuration: float = 0.0,
+    remove_tilt: bool = True,
 ) -> np.ndarray:
     """Cone-effect residual PSD for one science direction.
 
@@ -175,14 +282,21 @@ def cone_psd(
         Footprint gaps (m) and relative uncovered areas from :func:`footprint_coverage`.
     diameter, obscuration : float
         Pupil diameter (m) and obstruction ratio.
+    remove_tilt : bool
+        Leave out the residual's pupil piston and tilt (sensed by the NGS, see the
+        module notes); False keeps them (the former model, a cross-check).
 
     Returns
     -------
     ndarray, shape (F,)
-        ``sum_l A_l c_l W(f) [1 - gamma(s_l f)^2]`` with ``s_l = 2 g_l / D``
-        (rad^2 m^2); the area factor A_l is 1 for one on-axis LGS.
+        ``sum_l A_l c_l W(f) F(f, s_l)`` with ``s_l = 2 g_l / D`` and F the
+        :func:`cone_filter` (rad^2 m^2); the area factor A_l is 1 for one on-axis LGS.
     """
     shrink = np.clip(2.0 * np.asarray(gaps, float) / diameter, 0.0, 1.0)
     area = np.clip(np.asarray(area, float), 0.0, 1.0)
-    gamma = pupil_coherence(np.asarray(f, float)[:, None] * shrink[None, :], diameter, obscuration)
-    return np.sum(layer_psd * (1.0 - gamma**2) * area[None, :], axis=1)
+    f = np.asarray(f, float)
+    seen = (area > 0) & (shrink > 0)  # covered layers leave nothing
+    if not seen.any():
+        return np.zeros(f.shape)
+    filt = cone_filter(f[:, None], shrink[None, seen], diameter, obscuration, remove_tilt)
+    return np.sum(np.asarray(layer_psd)[:, seen] * filt * area[None, seen], axis=1)

@@ -65,8 +65,9 @@ __all__ = [
 ]
 
 #: bump when the algorithm changes so stale cache entries are not reused
-ALGORITHM_VERSION = 3  # 2: LGS cone effect, weighted fitting directions, LGS position angle
+ALGORITHM_VERSION = 4  # 2: LGS cone effect, weighted fitting directions, LGS position angle
 # 3: servo-lag temporal frequency sign (nu = -f.v), Thomas 2 ln 2 LGS noise, P3 conventions
+# 4: cone-effect residual without its pupil piston and tilt (cone_remove_tilt)
 
 
 @dataclass(frozen=True)
@@ -331,12 +332,15 @@ class ConeGeometry:
         Pupil diameter [m].
     obscuration : float
         Central obstruction ratio (dimensionless).
+    remove_tilt : bool
+        Leave the residual's pupil piston and tilt out (``AOSettings.cone_remove_tilt``).
     """
 
     lgs_directions: np.ndarray
     lgs_range: float
     diameter: float
     obscuration: float
+    remove_tilt: bool = True
 
 
 @dataclass
@@ -398,7 +402,7 @@ class ResidualPSDModel:
         )
         f = np.hypot(self.operator.fx, self.operator.fy)
         return cone_effect.cone_psd(
-            f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration
+            f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration, c.remove_tilt
         )
 
     def psds(self, directions: np.ndarray, chunk: int):
@@ -545,6 +549,7 @@ def residual_psd_model(
                 lgs_range=ao.lgs_height * airmass(atmosphere),
                 diameter=pupil.diameter,
                 obscuration=pupil.obscuration_ratio,
+                remove_tilt=ao.cone_remove_tilt,
             )
     return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam, cone)
 
