@@ -66,6 +66,21 @@ def test_core_sum_and_separable_correlation_equal_the_direct_filters():
     assert np.array_equal(psf_detection._correlate(img, ring), direct)
 
 
+@pytest.mark.parametrize(
+    "small_shape, shape", [((7, 9), (20, 31)), ((1, 1), (5, 4)), ((34, 50), (1000, 1597))]
+)
+def test_upsample_linear_equals_zoom_with_grid_mode(small_shape, shape):
+    rng = np.random.default_rng(4)
+    small = rng.normal(size=small_shape)
+    zoom = (shape[0] / small_shape[0], shape[1] / small_shape[1])
+    direct = ndimage.zoom(small, zoom, order=1, mode="nearest", grid_mode=True)
+    got = psf_detection.upsample_linear(small, shape)
+    assert direct.shape == got.shape == shape
+    assert np.allclose(got, direct, rtol=0, atol=1e-12)
+    # the edge samples are held (nearest), the centre of a cell is its coarse value
+    assert np.isclose(got[0, 0], small[0, 0]) and np.isclose(got[-1, -1], small[-1, -1])
+
+
 SHAPE = (200, 200)
 FAST = dict(psf_grid=1, psf_stars_per_node=40, psf_star_min_snr=50.0, epsf_iterations=5)
 

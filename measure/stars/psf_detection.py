@@ -47,6 +47,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -71,6 +72,7 @@ __all__ = [
     "psf_kernel",
     "sampled_epsf",
     "significance",
+    "upsample_linear",
     "useful_psfs",
     "wing_image",
     "wing_profile",
@@ -302,9 +304,62 @@ def local_background_subtracted(residual: np.ndarray, box: int) -> np.ndarray:
         return residual
     step = max(1, box // 3)
     small = ndimage.median_filter(residual[::step, ::step], size=3, mode="nearest")
-    zoom = (residual.shape[0] / small.shape[0], residual.shape[1] / small.shape[1])
-    bg = ndimage.zoom(small, zoom, order=1, mode="nearest", grid_mode=True)
-    return residual - bg[: residual.shape[0], : residual.shape[1]]
+    return residual - upsample_linear(small, residual.shape)
+
+
+def upsample_linear(small: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear upsampling of a coarse map to ``shape``, pixel edges aligned.
+
+    Equal (to rounding, ~1e-15) to ``ndimage.zoom(small, (ny / my, nx / mx), order=1,
+    mode="nearest", grid_mode=True)``: output pixel ``i`` samples the input at
+    ``(i + 0.5) m / n - 0.5``, clamped to the edge samples. One compiled pass instead
+    of ``zoom``'s generic spline loop (~1.2-1.7 s for a 4000 x 4000 frame under load,
+    seven maps per blind detection).
+
+    Parameters
+    ----------
+    small : ndarray, shape (my, mx)
+        The coarse map.
+    shape : tuple of int
+        Output shape ``(ny, nx)``.
+
+    Returns
+    -------
+    ndarray, shape (ny, nx)
+        The upsampled map (float64).
+    """
+    return _upsample_linear(np.ascontiguousarray(small, dtype=np.float64), *map(int, shape))
+
+
+@numba.njit(nogil=True, cache=True)
+def _axis_weights(m, n):
+    lo = np.empty(n, np.int64)
+    hi = np.empty(n, np.int64)
+    frac = np.empty(n)
+    for i in range(n):
+        c = (i + 0.5) * (m / n) - 0.5
+        f = np.floor(c)
+        frac[i] = c - f
+        k = int(f)
+        lo[i] = min(max(k, 0), m - 1)
+        hi[i] = min(max(k + 1, 0), m - 1)
+    return lo, hi, frac
+
+
+@numba.njit(nogil=True, cache=True)
+def _upsample_linear(small, ny, nx):
+    my, mx = small.shape
+    y0, y1, ty = _axis_weights(my, ny)
+    x0, x1, tx = _axis_weights(mx, nx)
+    out = np.empty((ny, nx))
+    for i in range(ny):
+        a, b, t = y0[i], y1[i], ty[i]
+        for j in range(nx):
+            u = tx[j]
+            top = small[a, x0[j]] * (1.0 - u) + small[a, x1[j]] * u
+            bottom = small[b, x0[j]] * (1.0 - u) + small[b, x1[j]] * u
+            out[i, j] = top * (1.0 - t) + bottom * t
+    return out
 
 
 def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
@@ -337,8 +392,7 @@ def noise_scale(snr: np.ndarray, tile: int) -> np.ndarray:
     blocks = padded.reshape(ty, tile, tx, tile).transpose(0, 2, 1, 3).reshape(ty, tx, -1)
     med, mad = _tile_median(blocks)
     scale = np.clip(np.nan_to_num(1.4826 * mad, nan=1.0), 1.0, None)
-    full = ndimage.zoom(scale, (ny / ty, nx / tx), order=1, mode="nearest", grid_mode=True)
-    return full[:ny, :nx]
+    return upsample_linear(scale, (ny, nx))
 
 
 def _tile_median(blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
