@@ -458,7 +458,58 @@ def read_table_group(
     return table
 
 
+_PLAIN_ITEM = re.compile(
+    r"- \{name: (?P<name>[^,{}]+)(?:, unit: (?P<unit>[^,{}]+))?, datatype: (?P<dtype>[a-z0-9]+)\}\Z"
+)
+
+
+def _read_simple_table(ds: h5py.Dataset) -> QTable | None:
+    """The table of a compound dataset whose column meta is a plain header, or None.
+
+    The inverse of :func:`_simple_table_header` for numeric and boolean columns: when
+    every line of the stored header is one astropy writes unquoted (``datatype:`` then
+    ``- {name: x, unit: arcsec, datatype: float64}``, nothing else) the columns are read
+    directly, sparing the process ``astropy.io.misc.yaml`` and ``astropy.coordinates``
+    (~0.2 s); the table equals the one read through astropy (tested). Anything else
+    (strings, other metadata) returns None and goes through astropy.
+    """
+    meta_name = ds.name + TABLE_META_SUFFIX
+    if ds.dtype.names is None or meta_name not in ds.file:
+        return None
+    lines = [b.decode() if isinstance(b, bytes) else str(b) for b in ds.file[meta_name][()]]
+    if not lines or lines[0] != "datatype:" or len(lines) - 1 != len(ds.dtype.names):
+        return None
+    columns = []
+    for line, cname in zip(lines[1:], ds.dtype.names):
+        m = _PLAIN_ITEM.match(line)
+        if m is None or m["name"] != cname or not _plain_yaml(cname, _PLAIN_NAME):
+            return None
+        unit = m["unit"]
+        if unit is not None and not _plain_yaml(unit, _PLAIN_UNIT):
+            return None
+        kind = ds.dtype[cname].kind
+        if kind not in "biuf" or m["dtype"] != ds.dtype[cname].name:
+            return None
+        columns.append((cname, unit))
+    data = ds[()]
+    table = QTable()
+    for cname, unit in columns:
+        col = np.ascontiguousarray(data[cname])
+        if unit is not None and col.dtype.kind in "fiu":
+            table[cname] = u.Quantity(col, u.Unit(unit, parse_strict="silent"), copy=False)
+        else:
+            table[cname] = col
+    return table
+
+
 def _read_astropy_table(ds: h5py.Dataset, path=None) -> QTable:
+    simple = _read_simple_table(ds)
+    if simple is not None:
+        return simple
+    return _read_astropy_table_general(ds, path)
+
+
+def _read_astropy_table_general(ds: h5py.Dataset, path=None) -> QTable:
     from astropy.io.misc.hdf5 import read_table_hdf5
 
     try:

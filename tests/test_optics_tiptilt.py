@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mavispm.simulate.optics.atmosphere import AtmosphereSettings
+from mavispm.simulate.optics.atmosphere import MAS_PER_RAD, AtmosphereSettings
 from mavispm.simulate.optics.blur import BlurSettings, blur_sigma
 from mavispm.simulate.optics.pupil import PupilSettings
 from mavispm.simulate.optics.tiptilt import (
@@ -142,3 +142,46 @@ def test_mcao_filter_against_mastsel_on_mavis_ini_asterism():
     ratio = ours / np.array(list(mastsel.values()))
     assert np.all((ratio > 0.5) & (ratio < 1.0))
     assert np.ptp(ratio) < 0.15  # the same field pattern
+
+
+def _layer_by_layer(table, delta):
+    """Reference: each layer's block ``w (a I - b u u^T)`` added in turn."""
+    sep = np.hypot(delta[..., 0], delta[..., 1])
+    safe = np.where(sep > 0, sep, 1.0)
+    u = delta / safe[..., None]
+    out = np.zeros(delta.shape[:-1] + (2, 2))
+    for h, w in zip(table.heights, table.weights):
+        a = np.interp(h * sep, table.rho, table.a)[..., None, None]
+        b = np.interp(h * sep, table.rho, table.b)[..., None, None]
+        out += w * (a * np.eye(2) - b * u[..., :, None] * u[..., None, :])
+    return out
+
+
+def test_layer_summed_blocks_equal_layer_by_layer_sum():
+    field = TipTiltField(TipTiltSettings(), ATM, PUPIL)
+    rng = np.random.default_rng(5)
+    delta = rng.normal(size=(400, 3, 2)) * 1e-4  # rad, up to ~60"
+    delta[0, 0] = 0.0  # zero separation: isotropic a(0) I
+    got, want = field._cov(delta), _layer_by_layer(field._cov, delta)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-14 * np.abs(want).max())
+
+
+def test_covariance_equals_eigen_clipped_reference():
+    """The clipped covariance against the straightforward einsum + eigh of every block."""
+    field = TipTiltField(TipTiltSettings(asterism="bad"), ATM, PUPIL)
+    x, y = np.random.default_rng(6).uniform(-20, 20, (2, 300))
+    x[:3], y[:3] = field.ngs_xy[:, 0], field.ngs_xy[:, 1]  # on the NGS: smallest residual
+    theta = field._theta
+    alpha = np.stack([x, y], -1) * 1000 / MAS_PER_RAD
+    cas = np.concatenate(
+        list(np.moveaxis(_layer_by_layer(field._cov, alpha[:, None] - theta), 1, 0)), -1
+    )
+    res = field._c0 - np.einsum("nij,jk,nlk->nil", cas, field._css_inv, cas)
+    res = 0.5 * (res + np.swapaxes(res, 1, 2)) * MAS_PER_RAD**2
+    res += np.eye(2) * field.settings.windshake**2
+    vals, vecs = np.linalg.eigh(res)
+    want = np.einsum("nij,nj,nkj->nik", vecs, np.clip(vals, 0, None), vecs)
+    want *= field.settings.scale_factor**2
+    np.testing.assert_allclose(
+        field.covariance(x, y), want, rtol=0, atol=1e-11 * np.abs(want).max()
+    )

@@ -7,6 +7,7 @@
   read back by astropy;
 * the frames product written from :func:`render_stack` equal to the one written from
   the :class:`Frame` of :func:`render_frame`;
+* tables of plain headers read without astropy's YAML against astropy's reader;
 * a frames process imports neither ``scipy.fft`` nor ``astropy.io.misc.yaml``.
 """
 
@@ -114,6 +115,19 @@ def test_table_header_equals_astropys(tmp_path_factory, cols, nrows):
     for name, d, k in cols:
         if UNITS[k] not in (None, u.dimensionless_unscaled) and DTYPES[d] not in (bool, "U3"):
             assert back[name].unit == UNITS[k]
+    # read back without astropy's YAML: the same table as through astropy's reader
+    with h5py.File(path) as f:
+        fast = products._read_simple_table(f["t"])
+        general = products._read_astropy_table_general(f["t"])
+    plain = products._simple_table_header({n: products._column_values(t[n]) for n in t.colnames})
+    assert (fast is not None) == (plain is not None and all(DTYPES[d] != "U3" for _, d, _ in cols))
+    if fast is not None:
+        assert fast.colnames == general.colnames
+        for name in general.colnames:
+            assert type(fast[name]) is type(general[name])
+            assert fast[name].dtype == general[name].dtype
+            assert getattr(fast[name], "unit", None) == getattr(general[name], "unit", None)
+            np.testing.assert_array_equal(np.asarray(fast[name]), np.asarray(general[name]))
 
 
 def test_plain_header_left_to_astropy_when_yaml_would_quote():
@@ -161,7 +175,7 @@ def test_stack_and_frame_write_the_same_product(tmp_path):
 
 def test_frames_process_imports_neither_scipy_fft_nor_astropy_yaml(tmp_path):
     """The modules of a warm ``simulate frames`` process, the halo convolution and a
-    product with a table written in a fresh interpreter."""
+    product with a table written and read back in a fresh interpreter."""
     script = textwrap.dedent(
         f"""
         import sys
@@ -176,6 +190,9 @@ def test_frames_process_imports_neither_scipy_fft_nor_astropy_yaml(tmp_path):
         _convolve_same(np.ones((20, 20)), np.ones((5, 5)))
         t = QTable({{"id": np.arange(3), "x": np.ones(3) * u.arcsec}})
         write_product({str(tmp_path / "p.h5")!r}, "frames", tables={{"truth": t}})
+        from mavispm.core.products import read_product
+        back = read_product({str(tmp_path / "p.h5")!r}, "frames")
+        assert back.tables["truth"]["x"].unit == u.arcsec
         print(sorted(m for m in ("scipy.fft", "astropy.io.misc.yaml", "astropy.coordinates")
                      if m in sys.modules))
         """

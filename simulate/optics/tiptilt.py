@@ -223,19 +223,27 @@ class TiltCovariance:
     weights: np.ndarray
 
     def __call__(self, delta: np.ndarray) -> np.ndarray:
-        """Covariance blocks (..., 2, 2) in rad^2 for angular separations ``delta`` (..., 2) rad."""
+        """Covariance blocks (..., 2, 2) in rad^2 for angular separations ``delta`` (..., 2) rad.
+
+        The layers' ``a`` and ``b`` are summed first (two scalars per separation), then
+        the 2 x 2 blocks are built once: the same sum as adding each layer's block, a
+        few times cheaper for 1e6 stars (tested against the per-layer sum).
+        """
         delta = np.asarray(delta, float)
         sep = np.hypot(delta[..., 0], delta[..., 1])
-        safe = np.where(sep > 0, sep, 1.0)
-        ux, uy = delta[..., 0] / safe, delta[..., 1] / safe
-        outer = np.stack([np.stack([ux * ux, ux * uy], -1), np.stack([ux * uy, uy * uy], -1)], -2)
-        out = np.zeros(delta.shape[:-1] + (2, 2))
-        eye = np.eye(2)
+        a = np.zeros(sep.shape)
+        b = np.zeros(sep.shape)
         for h, w in zip(self.heights, self.weights):
             rho = h * sep
-            a = np.interp(rho, self.rho, self.a)
-            b = np.interp(rho, self.rho, self.b)
-            out += w * (a[..., None, None] * eye - b[..., None, None] * outer)
+            a += w * np.interp(rho, self.rho, self.a)
+            b += w * np.interp(rho, self.rho, self.b)
+        safe = np.where(sep > 0, sep, 1.0)
+        ux, uy = delta[..., 0] / safe, delta[..., 1] / safe
+        out = np.empty(delta.shape[:-1] + (2, 2))
+        out[..., 0, 0] = a - b * (ux * ux)
+        out[..., 1, 1] = a - b * (uy * uy)
+        out[..., 0, 1] = -b * (ux * uy)
+        out[..., 1, 0] = out[..., 0, 1]
         return out
 
 
@@ -457,13 +465,18 @@ class TipTiltField:
         delta = alpha[:, None, :] - self._theta[None, :, :]  # (N, n, 2)
         blocks = self._cov(delta)  # (N, n, 2, 2): cov(alpha tilt, ngs tilt)
         cas = np.concatenate(list(np.moveaxis(blocks, 1, 0)), axis=-1)  # (N, 2, 2n)
-        res = self._c0[None] - np.einsum("nij,jk,nlk->nil", cas, self._css_inv, cas)
+        res = self._c0[None] - np.matmul(cas @ self._css_inv, np.swapaxes(cas, 1, 2))
         res = 0.5 * (res + np.swapaxes(res, 1, 2)) * MAS_PER_RAD**2
         res += np.eye(2) * self.settings.windshake**2
-        # clip tiny negative eigenvalues from round-off
-        vals, vecs = np.linalg.eigh(res)
-        vals = np.clip(vals, 0.0, None)
-        res = np.einsum("nij,nj,nkj->nik", vecs, vals, vecs)
+        # clip tiny negative eigenvalues from round-off; blocks whose smaller eigenvalue
+        # (closed form) is clearly positive are already positive semi-definite
+        half_tr = 0.5 * (res[:, 0, 0] + res[:, 1, 1])
+        disc = np.hypot(0.5 * (res[:, 0, 0] - res[:, 1, 1]), res[:, 0, 1])
+        suspect = half_tr - disc <= 1e-9 * np.maximum(half_tr, 0.0)
+        if np.any(suspect):
+            vals, vecs = np.linalg.eigh(res[suspect])
+            vals = np.clip(vals, 0.0, None)
+            res[suspect] = np.einsum("nij,nj,nkj->nik", vecs, vals, vecs)
         return res * self.settings.scale_factor**2
 
 

@@ -23,6 +23,7 @@ from mavispm.simulate.render.halo_convolution import halo_field
 from mavispm.simulate.render.pixel_response import flat_field_residual
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
+from mavispm.simulate.render.symmetric2x2 import eigvals_2x2
 from mavispm.simulate.render.zero_point import (
     photometric_zero_point,
     sky_electrons_per_pixel,
@@ -310,7 +311,7 @@ def render_stack(
             stars, optics, u.Quantity(epoch, u.yr).value
         )
         cov = cov + spread
-    sigma_max = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0, None)) if len(x) else x
+    sigma_max = np.sqrt(np.clip(eigvals_2x2(cov)[1], 0, None)) if len(x) else x
     if spectra is not None:
         sigma_max = sigma_max + extent / 4  # the slices' shifts widen the wing
     noise = noise_sigma_per_subexposure(scene)

@@ -34,6 +34,7 @@ import numpy as np
 
 from mavispm.simulate.render.halo_convolution import next_fast_len
 from mavispm.simulate.render.pixel_response import pixel_transfer
+from mavispm.simulate.render.symmetric2x2 import eigvals_2x2
 
 __all__ = [
     "OuterConvolver",
@@ -249,7 +250,7 @@ class OuterConvolver:
         -------
         ndarray (S,)
         """
-        lam = np.clip(np.linalg.eigvalsh(np.asarray(cov_mas2, float))[:, 0], 0, None)
+        lam = np.clip(eigvals_2x2(cov_mas2)[0], 0, None)
         s2 = lam / self.grid**2
         if len(s2) == 0:
             return s2

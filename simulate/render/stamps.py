@@ -46,6 +46,7 @@ from mavispm.simulate.render.stamp_kernels import (
     mix_kernel_fold,
     wrap_2d_into,
 )
+from mavispm.simulate.render.symmetric2x2 import eigvals_2x2
 
 __all__ = [
     "FLOAT32_ROUNDOFF",
@@ -714,7 +715,7 @@ class StarRenderer:
         if split.any():
             inner, outer = self._split_parts()
             parts[True] = inner
-            sig = np.sqrt(np.clip(np.linalg.eigvalsh(cov[split])[:, -1], 0, None))
+            sig = np.sqrt(np.clip(eigvals_2x2(cov[split])[1], 0, None))
             sizes = sizes.copy()
             sizes[split] = inner.stamp_sizes(
                 flux[split], noise_sigma or 1e-300, sig, x_field[split], y_field[split]
