@@ -263,6 +263,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         chunk=settings.chunk,
         progress=settings.progress,
         sky_gradient=settings.sky_gradient,
+        wing_threshold=settings.wing_threshold,
+        halo_radius=settings.halo_radius,
     )
 
 
