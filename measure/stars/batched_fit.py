@@ -9,6 +9,11 @@ updated in alternating passes (block Gauss-Seidel), so close pairs do not
 oscillate. Within a colour all stars take one damped Gauss-Newton
 (Levenberg-Marquardt) step together, vectorised with numpy in chunks.
 
+Optionally (``joint_radius``) stars closer than a few pixels step jointly
+(:mod:`~mavispm.measure.stars.joint_step`). With ``wing_threshold`` the light of bright
+stars outside their stamps (a radial profile, :mod:`~mavispm.measure.stars.halo`) is
+in the model their neighbours see, fixed after the first (fixed-position) pass.
+
 Weights come from the model, ``1 / (sky + model + RN^2)``, never from the noisy
 data (data weights bias faint fluxes low). Saturated, NaN and off-frame pixels
 get zero weight; the star is kept and flagged.
@@ -582,22 +587,25 @@ def fit_stars(
         radii = np.arange(r + 0.5, opt.halo_radius + 0.5)
         clean = np.flatnonzero(usable & (flag & FLAG_SATURATED == 0))
         mask = bad if saturated is None else (saturated if bad is None else bad | saturated)
-        measured = halo_profile(
-            image, mask, x[clean], y[clean], flux[clean], radii, exclude=pixels, own_radius=r
-        )
+        measured = halo_profile(image, mask, x[clean], y[clean], flux[clean], radii)
         # within the ePSF's footprint its azimuthal mean, where the frame shows such light
         inner = epsf_radial_profile(psf, nx / 2, ny / 2, radii)
         profile = np.where(np.isfinite(inner) & (measured > 0), np.maximum(inner, 0.0), measured)
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
-        halo[:] = deposit_radial(
+        # into the model directly (kept apart only for the returned star-model image)
+        deposit_radial(
             pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r,
-            flux[bright], profile, radii[0],
+            flux[bright], profile, radii[0], out=model,
         )  # fmt: skip
-        model[:] += halo
+        if len(halo):
+            deposit_radial(
+                pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r,
+                flux[bright], profile, radii[0], out=halo,
+            )  # fmt: skip
 
     halo_pending = opt.wing_threshold > 0 and opt.halo_radius > r + 1
-    halo = np.zeros(len(pixels) if halo_pending else 0)  # in ``model``, not a star's own
+    halo = np.zeros(len(pixels) if halo_pending and return_model else 0)
     if halo_pending and flux0 is not None:
         add_halo()
         halo_pending = False

@@ -61,9 +61,8 @@ def halo_profile(
     y: np.ndarray,
     flux: np.ndarray,
     radii: np.ndarray,
-    exclude: np.ndarray | None = None,
-    own_radius: int = -1,
     n_stars: int = 150,
+    n_median: int = 40,
     width: float = 10.0,
     min_stars: int = 5,
     significance: float = 3.0,
@@ -73,11 +72,13 @@ def halo_profile(
     For each of the ``n_stars`` brightest of the given stars whose surroundings out
     to ``max(radii) + width`` lie in the frame: the median of the image in 1-px
     annuli centred on ``radii``, less the median in the annulus ``[max(radii),
-    max(radii) + width)`` (the local background: the profile is zero there), on the
-    pixels not in ``exclude`` (the stamps of the other known stars). The profile is
-    the part of that excess that grows with the star's flux (:func:`_flux_scaled`:
-    a straight-line fit over the stars per annulus), kept where it is at least
-    ``significance`` standard errors above zero, else zero.
+    max(radii) + width)`` (the local background: the profile is zero there). The
+    profile is the median over the ``n_median`` brightest of that excess divided by
+    the star's flux, where the excess grows significantly with the flux over all
+    ``n_stars`` (:func:`_flux_scaled`; light that does not grow with a star's flux:
+    its neighbours', a brighter star's halo, a background gradient), and at most
+    that regression's slope; else zero. Under-modelling leaves the neighbours' sky
+    planes some light; over-modelling would push faint fluxes negative.
 
     Parameters
     ----------
@@ -91,12 +92,9 @@ def halo_profile(
     radii : ndarray
         Annulus centres [pixel], increasing.
     n_stars : int
-        Stars used.
-    exclude : ndarray of int, optional
-        Sorted flat frame indices (``row * nx + column``) of pixels to ignore ...
-    own_radius : int
-        ... except those within this many pixels (box) of the star's own centre
-        pixel (its own stamp; -1: none).
+        Stars used in the flux regression.
+    n_median : int
+        The brightest of them, whose median ratio is the profile's value.
     width : float
         Width of the background annulus [pixel].
     min_stars : int
@@ -134,8 +132,12 @@ def halo_profile(
             rows.append(
                 [(np.nanmedian(cut[np.abs(r - rc) < 0.5]) - back) / flux[k] for rc in radii]
             )
-    d = np.asarray(rows) * flux[cand][:, None]  # excess light [electron / pixel]
-    return _flux_scaled(d, flux[cand], min_stars, significance)
+    rows = np.asarray(rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nan_to_num(np.nanmedian(rows[:n_median], axis=0))
+    slope = _flux_scaled(rows * flux[cand][:, None], flux[cand], min_stars, significance)
+    return np.where(slope > 0, np.maximum(np.minimum(median, slope), 0.0), 0.0)
 
 
 def _flux_scaled(d: np.ndarray, f: np.ndarray, min_stars: int, significance: float) -> np.ndarray:

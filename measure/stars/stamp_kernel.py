@@ -300,7 +300,7 @@ def _deposit_radial(pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in
                 out[q] += flux[k] * (profile[i] * (1.0 - f) + profile[i + 1] * f)
 
 
-def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in):
+def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out=None):
     """Light of stars with a radial profile, on a sorted set of frame pixels.
 
     Each star adds ``flux * profile(r)`` (linear in ``r``, samples 1 pixel apart from
@@ -326,17 +326,22 @@ def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in):
         Light per unit flux per pixel [1/pixel] at ``r_in + 0, 1, ..., L - 1`` pixels.
     r_in : float
         Radius of the first sample [pixel].
+    out : ndarray of float64, shape (P,), optional
+        Added to in place (no new array: the fitter's model on 1e7 pixels).
 
     Returns
     -------
     ndarray, shape (P,)
-        The light on ``pixels`` [electron].
+        The light on ``pixels`` [electron] (``out`` when given).
     """
-    out = np.zeros(len(pixels))
+    if out is None:
+        out = np.zeros(len(pixels))
     if len(x) == 0 or len(profile) < 2:
         return out
+    if pixels.dtype not in (np.int32, np.int64) or not pixels.flags.c_contiguous:
+        pixels = np.ascontiguousarray(pixels, dtype=np.int64)
     _deposit_radial(
-        np.ascontiguousarray(pixels, dtype=np.int64),
+        pixels,
         (int(shape[0]), int(shape[1])),
         np.ascontiguousarray(x, dtype=np.float64),
         np.ascontiguousarray(y, dtype=np.float64),
