@@ -464,15 +464,8 @@ def fit_stars(
     )
     # tightly coupled stars step jointly (joint_step); the groups are coloured so that
     # no two groups stepped together overlap (a star alone is a group of one)
-    both = usable[pairs].all(axis=1) if len(pairs) else np.zeros(0, bool)
-    sep = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
-    label = coupled_groups(
-        n, pairs[both], sep[both], opt.joint_radius, opt.joint_max, UNRESOLVED_SEPARATION
-    )
+    label, colour = _coloured_groups(x, y, usable, pairs, opt)
     gsize = np.bincount(label)
-    links = label[pairs]
-    links = np.unique(np.sort(links[links[:, 0] != links[:, 1]], axis=1), axis=0)
-    colour = colour_graph(len(gsize), links)[label]
     # each colour in bands of rows, left to right: consecutive stars then read the same
     # few basis ePSFs (the evaluation is bound by memory reads; 27 -> 18 us per star
     # with an 11 x 11 grid). Groups of one colour do not overlap: the order changes
@@ -788,6 +781,25 @@ def marginalise_neighbours(
         term[~ok_other[start : start + chunk]] = 0.0
         np.add.at(out, i, -term)
     return out
+
+
+def _coloured_groups(x, y, usable, pairs, opt):
+    """Group label (:func:`~mavispm.measure.stars.joint_step.coupled_groups`) and colour
+    (groups that share a pair differ) of each star. A function of its own so that its
+    pair-sized temporaries (12 million pairs at the centre of the 1e5-star frame,
+    ~300 MB) are freed before the sweeps."""
+    n = len(x)
+    if opt.joint_radius <= 0:
+        return np.arange(n), colour_graph(n, pairs)
+    both = usable[pairs].all(axis=1)
+    sep = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
+    label = coupled_groups(
+        n, pairs[both], sep[both], opt.joint_radius, opt.joint_max, UNRESOLVED_SEPARATION
+    )
+    del both, sep
+    links = label[pairs]
+    links = np.unique(np.sort(links[links[:, 0] != links[:, 1]], axis=1), axis=0)
+    return label, colour_graph(int(label.max()) + 1, links)[label]
 
 
 def _group_chunks(index: np.ndarray, label: np.ndarray, size: int):
