@@ -9,6 +9,11 @@ updated in alternating passes (block Gauss-Seidel), so close pairs do not
 oscillate. Within a colour all stars take one damped Gauss-Newton
 (Levenberg-Marquardt) step together, vectorised with numpy in chunks.
 
+Optionally (``joint_radius``) stars closer than a few pixels step jointly
+(:mod:`~mavispm.measure.stars.joint_step`). With ``wing_threshold`` the light of bright
+stars outside their stamps (a radial profile, :mod:`~mavispm.measure.stars.halo`) is
+in the model their neighbours see, fixed after the first (fixed-position) pass.
+
 Weights come from the model, ``1 / (sky + model + RN^2)``, never from the noisy
 data (data weights bias faint fluxes low). Saturated, NaN and off-frame pixels
 get zero weight; the star is kept and flagged.
@@ -28,6 +33,9 @@ from tqdm import tqdm
 
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
+from mavispm.measure.stars.halo import epsf_radial_profile, halo_profile
+from mavispm.measure.stars.joint_step import coupled_groups, cross_blocks, solve_groups
+from mavispm.measure.stars.stamp_kernel import deposit_radial
 from mavispm.measure.stars.stamp_kernel import normal_equations as fused_normal_equations
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
@@ -35,6 +43,7 @@ __all__ = [
     "FitOptions",
     "FitResult",
     "UNRESOLVED_SEPARATION",
+    "colour_graph",
     "colour_stars",
     "crowding_flags",
     "fit_stars",
@@ -84,6 +93,23 @@ class FitOptions:
         constant: the wings and halo of a much brighter star tens of pixels away
         tilt the background of the stamp, which a constant sky leaves in the
         positions. The slopes are marginalised in the reported errors.
+    joint_radius : float
+        Stars closer than this [pixel] (and their chains) take their Gauss-Newton
+        steps jointly (:mod:`~mavispm.measure.stars.joint_step`); 0: every star alone.
+    joint_max : int
+        Largest such group; a larger chain is stepped star by star.
+    joint_trust : float
+        A group's joint step is shortened to at most this many times the length
+        of its stars' single steps (in their own Fisher metrics); 0: no limit.
+    wing_threshold : float
+        Stars whose light outside their fitting stamp peaks above this many times
+        the sky's pixel noise have it in the model their neighbours see, as a
+        radial profile (:mod:`~mavispm.measure.stars.halo`: the ePSF's azimuthal
+        mean, beyond its footprint measured on the frame), at the positions and
+        fluxes of the first (fixed-position) pass; 0: none (that light is left to
+        the neighbours' sky planes).
+    halo_radius : float
+        Outer radius of that light [pixel].
     """
 
     radius: int = 5
@@ -98,6 +124,11 @@ class FitOptions:
     progress: bool = False
     blend_radius: float = 5.0
     sky_gradient: bool = False
+    joint_radius: float = 0.0
+    joint_max: int = 16
+    joint_trust: float = 10.0
+    wing_threshold: float = 0.0
+    halo_radius: float = 60.0
 
 
 @dataclass
@@ -163,7 +194,26 @@ def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
     if n < 2:
         return colour
     pairs = cKDTree(np.column_stack([x, y])).query_pairs(distance, output_type="ndarray")
-    if len(pairs) == 0:
+    return colour_graph(n, pairs)
+
+
+def colour_graph(n: int, pairs: np.ndarray) -> np.ndarray:
+    """Greedy colouring of a graph: nodes joined by a pair differ in colour.
+
+    Parameters
+    ----------
+    n : int
+        Number of nodes.
+    pairs : ndarray of int, shape (P, 2)
+        Edges (each once, no self-edges).
+
+    Returns
+    -------
+    ndarray of int, shape (N,)
+        Colour of each node, highest degree first, each the lowest colour free.
+    """
+    colour = np.zeros(n, dtype=np.intp)
+    if n < 2 or len(pairs) == 0:
         return colour
     # adjacency lists in CSR form, each list in the order the pairs were found
     both = np.concatenate([pairs, pairs[:, ::-1]])
@@ -407,19 +457,24 @@ def fit_stars(
     flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
     model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
-    colour = colour_stars(x, y, 2 * r + 1.0)
-    # each colour in bands of rows, left to right: consecutive stars then read the same
-    # few basis ePSFs (the evaluation is bound by memory reads; 27 -> 18 us per star
-    # with an 11 x 11 grid). Stars of one colour do not overlap: the order changes
-    # nothing but rounding.
-    band = np.floor(y / 64.0)
-    groups = [np.flatnonzero((colour == c) & usable) for c in range(colour.max() + 1)]
-    groups = [g[np.lexsort((x[g], band[g]))] for g in groups]
     pairs = (
         cKDTree(np.column_stack([x, y])).query_pairs(2 * r + 1.0, output_type="ndarray")
         if n > 1
         else np.zeros((0, 2), dtype=np.intp)
     )
+    # tightly coupled stars step jointly (joint_step); the groups are coloured so that
+    # no two groups stepped together overlap (a star alone is a group of one)
+    label, colour = _coloured_groups(x, y, usable, pairs, opt)
+    gsize = np.bincount(label)
+    # each colour in bands of rows, left to right: consecutive stars then read the same
+    # few basis ePSFs (the evaluation is bound by memory reads; 27 -> 18 us per star
+    # with an 11 x 11 grid). Groups of one colour do not overlap: the order changes
+    # nothing but rounding. A group's stars are consecutive.
+    gx, gy = np.bincount(label, x) / gsize, np.bincount(label, y) / gsize
+    key = (label, gx[label], np.floor(gy[label] / 64.0))
+    order = np.lexsort(key)
+    order = order[usable[order]]
+    groups = [order[colour[order] == c] for c in range(colour.max() + 1)]
     active = usable.copy()  # stars (re)fitted in the next sweep
 
     def deposit(idx, new):
@@ -433,7 +488,7 @@ def fit_stars(
         sub = (mix[0][idx], mix[1][idx])
         return psf.evaluate(x[idx], y[idx], StampGeometry(geom.cx[idx], geom.cy[idx], r), mix=sub)
 
-    def normal_equations(idx, fix_positions):
+    def normal_equations(idx):
         v, dvx, dvy = (a.reshape(len(idx), -1) for a in evaluate(idx))
         a, b, w, resid = fused_normal_equations(
             v,
@@ -449,12 +504,104 @@ def fit_stars(
             plane_basis,
             read_noise_var,
         )
-        if fix_positions is not None:
-            fix = np.flatnonzero(fix_positions)
-            a[fix, :2, :] = 0.0
-            a[fix, :, :2] = 0.0
-            b[fix, :2] = 0.0
         return v, dvx, dvy, a, b, w, resid
+
+    def step_stars(idx, fixed, together):
+        """One damped Gauss-Newton step of the stars ``idx``; ``together`` (their group
+        labels, each group's stars consecutive) couples the stars of a group."""
+        v, dvx, dvy, a, b, w, _ = normal_equations(idx)
+        diag = np.einsum("nkk->nk", a)
+        a_d = a + opt.damping * diag[:, :, None] * np.eye(npar)
+        if fixed:
+            frozen = np.ones(len(idx), bool)
+        else:
+            cov, ok = safe_inverse(a)
+            snr = flux[idx] / np.sqrt(np.abs(cov[:, 2, 2]))
+            sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
+            thresh[idx] = np.maximum(
+                opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos)
+            )
+            frozen = ~ok | ~(snr > opt.min_snr)
+        # positions of frozen stars held: identity rows, no right-hand side
+        a_d[frozen, :2, :] = 0.0
+        a_d[frozen, :, :2] = 0.0
+        a_d[frozen, 0, 0] = a_d[frozen, 1, 1] = 1.0
+        b = b.copy()
+        b[frozen, :2] = 0.0
+        step = None
+        if together is not None:
+            rows, cols = _group_pairs(together)
+            geom_i = StampGeometry(geom.cx[idx[rows]], geom.cy[idx[rows]], r)
+            j = idx[cols]
+            other = psf.evaluate(x[j], y[j], geom_i, mix=(mix[0][j], mix[1][j]))
+            jac = jacobian(
+                flux[idx], *(e.reshape(len(idx), s, s) for e in (v, dvx, dvy)), opt.sky_gradient
+            )
+            cross = cross_blocks(
+                flux[j], *(e.reshape(len(j), -1) for e in other), jac[rows], w[rows]
+            )
+            cross[frozen[rows], :2, :] = 0.0
+            cross[frozen[cols], :, :2] = 0.0
+            step = solve_groups(a_d, b, rows, cols, cross)
+        single = _solve(a_d, b)
+        if step is None:
+            step = single
+        elif opt.joint_trust > 0:
+            step = _limit_group_steps(step, single, a_d, together, opt.joint_trust)
+        if not fixed:
+            length = np.hypot(step[:, 0], step[:, 1])
+            shrink = np.minimum(1.0, opt.max_step / np.maximum(length, 1e-300))
+            step[:, :2] *= shrink[:, None]
+        dx, dy = step[:, 0], step[:, 1]
+        x[idx] += dx
+        y[idx] += dy
+        flux[idx] += step[:, 2]
+        sky[idx] += step[:, 3]
+        if opt.sky_gradient:
+            slope[idx] += step[:, 4:]
+        # keep within max_shift of the start
+        off_x, off_y = x[idx] - start_x[idx], y[idx] - start_y[idx]
+        dist = np.hypot(off_x, off_y)
+        pull = np.minimum(1.0, opt.max_shift / np.maximum(dist, 1e-300))
+        x[idx] = start_x[idx] + off_x * pull
+        y[idx] = start_y[idx] + off_y * pull
+        dx = dx - off_x * (1 - pull)
+        dy = dy - off_y * (1 - pull)
+        steps[idx] = np.hypot(dx, dy)
+        new = flux[idx, None] * (
+            v.reshape(len(idx), -1)
+            + dvx.reshape(len(idx), -1) * dx[:, None]
+            + dvy.reshape(len(idx), -1) * dy[:, None]
+        )
+        deposit(idx, new)
+
+    def add_halo():
+        """Add the bright stars' light outside their stamps to the model (once)."""
+        radii = np.arange(r + 0.5, opt.halo_radius + 0.5)
+        clean = np.flatnonzero(usable & (flag & FLAG_SATURATED == 0))
+        mask = bad if saturated is None else (saturated if bad is None else bad | saturated)
+        measured = halo_profile(image, mask, x[clean], y[clean], flux[clean], radii)
+        # within the ePSF's footprint its azimuthal mean, where the frame shows such light
+        inner = epsf_radial_profile(psf, nx / 2, ny / 2, radii)
+        profile = np.where(np.isfinite(inner) & (measured > 0), np.maximum(inner, 0.0), measured)
+        limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
+        bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
+        # into the model directly (kept apart only for the returned star-model image)
+        deposit_radial(
+            pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r,
+            flux[bright], profile, radii[0], out=model,
+        )  # fmt: skip
+        if len(halo):
+            deposit_radial(
+                pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r,
+                flux[bright], profile, radii[0], out=halo,
+            )  # fmt: skip
+
+    halo_pending = opt.wing_threshold > 0 and opt.halo_radius > r + 1
+    halo = np.zeros(len(pixels) if halo_pending and return_model else 0)
+    if halo_pending and flux0 is not None:
+        add_halo()
+        halo_pending = False
 
     # initial fluxes: linear fit at fixed positions (positions frozen)
     sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
@@ -466,52 +613,14 @@ def fit_stars(
         steps[:] = 0.0
         for group in groups:
             group = group[active[group]]
-            for idx in _chunks(group, opt.chunk):
-                freeze = np.ones(len(idx), bool) if fixed else None
-                v, dvx, dvy, a, b, w, _ = normal_equations(idx, freeze)
-                diag = np.einsum("nkk->nk", a)
-                a_d = a + opt.damping * diag[:, :, None] * np.eye(npar)
-                if fixed:
-                    a_d[:, :2, :2] = np.eye(2)
-                step = _solve(a_d, b)
-                if not fixed:
-                    cov, ok = safe_inverse(a)
-                    snr = flux[idx] / np.sqrt(np.abs(cov[:, 2, 2]))
-                    sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
-                    thresh[idx] = np.maximum(
-                        opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos)
-                    )
-                    lowsnr = ~ok | ~(snr > opt.min_snr)
-                    step[lowsnr, :2] = 0.0
-                    if np.any(lowsnr):
-                        a_l = a_d[lowsnr]
-                        a_l[:, :2, :] = 0.0
-                        a_l[:, :, :2] = 0.0
-                        a_l[:, 0, 0] = a_l[:, 1, 1] = 1.0
-                        b_l = b[lowsnr].copy()
-                        b_l[:, :2] = 0.0
-                        step[lowsnr] = _solve(a_l, b_l)
-                    length = np.hypot(step[:, 0], step[:, 1])
-                    shrink = np.minimum(1.0, opt.max_step / np.maximum(length, 1e-300))
-                    step[:, :2] *= shrink[:, None]
-                dx, dy = step[:, 0], step[:, 1]
-                x[idx] += dx
-                y[idx] += dy
-                flux[idx] += step[:, 2]
-                sky[idx] += step[:, 3]
-                if opt.sky_gradient:
-                    slope[idx] += step[:, 4:]
-                # keep within max_shift of the start
-                off_x, off_y = x[idx] - start_x[idx], y[idx] - start_y[idx]
-                dist = np.hypot(off_x, off_y)
-                pull = np.minimum(1.0, opt.max_shift / np.maximum(dist, 1e-300))
-                x[idx] = start_x[idx] + off_x * pull
-                y[idx] = start_y[idx] + off_y * pull
-                dx = dx - off_x * (1 - pull)
-                dy = dy - off_y * (1 - pull)
-                steps[idx] = np.hypot(dx, dy)
-                new = flux[idx, None] * (v + dvx * dx[:, None] + dvy * dy[:, None])
-                deposit(idx, new)
+            alone = gsize[label[group]] == 1
+            for idx in _chunks(group[alone], opt.chunk):
+                step_stars(idx, fixed, None)
+            for idx in _group_chunks(group[~alone], label, opt.chunk):
+                step_stars(idx, fixed, label[idx])
+        if halo_pending:
+            add_halo()
+            halo_pending = False
         done += 0 if fixed else 1
         # converged stars rest until they or an overlapping neighbour move again
         moved = usable & (steps >= thresh)
@@ -519,7 +628,8 @@ def fit_stars(
         if len(pairs):
             active[pairs[:, 0]] |= moved[pairs[:, 1]]
             active[pairs[:, 1]] |= moved[pairs[:, 0]]
-        active &= usable
+        # a group steps together: all its stars or none
+        active = (np.bincount(label, active, minlength=len(gsize)) > 0)[label] & usable
         if fixed:
             active = usable.copy()
         if not fixed and not np.any(moved):
@@ -535,12 +645,12 @@ def fit_stars(
     all_idx = np.flatnonzero(usable)
     if uncertainties or return_model:  # exact (not linearised) models at the solution
         for idx in _chunks(all_idx, opt.chunk):
-            v, *_ = normal_equations(idx, None)
+            v, *_ = normal_equations(idx)
             deposit(idx, flux[idx, None] * v)
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
     for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
-        _, _, _, a, _, w, resid = normal_equations(idx, None)
+        _, _, _, a, _, w, resid = normal_equations(idx)
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
@@ -581,7 +691,9 @@ def fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
-        model_image=_frame_image(model, pixels, (ny, nx)) if return_model else None,
+        model_image=_frame_image(model - halo if len(halo) else model, pixels, (ny, nx))
+        if return_model
+        else None,
         sky_slope=np.where(usable[:, None], slope, 0.0),
     )
 
@@ -669,6 +781,58 @@ def marginalise_neighbours(
         term[~ok_other[start : start + chunk]] = 0.0
         np.add.at(out, i, -term)
     return out
+
+
+def _coloured_groups(x, y, usable, pairs, opt):
+    """Group label (:func:`~mavispm.measure.stars.joint_step.coupled_groups`) and colour
+    (groups that share a pair differ) of each star. A function of its own so that its
+    pair-sized temporaries (12 million pairs at the centre of the 1e5-star frame,
+    ~300 MB) are freed before the sweeps."""
+    n = len(x)
+    if opt.joint_radius <= 0:
+        return np.arange(n), colour_graph(n, pairs)
+    both = usable[pairs].all(axis=1)
+    sep = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
+    label = coupled_groups(
+        n, pairs[both], sep[both], opt.joint_radius, opt.joint_max, UNRESOLVED_SEPARATION
+    )
+    del both, sep
+    links = label[pairs]
+    links = np.unique(np.sort(links[links[:, 0] != links[:, 1]], axis=1), axis=0)
+    return label, colour_graph(int(label.max()) + 1, links)[label]
+
+
+def _group_chunks(index: np.ndarray, label: np.ndarray, size: int):
+    """Chunks of about ``size`` of ``index`` (grouped by ``label``) never splitting a group."""
+    if len(index) == 0:
+        return
+    starts = np.r_[0, np.flatnonzero(np.diff(label[index])) + 1, len(index)]
+    lo = 0
+    while lo < len(index):
+        hi = starts[min(np.searchsorted(starts, lo + size), len(starts) - 1)]
+        yield index[lo:hi]
+        lo = hi
+
+
+def _limit_group_steps(step, single, a, label, limit):
+    """Scale each group's joint step so that its length in the stars' own metrics
+    (``sum_i d_i^T A_ii d_i``) is at most ``limit`` times that of the single-star
+    steps: a nearly degenerate group (two stars sharing one blob of light) would
+    otherwise take a huge flux-trading step."""
+
+    def length(d):
+        return np.bincount(label - label.min(), np.abs(np.einsum("nk,nkl,nl->n", d, a, d)))
+
+    ratio = np.sqrt(length(step) / np.maximum(length(single), 1e-300))
+    factor = np.minimum(1.0, limit / np.maximum(ratio, 1e-300))
+    return step * factor[label - label.min()][:, None]
+
+
+def _group_pairs(label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ordered pairs (i, j), i != j, of positions in ``label`` sharing a label."""
+    same = label[:, None] == label[None, :]
+    np.fill_diagonal(same, False)
+    return np.nonzero(same)
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -263,6 +263,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         chunk=settings.chunk,
         progress=settings.progress,
         sky_gradient=settings.sky_gradient,
+        wing_threshold=settings.wing_threshold,
+        halo_radius=settings.halo_radius,
     )
 
 
@@ -396,7 +398,9 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
-        fit = run_engine(frame, psf, x0, y0, replace(settings, progress=False), engine="fast")
+        # an intermediate fit for the neighbour model: the sweeps of before 2026-12-02
+        passing = settings.replace(progress=False, iterations=min(settings.iterations, 10))
+        fit = run_engine(frame, psf, x0, y0, passing, engine="fast")
         fitted_flux = np.where(fit.flag & FLAG_FAILED, 0.0, np.nan_to_num(fit.flux))
         build = dict(
             build,
@@ -704,7 +708,12 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
     x, y : ndarray
         Refined positions [pixel].
     """
-    quick = settings.replace(neighbour_passes=0, error_model="fisher", progress=False)
+    quick = settings.replace(
+        neighbour_passes=0,
+        error_model="fisher",
+        progress=False,
+        iterations=min(settings.iterations, 10),
+    )
     if anchor is not None:
         psf = anchor.mapped_psf()
     else:
