@@ -7,7 +7,10 @@ any halo must give none.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+import pytest
 
 from mavispm.measure.stars.halo import halo_profile
 from mavispm.measure.stars.stamp_kernel import deposit_radial
@@ -77,3 +80,26 @@ def test_halo_profile_recovers_an_injected_halo_and_finds_none_without():
     image, x, y, flux = _frame(False)
     got = halo_profile(image, None, x, y, flux, radii, n_stars=25)
     assert np.all(got <= 2e-7)  # at most a stray 3-sigma value, 1 % of the halo's peak
+
+
+@pytest.mark.parametrize("bad_fraction", [0.0, 0.1, 1.0])
+def test_ring_medians_in_one_sort_equal_one_median_per_ring(bad_fraction):
+    """The one-sort annulus medians equal numpy's ``nanmedian`` ring by ring, bit for bit,
+    with masked (NaN) pixels and with a window where every pixel is masked."""
+    from mavispm.measure.stars.halo import _ring_medians, _ring_medians_direct
+
+    rng = np.random.default_rng(7)
+    m = 70
+    off = np.arange(-m, m + 1)
+    radii = np.arange(5.5, 60.5)
+    for _ in range(5):
+        cut = rng.normal(0.0, 1.0, (2 * m + 1, 2 * m + 1)) + rng.integers(0, 3, (2 * m + 1,) * 2)
+        cut[rng.random(cut.shape) < bad_fraction] = np.nan
+        x0, y0 = rng.uniform(-0.5, 0.5, 2)
+        r = np.hypot(off[None, :] - x0, off[:, None] - y0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            back, med = _ring_medians(cut, r, radii, 60.0, 70.0)
+            ref_back, ref = _ring_medians_direct(cut, r, radii, 60.0, 70.0)
+        np.testing.assert_array_equal(med, ref)
+        np.testing.assert_array_equal(back, ref_back)

@@ -116,28 +116,61 @@ def halo_profile(
     cand = cand[np.argsort(-flux[cand])][:n_stars]
     if len(cand) < min_stars:
         return np.zeros(len(radii))
-    off = np.arange(-margin, margin + 1)
+    rings = _ring_medians if _unit_spaced(radii) else _ring_medians_direct
     rows = []
     for k in cand:
         cx, cy = int(round(x[k])), int(round(y[k]))
-        cut = np.asarray(image[cy - margin : cy + margin + 1, cx - margin : cx + margin + 1], float)
+        window = np.s_[cy - margin : cy + margin + 1, cx - margin : cx + margin + 1]
+        cut = np.asarray(image[window], float)
         if bad is not None:
-            cut = np.where(
-                bad[cy - margin : cy + margin + 1, cx - margin : cx + margin + 1], np.nan, cut
-            )
+            cut = np.where(bad[window], np.nan, cut)
+        off = np.arange(-margin, margin + 1)
         r = np.hypot(off[None, :] + cx - x[k], off[:, None] + cy - y[k])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            back = np.nanmedian(cut[(r >= outer - width) & (r < outer)])
-            rows.append(
-                [(np.nanmedian(cut[np.abs(r - rc) < 0.5]) - back) / flux[k] for rc in radii]
-            )
+            back, ring = rings(cut, r, radii, outer - width, outer)
+        rows.append((ring - back) / flux[k])
     rows = np.asarray(rows)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         median = np.nan_to_num(np.nanmedian(rows[:n_median], axis=0))
     slope = _flux_scaled(rows * flux[cand][:, None], flux[cand], min_stars, significance)
     return np.where(slope > 0, np.maximum(np.minimum(median, slope), 0.0), 0.0)
+
+
+def _unit_spaced(radii: np.ndarray) -> bool:
+    """Whether the annulus centres are consecutive 1-px steps from >= 0.5 px."""
+    return radii.size > 0 and radii[0] >= 0.5 and np.allclose(np.diff(radii), 1.0)
+
+
+def _ring_medians_direct(cut, r, radii, back_lo, back_hi):
+    """Median of ``cut`` (NaN ignored) in the background annulus ``[back_lo, back_hi)`` and
+    in each 1-px annulus ``|r - rc| < 0.5``; one median per annulus (the reference of
+    :func:`_ring_medians`)."""
+    back = np.nanmedian(cut[(r >= back_lo) & (r < back_hi)])
+    return back, np.array([np.nanmedian(cut[np.abs(r - rc) < 0.5]) for rc in radii])
+
+
+def _ring_medians(cut, r, radii, back_lo, back_hi):
+    """:func:`_ring_medians_direct` for consecutive 1-px annuli, every annulus's median
+    from one sort of the window (by value, then stably by annulus); NaN where an annulus
+    has no finite pixel. A pixel exactly on an annulus edge (``|r - rc| = 0.5``, measure
+    zero for a star off the pixel grid) goes to the outer annulus instead of neither."""
+    n = radii.size
+    ring = np.floor(r - (radii[0] - 0.5)).astype(np.int64)
+    keep = np.isfinite(cut) & (ring >= 0) & (ring < n)
+    lab, val = ring[keep], cut[keep]
+    by_value = np.argsort(val)
+    order = by_value[np.argsort(lab[by_value], kind="stable")]
+    val = val[order]
+    counts = np.bincount(lab, minlength=n)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    med = np.full(n, np.nan)
+    some = counts > 0
+    lo = starts[some] + (counts[some] - 1) // 2
+    hi = starts[some] + counts[some] // 2
+    med[some] = 0.5 * (val[lo] + val[hi])
+    return np.nanmedian(cut[(r >= back_lo) & (r < back_hi)]), med
 
 
 def _flux_scaled(d: np.ndarray, f: np.ndarray, min_stars: int, significance: float) -> np.ndarray:
