@@ -87,6 +87,11 @@ START_OFFSET = 0.3  # [pixel]: about ten years of a 2 mas/yr motion at 7.4 mas/p
 
 @pytest.fixture(scope="module")
 def started_off_frames():
+    """:func:`started_off`, once per module."""
+    return started_off()
+
+
+def started_off():
     """The crowded frames above with every star started 0.3 px off its true position,
     in a random direction (a later epoch starts from the earlier epoch's positions)."""
     out = []
