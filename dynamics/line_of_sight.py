@@ -222,8 +222,11 @@ def _interpolate_rows(w0, w1, w2, w3, j, grid, out):  # pragma: no cover - compi
 @numba.njit(nogil=True, cache=True)
 def _component_table(mix_w, s2_r, s2_t):  # pragma: no cover - compiled
     """The three (M, K) component tables side by side in one contiguous (M, 3K) table, so
-    that a star's components are one interpolation over ``3K`` columns."""
+    that a star's components are one interpolation over ``3K`` columns (ValueError
+    unless the three share one shape (M, K) with M >= 4)."""
     n, n_k = mix_w.shape
+    if n < 4 or s2_r.shape != mix_w.shape or s2_t.shape != mix_w.shape:
+        raise ValueError("the mixture needs components of one shape (M, K), M >= 4")
     table = np.empty((n, 3 * n_k))
     for i in range(n):
         for k in range(n_k):
@@ -327,8 +330,6 @@ def mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2):  # pragma: no 
         clamped at the grid ends).
     """
     n, n_k = mix_w.shape
-    if n < 4 or s2_r.shape != mix_w.shape or s2_t.shape != mix_w.shape:
-        raise ValueError("the mixture needs components of one shape (M, K), M >= 4")
     table = _component_table(mix_w, s2_r, s2_t)
     buf = np.empty(3 * n_k)
     tk = np.empty(n_k)
@@ -373,8 +374,6 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
     n, n_k = mix_w.shape
     if ln_sig.size != n:
         raise ValueError("ln_sig and the mixture components need one grid")
-    if n < 4 or s2_r.shape != mix_w.shape or s2_t.shape != mix_w.shape:
-        raise ValueError("the mixture needs components of one shape (M, K), M >= 4")
     table = _component_table(mix_w, s2_r, s2_t)
     buf = np.empty(3 * n_k)
     tk = np.empty(n_k)

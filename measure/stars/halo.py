@@ -117,6 +117,7 @@ def halo_profile(
     if len(cand) < min_stars:
         return np.zeros(len(radii))
     rings = _ring_medians if _unit_spaced(radii) else _ring_medians_direct
+    off = np.arange(-margin, margin + 1)
     rows = []
     for k in cand:
         cx, cy = int(round(x[k])), int(round(y[k]))
@@ -124,7 +125,6 @@ def halo_profile(
         cut = np.asarray(image[window], float)
         if bad is not None:
             cut = np.where(bad[window], np.nan, cut)
-        off = np.arange(-margin, margin + 1)
         r = np.hypot(off[None, :] + cx - x[k], off[:, None] + cy - y[k])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
@@ -147,8 +147,13 @@ def _ring_medians_direct(cut, r, radii, back_lo, back_hi):
     """Median of ``cut`` (NaN ignored) in the background annulus ``[back_lo, back_hi)`` and
     in each 1-px annulus ``|r - rc| < 0.5``; one median per annulus (the reference of
     :func:`_ring_medians`)."""
-    back = np.nanmedian(cut[(r >= back_lo) & (r < back_hi)])
-    return back, np.array([np.nanmedian(cut[np.abs(r - rc) < 0.5]) for rc in radii])
+    rings = np.array([np.nanmedian(cut[np.abs(r - rc) < 0.5]) for rc in radii])
+    return _background_median(cut, r, back_lo, back_hi), rings
+
+
+def _background_median(cut, r, back_lo, back_hi):
+    """Median of ``cut`` (NaN ignored) in the annulus ``back_lo <= r < back_hi``."""
+    return np.nanmedian(cut[(r >= back_lo) & (r < back_hi)])
 
 
 def _ring_medians(cut, r, radii, back_lo, back_hi):
@@ -170,7 +175,7 @@ def _ring_medians(cut, r, radii, back_lo, back_hi):
     lo = starts[some] + (counts[some] - 1) // 2
     hi = starts[some] + counts[some] // 2
     med[some] = 0.5 * (val[lo] + val[hi])
-    return np.nanmedian(cut[(r >= back_lo) & (r < back_hi)]), med
+    return _background_median(cut, r, back_lo, back_hi), med
 
 
 def _flux_scaled(d: np.ndarray, f: np.ndarray, min_stars: int, significance: float) -> np.ndarray:
