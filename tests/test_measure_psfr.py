@@ -289,10 +289,15 @@ def _pooled(path):
 
 @pytest.mark.slow
 def test_psfr_on_a_rendered_frame_with_every_term(tmp_path):
-    """A 2000 x 2000 px (15") centre of an NGC 3201 field rendered with every term on
+    """The default 4000 x 4000 px (30") NGC 3201 frame rendered with every term on
     (11 x 11 Fourier PSF grid, tip-tilt with the typical asterism, blur, seeing halo,
     distortion, detector; 120 x 30 s): the PSF-R model against the truth, and against
-    the frame-built ePSF. Uses (or computes) the default optics' PSF grid cache."""
+    the frame-built ePSF. Uses (or computes) the default optics' PSF grid cache.
+
+    The whole frame, not its 15" centre: the centre holds only ~60 stars at V 17-20,
+    where the robust std of the normalised residuals has a ~10 % standard error, so a
+    +-0.15 criterion there failed or passed by chance (0.81-0.93 on the same code paths,
+    0.94-0.97 on the whole frame with ~240 stars; docs/measure.md)."""
     render_cli = pytest.importorskip("mavispm.simulate.render.cli")
     from mavispm.simulate.cluster.cli import run_stage as cluster_stage
     from mavispm.simulate.optics.psf_grid import default_cache_dir
@@ -303,7 +308,7 @@ def test_psfr_on_a_rendered_frame_with_every_term(tmp_path):
     scene = {
         "exptime": "30 s",
         "nexp": 120,
-        "detector": {"nx": 2000, "ny": 2000},
+        "detector": {"nx": 4000, "ny": 4000},
         "optics": {"tiptilt": {"asterism": "typical"}},
     }
     optics = render_cli.build_scene_optics(
@@ -315,7 +320,7 @@ def test_psfr_on_a_rendered_frame_with_every_term(tmp_path):
     epsf = _pooled(run_stage(frames, {}, tmp_path / "e.h5"))
     for lo, limit in ((17, 1.5), (20, 1.3), (22, 1.2)):
         ratio, norm_std, n = psfr[lo]
-        assert n >= 60
+        assert n >= 200
         assert ratio <= limit, (lo, ratio)
         assert abs(norm_std - 1.0) <= 0.15, (lo, norm_std)
     assert psfr[17][0] < 0.7 * epsf[17][0]  # the frame-built ePSF: ~2 x CRLB at V 17-20
