@@ -534,12 +534,15 @@ def build_psfr(
 
 
 def psfr_summary(frame_psf: FramePSF, settings: MeasureSettings) -> str | None:
-    """JSON of the PSF-R model (prior file, width error, kernels [mas^2] and stretches)."""
+    """JSON of the PSF-R model (width error, kernels [mas^2] and stretches).
+
+    The prior's file is the ``psf_prior`` of the product's ``config`` attribute, a
+    path like the product's other path attributes; this attribute holds no path, so
+    that the same measurement gives the same attribute in any run directory."""
     if frame_psf.psfr_kernels is None:
         return None
     return json.dumps(
         {
-            "prior": str(settings.psf_prior),
             "width_error": settings.psfr_width_error,
             "strehl_error": settings.psfr_strehl_error,
             "kernels": np.round(frame_psf.psfr_kernels, 5).tolist(),
