@@ -265,6 +265,10 @@ def test_cache_key_changes_with_the_physics(monkeypatch):
         )
         != key
     )
+    assert (
+        grid_key(PSFSettings(), PupilSettings(), AtmosphereSettings(), AOSettings(cone_model="gap"))
+        != key
+    )
     monkeypatch.setattr(psf_grid, "ALGORITHM_VERSION", psf_grid.ALGORITHM_VERSION - 1)
     assert grid_key(*args) != key  # grids cached before the cone effect are not reused
 
@@ -442,3 +446,23 @@ def test_cone_model_against_brute_force_extrapolation(position):
     code = _code_cone_layer(h, direction)
     assert 0.85 * fine < code <= fine
     assert _gap_model_layer(h, direction) > 2 * fine
+
+
+@settings(max_examples=6, deadline=None)
+@given(x=st.floats(-22, 22), y=st.floats(-22, 22), k=st.integers(1, 7))
+def test_hypothesis_extrapolation_variance_symmetric_and_bounded(x, y, k):
+    """The symmetry-orbit cache relies on the variance being the same for every image of a
+    direction under the asterism's symmetries; it is between 0 and the layer's variance,
+    and 0 where the LGS footprints cover the science footprint."""
+    atm, ao = AtmosphereSettings(), AOSettings()
+    lgs_range = ao.lgs_height / np.cos(np.radians(atm.zenith_angle))
+    dirs = lgs_directions(ao)
+    h = layers(atm).heights[-3:]
+    d = np.array([x, y]) / 206264.8
+    v = extrapolation_variance(d, dirs, h, lgs_range, D, 0.16, R0, 25.0)
+    m = asterism_symmetries(dirs)[k]
+    w = extrapolation_variance(m @ d, dirs, h, lgs_range, D, 0.16, R0, 25.0)
+    assert w == pytest.approx(v, rel=0.02, abs=1e-4)
+    assert np.all(v >= 0) and np.all(v <= von_karman_covariance(np.zeros(1), R0, 25.0)[0])
+    gaps, _ = footprint_coverage(d, dirs, h, lgs_range, D)
+    assert np.all(v[gaps == 0] == 0)
