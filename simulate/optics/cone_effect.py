@@ -49,14 +49,15 @@ at 0.25 m sampling, 1 m and the whole 2 m neighbourhood give the same variance t
 conditional covariance over the unsensed points, less its piston and tilt
 projections. It is tested against a brute-force kriging on fine grids (the
 sensed region's grid points as the data, whose edges lie up to a step inside
-the footprints, so it overestimates: on a 0.05 m grid the code is 3-8% below it
-for the 16.2 km layer at (15", 0) and (-15", -15")). The spectrum of each layer's term is
-the single-LGS residual of the same footprint gap (:func:`cone_filter` at
-``s = 2 gap / D``) rescaled so that it integrates to the kriging variance
-(:func:`kriged_cone_psd`): the amplitude is the physics, the spectral
-distribution the single-LGS one. The former gap-and-area model (``"gap"``,
-above: :func:`footprint_coverage`, :func:`cone_psd`) is 2-8x that variance and
-stays as a cross-check. The variance is invariant under the symmetries of the
+the footprints, so it overestimates and converges slowly from above). The
+spectrum of each layer's term is the azimuthally averaged, pupil-averaged power
+spectrum of that error field (:func:`extrapolation_spectrum`, from the same
+conditional covariance), tested against an FFT of the error field's eigenmodes.
+The real error lives in thin crescents at the pupil edge: its power sits at
+0.5-2 m^-1, 10-20% of it beyond the control radius. The former gap-and-area
+model (``"gap"``, above: :func:`footprint_coverage`, :func:`cone_psd`) is 2-8x
+that variance, with its power at lower frequencies, and stays as a
+cross-check. The variance is invariant under the symmetries of the
 LGS asterism, so a grid of directions needs it only for one direction per
 symmetry orbit (:func:`canonical_direction`).
 
@@ -83,12 +84,12 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from mavispm.simulate.optics.atmosphere import von_karman_covariance, von_karman_psd
+from mavispm.simulate.optics.atmosphere import von_karman_covariance
 
 #: sampling of the fast extrapolation (kriging) variance, in m: science quadrature
 #: grid, interior grid of the sensed region, spacing of the two boundary rings
 #: (on the LGS footprint edges and one spacing inside), screening distance
-KRIGING_SCIENCE_STEP = 0.15
+KRIGING_SCIENCE_STEP = 0.1
 KRIGING_KNOWN_STEP = 0.25
 KRIGING_BOUNDARY_STEP = 0.04
 KRIGING_SCREEN = 0.6
@@ -98,10 +99,9 @@ __all__ = [
     "canonical_direction",
     "cone_filter",
     "cone_psd",
+    "extrapolation_spectrum",
     "extrapolation_variance",
     "footprint_coverage",
-    "kriged_cone_psd",
-    "kriged_scale",
     "pupil_coherence",
     "pupil_coherence_slope",
 ]
@@ -418,6 +418,36 @@ def _pairwise(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
 
 
+def _kriging_setup(diameter, obscuration, r0, outer_scale, remove_tilt):
+    """Pupil quadrature points (P, 2) [m], their unit-RMS modes to remove (P, J), the
+    interior known grid [m] and the covariance function of point sets [rad^2]."""
+    su, sk, rho = KRIGING_SCIENCE_STEP, KRIGING_KNOWN_STEP, KRIGING_SCREEN
+    n = int(np.ceil(diameter / su))
+    g = (np.arange(n) + 0.5 - n / 2) * su
+    pupil = np.stack([a.ravel() for a in np.meshgrid(g, g)], -1)
+    r = np.hypot(pupil[:, 0], pupil[:, 1])
+    pupil = pupil[(r <= diameter / 2) & (r >= obscuration * diameter / 2)]
+    x2 = (diameter / 4) ** 2 * (1 + obscuration**2)  # <x^2> over the annulus
+    modes = pupil / np.sqrt(x2) if remove_tilt else pupil[:, :0]
+    modes = np.column_stack([np.ones(len(pupil)), modes])  # unit-RMS piston (and tilts)
+    gk = np.arange(-(diameter / 2 + rho), diameter / 2 + rho + sk / 2, sk)
+    grid = np.stack([a.ravel() for a in np.meshgrid(gk, gk)], -1)
+    r_tab, c_tab = _covariance_table(r0, outer_scale, 2 * diameter + 4 * rho)
+
+    def cov(a, b):
+        return np.interp(_pairwise(a, b), r_tab, c_tab)
+
+    return pupil, modes, grid, cov
+
+
+def _check_layers(heights, lgs_range, obscuration):
+    heights = np.asarray(heights, float)
+    if np.any(heights >= lgs_range):
+        raise ValueError("every turbulent layer must lie below the LGS")
+    _check_obscuration(obscuration)
+    return heights
+
+
 def extrapolation_variance(
     direction: np.ndarray,
     lgs_directions: np.ndarray,
@@ -463,54 +493,134 @@ def extrapolation_variance(
     ndarray, shape (L,)
         Pupil-averaged residual variance [rad^2] for the whole turbulence on each layer.
     """
+    return extrapolation_spectrum(
+        direction,
+        lgs_directions,
+        heights,
+        lgs_range,
+        diameter,
+        obscuration,
+        r0,
+        outer_scale,
+        None,
+        remove_tilt,
+    )[0]
+
+
+def extrapolation_spectrum(
+    direction: np.ndarray,
+    lgs_directions: np.ndarray,
+    heights: np.ndarray,
+    lgs_range: float,
+    diameter: float,
+    obscuration: float,
+    r0: float,
+    outer_scale: float,
+    f: np.ndarray | None,
+    remove_tilt: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Variance and azimuthally averaged power spectrum of the extrapolation error.
+
+    The error field ``e`` (the kriging error on the unsensed part of the science pupil,
+    0 elsewhere, with its pupil piston and tilt removed) has the pupil-averaged spectrum
+    ``W(f) = E|FT(e)(f)|^2 / A``, A the pupil area, whose integral is the variance of
+    :func:`extrapolation_variance`. Its azimuthal average follows from the conditional
+    covariance ``C`` on the unsensed points u (pupil quadrature weight w):
+    ``A W = w^2 sum_uv C_uv J0(2 pi f |u - v|) - 2 X(f) + M(f)``, where the cross term
+    with the removed modes is ``X = A gamma(f) sum_u w b_0(u) J0(2 pi f |u|) - A gamma'(f)
+    / (2 pi sigma) sum_u w (b_x u_x + b_y u_y) / |u| J1(2 pi f |u|)`` and the modes' own
+    term ``M = A^2 [a_00 gamma^2 + (a_xx + a_yy) gamma'^2 / (8 pi^2 sigma^2)]``, with
+    ``b_j = C Z_j / N``, ``a_jk = Z_j^T C Z_k / N^2`` (N pupil points, Z_j the unit-RMS
+    piston and tilts, sigma^2 the pupil's second moment, gamma :func:`pupil_coherence`).
+    The pair sum is taken over a histogram of the pair distances (0.005 m bins).
+
+    Parameters
+    ----------
+    direction, lgs_directions, heights, lgs_range, diameter, obscuration, r0, outer_scale
+        As in :func:`extrapolation_variance`.
+    f : ndarray, shape (F,) or None
+        Spatial-frequency moduli [1/m]; None: the variance only.
+    remove_tilt : bool
+        As in :func:`extrapolation_variance`.
+
+    Returns
+    -------
+    variance : ndarray, shape (L,)
+        [rad^2], for the whole turbulence on each layer.
+    spectrum : ndarray, shape (L, F) or None
+        Azimuthally averaged PSD [rad^2 m^2] (``int 2 pi f W df = variance``).
+    """
     from threadpoolctl import threadpool_limits
 
-    heights = np.asarray(heights, float)
-    if np.any(heights >= lgs_range):
-        raise ValueError("every turbulent layer must lie below the LGS")
-    _check_obscuration(obscuration)
-    su, sk, rho = KRIGING_SCIENCE_STEP, KRIGING_KNOWN_STEP, KRIGING_SCREEN
-    n = int(np.ceil(diameter / su))
-    g = (np.arange(n) + 0.5 - n / 2) * su
-    pupil = np.stack([a.ravel() for a in np.meshgrid(g, g)], -1)
-    r = np.hypot(pupil[:, 0], pupil[:, 1])
-    pupil = pupil[(r <= diameter / 2) & (r >= obscuration * diameter / 2)]
-    x2 = (diameter / 4) ** 2 * (1 + obscuration**2)  # <x^2> over the annulus
-    modes = pupil / np.sqrt(x2) if remove_tilt else pupil[:, :0]
-    modes = np.column_stack([np.ones(len(pupil)), modes])  # unit-RMS piston (and tilts)
-    gk = np.arange(-(diameter / 2 + rho), diameter / 2 + rho + sk / 2, sk)
-    grid = np.stack([a.ravel() for a in np.meshgrid(gk, gk)], -1)
-    r_tab, c_tab = _covariance_table(r0, outer_scale, 2 * diameter + 4 * rho)
-
-    def cov(a, b):
-        return np.interp(_pairwise(a, b), r_tab, c_tab)
-
-    out = np.zeros(heights.size)
+    heights = _check_layers(heights, lgs_range, obscuration)
+    pupil, modes, grid, cov = _kriging_setup(diameter, obscuration, r0, outer_scale, remove_tilt)
+    var = np.zeros(heights.size)
+    spec = None if f is None else np.zeros((heights.size, np.size(f)))
     lgs = np.asarray(lgs_directions, float)
     shift = np.asarray(direction, float)
     with threadpool_limits(limits=1, user_api="blas"):  # small matrices: threads only contend
         for i, h in enumerate(heights):
             radius = 0.5 * diameter * (1.0 - h / lgs_range)
-            out[i] = _layer_extrapolation(
-                h * lgs, radius, h * shift, diameter, pupil, modes, grid, cov
-            )
-    return out
+            res = _layer_error_covariance(h * lgs, radius, h * shift, diameter, pupil, grid, cov)
+            if res is None:
+                continue
+            outside, err = res
+            z = modes[outside]
+            n_pupil = len(pupil)
+            projected = np.einsum("uj,uv,vj->", z, err, z) / n_pupil
+            var[i] = max((np.trace(err) - projected) / n_pupil, 0.0)
+            if spec is not None:
+                spec[i] = _error_spectrum(
+                    np.asarray(f, float), pupil[outside], err, z, n_pupil, diameter, obscuration
+                )
+    return var, spec
 
 
-def _layer_extrapolation(centres, radius, shift, diameter, pupil, modes, grid, cov) -> float:
-    """One layer's term of :func:`extrapolation_variance` [rad^2].
+def _error_spectrum(f, u, err, z, n_pupil, diameter, obscuration) -> np.ndarray:
+    """Azimuthally averaged spectrum [rad^2 m^2] of one layer's error (see
+    :func:`extrapolation_spectrum`); ``u`` (U, 2) unsensed points [m] from the pupil
+    centre, ``err`` (U, U) their conditional covariance, ``z`` (U, J) the modes."""
+    from scipy.special import j0, j1
+
+    area = np.pi * (diameter / 2) ** 2 * (1 - obscuration**2)
+    w = area / n_pupil
+    sigma = diameter / 4 * np.sqrt(1 + obscuration**2)
+    two_pi_f = 2 * np.pi * f
+    # pair sum over a histogram of the pair distances
+    step = 0.005
+    idx = np.rint(_pairwise(u, u) / step).astype(int).ravel()
+    hist = np.bincount(idx, weights=err.ravel())
+    r_bins = np.arange(hist.size) * step
+    pairs = w**2 * (j0(np.outer(two_pi_f, r_bins)) @ hist)
+    b = err @ z / n_pupil  # (U, J)
+    a = z.T @ err @ z / n_pupil**2  # (J, J)
+    r_u = np.hypot(u[:, 0], u[:, 1])
+    arg = np.outer(two_pi_f, r_u)
+    g = pupil_coherence(f, diameter, obscuration)
+    cross = area * g * (j0(arg) @ (w * b[:, 0]))
+    own = area**2 * a[0, 0] * g**2
+    if z.shape[1] == 3:
+        gs = pupil_coherence_slope(f, diameter, obscuration)
+        radial = (b[:, 1] * u[:, 0] + b[:, 2] * u[:, 1]) / np.maximum(r_u, 1e-12)
+        cross -= area * gs / (2 * np.pi * sigma) * (j1(arg) @ (w * radial))
+        own += area**2 * (a[1, 1] + a[2, 2]) * gs**2 / (8 * np.pi**2 * sigma**2)
+    return np.maximum((pairs - 2 * cross + own) / area, 0.0)
+
+
+def _layer_error_covariance(centres, radius, shift, diameter, pupil, grid, cov):
+    """The unsensed pupil points (mask) and their conditional covariance [rad^2] for one layer.
 
     ``centres`` (G, 2) and ``radius`` [m]: the LGS footprints on the layer; ``shift``
-    [m]: the science footprint's centre; ``pupil`` (P, 2) quadrature points [m] with
-    the unit-RMS ``modes`` (P, J) to remove; ``grid`` the interior known grid around the
-    origin [m]; ``cov(a, b)`` the phase covariance between point sets [rad^2].
+    [m]: the science footprint's centre; ``pupil`` (P, 2) quadrature points [m];
+    ``grid`` the interior known grid around the origin [m]; ``cov(a, b)`` the phase
+    covariance between point sets [rad^2]. None where the footprint is covered.
     """
     from scipy.linalg import cho_factor, cho_solve
 
     sb, rho = KRIGING_BOUNDARY_STEP, KRIGING_SCREEN
     outside = _distance_to_union(pupil + shift, centres, radius) > 0
     if not outside.any():
-        return 0.0
+        return None
     sky = pupil[outside] + shift
     # known points: interior grid plus the exact edges (two rings), near the science disc
     m = int(np.ceil(2 * np.pi * radius / sb))
@@ -539,95 +649,4 @@ def _layer_extrapolation(centres, radius, shift, diameter, pupil, modes, grid, c
             continue
     else:
         raise np.linalg.LinAlgError("extrapolation covariance is not positive definite")
-    err = cov(sky, sky) - cuk @ cho_solve(factor, cuk.T)
-    z = modes[outside]
-    n_pupil = len(pupil)
-    projected = np.einsum("uj,uv,vj->", z, err, z) / n_pupil
-    return max((np.trace(err) - projected) / n_pupil, 0.0)
-
-
-def kriged_scale(
-    gaps: np.ndarray,
-    variance: np.ndarray,
-    r0: float,
-    outer_scale: float,
-    diameter: float,
-    obscuration: float = 0.0,
-    remove_tilt: bool = True,
-) -> np.ndarray:
-    """Per-layer factors that give the gap-shaped spectrum the extrapolation variance.
-
-    Parameters
-    ----------
-    gaps : ndarray, shape (L,)
-        Footprint gaps [m] (:func:`footprint_coverage`).
-    variance : ndarray, shape (L,)
-        :func:`extrapolation_variance` for the whole turbulence [rad^2].
-    r0, outer_scale : float
-        The r0 [m] of ``variance`` and the outer scale [m].
-    diameter, obscuration : float
-        Pupil diameter [m] and obstruction ratio.
-    remove_tilt : bool
-        Spectral shape without the piston and tilt (as ``variance`` was computed).
-
-    Returns
-    -------
-    ndarray, shape (L,)
-        ``V_l / int 2 pi f W(f) F(f, 2 g_l / D) df`` (dimensionless; 0 where the gap
-        or the variance is 0), W the von Karman PSD of ``r0``, F :func:`cone_filter`.
-    """
-    shrink = np.clip(2.0 * np.asarray(gaps, float) / diameter, 0.0, 1.0)
-    variance = np.asarray(variance, float)
-    out = np.zeros(shrink.shape)
-    fq = np.geomspace(1e-4, 400.0, 3000)
-    wq = 2 * np.pi * fq * von_karman_psd(fq**2, r0, outer_scale)
-    for i in np.flatnonzero((shrink > 0) & (variance > 0)):
-        filt = cone_filter(fq, shrink[i], diameter, obscuration, remove_tilt)
-        norm = np.trapezoid(wq * filt, fq)
-        out[i] = variance[i] / norm if norm > 0 else 0.0
-    return out
-
-
-def kriged_cone_psd(
-    f: np.ndarray,
-    layer_psd: np.ndarray,
-    gaps: np.ndarray,
-    scale: np.ndarray,
-    diameter: float,
-    obscuration: float = 0.0,
-    remove_tilt: bool = True,
-) -> np.ndarray:
-    """Cone-effect PSD of one direction with each layer's power from the extrapolation variance.
-
-    Each layer's term has the spectral shape of the single-LGS residual of its footprint
-    gap, ``c_l W(f) F(f, 2 g_l / D)`` (:func:`cone_filter`), scaled (:func:`kriged_scale`)
-    so that over all frequencies it integrates to ``c_l`` times the layer's
-    :func:`extrapolation_variance`.
-
-    Parameters
-    ----------
-    f : ndarray, shape (F,)
-        Spatial-frequency modulus [1/m] where the PSD is wanted (the control region).
-    layer_psd : ndarray, shape (F, L)
-        Phase PSD of each layer at ``f``, ``c_l W(f)`` [rad^2 m^2].
-    gaps : ndarray, shape (L,)
-        Footprint gaps [m].
-    scale : ndarray, shape (L,)
-        From :func:`kriged_scale`.
-    diameter, obscuration : float
-        Pupil diameter [m] and obstruction ratio.
-    remove_tilt : bool
-        As in :func:`kriged_scale`.
-
-    Returns
-    -------
-    ndarray, shape (F,)
-        PSD [rad^2 m^2].
-    """
-    f = np.asarray(f, float)
-    shrink = np.clip(2.0 * np.asarray(gaps, float) / diameter, 0.0, 1.0)
-    out = np.zeros(f.shape)
-    for i in np.flatnonzero(np.asarray(scale) > 0):
-        filt = cone_filter(f, shrink[i], diameter, obscuration, remove_tilt)
-        out += np.asarray(layer_psd)[:, i] * filt * scale[i]
-    return out
+    return outside, cov(sky, sky) - cuk @ cho_solve(factor, cuk.T)

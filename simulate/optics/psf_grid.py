@@ -418,53 +418,38 @@ class ResidualPSDModel:
             return cone_effect.cone_psd(
                 f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration, c.remove_tilt
             )
-        # variance and gaps are the same for every direction of a symmetry orbit of the
-        # asterism, and the PSD is isotropic: computed once per orbit and per radius
+        # the error spectrum is the same for every direction of a symmetry orbit of the
+        # asterism: computed once per orbit on a radial grid, interpolated to |f|
         cache = self._cone_cache
         if "symmetries" not in cache:
             cache["symmetries"] = cone_effect.asterism_symmetries(c.lgs_directions)
-            radii, first, inverse = np.unique(f, return_index=True, return_inverse=True)
-            cache["radii"] = (radii, first, inverse.ravel())
+            radii, inverse = np.unique(f, return_inverse=True)
+            cache["radii"] = (radii, inverse.ravel(), np.linspace(0.0, radii.max(), 256))
+        radii, inverse, fq = cache["radii"]
         key = cone_effect.canonical_direction(direction, cache["symmetries"])
         if key not in cache:
             heights = self.operator.layer_heights
             gaps, _ = cone_effect.footprint_coverage(
                 np.asarray(key), c.lgs_directions, heights, c.lgs_range, c.diameter
             )
-            variance = np.zeros(heights.size)
             seen = gaps > 0
-            variance[seen] = cone_effect.extrapolation_variance(
-                np.asarray(key),
-                c.lgs_directions,
-                heights[seen],
-                c.lgs_range,
-                c.diameter,
-                c.obscuration,
-                c.r0,
-                c.outer_scale,
-                c.remove_tilt,
-            )
-            # layers below 0.1% of the direction's cone variance are left out
-            power = variance * c.weights
-            variance[power < 1e-3 * power.sum()] = 0.0
-            cache[key] = (
-                gaps,
-                cone_effect.kriged_scale(
-                    gaps, variance, c.r0, c.outer_scale, c.diameter, c.obscuration, c.remove_tilt
-                ),
-            )
-        radii, first, inverse = cache["radii"]
-        gaps, scale = cache[key]
-        psd = cone_effect.kriged_cone_psd(
-            radii,
-            self.operator.turbulence[first],
-            gaps,
-            scale,
-            c.diameter,
-            c.obscuration,
-            c.remove_tilt,
-        )
-        return psd[inverse]
+            spectrum = np.zeros(fq.size)
+            if seen.any():
+                variance, spec = cone_effect.extrapolation_spectrum(
+                    np.asarray(key),
+                    c.lgs_directions,
+                    heights[seen],
+                    c.lgs_range,
+                    c.diameter,
+                    c.obscuration,
+                    c.r0,
+                    c.outer_scale,
+                    fq,
+                    c.remove_tilt,
+                )
+                spectrum = c.weights[seen] @ spec  # rad^2 m^2 of the whole atmosphere
+            cache[key] = spectrum
+        return np.interp(radii, fq, cache[key])[inverse]
 
     def psds(self, directions: np.ndarray, chunk: int):
         """Yield the full PSD for each direction (rad), computing ``chunk`` at a time.
