@@ -354,6 +354,14 @@ class ConeGeometry:
     outer_scale: float = 25.0
     weights: np.ndarray | None = None
 
+    def __post_init__(self):
+        if self.model not in ("kriging", "gap"):
+            raise ValueError(f"ConeGeometry.model: expected 'kriging' or 'gap', got {self.model!r}")
+        if self.model == "kriging" and self.weights is None:
+            raise ValueError(
+                "ConeGeometry.weights: the kriging model needs the layers' Cn^2 weights"
+            )
+
 
 @dataclass
 class ResidualPSDModel:
