@@ -136,6 +136,11 @@ class AOSettings:
         Leave the pupil piston and tilt of the cone-effect residual out of the
         high-order PSD (default): the LGS do not sense tilt, the NGS tip-tilt
         model handles it. False keeps them (the former model, a cross-check).
+    cone_model : {"kriging", "gap"}
+        Multi-LGS cone effect: "kriging" (default), each layer's power is the MMSE
+        extrapolation error of the layer beyond the LGS footprints
+        (``cone_effect.extrapolation_variance``); "gap", the former footprint-gap and
+        area heuristic (2-8x larger, a cross-check).
     """
 
     n_actuators: int = 40
@@ -169,6 +174,7 @@ class AOSettings:
     tomography: bool = True
     cone_effect: bool = True
     cone_remove_tilt: bool = True
+    cone_model: Literal["kriging", "gap"] = "kriging"
     control_region: Literal["square", "circle"] = "circle"
     layer_stretch: Literal["none", "lgs", "all"] = "none"
     servo_model: Literal["integrator", "pure_delay"] = "integrator"

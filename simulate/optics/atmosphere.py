@@ -23,6 +23,7 @@ __all__ = [
     "airmass",
     "fried_parameter",
     "layers",
+    "von_karman_covariance",
     "von_karman_psd",
     "von_karman_variance_beyond",
 ]
@@ -220,3 +221,32 @@ def von_karman_variance_beyond(f_min: float, r0: float, outer_scale: float) -> f
     return float(
         VON_KARMAN_CONSTANT * r0 ** (-5.0 / 3.0) * 2 * np.pi * 0.5 * (6.0 / 5.0) * a ** (-5.0 / 6.0)
     )
+
+
+def von_karman_covariance(r: np.ndarray, r0: float, outer_scale: float) -> np.ndarray:
+    """von Karman phase covariance ``B(r)`` (rad^2) at separations ``r`` (m).
+
+    ``B(r) = (L0 / r0)^(5/3) c x^(5/6) K_(5/6)(x)``, ``x = 2 pi r / L0``, with
+    ``c = 2^(-5/6) Gamma(11/6) pi^(-8/3) (24/5 Gamma(6/5))^(5/6)``, the transform of
+    :func:`von_karman_psd` (variance ``0.0863 (L0 / r0)^(5/3)``; ``2 [B(0) - B(r)]``
+    tends to ``6.88 (r / r0)^(5/3)`` for ``r << L0``).
+
+    Parameters
+    ----------
+    r : ndarray
+        Separations [m], >= 0.
+    r0 : float
+        Fried parameter [m].
+    outer_scale : float
+        Outer scale L0 [m].
+
+    Returns
+    -------
+    ndarray
+        Covariance [rad^2].
+    """
+    from scipy.special import gamma, kv
+
+    c = 2 ** (-5 / 6) * gamma(11 / 6) / np.pi ** (8 / 3) * (24 / 5 * gamma(6 / 5)) ** (5 / 6)
+    x = 2 * np.pi * np.maximum(np.asarray(r, float), 1e-12 * outer_scale) / outer_scale
+    return (outer_scale / r0) ** (5 / 3) * c * x ** (5 / 6) * kv(5 / 6, x)

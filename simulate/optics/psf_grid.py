@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -65,9 +65,10 @@ __all__ = [
 ]
 
 #: bump when the algorithm changes so stale cache entries are not reused
-ALGORITHM_VERSION = 4  # 2: LGS cone effect, weighted fitting directions, LGS position angle
+ALGORITHM_VERSION = 5  # 2: LGS cone effect, weighted fitting directions, LGS position angle
 # 3: servo-lag temporal frequency sign (nu = -f.v), Thomas 2 ln 2 LGS noise, P3 conventions
 # 4: cone-effect residual without its pupil piston and tilt (cone_remove_tilt)
+# 5: multi-LGS cone power from the extrapolation (kriging) variance (cone_model)
 
 
 @dataclass(frozen=True)
@@ -334,6 +335,13 @@ class ConeGeometry:
         Central obstruction ratio (dimensionless).
     remove_tilt : bool
         Leave the residual's pupil piston and tilt out (``AOSettings.cone_remove_tilt``).
+    model : {"kriging", "gap"}
+        ``AOSettings.cone_model``.
+    r0, outer_scale : float
+        Fried parameter of the whole atmosphere at the science wavelength and outer
+        scale [m] (for the kriging variance).
+    weights : ndarray, shape (L,)
+        Cn^2 fractions of the layers.
     """
 
     lgs_directions: np.ndarray
@@ -341,6 +349,18 @@ class ConeGeometry:
     diameter: float
     obscuration: float
     remove_tilt: bool = True
+    model: str = "kriging"
+    r0: float = 0.1
+    outer_scale: float = 25.0
+    weights: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.model not in ("kriging", "gap"):
+            raise ValueError(f"ConeGeometry.model: expected 'kriging' or 'gap', got {self.model!r}")
+        if self.model == "kriging" and self.weights is None:
+            raise ValueError(
+                "ConeGeometry.weights: the kriging model needs the layers' Cn^2 weights"
+            )
 
 
 @dataclass
@@ -380,6 +400,7 @@ class ResidualPSDModel:
     hf_variance: float
     wavelength: float
     cone: ConeGeometry | None = None
+    _cone_cache: dict = field(default_factory=dict, repr=False)
 
     def cone_psd(self, direction: np.ndarray) -> np.ndarray:
         """Cone-effect PSD on the control-region frequencies ``sel`` for one direction (rad).
@@ -397,13 +418,46 @@ class ResidualPSDModel:
         if self.cone is None or self.operator is None:
             return np.zeros(int(self.sel.sum()))
         c = self.cone
-        gaps, area = cone_effect.footprint_coverage(
-            direction, c.lgs_directions, self.operator.layer_heights, c.lgs_range, c.diameter
-        )
         f = np.hypot(self.operator.fx, self.operator.fy)
-        return cone_effect.cone_psd(
-            f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration, c.remove_tilt
-        )
+        if c.model == "gap":
+            gaps, area = cone_effect.footprint_coverage(
+                direction, c.lgs_directions, self.operator.layer_heights, c.lgs_range, c.diameter
+            )
+            return cone_effect.cone_psd(
+                f, self.operator.turbulence, gaps, area, c.diameter, c.obscuration, c.remove_tilt
+            )
+        # the error spectrum is the same for every direction of a symmetry orbit of the
+        # asterism: computed once per orbit on a radial grid, interpolated to |f|
+        cache = self._cone_cache
+        if "symmetries" not in cache:
+            cache["symmetries"] = cone_effect.asterism_symmetries(c.lgs_directions)
+            radii, inverse = np.unique(f, return_inverse=True)
+            cache["radii"] = (radii, inverse.ravel(), np.linspace(0.0, radii.max(), 256))
+        radii, inverse, fq = cache["radii"]
+        key = cone_effect.canonical_direction(direction, cache["symmetries"])
+        if key not in cache:
+            heights = self.operator.layer_heights
+            gaps, _ = cone_effect.footprint_coverage(
+                np.asarray(key), c.lgs_directions, heights, c.lgs_range, c.diameter
+            )
+            seen = gaps > 0
+            spectrum = np.zeros(fq.size)
+            if seen.any():
+                variance, spec = cone_effect.extrapolation_spectrum(
+                    np.asarray(key),
+                    c.lgs_directions,
+                    heights[seen],
+                    c.lgs_range,
+                    c.diameter,
+                    c.obscuration,
+                    c.r0,
+                    c.outer_scale,
+                    fq,
+                    c.remove_tilt,
+                )
+                spectrum = c.weights[seen] @ spec  # rad^2 m^2 of the whole atmosphere
+            cache[key] = spectrum
+        return np.interp(radii, fq, cache[key])[inverse]
 
     def psds(self, directions: np.ndarray, chunk: int):
         """Yield the full PSD for each direction (rad), computing ``chunk`` at a time.
@@ -550,6 +604,10 @@ def residual_psd_model(
                 diameter=pupil.diameter,
                 obscuration=pupil.obscuration_ratio,
                 remove_tilt=ao.cone_remove_tilt,
+                model=ao.cone_model,
+                r0=r0,
+                outer_scale=l0,
+                weights=layers(atmosphere).weights,
             )
     return ResidualPSDModel(smp, fx, fy, fitting, aliasing, sel, op, hf_var, lam, cone)
 
