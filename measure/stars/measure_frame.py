@@ -36,6 +36,7 @@ from mavispm.measure.stars.batched_fit import (
     FitResult,
     crowding_flags,
     fit_stars,
+    render_model,
 )
 from mavispm.measure.stars.crlb import crlb
 from mavispm.measure.stars.detection import completeness, detect_sources, detection_scores
@@ -233,6 +234,7 @@ def epsf_options(settings: MeasureSettings) -> EPSFOptions:
         builder=settings.epsf_builder,
         stars_per_node=settings.psf_stars_per_node,
         isolation=settings.psf_star_isolation,
+        clean_neighbour_ratio=settings.psf_star_neighbour_ratio,
         min_snr=settings.psf_star_min_snr,
         fit_radius=settings.stamp_radius,
         fit_sky_gradient=settings.sky_gradient,
@@ -394,7 +396,7 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     if settings.uses_psfr:
         return build_psfr(frame, x0, y0, settings, flux, upper, data, noise)
-    build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
+    build = first = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
@@ -417,11 +419,87 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     if settings.error_model == "epsf" and per_node >= MIN_STARS_SPLIT:
         try:
             halves = tuple(
-                build_field_epsf(options=opts, half=h, anchor=anchor, **build)[0] for h in (0, 1)
+                half_epsf(h, first, build, upper, used, opts, settings, anchor) for h in (0, 1)
             )
         except InputError:  # a half too poor for an ePSF: chi^2 terms only
             halves = None
     return FramePSF(psf, len(used), halves)
+
+
+def half_epsf(
+    half: int,
+    first: dict,
+    last: dict,
+    upper: np.ndarray,
+    used: np.ndarray,
+    opts: EPSFOptions,
+    settings: MeasureSettings,
+    anchor=None,
+) -> VariableEPSF:
+    """The ePSF of one half of every node's PSF stars, built as the full ePSF was.
+
+    The full ePSF's node centres carry the mean error of their PSF stars' start
+    positions, through its first build and, smoothed by the grid interpolation, through
+    the fitted positions of the neighbour pass. Each half therefore repeats that chain:
+    a first build from the start positions, a refit of the PSF stars with it on the
+    neighbour-subtracted frame, and the last build from those positions. Halves built
+    from the full chain's fitted positions shared its node-centre errors, and the
+    error model missed them (docs/measure.md, "Error model"). With ``neighbour_passes``
+    above 1 the half does one pass.
+
+    Parameters
+    ----------
+    half : {0, 1}
+        Which half (:func:`mavispm.measure.stars.epsf.build_field_epsf`).
+    first, last : dict
+        The keyword arguments of the full chain's first and last builds.
+    upper : ndarray
+        Neighbour fluxes of the first build's isolation test [electron].
+    used : ndarray of int
+        PSF stars of the full ePSF.
+    opts : EPSFOptions
+        Builder options (oversampling resolved).
+    settings : MeasureSettings
+        The stage settings (stamp radius, sky plane).
+    anchor : EarlierAnchor, optional
+        Observer mode's centre convention.
+
+    Returns
+    -------
+    VariableEPSF
+    """
+    psf = build_field_epsf(options=opts, half=half, neighbour_flux=upper, anchor=anchor, **first)[0]
+    if "neighbour_model" not in last:
+        return psf
+    image = last["image"] - last["neighbour_model"]
+    own = render_model(
+        image.shape, last["previous"], last["x"][used], last["y"][used], last["flux"][used],
+        last["model_radius"],
+    )  # fmt: skip
+    x0, y0 = first["x"][used], first["y"][used]
+    fit = fit_stars(
+        image + own,
+        psf,
+        x0,
+        y0,
+        read_noise_var=first["noise_floor"],
+        sky0=0.0,
+        flux0=np.maximum(last["flux"][used], 1.0),
+        bad=first["bad"],
+        options=FitOptions(
+            radius=settings.stamp_radius,
+            iterations=4,
+            max_shift=1.0,
+            min_snr=0.0,
+            sky_gradient=settings.sky_gradient,
+        ),
+        return_model=False,
+        uncertainties=False,
+    )
+    ok = (fit.flag & FLAG_FAILED) == 0
+    x, y = np.array(last["x"], float), np.array(last["y"], float)
+    x[used], y[used] = np.where(ok, fit.x, x0), np.where(ok, fit.y, y0)
+    return build_field_epsf(options=opts, half=half, anchor=anchor, start=(x, y), **last)[0]
 
 
 #: Oversampling of the PSF-R model ePSF with ``oversampling = "auto"``: the model is
