@@ -97,7 +97,7 @@ def gaussian_frame(tmp_path_factory):
 
 def _found(frame, x_true, y_true, **extra):
     settings = MeasureSettings(blind=True).replace(**FAST, **extra)
-    x0, y0, attrs = measure_frame.blind_detection(frame, settings)
+    x0, y0, attrs, _ = measure_frame.blind_detection(frame, settings)
     index, _ = match_to_truth(x0, y0, x_true, y_true, 1.0)
     assert attrs["first_pass"] > 0
     return np.count_nonzero(index >= 0), np.count_nonzero(index < 0)

@@ -835,7 +835,8 @@ def detect_stars(
         Detected positions [pixel].
     info : dict
         ``n_first`` (bright-pass detections), ``n_pass`` (stars after each pass),
-        ``model_error_profile`` (alpha per 1-pixel annulus).
+        ``model_error_profile`` (alpha per 1-pixel annulus), ``halo_profile`` (the
+        frame's halo profile that the fits measured once and reused, or None).
     """
     data = np.where(frame.bad, 0.0, np.nan_to_num(frame.image - frame.sky))
     base_var = frame.sky + frame.read_noise_var
@@ -858,9 +859,11 @@ def detect_stars(
     radius = int(np.floor(psf.radius_pix))
     err_psf = None
     wing_s = None
+    halo = None  # the frame's halo profile (batched_fit), measured by the first fit
     wing_floor = 0.05 * float(np.sqrt(np.median(base_var)))  # a wing below 5% of the noise
     for p in range(max(1, options.passes)):
-        fit = run_engine(frame, psf, x, y, quick, engine="fast", return_model=False)
+        fit = run_engine(frame, psf, x, y, quick, engine="fast", return_model=False, halo=halo)
+        halo = fit.halo_profile
         if err_psf is None:  # the model error, measured on the bright stars' residuals
             flux = np.clip(np.nan_to_num(fit.flux), 0.0, None)
             model = render_model(frame.shape, psf, fit.x, fit.y, flux, radius)
@@ -894,6 +897,7 @@ def detect_stars(
         )
         x, y = fit.x[keep], fit.y[keep]
         info["n_pass"].append(int(len(x)))
+        info["halo_profile"] = halo
         if last:
             break
         structure = error if wing is None else error + wing
