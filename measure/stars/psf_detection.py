@@ -14,7 +14,7 @@ DAOPhot's FIND + ALLSTAR loop, vectorised:
    the candidate's 3 x 3 core, ``c`` the ePSF's 3 x 3 core fraction and
    ``alpha(r)`` the fractional model error at distance ``r`` from a star,
    measured on the bright stars' residuals (at least ``model_error``); beyond
-   the first radius where ``alpha`` exceeds 0.4 the model is neither subtracted
+   the first radius where ``alpha`` exceeds 0.3 the model is neither subtracted
    nor its error counted (a wrong wing does more harm than none). PSF structure around a
    bright star (rings, speckles, spikes beyond what the ePSF describes) gets at
    most ``alpha N`` of flux from the joint fit and is rejected; candidates that
@@ -700,12 +700,12 @@ def wing_image(
 
 #: Beyond the first radius where the model error exceeds this fraction of the model,
 #: the detector neither subtracts the model nor counts its error (it does more harm).
-#: 0.4 (0.5 before 2026-12-02): an ePSF built from few PSF stars keeps a noise pedestal
+#: 0.3 (0.5 before 2026-12-02): an ePSF built from few PSF stars keeps a noise pedestal
 #: where the PSF has no light (~3e-4 per pixel at 7-12 px on the ring frame of
 #: ``tests/test_measure_detection.py``, against < 1e-5 in truth), measured there as
-#: alpha 0.37-0.47; counted as its bright stars' model error it hid V 20-22 stars 6-11 px
+#: alpha 0.37-0.47; counted as its bright stars' model error it hid V 20-24 stars 6-11 px
 #: from them (docs/measure.md, "Blind detection").
-MAX_USEFUL_ERROR = 0.4
+MAX_USEFUL_ERROR = 0.3
 
 
 def useful_psfs(psf: VariableEPSF, alpha: np.ndarray) -> tuple[VariableEPSF, VariableEPSF]:
