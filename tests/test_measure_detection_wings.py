@@ -155,9 +155,11 @@ def test_rendered_ngc3201_frame_false_detections_below_five_percent():
 
     bare, off, on = blind(0.0, 0.0), blind(0.0, 3.0), blind(48.0, 3.0)
     # measured 2026-12-02 (V < 26): neither term 84 false (12.5 %), 483 matched; the
-    # fitter's halo model alone 47 (6.1 %), 482; with the wing term 19 (4.0 %), 499
+    # fitter's halo model alone 18 (3.2 %), 482 (47, 6.1 %, while every detector pass
+    # measured its own halo profile: the first pass's, of the bright stars alone, removes
+    # more); with the wing term too 15 (3.2 %), 499
     assert bare["detect_false_fraction_v26"] > 0.08  # the structure both terms are for
-    assert off["detect_false_fraction_v26"] > 0.05  # the halo model alone misses the goal
+    assert off["detect_n_false"] <= 0.5 * bare["detect_n_false"]  # the halo model's part
     assert on["detect_false_fraction_v26"] <= 0.05
-    assert on["detect_n_false"] <= 0.5 * off["detect_n_false"]
-    assert on["detect_n_matched"] >= off["detect_n_matched"] - 5
+    assert on["detect_n_false"] <= off["detect_n_false"]
+    assert on["detect_n_matched"] >= off["detect_n_matched"]  # the wing term's part

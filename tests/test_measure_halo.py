@@ -103,3 +103,74 @@ def test_ring_medians_in_one_sort_equal_one_median_per_ring(bad_fraction):
             ref_back, ref = _ring_medians_direct(cut, r, radii, 60.0, 70.0)
         np.testing.assert_array_equal(med, ref)
         np.testing.assert_array_equal(back, ref_back)
+
+
+def _gaussian_epsf(sigma=1.2, half=12, oversampling=2):
+    from mavispm.measure.stars.variable_psf import constant_epsf
+
+    off = np.arange(-half * oversampling, half * oversampling + 1) / oversampling
+    r2 = off[None, :] ** 2 + off[:, None] ** 2
+    return constant_epsf(np.exp(-0.5 * r2 / sigma**2) / (2 * np.pi * sigma**2), oversampling)
+
+
+def test_a_fit_given_the_frames_halo_profile_does_not_measure_it_again(monkeypatch):
+    """The halo profile is a property of the frame: a fit returns the one it measured
+    (close to the injected analytic halo), a later fit given it does not measure it again
+    and, with the same stars, gives the same result bit for bit."""
+    from mavispm.core.errors import InputError
+    from mavispm.measure.stars import batched_fit
+
+    image, x, y, flux = _frame(True, seed=2)
+    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=44.0)
+    common = dict(read_noise_var=25.0, sky0=50.0, options=opt)
+    first = batched_fit.fit_stars(image, _gaussian_epsf(), x, y, **common)
+    radii = batched_fit.halo_radii(opt)
+    assert first.halo_profile.shape == radii.shape
+    strong = _halo(radii) > 4e-6
+    assert strong.sum() >= 10
+    np.testing.assert_allclose(first.halo_profile[strong], _halo(radii)[strong], rtol=0.2)
+
+    def no_measuring(*args, **kwargs):
+        raise AssertionError("the halo profile was measured again")
+
+    monkeypatch.setattr(batched_fit, "halo_profile", no_measuring)
+    again = batched_fit.fit_stars(image, _gaussian_epsf(), x, y, halo=first.halo_profile, **common)
+    assert np.array_equal(again.halo_profile, first.halo_profile)
+    for name in ("x", "y", "flux", "x_err", "flag"):
+        assert np.array_equal(getattr(again, name), getattr(first, name), equal_nan=True), name
+    with pytest.raises(InputError, match="halo profile has shape"):
+        batched_fit.fit_stars(image, _gaussian_epsf(), x, y, halo=np.zeros(3), **common)
+
+
+@pytest.mark.parametrize("blind", [False, True])
+def test_measure_frame_measures_the_halo_profile_once_per_frame(tmp_path, monkeypatch, blind):
+    """Forced mode fits twice (neighbour pass, final fit), blind mode five times (three
+    detector passes, neighbour pass, final fit): the profile is measured by the first."""
+    from measure_helpers import SynthPSF, grid_positions, write_frames
+
+    from mavispm.measure.stars import batched_fit, measure_frame
+    from mavispm.measure.stars.settings import MeasureSettings
+
+    rng = np.random.default_rng(11)
+    x, y = grid_positions((200, 200), 14, 8, rng, jitter=3.0)
+    write_frames(tmp_path / "f.h5", (200, 200), x, y, rng.uniform(17.0, 24.0, len(x)),
+                 SynthPSF(sigma=1.2), seed=5)  # fmt: skip
+    frame = measure_frame.read_frame(tmp_path / "f.h5")
+    calls = {"halo": 0, "fits": 0}
+    measure, fit = batched_fit.halo_profile, batched_fit.fit_stars
+
+    def counted_measure(*args, **kwargs):
+        calls["halo"] += 1
+        return measure(*args, **kwargs)
+
+    def counted_fit(*args, **kwargs):
+        calls["fits"] += 1
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(batched_fit, "halo_profile", counted_measure)
+    monkeypatch.setattr(measure_frame, "fit_stars", counted_fit)
+    settings = MeasureSettings(blind=blind, error_model="fisher").replace(
+        psf_grid=1, psf_stars_per_node=40, psf_star_min_snr=50.0, epsf_iterations=3
+    )
+    measure_frame.measure_frame(frame, settings, seed=0)
+    assert calls == {"halo": 1, "fits": 5 if blind else 2}

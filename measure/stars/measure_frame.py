@@ -278,6 +278,7 @@ def run_engine(
     settings: MeasureSettings,
     engine=None,
     return_model: bool = True,
+    halo: np.ndarray | None = None,
 ) -> FitResult:
     """Fit all stars with the selected engine.
 
@@ -296,6 +297,9 @@ def run_engine(
     return_model : bool
         Whether the fast engine returns its frame-sized model image (needed for neighbour
         subtraction only).
+    halo : ndarray, optional
+        The frame's halo profile from an earlier fit of the frame
+        (:attr:`FitResult.halo_profile`); None: the fast engine measures it.
 
     Returns
     -------
@@ -322,6 +326,7 @@ def run_engine(
             y0,
             options=fit_options(settings),
             return_model=return_model,
+            halo=halo,
             **common,
         )
     if engine == "photutils":
@@ -351,19 +356,23 @@ class FramePSF:
     psfr_kernels : ndarray (K, 4) or None
         PSF-R model: the fitted corrections per node, kernel ``(cxx, cyy, cxy)`` [mas^2]
         and stretch of the prior.
+    halo : ndarray or None
+        The frame's halo profile (:attr:`FitResult.halo_profile`) that the building's
+        neighbour passes used, or the one it was given; None when no fit measured it.
     """
 
     psf: VariableEPSF
     n_psf_stars: int
     halves: tuple[VariableEPSF, VariableEPSF] | None = None
     psfr_kernels: np.ndarray | None = None
+    halo: np.ndarray | None = None
 
 
 #: PSF stars per node needed to build the two half-set ePSFs of the error model.
 MIN_STARS_SPLIT = 6
 
 
-def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> FramePSF:
+def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None, halo=None) -> FramePSF:
     """ePSF from the frame, rebuilt after neighbour subtraction ``neighbour_passes`` times.
 
     With ``settings.error_model == "epsf"`` the last build is repeated with each
@@ -381,11 +390,15 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
         The stage settings.
     anchor : EarlierAnchor, optional
         The earlier epoch's ePSF (observer mode); None: no anchoring.
+    halo : ndarray, optional
+        The frame's halo profile from an earlier fit (:func:`run_engine`); None: the
+        first neighbour pass measures it.
 
     Returns
     -------
     FramePSF
-        The ePSF, the number of PSF stars and the half-set ePSFs (or None).
+        The ePSF, the number of PSF stars, the half-set ePSFs (or None) and the halo
+        profile.
     """
     opts = epsf_options(settings)
     data = frame.image - frame.sky
@@ -395,14 +408,15 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
     # (a faint star's local background is raised by the bright candidate next to it)
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     if settings.uses_psfr:
-        return build_psfr(frame, x0, y0, settings, flux, upper, data, noise)
+        return replace(build_psfr(frame, x0, y0, settings, flux, upper, data, noise), halo=halo)
     build = first = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
         # an intermediate fit for the neighbour model: the sweeps of before 2026-12-02
         passing = settings.replace(progress=False, iterations=min(settings.iterations, 10))
-        fit = run_engine(frame, psf, x0, y0, passing, engine="fast")
+        fit = run_engine(frame, psf, x0, y0, passing, engine="fast", halo=halo)
+        halo = fit.halo_profile
         fitted_flux = np.where(fit.flag & FLAG_FAILED, 0.0, np.nan_to_num(fit.flux))
         build = dict(
             build,
@@ -423,7 +437,7 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None) -> F
             )
         except InputError:  # a half too poor for an ePSF: chi^2 terms only
             halves = None
-    return FramePSF(psf, len(used), halves)
+    return FramePSF(psf, len(used), halves, halo=halo)
 
 
 def half_epsf(
@@ -758,7 +772,7 @@ def error_terms(
 
 def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
     """Start positions [pixel] refined by one quick measurement (fast fit); failed
-    stars keep their start.
+    stars keep their start; and the frame's halo profile that fit measured.
 
     Carried positions are off by each star's motion since the earlier epoch (a
     few tenths of a pixel); an ePSF built on them is blurred and anchored to
@@ -788,6 +802,8 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
     -------
     x, y : ndarray
         Refined positions [pixel].
+    halo : ndarray or None
+        The frame's halo profile (:attr:`FitResult.halo_profile`).
     """
     quick = settings.replace(
         neighbour_passes=0,
@@ -801,7 +817,7 @@ def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
         psf = build_psf(frame, x0, y0, quick).psf
     fit = run_engine(frame, psf, x0, y0, quick, engine="fast", return_model=False)
     ok = ((fit.flag & FLAG_FAILED) == 0) & np.isfinite(fit.x) & np.isfinite(fit.y)
-    return np.where(ok, fit.x, x0), np.where(ok, fit.y, y0)
+    return np.where(ok, fit.x, x0), np.where(ok, fit.y, y0), fit.halo_profile
 
 
 def blind_detection(frame: Frame, settings: MeasureSettings):
@@ -821,6 +837,8 @@ def blind_detection(frame: Frame, settings: MeasureSettings):
         Detected positions [pixel].
     attrs : dict
         ``first_pass`` and ``passes`` (JSON) for the PSF-based detector; empty for daofind.
+    halo : ndarray or None
+        The frame's halo profile measured by the detector's first fit (None for daofind).
     """
     fwhm = settings.detection_fwhm or 2.5
     if settings.detection_method == "daofind":
@@ -828,7 +846,7 @@ def blind_detection(frame: Frame, settings: MeasureSettings):
         x0, y0, _ = detect_sources(
             frame.image, frame.sky, noise, fwhm, settings.detection_threshold, frame.bad
         )
-        return x0, y0, {}
+        return x0, y0, {}, None
     from mavispm.measure.stars.psf_detection import DetectionOptions, detect_stars
 
     opts = DetectionOptions(
@@ -839,7 +857,8 @@ def blind_detection(frame: Frame, settings: MeasureSettings):
         wing_radius=int(round(settings.detection_wing_radius)),
     )
     x0, y0, info = detect_stars(frame, settings, build_psf, run_engine, opts)
-    return x0, y0, {"first_pass": info["n_first"], "passes": json.dumps(info["n_pass"])}
+    attrs = {"first_pass": info["n_first"], "passes": json.dumps(info["n_pass"])}
+    return x0, y0, attrs, info.get("halo_profile")
 
 
 def earlier_anchor(
@@ -970,6 +989,7 @@ def measure_frame(
     extra: dict = {}
     anchor = None
     carried = bool(earlier) and settings.later_epochs == "measured"
+    halo = None  # the frame's halo profile, measured by its first fit and then reused
     if carried:
         ids, x0, y0, transforms = start_from_earlier(earlier, frame.image, frame.sky, frame.bad)
         if len(ids) == 0:
@@ -977,12 +997,12 @@ def measure_frame(
         extra["start"] = "measured"
         anchor = earlier_anchor(earlier, transforms, settings)
         if settings.refine_start:
-            x0, y0 = refined_start(frame, x0, y0, settings, anchor)
+            x0, y0, halo = refined_start(frame, x0, y0, settings, anchor)
         extra["start_transform"] = json.dumps(
             {f"{e.epoch:g}": t.to_dict() for e, t in zip(sorted(earlier, key=_epoch), transforms)}
         )
     elif settings.blind:
-        x0, y0, found = blind_detection(frame, settings)
+        x0, y0, found, halo = blind_detection(frame, settings)
         extra.update(found)
         if len(x0) == 0:
             raise InputError(
@@ -995,10 +1015,10 @@ def measure_frame(
         extra["start"] = "truth"
     if settings.blind and not carried:
         extra["start"] = "detected"
-    frame_psf = build_psf(frame, x0, y0, settings, anchor)
+    frame_psf = build_psf(frame, x0, y0, settings, anchor, halo)
     psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
     t_psf = time.perf_counter()
-    fit = run_engine(frame, psf, x0, y0, settings, return_model=False)
+    fit = run_engine(frame, psf, x0, y0, settings, return_model=False, halo=frame_psf.halo)
     t_fit = time.perf_counter()
     errors = error_terms(frame, frame_psf, fit, settings)
     t_err = time.perf_counter()
