@@ -618,6 +618,9 @@ class StarRenderer:
         phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
         phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
         folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
+        # the flux scales the node weights: the transform is linear, and the stamps need
+        # no separate pass to scale them
+        w = w * np.asarray(flux, dtype=np.float64)[:, None]
         mix_kernel_fold(
             np.ascontiguousarray(transforms, dtype=cplx), node,
             np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
@@ -626,7 +629,6 @@ class StarRenderer:
         )  # fmt: skip
         folded = folded.reshape(nst, m, m // 2 + 1)
         stamps = np.fft.irfft2(folded, s=(m, m), axes=(1, 2))
-        stamps *= np.asarray(flux, dtype=np.float64)[:, None, None].astype(stamps.dtype)
         return stamps.astype(real, copy=False), ixc - m // 2, iyc - m // 2
 
     def _mixed_transforms(self, transforms, u, v, spectrum):
@@ -721,15 +723,16 @@ class StarRenderer:
                 flux[split], noise_sigma or 1e-300, sig, x_field[split], y_field[split]
             )
         jobs = []
+        f64 = self._float64_flux(noise_sigma)
         for part, renderer in parts.items():
             mine = todo & (split == part)
             for m in np.unique(sizes[mine]):
                 for b in np.unique(colour[mine & (sizes == m)]):
                     idx = np.flatnonzero(mine & (sizes == m) & (colour == b))
                     idx = idx[np.argsort(flux[idx], kind="stable")]
-                    for a in range(0, len(idx), batch):
-                        sel = idx[a : a + batch]  # similar fluxes (one floor/precision per
-                        # batch), added in row order: neighbouring stamps share image rows
+                    for sel in _flux_batches(idx, flux[idx], batch, f64):
+                        # similar fluxes (one floor/precision per batch), added in row
+                        # order: neighbouring stamps share image rows
                         jobs.append((int(m), sel[np.lexsort((x_pix[sel], y_pix[sel]))], renderer))
 
         def work(job):
@@ -836,6 +839,12 @@ class StarRenderer:
         if bar is not None:
             bar.update(len(sel))
 
+    def _float64_flux(self, noise_sigma) -> float:
+        """Flux from which a star needs float64 stamps (float32 round-off above the threshold)."""
+        if self.params.dtype != "float32" or noise_sigma is None or noise_sigma <= 0:
+            return np.inf
+        return self.params.stamp_threshold * noise_sigma / FLOAT32_ROUNDOFF
+
     def _batch_accuracy(self, flux_max: float, noise_sigma) -> tuple[float, str]:
         """Spectrum floor and precision keeping a batch's errors below the threshold."""
         floor, dtype = self.params.spectrum_floor, self.params.dtype
@@ -845,6 +854,50 @@ class StarRenderer:
         if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
             dtype = "float64"
         return min(floor, allowed), dtype
+
+
+#: A batch of stars spans at most this factor in flux: its spectrum floor follows its
+#: brightest star, so a wider batch would evaluate its faint stars to a needlessly low floor.
+BATCH_FLUX_SPAN = 10.0
+
+
+def _flux_batches(idx, flux, size: int, float64_flux: float = np.inf):
+    """Split stars sorted by flux into batches of similar accuracy needs.
+
+    A batch holds at most ``size`` stars, spans at most ``BATCH_FLUX_SPAN`` in flux and
+    never mixes stars below and at or above ``float64_flux`` (the flux from which
+    float32 stamps are not accurate enough), so that one very bright star does not put
+    a whole batch into float64 or a lower spectrum floor.
+
+    Parameters
+    ----------
+    idx : ndarray (N,) int
+        Star indices, sorted by ascending flux.
+    flux : ndarray (N,)
+        Their fluxes (ascending).
+    size : int
+        Largest batch.
+    float64_flux : float
+        Flux from which a star is rendered in float64.
+
+    Returns
+    -------
+    list of ndarray
+        The batches (consecutive slices of ``idx``).
+    """
+    out, a, n = [], 0, len(idx)
+    while a < n:
+        lo = max(float(flux[a]), 1e-300)
+        limit = lo * BATCH_FLUX_SPAN
+        if lo < float64_flux:
+            limit = min(limit, float64_flux)
+            b = int(np.searchsorted(flux, limit, side="left"))
+        else:
+            b = int(np.searchsorted(flux, limit, side="right"))
+        b = min(max(b, a + 1), a + size, n)
+        out.append(idx[a:b])
+        a = b
+    return out
 
 
 class _TaperedGrid:
