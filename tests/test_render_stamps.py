@@ -259,3 +259,27 @@ def test_mixed_flux_field_within_threshold_of_high_accuracy_render(airy_optics):
                      cov[i : i + 1], flux[i : i + 1], sizes[i : i + 1])  # fmt: skip
     assert np.abs(image - ref).max() < fast.params.stamp_threshold * noise
     assert abs(image.sum() - ref.sum()) < 1e-6 * flux.sum()
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_reused_batch_buffers_give_the_stamps_of_fresh_arrays(airy_optics, threads):
+    """Many small batches of three stamp sizes through the reused buffers (more batches
+    than buffers, sizes growing and shrinking): the image equals the sum of each star's
+    stamp computed alone into fresh arrays."""
+    rng = np.random.default_rng(8)
+    n = 40
+    xp, yp = rng.uniform(20, 80, n), rng.uniform(20, 80, n)
+    xf, yf = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
+    cov = np.tile(np.diag([20.0, 12.0]), (n, 1, 1))
+    flux = 10 ** rng.uniform(1, 4, n)
+    sizes = rng.choice([16, 24, 32], n)
+    r = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(batch_size=3, threads=threads))
+    image = np.zeros((100, 100))
+    r.render(image, xp, yp, xf, yf, cov, flux, sizes)
+    ref = np.zeros((100, 100))
+    for i in range(n):
+        m = int(sizes[i])
+        one = [a[i : i + 1] for a in (xp, yp, xf, yf, cov, flux)]
+        stamp, x0, y0 = r.render_stamps(m, *one)
+        ref[y0[0] : y0[0] + m, x0[0] : x0[0] + m] += stamp[0]
+    assert np.abs(image - ref).max() < 1e-6 * flux.max()
