@@ -784,6 +784,7 @@ class StarRenderer:
                     self._add_done(image, pending.popleft(), bar, buffers)
             while pending:
                 self._add_done(image, pending.popleft(), bar, buffers)
+        buffers = None  # freed before the outer convolution's own memory peak
         if split.any():
             node, w = self._node_weights(x_field[split], y_field[split])
             _, dtype = self._batch_accuracy(float(flux[split].max()), noise_sigma)
