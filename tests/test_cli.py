@@ -85,3 +85,22 @@ def test_one_command_imports_only_its_own_stage():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert "--scene" in out.stdout
     assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_only_the_program_freezes_its_imports_out_of_the_collector():
+    """``main(argv)`` called from Python leaves the caller's garbage collector alone; the
+    program (``main()`` reading ``sys.argv``) freezes the objects of its imports."""
+    import subprocess
+    import sys
+
+    code = (
+        "import gc, sys; from mavispm.workflows import cli\n"
+        "before = gc.get_freeze_count()\n"
+        "assert cli.main(['simulate']) == 0\n"
+        "called = gc.get_freeze_count()\n"
+        "sys.argv = ['mavispm', 'simulate']\n"
+        "assert cli.main() == 0\n"
+        "print(before, called, gc.get_freeze_count() > 0)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "0 0 True"

@@ -203,3 +203,72 @@ def test_frames_process_imports_neither_scipy_fft_nor_astropy_yaml(tmp_path):
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "[]"
+
+
+#: Modules a warm ``mavispm simulate frames`` process must not import: other stages'
+#: libraries and scipy / astropy parts the frames path has no use for (each costs
+#: 0.03-1 s of a process whose whole budget is ~2 s at 3,500 stars).
+FRAMES_FORBIDDEN = (
+    "scipy.special", "scipy.fft", "scipy.sparse", "scipy.stats", "scipy.optimize",
+    "scipy.interpolate", "scipy.ndimage", "scipy.signal", "photutils", "dynesty",
+    "emcee", "matplotlib", "dask", "tqdm", "astropy.coordinates", "astropy.io.misc.yaml",
+    "astropy.modeling", "astropy.convolution", "mavispm.measure", "mavispm.dynamics",
+)  # fmt: skip
+
+
+def _write_psf_database(path, n=33, scale=3.75):
+    """A 3 x 3 PSF database in the MAVISIM FITS layout: Gaussians 8-10 mas wide."""
+    from astropy.io import fits
+
+    off = (np.arange(n) - n // 2) * scale
+    yy, xx = np.meshgrid(off, off, indexing="ij")
+    hdus = [fits.PrimaryHDU()]
+    for yv in (-10.0, 0.0, 10.0):
+        for xv in (-10.0, 0.0, 10.0):
+            sig = 8.0 + 0.1 * abs(xv)
+            img = np.exp(-0.5 * (xx**2 + yy**2) / sig**2)
+            h = fits.ImageHDU(img / img.sum())
+            h.header.update(XPOS=xv, YPOS=yv, LAMBDA=550e-9, PIXSIZE=scale)
+            hdus.append(h)
+    fits.HDUList(hdus).writeto(path)
+
+
+def test_warm_frames_process_imports_no_heavy_modules(tmp_path):
+    """A whole ``mavispm simulate frames`` process, run twice on one cache folder: the
+    second (warm caches: PSF grid, tip-tilt table, halo, stamp plans) imports none of
+    ``FRAMES_FORBIDDEN``; the first may (it computes the caches)."""
+    from render_helpers import epoch_table
+
+    from mavispm.core.catalogue import write_catalogue
+
+    _write_psf_database(tmp_path / "psfs.fits")
+    rng = np.random.default_rng(4)
+    t = epoch_table(*rng.uniform([-0.5, -0.5, 17], [0.5, 0.5, 23], (20, 3)).T)
+    write_catalogue(tmp_path / "cat.h5", {"e0": t})
+    (tmp_path / "scene.toml").write_text(
+        "[detector]\nnx = 160\nny = 160\n"
+        f'[optics.psf]\nmode = "file"\nfile = "{tmp_path / "psfs.fits"}"\n'
+        'pixel_scale = "3.75 mas"\nstamp_size = "0.12375 arcsec"\n'
+    )
+    script = textwrap.dedent(
+        """
+        import atexit, json, sys, runpy
+        forbidden = json.loads(sys.argv[1])
+        atexit.register(lambda: print("LOADED", json.dumps(
+            sorted(m for m in sys.modules if m.split(".")[0] in forbidden or any(
+                m == f or m.startswith(f + ".") for f in forbidden)))))
+        sys.argv = ["mavispm"] + sys.argv[2:]
+        runpy.run_module("mavispm.workflows.cli", run_name="__main__")
+        """
+    )
+    import json
+
+    cmd = [sys.executable, "-c", script, json.dumps(FRAMES_FORBIDDEN), "simulate", "frames",
+           str(tmp_path / "cat.h5"), "--scene", str(tmp_path / "scene.toml"), "-o",
+           str(tmp_path / "f.h5"), "--cache-dir", str(tmp_path / "cache")]  # fmt: skip
+    for _ in range(2):  # cold (computes the caches), then warm
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+    loaded = json.loads(out.stdout.strip().splitlines()[-1].removeprefix("LOADED "))
+    assert loaded == []
+    assert (tmp_path / "f.h5").exists()

@@ -210,3 +210,76 @@ def test_wing_envelope_cache_equals_fresh_computation(airy_optics, tmp_path):
     np.testing.assert_array_equal(
         again.stamp_sizes(flux, 1.0, np.full(3, 5.0)), first.stamp_sizes(flux, 1.0, np.full(3, 5.0))
     )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    flux=st.lists(st.floats(1.0, 1e8), min_size=1, max_size=200),
+    size=st.integers(1, 64),
+    f64=st.one_of(st.just(np.inf), st.floats(1.0, 1e8)),
+)
+def test_flux_batches_cover_stars_in_order_and_keep_accuracy_classes(flux, size, f64):
+    """Batches are consecutive, bounded, span <= BATCH_FLUX_SPAN, never straddle float64."""
+    from mavispm.simulate.render.stamps import BATCH_FLUX_SPAN, _flux_batches
+
+    flux = np.sort(np.asarray(flux))
+    idx = np.arange(len(flux)) + 7
+    batches = _flux_batches(idx, flux, size, f64)
+    assert np.array_equal(np.concatenate(batches), idx)
+    for b in batches:
+        f = flux[b - 7]
+        assert 1 <= len(b) <= size
+        assert len(b) == 1 or f.max() <= f.min() * BATCH_FLUX_SPAN
+        assert (f >= f64).all() or (f < f64).all()
+
+
+def test_mixed_flux_field_within_threshold_of_high_accuracy_render(airy_optics):
+    """Faint and very bright stars in one call: every pixel within the noise budget.
+
+    Reference: the same stars rendered one by one in float64 with no spectrum floor
+    (no floor or precision is chosen per batch there); the batched default render may
+    differ from it by at most ``stamp_threshold`` x noise per pixel.
+    """
+    rng = np.random.default_rng(3)
+    n, noise = 60, 0.3
+    flux = 10 ** rng.uniform(2, 7.5, n)
+    xp, yp = rng.uniform(20, 140, n), rng.uniform(20, 140, n)
+    xf, yf = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
+    cov = np.tile(np.diag([20.0, 12.0]), (n, 1, 1))
+    fast = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(batch_size=16))
+    sizes = fast.stamp_sizes(flux, noise, np.full(n, 4.5), xf, yf)
+    image = np.zeros((160, 160))
+    fast.render(image, xp, yp, xf, yf, cov, flux, sizes, noise_sigma=noise)
+    exact = StarRenderer(
+        airy_optics.psf_grid, SCALE, RenderParams(dtype="float64", spectrum_floor=0.0)
+    )
+    ref = np.zeros((160, 160))
+    for i in range(n):
+        exact.render(ref, xp[i : i + 1], yp[i : i + 1], xf[i : i + 1], yf[i : i + 1],
+                     cov[i : i + 1], flux[i : i + 1], sizes[i : i + 1])  # fmt: skip
+    assert np.abs(image - ref).max() < fast.params.stamp_threshold * noise
+    assert abs(image.sum() - ref.sum()) < 1e-6 * flux.sum()
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_reused_batch_buffers_give_the_stamps_of_fresh_arrays(airy_optics, threads):
+    """Many small batches of three stamp sizes through the reused buffers (more batches
+    than buffers, sizes growing and shrinking): the image equals the sum of each star's
+    stamp computed alone into fresh arrays."""
+    rng = np.random.default_rng(8)
+    n = 40
+    xp, yp = rng.uniform(20, 80, n), rng.uniform(20, 80, n)
+    xf, yf = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
+    cov = np.tile(np.diag([20.0, 12.0]), (n, 1, 1))
+    flux = 10 ** rng.uniform(1, 4, n)
+    sizes = rng.choice([16, 24, 32], n)
+    r = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(batch_size=3, threads=threads))
+    image = np.zeros((100, 100))
+    r.render(image, xp, yp, xf, yf, cov, flux, sizes)
+    ref = np.zeros((100, 100))
+    for i in range(n):
+        m = int(sizes[i])
+        one = [a[i : i + 1] for a in (xp, yp, xf, yf, cov, flux)]
+        stamp, x0, y0 = r.render_stamps(m, *one)
+        ref[y0[0] : y0[0] + m, x0[0] : x0[0] + m] += stamp[0]
+    assert np.abs(image - ref).max() < 1e-6 * flux.max()

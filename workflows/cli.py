@@ -161,13 +161,26 @@ def _help_of(parser: argparse.ArgumentParser):
     return show
 
 
+def _freeze_imports() -> None:
+    """Leave the objects alive now (the imported modules) out of the cyclic collector.
+
+    They live until the process ends, yet every full collection traverses them, and
+    so does the last one at exit: ~0.2 s of CPU of a 3 s ``simulate frames`` process
+    (perf, 3,500 stars). Only done for the program, whose process ends with the command.
+    """
+    import gc
+
+    gc.freeze()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mavispm`` console script.
 
     Parameters
     ----------
     argv : list of str or None
-        Command-line words (None: ``sys.argv[1:]``).
+        Command-line words (None: ``sys.argv[1:]``, the program: the objects of the
+        imports are then frozen out of the cyclic garbage collector, ``gc.freeze``).
 
     Returns
     -------
@@ -181,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         if exc.code in (0, None):  # --help, --version
             raise
         return 2
+    if argv is None:  # the mavispm program (not a call from Python): see _freeze_imports
+        _freeze_imports()
     try:
         return int(args.func(args) or 0)
     except MavispmError as exc:
