@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
+from mavispm.dynamics.vector_exp import log_positive
 
 _SIXTH = 1.0 / 6.0
 
@@ -135,7 +136,7 @@ def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compile
     return chi + ln_acc + np.log(prod), lsig
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, error_model="numpy")
 def star_sums_about(
     x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r, ln_a, grid_x0, step, ln_s2, ln_sig
 ):  # pragma: no cover - compiled
@@ -167,7 +168,7 @@ def star_sums_about(
     return star_sums(u, grid_x0, step, ln_s2, ln_sig, v2, e2)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, error_model="numpy")
 def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  # pragma: no cover
     """One star of :func:`stars_about`: ln R, squared R/T motions, rotated squared errors."""
     dx = x - x0
@@ -183,7 +184,7 @@ def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  #
     c2 = cd * cd
     s2 = 1.0 - c2
     return (
-        np.log(max(r, min_r)),
+        log_positive(max(r, min_r)),
         vr * vr,
         vt * vt,
         er2 * c2 + et2 * s2,
@@ -191,7 +192,7 @@ def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  #
     )
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, error_model="numpy")
 def stars_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  # pragma: no cover
     """ln R, squared R/T motions and rotated squared errors about centre ``(x0, y0)``.
 
