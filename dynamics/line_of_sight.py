@@ -382,11 +382,11 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
     n_s = u.size
     # the stars sorted by grid interval (a counting sort), with their cubic weights
     rows = np.empty(n_s, dtype=np.int64)
+    lw_in = np.empty((4, n_s))
+    _grid_weights(u, x0, step, n, rows, lw_in[0], lw_in[1], lw_in[2], lw_in[3])
     first = np.zeros(n + 1, dtype=np.int64)
     for i in range(n_s):
-        j = cubic_point_weights(u[i], x0, step, n)[0]
-        rows[i] = j
-        first[j + 1] += 1
+        first[rows[i] + 1] += 1
     for j in range(n):
         first[j + 1] += first[j]
     slot = first[:n].copy()
@@ -394,26 +394,29 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
     v2s = np.empty((2, n_s))
     e2s = np.empty((2, n_s))
     rows_s = np.empty(n_s, dtype=np.int64)
-    lsig = 0.0
     for i in range(n_s):
-        j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
-        lsig += w0 * ln_sig[j - 1] + w1 * ln_sig[j] + w2 * ln_sig[j + 1] + w3 * ln_sig[j + 2]
+        j = rows[i]
         k = slot[j]
         slot[j] = k + 1
         rows_s[k] = j
-        lw[0, k] = w0
-        lw[1, k] = w1
-        lw[2, k] = w2
-        lw[3, k] = w3
+        lw[0, k] = lw_in[0, i]
+        lw[1, k] = lw_in[1, i]
+        lw[2, k] = lw_in[2, i]
+        lw[3, k] = lw_in[3, i]
         v2s[0, k] = v2[0, i]
         v2s[1, k] = v2[1, i]
         e2s[0, k] = e2[0, i]
         e2s[1, k] = e2[1, i]
     total = np.zeros(n_s)
     wsum = np.zeros(n_s)
+    lsig = 0.0
     for j in range(1, n - 2):
         a, b = first[j], first[j + 1]
         if b > a:
+            lsig += _dot4(
+                ln_sig[j - 1], ln_sig[j], ln_sig[j + 1], ln_sig[j + 2],
+                lw[0, a:b], lw[1, a:b], lw[2, a:b], lw[3, a:b],
+            )  # fmt: skip
             _run_terms(
                 table[j - 1], table[j], table[j + 1], table[j + 2], n_k,
                 lw[0, a:b], lw[1, a:b], lw[2, a:b], lw[3, a:b],
@@ -441,6 +444,25 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
             ln_acc += np.log(prod)
             prod = 1.0
     return ln_acc + np.log(prod) - n_s * _LN_2PI, lsig
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _grid_weights(u, x0, step, n, rows, w0, w1, w2, w3):  # pragma: no cover - compiled
+    """Grid interval ``rows`` and cubic weights ``w0 .. w3`` of every star
+    (:func:`~mavispm.dynamics.star_sums.cubic_point_weights`, in one loop that
+    vectorises)."""
+    for i in range(u.size):
+        rows[i], w0[i], w1[i], w2[i], w3[i] = cubic_point_weights(u[i], x0, step, n)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _dot4(f0, f1, f2, f3, w0, w1, w2, w3):  # pragma: no cover - compiled
+    """``sum_i (w0_i f0 + w1_i f1 + w2_i f2 + w3_i f3)``: the interpolated grid values
+    ``f0 .. f3`` summed over a run of stars (vectorised)."""
+    acc = 0.0
+    for i in range(w0.size):
+        acc += w0[i] * f0 + w1[i] * f1 + w2[i] * f2 + w3[i] * f3
+    return acc
 
 
 @numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")

@@ -63,7 +63,7 @@ def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
     return float(np.sum(v2 / var + np.log(var))), float(np.sum(interpolate(ln_sig, idx, w)))
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, inline="always")
 def cubic_point_weights(q, x0, step, n):  # pragma: no cover - compiled
     """Index ``j`` and 4-point Lagrange weights of grid points ``j-1 .. j+2`` at ``q``.
 
