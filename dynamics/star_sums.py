@@ -170,7 +170,9 @@ def star_sums_about(
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  # pragma: no cover
-    """One star of :func:`stars_about`: ln R, squared R/T motions, rotated squared errors."""
+    """One star of :func:`stars_about`: ln R, squared R/T motions, rotated squared errors
+    (ln R with the vectorising :func:`~mavispm.dynamics.vector_exp.log_positive`, so the
+    callers' loops over the stars run on the vector units)."""
     dx = x - x0
     dy = y - y0
     r = max(np.sqrt(dx * dx + dy * dy), 1e-12)
