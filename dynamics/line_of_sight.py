@@ -449,8 +449,7 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
 @numba.njit(nogil=True, cache=True, error_model="numpy")
 def _grid_weights(u, x0, step, n, rows, w0, w1, w2, w3):  # pragma: no cover - compiled
     """Grid interval ``rows`` and cubic weights ``w0 .. w3`` of every star
-    (:func:`~mavispm.dynamics.star_sums.cubic_point_weights`, in one loop that
-    vectorises)."""
+    (:func:`~mavispm.dynamics.star_sums.cubic_point_weights`, inlined, in one loop)."""
     for i in range(u.size):
         rows[i], w0[i], w1[i], w2[i], w3[i] = cubic_point_weights(u[i], x0, step, n)
 
@@ -458,7 +457,7 @@ def _grid_weights(u, x0, step, n, rows, w0, w1, w2, w3):  # pragma: no cover - c
 @numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
 def _dot4(f0, f1, f2, f3, w0, w1, w2, w3):  # pragma: no cover - compiled
     """``sum_i (w0_i f0 + w1_i f1 + w2_i f2 + w3_i f3)``: the interpolated grid values
-    ``f0 .. f3`` summed over a run of stars (vectorised)."""
+    ``f0 .. f3`` summed over a run of stars (in order: no reassociation)."""
     acc = 0.0
     for i in range(w0.size):
         acc += w0[i] * f0 + w1[i] * f1 + w2[i] * f2 + w3[i] * f3
