@@ -352,11 +352,15 @@ def mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2):  # pragma: no 
 def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma: no cover
     """Summed ln mixture density of the stars and their summed ln surface density.
 
-    The sum of :func:`mixture_ln_densities` in one pass, with the logarithms of the
-    stars' densities taken as the logarithm of running products (one ``log`` per many
-    stars instead of one per star; a product is logged and restarted when it leaves
-    [1e-150, 1e150], a density outside [1e-100, 1e100] is logged on its own): the same
-    sum to rounding.
+    The sum of :func:`mixture_ln_densities`, computed across stars instead of star by
+    star: the stars are grouped by interval of the output grid (a counting sort; any
+    order works), the stars of one interval share the four table rows of their cubic
+    interpolation, so each component is evaluated for all of them in one loop over the
+    stars that vectorises (:func:`_run_terms`). The logarithms of
+    the stars' densities are taken as the logarithm of running products (one ``log`` per
+    many stars instead of one per star; a product is logged and restarted when it leaves
+    [1e-150, 1e150], a density outside [1e-100, 1e100] is logged on its own); a star whose
+    summed terms underflow is summed again in logarithms. The same sum to rounding.
 
     Parameters
     ----------
@@ -375,23 +379,63 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
     if ln_sig.size != n:
         raise ValueError("ln_sig and the mixture components need one grid")
     table = _component_table(mix_w, s2_r, s2_t)
-    buf = np.empty(3 * n_k)
-    tk = np.empty(n_k)
+    n_s = u.size
+    # the stars sorted by grid interval (a counting sort), with their cubic weights
+    rows = np.empty(n_s, dtype=np.int64)
+    lw_in = np.empty((4, n_s))
+    _grid_weights(u, x0, step, n, rows, lw_in[0], lw_in[1], lw_in[2], lw_in[3])
+    first = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n_s):
+        first[rows[i] + 1] += 1
+    for j in range(n):
+        first[j + 1] += first[j]
+    slot = first[:n].copy()
+    lw = np.empty((4, n_s))
+    v2s = np.empty((2, n_s))
+    e2s = np.empty((2, n_s))
+    rows_s = np.empty(n_s, dtype=np.int64)
+    for i in range(n_s):
+        j = rows[i]
+        k = slot[j]
+        slot[j] = k + 1
+        rows_s[k] = j
+        lw[0, k] = lw_in[0, i]
+        lw[1, k] = lw_in[1, i]
+        lw[2, k] = lw_in[2, i]
+        lw[3, k] = lw_in[3, i]
+        v2s[0, k] = v2[0, i]
+        v2s[1, k] = v2[1, i]
+        e2s[0, k] = e2[0, i]
+        e2s[1, k] = e2[1, i]
+    total = np.zeros(n_s)
+    wsum = np.zeros(n_s)
+    lsig = 0.0
+    for j in range(1, n - 2):
+        a, b = first[j], first[j + 1]
+        if b > a:
+            lsig += _dot4(
+                ln_sig[j - 1], ln_sig[j], ln_sig[j + 1], ln_sig[j + 2],
+                lw[0, a:b], lw[1, a:b], lw[2, a:b], lw[3, a:b],
+            )  # fmt: skip
+            _run_terms(
+                table[j - 1], table[j], table[j + 1], table[j + 2], n_k,
+                lw[0, a:b], lw[1, a:b], lw[2, a:b], lw[3, a:b],
+                v2s[0, a:b], v2s[1, a:b], e2s[0, a:b], e2s[1, a:b], total[a:b], wsum[a:b],
+            )  # fmt: skip
     prod = 1.0
     ln_acc = 0.0
-    lsig = 0.0
-    for i in range(u.size):
-        j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
-        lsig += w0 * ln_sig[j - 1] + w1 * ln_sig[j] + w2 * ln_sig[j + 1] + w3 * ln_sig[j + 2]
-        _interpolate_rows(w0, w1, w2, w3, j, table, buf)
-        _star_terms(buf, n_k, tk, v2[0, i], v2[1, i], e2[0, i], e2[1, i])
-        total, wsum = _sum4(tk, n_k), _sum4(buf, n_k)
-        if not wsum > 0.0:
+    buf = np.empty(3 * n_k)
+    tk = np.empty(n_k)
+    for i in range(n_s):
+        if not wsum[i] > 0.0:
             return -np.inf, lsig
-        if not total > _UNDERFLOW:
-            ln_acc += _ln_underflowed(buf, n_k) - np.log(wsum)
+        if not total[i] > _UNDERFLOW:
+            j = rows_s[i]
+            _interpolate_rows(lw[0, i], lw[1, i], lw[2, i], lw[3, i], j, table, buf)
+            _star_terms(buf, n_k, tk, v2s[0, i], v2s[1, i], e2s[0, i], e2s[1, i])
+            ln_acc += _ln_underflowed(buf, n_k) - np.log(_sum4(buf, n_k))
             continue
-        f = total / wsum
+        f = total[i] / wsum[i]
         if not 1e-100 <= f <= 1e100:  # also NaN: logged, and it propagates
             ln_acc += np.log(f)
             continue
@@ -399,7 +443,57 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
         if not 1e-150 < prod < 1e150:
             ln_acc += np.log(prod)
             prod = 1.0
-    return ln_acc + np.log(prod) - u.size * _LN_2PI, lsig
+    return ln_acc + np.log(prod) - n_s * _LN_2PI, lsig
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _grid_weights(u, x0, step, n, rows, w0, w1, w2, w3):  # pragma: no cover - compiled
+    """Grid interval ``rows`` and cubic weights ``w0 .. w3`` of every star
+    (:func:`~mavispm.dynamics.star_sums.cubic_point_weights`, inlined, in one loop)."""
+    for i in range(u.size):
+        rows[i], w0[i], w1[i], w2[i], w3[i] = cubic_point_weights(u[i], x0, step, n)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _dot4(f0, f1, f2, f3, w0, w1, w2, w3):  # pragma: no cover - compiled
+    """``sum_i (w0_i f0 + w1_i f1 + w2_i f2 + w3_i f3)``: the interpolated grid values
+    ``f0 .. f3`` summed over a run of stars (in order: no reassociation)."""
+    acc = 0.0
+    for i in range(w0.size):
+        acc += w0[i] * f0 + w1[i] * f1 + w2[i] * f2 + w3[i] * f3
+    return acc
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _run_terms(
+    r0, r1, r2, r3, n_k, w0, w1, w2, w3, v2r, v2t, e2r, e2t, total, wsum
+):  # pragma: no cover - compiled
+    """Add every component's term and weight to ``total`` and ``wsum`` for a run of stars
+    that share the table rows ``r0 .. r3`` (cubic weights ``w0 .. w3`` per star).
+
+    The terms of :func:`_star_terms` (weights clipped at zero, each variance floored at
+    ``_LEAST_VARIANCE``, ``w exp(-(v_R^2 / V_R + v_T^2 / V_T) / 2) / sqrt(V_R V_T)``),
+    with the loop over the run's stars innermost: branch-free, contiguous, so it runs on
+    the vector units.
+    """
+    m = total.size
+    for k in range(n_k):
+        a0, a1, a2, a3 = r0[k], r1[k], r2[k], r3[k]
+        kr = n_k + k
+        b0, b1, b2, b3 = r0[kr], r1[kr], r2[kr], r3[kr]
+        kt = 2 * n_k + k
+        c0, c1, c2, c3 = r0[kt], r1[kt], r2[kt], r3[kt]
+        for i in range(m):
+            x0, x1, x2, x3 = w0[i], w1[i], w2[i], w3[i]
+            w = max(x0 * a0 + x1 * a1 + x2 * a2 + x3 * a3, 0.0)
+            vr = max(x0 * b0 + x1 * b1 + x2 * b2 + x3 * b3, 0.0) + e2r[i]
+            vt = max(x0 * c0 + x1 * c1 + x2 * c2 + x3 * c3, 0.0) + e2t[i]
+            vr = _LEAST_VARIANCE if vr < _LEAST_VARIANCE else vr  # NaN propagates
+            vt = _LEAST_VARIANCE if vt < _LEAST_VARIANCE else vt
+            inv = 1.0 / (vr * vt)
+            ex = -0.5 * (v2r[i] * vt + v2t[i] * vr) * inv
+            wsum[i] += w
+            total[i] += w * np.sqrt(inv) * exp_nonpositive(ex)
 
 
 @numba.njit(nogil=True, cache=True)

@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
+from mavispm.dynamics.vector_exp import log_positive
 
 _SIXTH = 1.0 / 6.0
 
@@ -62,7 +63,7 @@ def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
     return float(np.sum(v2 / var + np.log(var))), float(np.sum(interpolate(ln_sig, idx, w)))
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, inline="always")
 def cubic_point_weights(q, x0, step, n):  # pragma: no cover - compiled
     """Index ``j`` and 4-point Lagrange weights of grid points ``j-1 .. j+2`` at ``q``.
 
@@ -135,7 +136,7 @@ def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compile
     return chi + ln_acc + np.log(prod), lsig
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, error_model="numpy")
 def star_sums_about(
     x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r, ln_a, grid_x0, step, ln_s2, ln_sig
 ):  # pragma: no cover - compiled
@@ -167,9 +168,11 @@ def star_sums_about(
     return star_sums(u, grid_x0, step, ln_s2, ln_sig, v2, e2)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, error_model="numpy")
 def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  # pragma: no cover
-    """One star of :func:`stars_about`: ln R, squared R/T motions, rotated squared errors."""
+    """One star of :func:`stars_about`: ln R, squared R/T motions, rotated squared errors
+    (ln R with the vectorising :func:`~mavispm.dynamics.vector_exp.log_positive`, so the
+    callers' loops over the stars run on the vector units)."""
     dx = x - x0
     dy = y - y0
     r = max(np.sqrt(dx * dx + dy * dy), 1e-12)
@@ -183,7 +186,7 @@ def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  #
     c2 = cd * cd
     s2 = 1.0 - c2
     return (
-        np.log(max(r, min_r)),
+        log_positive(max(r, min_r)),
         vr * vr,
         vt * vt,
         er2 * c2 + et2 * s2,
@@ -191,7 +194,7 @@ def _star_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  #
     )
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, error_model="numpy")
 def stars_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r):  # pragma: no cover
     """ln R, squared R/T motions and rotated squared errors about centre ``(x0, y0)``.
 

@@ -119,6 +119,35 @@ def test_compiled_mixture_sums_equal_numpy_reference_and_survive_far_outliers():
     np.testing.assert_allclose(got, ref, rtol=1e-10)
 
 
+@pytest.mark.parametrize("spread", ["whole grid", "one interval", "beyond the ends"])
+def test_compiled_mixture_sums_do_not_depend_on_the_order_of_the_stars(spread):
+    """The compiled sums group the stars by grid interval (a counting sort) and evaluate
+    each interval's stars together: for stars over the whole grid, all in one interval, or
+    beyond both ends (clamped), in random and in reversed order, they equal the
+    per-star log-sum-exp reference to 1e-12."""
+    proj, (w, s2r, s2t, ln_sig, _), _ = _projector_and_mixture()
+    lnx = np.log(proj.X)
+    step = lnx[1] - lnx[0]
+    rng = np.random.default_rng(11)
+    n = 700
+    if spread == "whole grid":
+        u = rng.uniform(lnx[0], lnx[-1], n)
+    elif spread == "one interval":
+        u = lnx[7] + step * rng.uniform(0.01, 0.99, n)
+    else:
+        u = np.where(rng.uniform(size=n) < 0.5, lnx[0] - 3.0, lnx[-1] + 3.0)
+        u += rng.uniform(-1.0, 1.0, n)
+    v2 = rng.gamma(1.0, 0.05, (2, n))
+    e2 = rng.uniform(1e-6, 1e-2, (2, n))
+    ref = mixture_star_sums_numpy(u, lnx[0], step, w, s2r, s2t, ln_sig, v2, e2)
+    for order in (np.arange(n), rng.permutation(n), np.arange(n)[::-1]):
+        got = mixture_star_sums(
+            u[order].copy(), lnx[0], step, w, s2r, s2t, ln_sig,
+            v2[:, order].copy(), e2[:, order].copy(),
+        )  # fmt: skip
+        np.testing.assert_allclose(got, ref, rtol=1e-12)
+
+
 @pytest.mark.parametrize("scale", [1e-2, 1e-120])
 def test_compiled_sums_of_products_equal_the_sum_of_logs(scale):
     """The compiled sums take the stars' logarithms as logarithms of running products:
