@@ -535,6 +535,8 @@ class DiscreteLikelihood:
     def __call__(self, theta) -> float:
         """ln L for physical parameter vector ``theta`` (finite, or -inf if invalid)."""
         theta = np.asarray(theta, dtype=float)
+        if not np.isfinite(theta).all():  # e.g. a NaN cusp or dark radius: no model
+            return -np.inf
         if "beta" in self._idx and not theta[self._idx["beta"]] < 1.0:
             return -np.inf
         if "beta_0" in self._idx and not (

@@ -71,6 +71,26 @@ def test_invalid_parameters_give_minus_inf_not_errors():
     assert like(np.array([5.0, 1.0, 0.0, 1.0])) == -np.inf
 
 
+@pytest.mark.parametrize("law", ["line_of_sight", "gaussian"])
+def test_non_finite_parameters_give_minus_inf(law):
+    """A NaN or infinite entry anywhere in the vector of the richest model (cusp, dark
+    component, centre, distance, systemic motion) gives -inf, never an exception."""
+    from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    _, stars = _mock_sample(n=200)
+    s = DynamicsSettings(velocity_law=law)
+    sp = parameter_space(s, 4.6, "imbh_dark")
+    lk = make_likelihood(stars, sp, s, 4.6)
+    theta = sp.from_scaled(np.full(len(sp), 0.1))
+    assert np.isfinite(lk(theta))
+    for i in range(len(sp)):
+        for bad in (np.nan, np.inf, -np.inf):
+            t = theta.copy()
+            t[i] = bad
+            assert lk(t) == -np.inf, (sp.names[i], bad)
+
+
 def test_star_counts_constrain_scale_radius():
     """With kinematics uninformative (huge errors), counts alone peak near the true a."""
     rng = np.random.default_rng(3)
