@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
-from mavispm.measure.stars.halo import epsf_radial_profile, halo_profile
+from mavispm.measure.stars.halo import halo_profile
 from mavispm.measure.stars.joint_step import coupled_groups, cross_blocks, solve_groups
 from mavispm.measure.stars.stamp_kernel import deposit_radial
 from mavispm.measure.stars.stamp_kernel import normal_equations as fused_normal_equations
@@ -105,8 +105,8 @@ class FitOptions:
     wing_threshold : float
         Stars whose light outside their fitting stamp peaks above this many times
         the sky's pixel noise have it in the model their neighbours see, as a
-        radial profile (:mod:`~mavispm.measure.stars.halo`: the ePSF's azimuthal
-        mean, beyond its footprint measured on the frame), at the positions and
+        radial profile measured on the frame around its brightest stars
+        (:func:`~mavispm.measure.stars.halo.halo_profile`), at the positions and
         fluxes of the first (fixed-position) pass; 0: none (that light is left to
         the neighbours' sky planes).
     halo_radius : float
@@ -620,12 +620,17 @@ def fit_stars(
         """Add the bright stars' light outside their stamps to the model (once)."""
         nonlocal measured
         if measured is None:
-            clean = np.flatnonzero(usable & (flag & FLAG_SATURATED == 0))
             mask = bad if saturated is None else (saturated if bad is None else bad | saturated)
-            measured = halo_profile(image, mask, x[clean], y[clean], flux[clean], radii)
-        # within the ePSF's footprint its azimuthal mean, where the frame shows such light
-        inner = epsf_radial_profile(psf, nx / 2, ny / 2, radii)
-        profile = np.where(np.isfinite(inner) & (measured > 0), np.maximum(inner, 0.0), measured)
+            measured = halo_profile(
+                image, mask, x[usable], y[usable], flux[usable], radii,
+                eligible=(flag[usable] & FLAG_SATURATED) == 0,
+            )  # fmt: skip
+        # the frame's light at every radius, also inside the ePSF's footprint: the ePSF
+        # beyond its fitting stamp is barely constrained (on the 1e5-star MAVIS frame its
+        # azimuthal mean was 10-25 % below the rendered light at 8-12 px, and splicing it
+        # to the measured profile left a step at the footprint's edge that drove faint
+        # neighbours' fluxes negative; docs/measure.md, "Scale")
+        profile = measured
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
         # into the model directly (kept apart only for the returned star-model image)

@@ -96,8 +96,8 @@ class MeasureKnobs:
         Largest allowed move from the forced position.
     wing_threshold : float
         The fast engine puts the light of stars outside their fit stamps (a radial
-        profile: the ePSF's azimuthal mean, beyond the ePSF measured on the frame,
-        out to ``halo_radius``) into the model their neighbours see, for stars where
+        profile measured on the frame around its brightest stars, out to
+        ``halo_radius``) into the model their neighbours see, for stars where
         it peaks above this many times the sky's pixel noise; 0: off
         (:mod:`mavispm.measure.stars.halo`; docs/measure.md, "Scale").
     halo_radius : float [pix]
