@@ -9,7 +9,7 @@ the halos of bright ones end with negative fluxes or drift by pixels. The fitter
 therefore adds every bright star's light outside its own stamp to the model its
 neighbours see, as ``flux * profile(r)``: the profile is measured on the frame around
 its brightest stars (:func:`halo_profile`) at every radius outside the stamp. The
-ePSF's own azimuthal mean (:func:`epsf_radial_profile`) is not used there: beyond the
+ePSF's own azimuthal mean is not used there: beyond the
 fitting stamp the ePSF is barely constrained by the fits (on the 1e5-star MAVIS frame
 10-25 % below the rendered light at 8-12 px), and splicing it to the measured profile
 at the ePSF's footprint left a step that biased faint neighbours' fluxes.
@@ -22,40 +22,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
-
-__all__ = ["epsf_radial_profile", "halo_excess", "halo_profile"]
-
-
-def epsf_radial_profile(psf: VariableEPSF, x: float, y: float, radii: np.ndarray) -> np.ndarray:
-    """Azimuthal mean of the ePSF [1/pixel] in 1-px annuli centred on ``radii`` [pixel].
-
-    Parameters
-    ----------
-    psf : VariableEPSF
-    x, y : float
-        Field position [pixel] of the star.
-    radii : ndarray
-        Annulus centres [pixel]; NaN where an annulus is not complete within the
-        ePSF's footprint.
-
-    Returns
-    -------
-    ndarray
-        Mean ePSF value per pixel in each annulus.
-    """
-    big = int(psf.radius_pix)
-    cx, cy = int(round(x)), int(round(y))
-    geom = StampGeometry(np.array([cx]), np.array([cy]), big)
-    v = psf.evaluate(np.array([float(cx)]), np.array([float(cy)]), geom, derivatives=False)[0]
-    off = np.arange(-big, big + 1)
-    r = np.hypot(off[None, :], off[:, None])
-    out = np.full(len(radii), np.nan)
-    for i, rc in enumerate(radii):
-        ring = np.abs(r - rc) < 0.5
-        if rc + 0.5 <= big + 0.5 and np.any(ring):
-            out[i] = v[ring].mean()
-    return out
+__all__ = ["halo_excess", "halo_profile"]
 
 
 def halo_profile(
