@@ -270,6 +270,29 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
     )
 
 
+def psf_star_fit_options(settings: MeasureSettings) -> FitOptions:
+    """Fitter options of the PSF stars' short refits inside an ePSF or PSF-R build.
+
+    Four sweeps from the previous positions (at most 1 px away), no SNR cut (PSF stars
+    are bright), the stage's stamp radius and sky plane.
+
+    Parameters
+    ----------
+    settings : MeasureSettings
+
+    Returns
+    -------
+    FitOptions
+    """
+    return FitOptions(
+        radius=settings.stamp_radius,
+        iterations=4,
+        max_shift=1.0,
+        min_snr=0.0,
+        sky_gradient=settings.sky_gradient,
+    )
+
+
 def run_engine(
     frame: Frame,
     psf: VariableEPSF,
@@ -500,13 +523,7 @@ def half_epsf(
         sky0=0.0,
         flux0=np.maximum(last["flux"][used], 1.0),
         bad=first["bad"],
-        options=FitOptions(
-            radius=settings.stamp_radius,
-            iterations=4,
-            max_shift=1.0,
-            min_snr=0.0,
-            sky_gradient=settings.sky_gradient,
-        ),
+        options=psf_star_fit_options(settings),
         return_model=False,
         uncertainties=False,
     )
@@ -570,13 +587,7 @@ def build_psfr(
         data, x0, y0, flux, frame.bad, noise, opts, False, upper
     )
     os_ = PSFR_OVERSAMPLING if settings.oversampling == "auto" else int(settings.oversampling)
-    fit_opt = FitOptions(
-        radius=settings.stamp_radius,
-        iterations=4,
-        max_shift=1.0,
-        min_snr=0.0,
-        sky_gradient=settings.sky_gradient,
-    )
+    fit_opt = psf_star_fit_options(settings)
 
     def fit_positions(psf, idx):
         fit = fit_stars(
