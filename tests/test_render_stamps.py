@@ -219,7 +219,9 @@ def test_wing_envelope_cache_equals_fresh_computation(airy_optics, tmp_path):
     f64=st.one_of(st.just(np.inf), st.floats(1.0, 1e8)),
 )
 def test_flux_batches_cover_stars_in_order_and_keep_accuracy_classes(flux, size, f64):
-    """Batches are consecutive, bounded, span <= BATCH_FLUX_SPAN, never straddle float64."""
+    """Batches are consecutive, bounded, span <= BATCH_FLUX_SPAN, never straddle float64,
+    and as large as those rules allow: a batch ends only when it is full, when the next
+    star is BATCH_FLUX_SPAN above its faintest, or when the next star needs float64."""
     from mavispm.simulate.render.stamps import BATCH_FLUX_SPAN, _flux_batches
 
     flux = np.sort(np.asarray(flux))
@@ -231,6 +233,10 @@ def test_flux_batches_cover_stars_in_order_and_keep_accuracy_classes(flux, size,
         assert 1 <= len(b) <= size
         assert len(b) == 1 or f.max() <= f.min() * BATCH_FLUX_SPAN
         assert (f >= f64).all() or (f < f64).all()
+    for b, after in zip(batches[:-1], batches[1:]):
+        f, nxt = flux[b - 7], flux[after[0] - 7]
+        full = len(b) == size
+        assert full or nxt >= f.min() * BATCH_FLUX_SPAN or f.max() < f64 <= nxt
 
 
 def test_mixed_flux_field_within_threshold_of_high_accuracy_render(airy_optics):
