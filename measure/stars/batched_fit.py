@@ -644,7 +644,8 @@ def fit_stars(
                 flux[bright], profile, radii[0], out=halo_light,
             )  # fmt: skip
 
-    halo_pending = opt.wing_threshold > 0 and opt.halo_radius > r + 1
+    models_halo = opt.wing_threshold > 0 and opt.halo_radius > r + 1
+    halo_pending = models_halo
     halo_light = np.zeros(len(pixels) if halo_pending and return_model else 0)
     if halo_pending and flux0 is not None:
         add_halo()
@@ -742,7 +743,7 @@ def fit_stars(
         if return_model
         else None,
         sky_slope=np.where(usable[:, None], slope, 0.0),
-        halo_profile=measured if opt.wing_threshold > 0 and opt.halo_radius > r + 1 else None,
+        halo_profile=measured if models_halo else None,
     )
 
 

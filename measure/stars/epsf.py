@@ -43,6 +43,7 @@ __all__ = [
     "build_epsf_fast",
     "build_epsf_photutils",
     "build_field_epsf",
+    "neighbours_subtracted",
     "node_positions",
     "node_psf_stars",
     "resolve_oversampling",
@@ -676,8 +677,9 @@ def build_field_epsf(
     if neighbour_model is not None:
         if previous is None:
             raise InputError("neighbour subtraction needs the ePSF of the neighbour model")
-        own = render_model(shape, previous, x[used], y[used], flux[used], model_radius)
-        work = work - (neighbour_model - own)
+        work = neighbours_subtracted(
+            work, neighbour_model, previous, x[used], y[used], flux[used], model_radius
+        )
     sx, sy = (x, y) if start is None else (np.asarray(start[0], float), np.asarray(start[1], float))
     epsfs = np.asarray(
         [
@@ -697,6 +699,31 @@ def build_field_epsf(
         polynomial_epsf(epsfs, nodes[:, 0], nodes[:, 1], options.poly_order, shape, oversampling),
         used,
     )
+
+
+def neighbours_subtracted(image, neighbour_model, previous, x, y, flux, model_radius):
+    """The image less the neighbour model, except the light of the stars ``x, y``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (ny, nx)
+        The frame [electron].
+    neighbour_model : ndarray, shape (ny, nx)
+        Model image of all fitted stars [electron].
+    previous : VariableEPSF
+        The ePSF the model was made with.
+    x, y, flux : ndarray
+        The stars whose own light stays (PSF stars) [pixel, pixel, electron].
+    model_radius : int
+        Stamp half-width of the model [pixel].
+
+    Returns
+    -------
+    ndarray
+        ``image - (neighbour_model - own)``, ``own`` the stars' model light.
+    """
+    own = render_model(image.shape, previous, x, y, flux, model_radius)
+    return image - (neighbour_model - own)
 
 
 #: PSF stars per node (or ``stars_per_node`` if fewer) that the clean selection of a

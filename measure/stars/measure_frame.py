@@ -36,11 +36,15 @@ from mavispm.measure.stars.batched_fit import (
     FitResult,
     crowding_flags,
     fit_stars,
-    render_model,
 )
 from mavispm.measure.stars.crlb import crlb
 from mavispm.measure.stars.detection import completeness, detect_sources, detection_scores
-from mavispm.measure.stars.epsf import EPSFOptions, build_field_epsf, choose_node_stars
+from mavispm.measure.stars.epsf import (
+    EPSFOptions,
+    build_field_epsf,
+    choose_node_stars,
+    neighbours_subtracted,
+)
 from mavispm.measure.stars.epsf_anchor import EarlierAnchor
 from mavispm.measure.stars.error_model import (
     ErrorModel,
@@ -508,14 +512,13 @@ def half_epsf(
     psf = build_field_epsf(options=opts, half=half, neighbour_flux=upper, anchor=anchor, **first)[0]
     if "neighbour_model" not in last:
         return psf
-    image = last["image"] - last["neighbour_model"]
-    own = render_model(
-        image.shape, last["previous"], last["x"][used], last["y"][used], last["flux"][used],
-        last["model_radius"],
+    image = neighbours_subtracted(
+        last["image"], last["neighbour_model"], last["previous"], last["x"][used],
+        last["y"][used], last["flux"][used], last["model_radius"],
     )  # fmt: skip
     x0, y0 = first["x"][used], first["y"][used]
     fit = fit_stars(
-        image + own,
+        image,
         psf,
         x0,
         y0,

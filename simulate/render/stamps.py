@@ -872,7 +872,7 @@ class StarRenderer:
         if noise_sigma is None or noise_sigma <= 0 or flux_max <= 0:
             return floor, dtype
         allowed = self.params.stamp_threshold * noise_sigma / flux_max
-        if dtype == "float32" and FLOAT32_ROUNDOFF > allowed:
+        if flux_max > self._float64_flux(noise_sigma):
             dtype = "float64"
         return min(floor, allowed), dtype
 
