@@ -8,8 +8,9 @@ layers, 8 LGS at 17.5" / 90 km, DMs at 0 / 6 / 13.5 km, 550 nm):
   FWHM centre 14.5, field median 15.4, corner 18.0 mas. Tolerance 10%.
 * The MAVISIM paper: field-average sigma_TT of tab:ttjitter's asterisms 2.92 /
   6.45 / 9.23 mas (good / typical / bad), tolerance 10%; FWHM_ave of
-  tab:simparams (PSF x TT kernel x 3 mas charge diffusion x 3.5 mas
-  vibration), tolerance 5%.
+  tab:simparams (the HO PSF's FWHM in quadrature with the TT kernel, 3 mas
+  charge diffusion and 3.5 mas vibration, as the paper computes it:
+  :func:`fwhm_ave_quadrature`), tolerance 5%.
 
 Figures the model does not reach yet are ``xfail(strict=True)`` with the
 measured value in the reason, so they flip to failures (and must be promoted)
@@ -52,7 +53,7 @@ SIMPARAMS = {
     "IVx3": ("bad", 3, False, 61.42),
 }
 #: measured (idle-machine independent) values of the cases the model misses
-MISSES = {"IV": 28.51, "IIIx3": 47.77, "IVx3": 70.48}
+MISSES = {"IV": 28.14, "IIIx3": 46.21, "IVx3": 67.04}
 #: TIPTOP 1.6.0 (astro-tiptop, with astro-p3 1.6.4) run on its shipped perfTest/MAVIS.ini
 #: (getHoErrorBreakDown; PSD sums per science direction), RMS wavefront error in nm:
 #: fitting, aliasing, servo-lag alone (its SCAO integrator formula), spatio-temporal
@@ -212,13 +213,28 @@ def test_tiptop_field_median_fwhm(full_grid):
     assert np.median(f) == pytest.approx(TIPTOP["fwhm"][1], rel=0.10)
 
 
-def _gaussian_convolve(psf: np.ndarray, cov: np.ndarray, pixel: float) -> np.ndarray:
-    n = psf.shape[0]
-    yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2) * pixel
-    ic = np.linalg.inv(cov)
-    k = np.exp(-0.5 * (ic[0, 0] * xx**2 + 2 * ic[0, 1] * xx * yy + ic[1, 1] * yy**2))
-    k /= k.sum()
-    return np.fft.irfft2(np.fft.rfft2(psf) * np.fft.rfft2(np.fft.ifftshift(k)), s=psf.shape)
+def fwhm_ave_quadrature(fwhm_ho: float, tt_cov: np.ndarray, blur: float) -> float:
+    """tab:simparams' FWHM_ave as the paper computes it [mas].
+
+    The paper (sec. "Modeling the Imager") obtains the realistic FWHM by adding the HO
+    PSF's FWHM in quadrature with the FWHM of the average TT residual and the charge
+    diffusion; tab:simparams follows that law exactly (I = Ia and Ib = III although the
+    HO PSF varies, and the TT term of the x3 rows is 3.00 times that of the x1 rows to
+    rounding), which a FWHM measured on field-variable PSFs would not. The TT kernel is
+    elliptical: its quadrature term is the per-axis variance tr(C) / 2 (second moments
+    add exactly under convolution), averaged over the nodes.
+
+    Parameters
+    ----------
+    fwhm_ho : float
+        FWHM of the HO PSF [mas] (the centre node, or the mean over the nodes).
+    tt_cov : ndarray, shape (N, 2, 2)
+        TT residual covariances at the nodes [mas^2].
+    blur : float
+        Charge diffusion and vibration sigma in quadrature [mas].
+    """
+    tt_var = float(np.mean(np.trace(tt_cov, axis1=1, axis2=2))) / 2
+    return float(np.sqrt(fwhm_ho**2 + 8 * np.log(2) * (blur**2 + tt_var)))
 
 
 @pytest.mark.slow
@@ -240,10 +256,26 @@ def test_paper_fwhm_ave(full_grid, sim):
     else:
         tt = TipTiltField(TipTiltSettings(asterism=asterism, scale_factor=scale), ATM, PUPIL)
         cov = tt.covariance(gx.ravel(), gy.ravel())
-    blur = (3.0**2 + 3.5**2) * np.eye(2)
     c = g.cube.shape[0] // 2  # the centre node (11 x 11 grid)
-    widths = []
-    for k, (i, j) in enumerate(np.ndindex(gx.shape)):
-        psf = g.cube[c, c] if static else g.cube[i, j]
-        widths.append(fwhm(_gaussian_convolve(psf, cov[k] + blur, g.pixel_scale), g.pixel_scale))
-    assert np.mean(widths) == pytest.approx(paper, rel=0.05)
+    nodes = [g.cube[c, c]] if static else list(g.cube.reshape(-1, g.n, g.n))
+    fwhm_ho = float(np.mean([fwhm(p, g.pixel_scale) for p in nodes]))
+    got = fwhm_ave_quadrature(fwhm_ho, cov, np.hypot(3.0, 3.5))
+    assert got == pytest.approx(paper, rel=0.05)
+
+
+def test_fwhm_ave_quadrature_is_the_second_moment_law():
+    """For a Gaussian HO PSF and an elliptical TT kernel the quadrature figure is the FWHM of
+    the Gaussian whose per-axis variance is half the trace of the second moments of the
+    convolved image, measured by brute force on pixels (the law the paper's sum relies on)."""
+    pixel, n = 0.5, 401
+    yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2) * pixel
+    sigma_ho = 14.5 / (2 * np.sqrt(2 * np.log(2)))
+    cov = np.array([[30.0, 12.0], [12.0, 18.0]])
+    total = cov + (sigma_ho**2 + 3.0**2 + 3.5**2) * np.eye(2)
+    ic = np.linalg.inv(total)
+    img = np.exp(-0.5 * (ic[0, 0] * xx**2 + 2 * ic[0, 1] * xx * yy + ic[1, 1] * yy**2))
+    img /= img.sum()
+    half_trace = 0.5 * np.sum(img * (xx**2 + yy**2))
+    want = 2 * np.sqrt(2 * np.log(2)) * np.sqrt(half_trace)
+    got = fwhm_ave_quadrature(14.5, cov[None], np.hypot(3.0, 3.5))
+    assert got == pytest.approx(want, rel=1e-3)

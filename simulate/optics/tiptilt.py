@@ -9,7 +9,13 @@ covariance ``C = s^2 (C_tomo + C_noise + sigma_ws^2 I)``:
   ``K_ij(rho) = a(rho) delta_ij - b(rho) rho_i rho_j / rho^2`` with
   ``a = pi int f^3 S (J0 + J2) df`` and ``b = 2 pi int f^3 S J2 df`` at the
   separation ``rho = h_l |alpha - theta|`` of each layer, so the kernels are
-  elongated along the NGS-target axes (anisoplanatism).
+  elongated along the NGS-target axes (anisoplanatism). ``tilt = "G"``
+  (default): the gradient-averaged tilt, whose filter is the pupil's Fourier
+  transform ``(jinc(x) - eps^2 jinc(eps x)) / (1 - eps^2)``, ``x = pi D f``: the
+  centroid of the image moves by exactly the pupil-averaged phase gradient.
+  ``tilt = "Z"``: the Zernike (least-squares plane) tilt,
+  ``8 (J2(x) - eps^2 J2(eps x)) / (x^2 (1 - eps^4))``, what TIPTOP's ``mastsel``
+  computes (its Zernike covariances); a cross-check.
 * NGS noise: photon and read noise of a centroid per loop frame from the H
   magnitude, reduced by the closed-loop noise gain g / (2 - g).
 * MCAO filter (optional, TIPTOP's ``[sensor_LO] filtZernikeCov``; off by default
@@ -111,6 +117,9 @@ class TipTiltSettings:
         MAVIS.ini ``TechnicalFoV``).
     ho_frame_rate : float
         HO loop rate (Hz) of the MCAO filter's temporal rejection.
+    tilt : {"G", "Z"}
+        Tilt definition of the covariances: "G" (default) the gradient (centroid)
+        tilt, "Z" the Zernike tilt of TIPTOP's ``mastsel`` (a cross-check).
     """
 
     enabled: bool = True
@@ -128,6 +137,7 @@ class TipTiltSettings:
     mcao_filter: bool = False
     technical_fov: float = unit_field(120.0, "arcsec", "technical field diameter")
     ho_frame_rate: float = unit_field(1000.0, "Hz", "HO loop rate")
+    tilt: Literal["G", "Z"] = "G"
 
     def __post_init__(self):
         if self.asterism == "custom" and not self.ngs:
@@ -146,6 +156,8 @@ class TipTiltSettings:
             raise ValueError("windshake, read_noise must be >= 0 and n_pixels >= 1")
         if self.technical_fov < 0 or not self.ho_frame_rate > 0:
             raise ValueError("technical_fov must be >= 0 arcsec and ho_frame_rate > 0 Hz")
+        if self.tilt not in ("G", "Z"):
+            raise ValueError(f"tilt must be 'G' or 'Z', got {self.tilt!r}")
 
     def stars(self) -> tuple[tuple[float, float, float], ...]:
         """The asterism in use: (radius arcsec, angle deg, H mag) per NGS."""
@@ -291,32 +303,42 @@ def tilt_covariance_function(
     pupil: PupilSettings,
     max_separation: float,
     mcao: tuple[float, float] | None = None,
+    tilt: str = "G",
 ) -> TiltCovariance:
-    """Tabulate the G-tilt covariance of the layered atmosphere.
+    """Tabulate the tilt covariance of the layered atmosphere.
 
     Parameters
     ----------
     atmosphere : AtmosphereSettings
         Turbulence profile, seeing and zenith angle.
     pupil : PupilSettings
-        Pupil diameter and obscuration (the annular G-tilt averaging aperture).
+        Pupil diameter and obscuration (the annular tilt averaging aperture).
     max_separation : float
         Largest angular separation needed (rad).
     mcao : (float, float) or None
         (technical field diameter arcsec, HO loop rate Hz) of the MCAO filter
         :func:`mcao_rejection`; None for the open-loop turbulence.
+    tilt : {"G", "Z"}
+        Gradient (centroid) tilt or Zernike tilt (module docstring).
     """
     from scipy.special import j0, j1  # ~0.3-0.5 s to import: a warm process loads the table
 
     lay = layers(atmosphere)
     r0 = fried_parameter(atmosphere, REFERENCE_WAVELENGTH)
     opd2 = (REFERENCE_WAVELENGTH / (2 * np.pi)) ** 2  # rad^2 -> m^2 of OPD
-    f = np.geomspace(1e-4, 50.0, 1500)
+    # from 1e-8 m^-1: with L0 >> D the tilt variance converges slowly at low frequency
+    # (starting at 1e-4 missed 6% / 12% of the Kolmogorov variance for D = 1 / 8 m)
+    f = np.geomspace(1e-8, 50.0, 2500)
     x = np.pi * pupil.diameter * f
     eps = pupil.obscuration_ratio
-    jinc = 2 * j1(x) / x
-    jinc_small = 2 * j1(eps * x) / (eps * x) if eps > 0 else np.zeros_like(x)
-    filt = (jinc - eps**2 * jinc_small) / (1 - eps**2)
+    if tilt == "Z":
+        from scipy.special import jv
+
+        filt = 8 * (jv(2, x) - eps**2 * jv(2, eps * x)) / (x**2 * (1 - eps**4))
+    else:
+        jinc = 2 * j1(x) / x
+        jinc_small = 2 * j1(eps * x) / (eps * x) if eps > 0 else np.zeros_like(x)
+        filt = (jinc - eps**2 * jinc_small) / (1 - eps**2)
     s = (2 * np.pi) ** 2 * filt**2 * von_karman_psd(f**2, r0, atmosphere.outer_scale) * opd2
     if mcao is not None:
         fov, ho_rate = mcao
@@ -339,7 +361,7 @@ def tilt_covariance_function(
 
 
 #: Version of the tilt-covariance table computation (part of its disk-cache key).
-TILT_CACHE_VERSION = 1
+TILT_CACHE_VERSION = 2
 
 
 def cached_tilt_covariance(
@@ -348,6 +370,7 @@ def cached_tilt_covariance(
     max_separation: float,
     mcao: tuple[float, float] | None = None,
     cache_dir=None,
+    tilt: str = "G",
 ) -> TiltCovariance:
     """:func:`tilt_covariance_function`, kept in ``cache_dir`` (when given).
 
@@ -356,7 +379,7 @@ def cached_tilt_covariance(
 
     Parameters
     ----------
-    atmosphere, pupil, max_separation, mcao
+    atmosphere, pupil, max_separation, mcao, tilt
         As :func:`tilt_covariance_function`.
     cache_dir : path, optional
         Folder of the cache file ``tiltcov-<key>.npz``; None: computed.
@@ -366,7 +389,7 @@ def cached_tilt_covariance(
     TiltCovariance
     """
     if cache_dir is None:
-        return tilt_covariance_function(atmosphere, pupil, max_separation, mcao)
+        return tilt_covariance_function(atmosphere, pupil, max_separation, mcao, tilt)
     import dataclasses
     from pathlib import Path
 
@@ -378,13 +401,14 @@ def cached_tilt_covariance(
         dataclasses.asdict(pupil),
         float(max_separation),
         None if mcao is None else [float(v) for v in mcao],
+        tilt,
     )
     path = Path(cache_dir) / f"tiltcov-{key}.npz"
     names = [f.name for f in dataclasses.fields(TiltCovariance)]
     stored = load_arrays(path)
     if stored is not None and set(stored) == set(names):
         return TiltCovariance(**{n: np.array(stored[n]) for n in names})
-    table = tilt_covariance_function(atmosphere, pupil, max_separation, mcao)
+    table = tilt_covariance_function(atmosphere, pupil, max_separation, mcao, tilt)
     save_arrays(path, {n: np.asarray(getattr(table, n)) for n in names})
     return table
 
@@ -419,7 +443,7 @@ class TipTiltField:
         step = 100.0 / 206265.0
         mcao = (settings.technical_fov, settings.ho_frame_rate) if settings.mcao_filter else None
         self._cov = cached_tilt_covariance(
-            atmosphere, pupil, step * np.ceil(needed / step), mcao, cache_dir
+            atmosphere, pupil, step * np.ceil(needed / step), mcao, cache_dir, settings.tilt
         )
         n = theta.shape[0]
         self._theta = theta
