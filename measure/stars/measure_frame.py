@@ -43,7 +43,6 @@ from mavispm.measure.stars.epsf import (
     EPSFOptions,
     build_field_epsf,
     choose_node_stars,
-    neighbours_subtracted,
 )
 from mavispm.measure.stars.epsf_anchor import EarlierAnchor
 from mavispm.measure.stars.error_model import (
@@ -436,8 +435,9 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None, halo
     upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
     if settings.uses_psfr:
         return replace(build_psfr(frame, x0, y0, settings, flux, upper, data, noise), halo=halo)
-    build = first = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
+    build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
     psf, used = build_field_epsf(options=opts, neighbour_flux=upper, anchor=anchor, **build)
+    isolation_flux = upper
     opts = replace(opts, oversampling=psf.oversampling)  # "auto" resolved once
     for _ in range(settings.neighbour_passes):
         # an intermediate fit for the neighbour model: the sweeps of before 2026-12-02
@@ -453,55 +453,46 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None, halo
             neighbour_model=fit.model_image,
             previous=psf,
             model_radius=settings.stamp_radius,
+            # each node stays centred on its PSF stars' start positions, as in the first
+            # build: anchored to the fitted positions, it took over their errors, which
+            # the first ePSF's interpolation between nodes had put there (NGC 3201
+            # frame: V 17-20 at 3.7 x CRLB, 2.8 x so; docs/measure.md)
+            start=(x0, y0),
         )
         psf, used = build_field_epsf(options=opts, anchor=anchor, **build)
+        isolation_flux = None
     halves = None
     per_node = min(settings.psf_stars_per_node, len(used))
     if settings.error_model == "epsf" and per_node >= MIN_STARS_SPLIT:
         try:
-            halves = tuple(
-                half_epsf(h, first, build, upper, used, opts, settings, anchor) for h in (0, 1)
-            )
+            halves = tuple(half_epsf(h, build, opts, isolation_flux, anchor) for h in (0, 1))
         except InputError:  # a half too poor for an ePSF: chi^2 terms only
             halves = None
     return FramePSF(psf, len(used), halves, halo=halo)
 
 
 def half_epsf(
-    half: int,
-    first: dict,
-    last: dict,
-    upper: np.ndarray,
-    used: np.ndarray,
-    opts: EPSFOptions,
-    settings: MeasureSettings,
-    anchor=None,
+    half: int, build: dict, opts: EPSFOptions, neighbour_flux=None, anchor=None
 ) -> VariableEPSF:
     """The ePSF of one half of every node's PSF stars, built as the full ePSF was.
 
-    The full ePSF's node centres carry the mean error of their PSF stars' start
-    positions, through its first build and, smoothed by the grid interpolation, through
-    the fitted positions of the neighbour pass. Each half therefore repeats that chain:
-    a first build from the start positions, a refit of the PSF stars with it on the
-    neighbour-subtracted frame, and the last build from those positions. Halves built
-    from the full chain's fitted positions shared its node-centre errors, and the
-    error model missed them (docs/measure.md, "Error model"). With ``neighbour_passes``
-    above 1 the half does one pass.
+    Every build starts from, and centres each node on, the PSF stars' start positions
+    (the neighbour pass too), so a half repeats the full ePSF's last build with its
+    stars only: its node centres carry the mean error of its own stars' start
+    positions, which the error model then sees. (Halves built from the full chain's
+    fitted positions shared its node-centre errors, and the error model missed them;
+    docs/measure.md, "Error model".)
 
     Parameters
     ----------
     half : {0, 1}
         Which half (:func:`mavispm.measure.stars.epsf.build_field_epsf`).
-    first, last : dict
-        The keyword arguments of the full chain's first and last builds.
-    upper : ndarray
-        Neighbour fluxes of the first build's isolation test [electron].
-    used : ndarray of int
-        PSF stars of the full ePSF.
+    build : dict
+        The keyword arguments of the full chain's last build.
     opts : EPSFOptions
         Builder options (oversampling resolved).
-    settings : MeasureSettings
-        The stage settings (stamp radius, sky plane).
+    neighbour_flux : ndarray, optional
+        Neighbour fluxes of the isolation test, as in that build [electron].
     anchor : EarlierAnchor, optional
         Observer mode's centre convention.
 
@@ -509,31 +500,9 @@ def half_epsf(
     -------
     VariableEPSF
     """
-    psf = build_field_epsf(options=opts, half=half, neighbour_flux=upper, anchor=anchor, **first)[0]
-    if "neighbour_model" not in last:
-        return psf
-    image = neighbours_subtracted(
-        last["image"], last["neighbour_model"], last["previous"], last["x"][used],
-        last["y"][used], last["flux"][used], last["model_radius"],
-    )  # fmt: skip
-    x0, y0 = first["x"][used], first["y"][used]
-    fit = fit_stars(
-        image,
-        psf,
-        x0,
-        y0,
-        read_noise_var=first["noise_floor"],
-        sky0=0.0,
-        flux0=np.maximum(last["flux"][used], 1.0),
-        bad=first["bad"],
-        options=psf_star_fit_options(settings),
-        return_model=False,
-        uncertainties=False,
-    )
-    ok = (fit.flag & FLAG_FAILED) == 0
-    x, y = np.array(last["x"], float), np.array(last["y"], float)
-    x[used], y[used] = np.where(ok, fit.x, x0), np.where(ok, fit.y, y0)
-    return build_field_epsf(options=opts, half=half, anchor=anchor, start=(x, y), **last)[0]
+    return build_field_epsf(
+        options=opts, half=half, neighbour_flux=neighbour_flux, anchor=anchor, **build
+    )[0]
 
 
 #: Oversampling of the PSF-R model ePSF with ``oversampling = "auto"``: the model is
