@@ -264,6 +264,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         iterations=settings.iterations,
         tolerance=settings.tolerance,
         relative_tolerance=settings.relative_tolerance,
+        chi2_tolerance=settings.chi2_tolerance,
+        flux_refresh=settings.flux_refresh,
         max_shift=settings.max_shift,
         min_snr=settings.min_snr,
         chunk=settings.chunk,
