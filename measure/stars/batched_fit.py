@@ -178,6 +178,11 @@ class FitResult:
         (:func:`~mavispm.measure.stars.halo.halo_profile`, at the annuli
         :func:`halo_radii`): measured by this fit or passed to it (``halo``); None
         when the fit models no light outside the stamps.
+    crowding : ndarray or None
+        The stamp's misfit that the neighbours' light explains at the solution,
+        ``1 + (chi2 - 1) q`` with ``q`` the neighbours' share of the model light on the
+        stamp (:func:`_neighbour_misfit`; NaN where no uncertainties were computed;
+        None from other engines): the error model's crowding term.
     """
 
     x: np.ndarray
@@ -194,6 +199,7 @@ class FitResult:
     model_image: np.ndarray | None
     sky_slope: np.ndarray | None = None
     halo_profile: np.ndarray | None = None
+    crowding: np.ndarray | None = None
 
 
 def halo_radii(options: FitOptions) -> np.ndarray:
@@ -717,6 +723,7 @@ def fit_stars(
     f_err = np.full(n, np.nan)
     s_err = np.full(n, np.nan)
     chi2 = np.full(n, np.nan)
+    crowding = np.full(n, np.nan)
     all_idx = np.flatnonzero(usable)
     if uncertainties or return_model:  # exact (not linearised) models at the solution
         for idx in _chunks(all_idx, opt.chunk):
@@ -729,6 +736,9 @@ def fit_stars(
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
+        crowding[idx] = _neighbour_misfit(
+            w * resid**2, model[flat[idx]] - own[idx], own[idx], valid[idx], npar
+        )
     if uncertainties:
         separation = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
         close = pairs[(separation < opt.blend_radius) & usable[pairs].all(axis=1)]
@@ -771,6 +781,7 @@ def fit_stars(
         else None,
         sky_slope=np.where(usable[:, None], slope, 0.0),
         halo_profile=measured if models_halo else None,
+        crowding=crowding,
     )
 
 

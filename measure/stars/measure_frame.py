@@ -783,6 +783,7 @@ def error_terms(
         relative_chi2=True,
         floor_fraction=settings.psfr_model_error,
         fisher_position=np.hypot(fit.x_err, fit.y_err) / np.sqrt(2.0),
+        crowding=fit.crowding,
     )
 
 
