@@ -193,7 +193,7 @@ def _misfit_score(options, seeds=range(8)):
 
 
 def test_misfit_crowd_converges_without_stopping_early():
-    """In a crowd at the 1e5-star frame's density (250 stars on 200 x 200 px) fitted with
+    """In a crowd 1.6 x as dense as the 1e5-star frame (250 stars on 160 x 160 px) fitted with
     a misfitting ePSF, the stage's fitter converges for >= 99 % of the stars with m < 24,
     fails for <= 1 %, and the converged stars at m 22-24 stay within 1.7 x the CRLB
     (measured 2026-12-02: 0.29 % unconverged, 0.69 % failed, 1.58). The convergence test
