@@ -263,6 +263,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         iterations=settings.iterations,
         tolerance=settings.tolerance,
         relative_tolerance=settings.relative_tolerance,
+        chi2_tolerance=settings.chi2_tolerance,
+        flux_refresh=settings.flux_refresh,
         max_shift=settings.max_shift,
         min_snr=settings.min_snr,
         chunk=settings.chunk,
@@ -750,6 +752,7 @@ def error_terms(
         relative_chi2=True,
         floor_fraction=settings.psfr_model_error,
         fisher_position=np.hypot(fit.x_err, fit.y_err) / np.sqrt(2.0),
+        crowding=fit.crowding,
     )
 
 
