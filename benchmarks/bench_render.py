@@ -6,6 +6,8 @@ Run ``python benchmarks/bench_render.py [--quick]`` from the repository root (wi
 1. render time against centroid bias, flux error and pixel error for the accuracy
    knobs (``RenderParams``), measured on isolated stars against a high-accuracy
    render (oversampling 4, float64, no spectrum floor, wide stamps);
+1c. the best case of rendering the outer PSF wing on coarse pixels (``wing``): pixel
+   error, centroid shift and stamp pixels against the split radius and the binning;
 2. time and peak memory (tracemalloc) against the number of stars for a full
    4000 x 4000 frame with every term on (field-variable PSF, tip-tilt, distortion,
    halo, sky, photon + read noise, 120 x 30 s stack);
@@ -198,6 +200,72 @@ def halo_table(optics, quick: bool):
         err = np.abs(img - ref).max()
         ferr = abs(img.sum() - ref.sum()) / ref.sum()
         print(f"   {b:10d} {dt:9.3f} {err / ref.max():18.1e} {err / core_peak:18.1e} {ferr:9.1e}")
+
+
+def wing_bound(optics, quick: bool):
+    """Best case of rendering each star's outer wing on coarse pixels (not implemented).
+
+    Each PSF node is split as in split rendering (``split_cube``: inner part inside
+    ``R`` pixels, outer part beyond); the outer part of an isolated star is rendered
+    exactly on detector pixels and low-passed at the Nyquist frequency of pixels ``b``
+    times coarser (``1 / (2 b s)``, square cut). Any coarse-pixel wing (rendered on
+    ``b x b`` binned pixels and interpolated back, or deposited in a shared coarse image)
+    loses at least this: its error is the wing's content beyond that frequency plus the
+    interpolation's own. Printed: the largest pixel error per unit flux, the largest flux
+    whose error stays below ``stamp_threshold`` x the pixel noise (0.05 x 0.28 e- per
+    sub-exposure), and the largest shift of the 31 x 31-pixel centroid (microarcsec; the
+    issue's limit is 0.5), against the stamp pixels of a V = 24 star (863 e-) with the
+    split (inner stamp + coarse stamp) and without.
+    """
+    from mavispm.simulate.render.outer_convolution import split_cube
+    from mavispm.simulate.render.stamps import _TaperedGrid
+
+    grid = optics.psf_grid
+    s, noise, faint = 7.5, 0.28, 863.0
+    psf_scale = float(u.Quantity(grid.pixel_scale, u.mas).value)
+    cube = np.asarray(grid.cube, dtype=float)
+    n = cube.shape[-1]
+    full = StarRenderer(grid, s, RenderParams())
+    rng = np.random.default_rng(3)
+    k = 4 if quick else 12
+    x, y = rng.uniform(-14, 14, k), rng.uniform(-14, 14, k)
+    cov = u.Quantity(optics.kernel_covariance(x, y), u.mas**2).value
+    sig = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])
+    m_full = int(full.stamp_sizes([faint], noise, sig[:1], x[:1], y[:1])[0])
+    npix, h = 256, 15
+    yy, xx = np.mgrid[-h : h + 1, -h : h + 1]
+    freq = np.abs(np.fft.fftfreq(npix, s))
+    print("\n1c. Outer wing on coarse pixels, best case (ideal low-pass of the exact outer part),")
+    print(f"   {k} isolated stars; V = 24 star: full stamp {m_full} px ({m_full**2} pixels)")
+    print(f"   {'R [px]':>6s} {'b':>2s} {'pix err/flux':>13s} {'max flux [e-]':>14s}"
+          f" {'centroid [uas]':>15s} {'pixels (V=24)':>14s}")  # fmt: skip
+    for r_split in (8.0, 12.0, 16.0, 24.0):
+        inner, outer = split_cube(cube.reshape(-1, n, n), psf_scale, s, r_split)
+        wide = RenderParams(stamp_threshold=1e-4)
+        r_out = StarRenderer(_TaperedGrid(grid, outer.reshape(cube.shape)), s, wide)
+        r_in = StarRenderer(_TaperedGrid(grid, inner.reshape(cube.shape)), s, RenderParams())
+        m_in = int(r_in.stamp_sizes([faint], noise, sig[:1], x[:1], y[:1])[0])
+        for b in (2, 4):
+            err = shift = 0.0
+            for i in range(k):
+                xp, yp = npix / 2 + rng.uniform(-0.5, 0.5, 2)
+                args = ([xp], [yp], x[i : i + 1], y[i : i + 1], cov[i : i + 1], [1.0], [npix])
+                star, wing = np.zeros((npix, npix)), np.zeros((npix, npix))
+                full.render(star, *args)
+                r_out.render(wing, *args)
+                spec = np.fft.fft2(wing)
+                cut = freq > 1 / (2 * b * s)
+                spec[cut, :] = 0
+                spec[:, cut] = 0
+                d = np.fft.ifft2(spec).real - wing
+                c = slice(npix // 2 - h, npix // 2 + h + 1)
+                win = d[c, c]
+                err = max(err, np.abs(d).max())
+                moved = np.hypot((win * xx).sum(), (win * yy).sum()) / star[c, c].sum()
+                shift = max(shift, moved * s * 1e3)
+            pixels = m_in**2 + (m_full // b) ** 2
+            print(f"   {r_split:6.0f} {b:2d} {err:13.2e} {0.05 * noise / err:14.0f}"
+                  f" {shift:15.2f} {pixels:14d}")  # fmt: skip
 
 
 # ----------------------------------------------------------- 2. cost vs star count
@@ -516,7 +584,9 @@ def main(argv=None):
         help="use the optics of the MAVISIM comparison (its 256 px PSF database, every term on)",
     )
     ap.add_argument(
-        "--only", choices=["knobs", "halo", "scaling", "mavisim"], help="run one section"
+        "--only",
+        choices=["knobs", "halo", "wing", "scaling", "mavisim"],
+        help="run one section",
     )
     ap.add_argument("--stars", type=int, nargs="+", help="star counts of the MAVISIM comparison")
     ap.add_argument("--repeats", type=int, default=2, help="timed runs per package and count")
@@ -549,6 +619,8 @@ def main(argv=None):
         knob_table(optics, args.quick)
     if args.only in (None, "halo"):
         halo_table(optics, args.quick)
+    if args.only in (None, "wing"):
+        wing_bound(optics, args.quick)
     if args.only in (None, "scaling"):
         scaling(optics, args.quick)
     if args.only is None:

@@ -180,13 +180,19 @@ def main(argv: list[str] | None = None) -> int:
     ----------
     argv : list of str or None
         Command-line words (None: ``sys.argv[1:]``, the program: the objects of the
-        imports are then frozen out of the cyclic garbage collector, ``gc.freeze``).
+        imports are then frozen out of the cyclic garbage collector, ``gc.freeze``, and
+        numba's BLAS module is loaded without ``scipy.linalg``, see
+        :mod:`mavispm.core.blas_preload`).
 
     Returns
     -------
     int
         Exit status: 0 on success, 2 on bad input (one line on stderr).
     """
+    if argv is None:  # the mavispm program: numba's BLAS check without scipy.linalg
+        from mavispm.core.blas_preload import load_cython_blas_alone
+
+        load_cython_blas_alone()
     parser = build_parser(argv, everything=False)
     try:
         args = parser.parse_args(argv)
