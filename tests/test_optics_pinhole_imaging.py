@@ -78,7 +78,11 @@ def test_fitted_holes_scatter_at_the_cramer_rao_bound(imaging):
     assert 0.05 < expected < 2.0  # a real noise level (mas), not zero
     # ~210 samples: the RMS is known to ~5%; a PSF fitter reaches the bound to ~20%
     assert 0.8 * expected < rms < 1.3 * expected
-    assert np.max(np.abs(offsets)) < 10 * expected  # offsets exist but stay sub-pixel
+    # the offset is the mean start error of the exposure's holes (measure_hole_images starts
+    # each hole 0.5 pixel rms off the truth per axis): Gaussian, sigma = 0.5 pix / sqrt(n)
+    pixel = scene.detector.pixel_scale  # mas
+    start_sigma = 0.5 * pixel / np.sqrt(len(truth[0][0]))
+    assert np.max(np.abs(offsets)) < 4.5 * start_sigma
 
 
 def test_direct_fit_of_rendered_holes_recovers_the_injected_polynomial(imaging):
