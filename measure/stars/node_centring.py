@@ -18,6 +18,13 @@ stars' fitted positions then move by the interpolated shift (first order in the
 shift, a few hundredths of a pixel). The convention stays the start list's: the
 mean correction over the stars near each node is zero, as it was over its PSF
 stars, now averaged over ~10 x more stars.
+
+Used only where the start list is the epoch's own (a first epoch, forced or
+blind, or a truth-forced one): a start carried from earlier epochs holds the
+stars' motions, which the centring would take up node by node; observer mode's
+later epochs keep the earlier ePSF's centre instead
+(:mod:`mavispm.measure.stars.epsf_anchor`). The centring's own error
+(:meth:`NodeCentring.error_at`) enters the error model.
 """
 
 from __future__ import annotations
