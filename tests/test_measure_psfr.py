@@ -323,7 +323,13 @@ def test_psfr_on_a_rendered_frame_with_every_term(tmp_path):
         assert n >= 200
         assert ratio <= limit, (lo, ratio)
         assert abs(norm_std - 1.0) <= 0.15, (lo, norm_std)
-    assert psfr[17][0] < 0.7 * epsf[17][0]  # the frame-built ePSF: ~2 x CRLB at V 17-20
+    # the frame-built ePSF (no prior) was at 3.0 x CRLB at V 17-20, PSF-R well ahead;
+    # with its nodes centred on all stars it meets the same targets (1.38 / 1.20 / 1.15
+    # x pooled, normalised 0.95 / 0.93 / 1.00; docs/measure.md)
+    for lo, limit in ((17, 1.5), (20, 1.3), (22, 1.2)):
+        ratio, norm_std, n = epsf[lo]
+        assert ratio <= limit, (lo, ratio)
+        assert abs(norm_std - 1.0) <= 0.15, (lo, norm_std)
 
 
 @pytest.mark.slow
@@ -334,9 +340,12 @@ def test_frame_built_epsf_on_a_rendered_frame_with_every_term(tmp_path):
     The neighbour-pass rebuild centres each node ePSF on its PSF stars' start positions,
     as the first build does. Anchored to the positions fitted with the first ePSF, it
     took over their errors (which that ePSF's interpolation between nodes had put
-    there): 2.75 / 1.46 x CRLB at V 17-20 / 20-22 on this frame, now 2.06 / 1.24 (the
-    4000 x 4000 px frame: 3.80 / 1.85, now 3.02 / 1.53; docs/measure.md). The errors
-    stay conservative at the bright end (normalised residuals 0.64 at V 17-20)."""
+    there): 2.75 / 1.46 x CRLB at V 17-20 / 20-22 on this frame, then 2.06 / 1.24 (the
+    4000 x 4000 px frame: 3.80 / 1.85, then 3.02 / 1.53; docs/measure.md), with
+    conservative errors at the bright end (normalised residuals 0.64 at V 17-20).
+    Each node is now centred after the fit on all well-measured stars near it
+    (``epsf_centring = "all"``): 1.06 / 1.18 / 1.15 x, normalised residuals 0.79 /
+    1.04 / 1.05; the limits are issue 14's targets (the old code fails V 17-20)."""
     render_cli = pytest.importorskip("mavispm.simulate.render.cli")
     from mavispm.simulate.cluster.cli import run_stage as cluster_stage
     from mavispm.simulate.optics.psf_grid import default_cache_dir
@@ -355,8 +364,8 @@ def test_frame_built_epsf_on_a_rendered_frame_with_every_term(tmp_path):
     )
     frames = render_cli.run_stage(cat, "e0", scene, tmp_path / "frames.h5", 3, optics=optics)
     epsf = _pooled(run_stage(frames, {"psf_model": "epsf"}, tmp_path / "e.h5"))
-    for lo, limit in ((17, 2.4), (20, 1.35), (22, 1.25)):
+    for lo, limit in ((17, 1.5), (20, 1.3), (22, 1.2)):
         ratio, norm_std, n = epsf[lo]
         assert n >= 100
         assert ratio <= limit, (lo, ratio)
-        assert norm_std <= 1.15, (lo, norm_std)  # the errors are not too small
+        assert 0.7 <= norm_std <= 1.15, (lo, norm_std)  # neither too small nor too large

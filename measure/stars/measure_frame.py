@@ -51,6 +51,7 @@ from mavispm.measure.stars.error_model import (
     estimate_error_model,
 )
 from mavispm.measure.stars.measured_table import MEASURED_SPEC
+from mavispm.measure.stars.node_centring import centred_on_all_stars, centring_summary
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
 from mavispm.measure.stars.psf_reconstruction import build_psfr_epsf, read_prior
 from mavispm.measure.stars.settings import MeasureSettings
@@ -387,6 +388,10 @@ class FramePSF:
     halo : ndarray or None
         The frame's halo profile (:attr:`FitResult.halo_profile`) that the building's
         neighbour passes used, or the one it was given; None when no fit measured it.
+    centring : tuple of NodeCentring or None
+        The node centring on all stars
+        (:func:`mavispm.measure.stars.node_centring.centred_on_all_stars`) of the
+        ePSF and its halves; None: the nodes are centred on their PSF stars.
     """
 
     psf: VariableEPSF
@@ -394,6 +399,7 @@ class FramePSF:
     halves: tuple[VariableEPSF, VariableEPSF] | None = None
     psfr_kernels: np.ndarray | None = None
     halo: np.ndarray | None = None
+    centring: tuple | None = None
 
 
 #: PSF stars per node needed to build the two half-set ePSFs of the error model.
@@ -741,7 +747,19 @@ def error_terms(
     row = np.clip(np.nan_to_num(fit.y) * grid // ny, 0, grid - 1)
     cells = (row * grid + col).astype(np.intp)
     if frame_psf.psfr_kernels is None:
-        return estimate_error_model(fit.flux, fit.chi2, usable, shifts, cells)
+        # nodes centred on all stars: a bright star's chi^2 grows with its flux (the
+        # ePSF's shape misfit) without moving it, as with the PSF-R model; its
+        # position error beyond Fisher is the half-set term
+        # position error beyond Fisher is the half-set term (within a cell) and the
+        # node centring's own error (its least-squares covariance)
+        centred = frame_psf.centring is not None
+        model = estimate_error_model(
+            fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=centred
+        )
+        if centred:
+            node_err = frame_psf.centring[0].error_at(frame_psf.psf, fit.x, fit.y)
+            model = replace(model, position=np.hypot(model.position, node_err))
+        return model
     # PSF-R model: chi^2 against the star's peers, plus the model-error floor
     return estimate_error_model(
         fit.flux,
@@ -1005,6 +1023,12 @@ def measure_frame(
     psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
     t_psf = time.perf_counter()
     fit = run_engine(frame, psf, x0, y0, settings, return_model=False, halo=frame_psf.halo)
+    centring = None
+    # a carried start holds the stars' motions: a later epoch keeps its convention
+    # (the earlier ePSF, or its PSF stars' carried positions with epsf_anchor = "start")
+    if not carried and settings.epsf_centring == "all" and frame_psf.psfr_kernels is None:
+        frame_psf, fit = centred_on_all_stars(frame, frame_psf, fit, x0, y0, settings)
+        psf, centring = frame_psf.psf, frame_psf.centring
     t_fit = time.perf_counter()
     errors = error_terms(frame, frame_psf, fit, settings)
     t_err = time.perf_counter()
@@ -1107,6 +1131,7 @@ def measure_frame(
         "start": extra.pop("start"),
         "start_transform": extra.pop("start_transform", None),
         "epsf_anchor": anchor_summary(anchor, frame.pixel_scale),
+        "epsf_centring": centring_summary(centring, frame.pixel_scale),
         "psf_model": "psfr" if frame_psf.psfr_kernels is not None else "epsf",
         "psfr": psfr_summary(frame_psf, settings),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),

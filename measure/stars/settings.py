@@ -228,6 +228,13 @@ class MeasureSettings:
         them and each node ePSF is centred on its PSF stars' mean start (as at
         the first epoch, where the start is the input list). An earlier product
         without an ePSF falls back to "start".
+    epsf_centring : {"all", "psf_stars"}
+        What centres each node of a frame-built ePSF whose start list is not carried
+        from earlier epochs (a first epoch, blind or forced). "all"
+        (default): after the fit, every well-measured star near the node, weighted
+        by the node's interpolation weight and its Fisher and start-position errors
+        (:mod:`mavispm.measure.stars.node_centring`). "psf_stars" (the method
+        before): the mean start position of the node's PSF stars only.
     match_radius : float [pix]
         Truth cross-match distance cut.
     crowding_radius : float [pix]
@@ -297,6 +304,7 @@ class MeasureSettings:
     later_epochs: Literal["measured", "truth"] = "measured"
     refine_start: bool = True
     epsf_anchor: Literal["earlier", "start"] = "earlier"
+    epsf_centring: Literal["all", "psf_stars"] = "all"
     match_radius: float = unit_field(2.0, "pix")
     crowding_radius: float = unit_field(10.0, "pix")
     crowding_ratio: float = 0.1
