@@ -49,6 +49,7 @@ __all__ = [
     "fit_stars",
     "halo_radii",
     "marginalise_neighbours",
+    "overlap_pairs",
     "render_model",
 ]
 
@@ -382,6 +383,37 @@ def render_model(
     return out.reshape(shape)
 
 
+def overlap_pairs(x: np.ndarray, y: np.ndarray, keep: np.ndarray, distance: float) -> np.ndarray:
+    """Pairs of the kept stars closer than ``distance``: the stamps that overlap.
+
+    Only the kept stars are searched. The fitter parks the stars off the frame at one
+    position; searched with the others, those ``K`` stars formed a clique of ``K^2 / 2``
+    pairs and ``K`` colours (on the 1e5-star MAVIS frame 4,953 stars off the frame:
+    12.3 million of the 12.4 million pairs and 4,955 colours where the stars on the frame
+    need 8), every sweep looped over those colours and pairs, and the fit's cost grew as
+    ``N^2`` (docs/measure.md, "Scale").
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (N,)
+        Positions [pixel].
+    keep : ndarray of bool, shape (N,)
+        Stars that take part.
+    distance : float
+        Pair distance [pixel].
+
+    Returns
+    -------
+    ndarray of int, shape (P, 2)
+        Indices into ``x`` of each pair (each once, the lower index first).
+    """
+    idx = np.flatnonzero(keep)
+    if len(idx) < 2:
+        return np.zeros((0, 2), dtype=np.intp)
+    pairs = cKDTree(np.column_stack([x[idx], y[idx]])).query_pairs(distance, output_type="ndarray")
+    return idx[pairs]
+
+
 def _chunks(index: np.ndarray, size: int):
     for start in range(0, len(index), size):
         yield index[start : start + size]
@@ -461,6 +493,7 @@ def fit_stars(
     usable = np.isfinite(x0) & np.isfinite(y0)
     usable &= (x0 > -0.5) & (x0 < nx - 0.5) & (y0 > -0.5) & (y0 < ny - 0.5)
     flag[~usable] |= FLAG_FAILED | FLAG_EDGE
+    on_frame = usable.copy()  # the others are parked at (0, 0) and have no neighbours
     x = np.where(usable, x0, 0.0)
     y = np.where(usable, y0, 0.0)
     start_x, start_y = x.copy(), y.copy()
@@ -509,11 +542,7 @@ def fit_stars(
     flux = np.zeros(n) if flux0 is None else np.nan_to_num(np.asarray(flux0, float)).copy()
     own = np.zeros((n, s * s))  # each star's current contribution to the model image
     model = np.zeros(len(pixels))  # sum of all star models on the touched pixels
-    pairs = (
-        cKDTree(np.column_stack([x, y])).query_pairs(2 * r + 1.0, output_type="ndarray")
-        if n > 1
-        else np.zeros((0, 2), dtype=np.intp)
-    )
+    pairs = overlap_pairs(x, y, on_frame, 2 * r + 1.0)
     # tightly coupled stars step jointly (joint_step); the groups are coloured so that
     # no two groups stepped together overlap (a star alone is a group of one)
     label, colour = _coloured_groups(x, y, usable, pairs, opt)
@@ -701,6 +730,11 @@ def fit_stars(
         moved = usable & (steps >= thresh)
         active = moved.copy()
         if len(pairs):
+            # NB a fancy-indexed |= writes a repeated index once (its last pair wins), so a
+            # star wakes by at most two of its pairs, chosen by the pairs' order. Waking it
+            # by every moved neighbour (np.logical_or.at) was measured on the 1e5-star
+            # frame: 47 % more star steps, +26 % fit CPU, V 24-25 scatter 130 -> 141 mpix,
+            # not converged 1.34 -> 1.75 % (docs/measure.md, "Scale"); not adopted
             active[pairs[:, 0]] |= moved[pairs[:, 1]]
             active[pairs[:, 1]] |= moved[pairs[:, 0]]
         # a group steps together: all its stars or none
@@ -908,8 +942,7 @@ def marginalise_neighbours(
 def _coloured_groups(x, y, usable, pairs, opt):
     """Group label (:func:`~mavispm.measure.stars.joint_step.coupled_groups`) and colour
     (groups that share a pair differ) of each star. A function of its own so that its
-    pair-sized temporaries (12 million pairs at the centre of the 1e5-star frame,
-    ~300 MB) are freed before the sweeps."""
+    pair-sized temporaries are freed before the sweeps."""
     n = len(x)
     if opt.joint_radius <= 0:
         return np.arange(n), colour_graph(n, pairs)
