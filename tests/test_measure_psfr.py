@@ -287,6 +287,29 @@ def _pooled(path):
     return out
 
 
+def _every_term_frame(tmp_path, n_stars, field_arcsec, npix):
+    """An NGC 3201 preset frame (seed 21) rendered with every term on (the default optics'
+    11 x 11 Fourier PSF grid, tip-tilt with the typical asterism, blur, seeing halo,
+    distortion, detector; 120 x 30 s): its ``frames`` product and the scene's optics."""
+    render_cli = pytest.importorskip("mavispm.simulate.render.cli")
+    from mavispm.simulate.cluster.cli import run_stage as cluster_stage
+    from mavispm.simulate.optics.psf_grid import default_cache_dir
+
+    cluster = {"preset": "ngc3201", "n_stars": n_stars, "field_size": f"{field_arcsec} arcsec"}
+    cat = cluster_stage(cluster, tmp_path / "c.h5", 21)
+    scene = {
+        "exptime": "30 s",
+        "nexp": 120,
+        "detector": {"nx": npix, "ny": npix},
+        "optics": {"tiptilt": {"asterism": "typical"}},
+    }
+    optics = render_cli.build_scene_optics(
+        render_cli.validate_settings(scene), cache_dir=default_cache_dir()
+    )
+    frames = render_cli.run_stage(cat, "e0", scene, tmp_path / "frames.h5", 3, optics=optics)
+    return frames, optics
+
+
 @pytest.mark.slow
 def test_psfr_on_a_rendered_frame_with_every_term(tmp_path):
     """The default 4000 x 4000 px (30") NGC 3201 frame rendered with every term on
@@ -298,24 +321,8 @@ def test_psfr_on_a_rendered_frame_with_every_term(tmp_path):
     where the robust std of the normalised residuals has a ~10 % standard error, so a
     +-0.15 criterion there failed or passed by chance (0.81-0.93 on the same code paths,
     0.94-0.97 on the whole frame with ~240 stars; docs/measure.md)."""
-    render_cli = pytest.importorskip("mavispm.simulate.render.cli")
-    from mavispm.simulate.cluster.cli import run_stage as cluster_stage
-    from mavispm.simulate.optics.psf_grid import default_cache_dir
-
-    cat = cluster_stage(
-        {"preset": "ngc3201", "n_stars": 3500, "field_size": "30 arcsec"}, tmp_path / "c.h5", 21
-    )
-    scene = {
-        "exptime": "30 s",
-        "nexp": 120,
-        "detector": {"nx": 4000, "ny": 4000},
-        "optics": {"tiptilt": {"asterism": "typical"}},
-    }
-    optics = render_cli.build_scene_optics(
-        render_cli.validate_settings(scene), cache_dir=default_cache_dir()
-    )
+    frames, optics = _every_term_frame(tmp_path, 3500, 30, 4000)
     prior = optics.cache_path  # the optics stage's PSF grid product (the PSF-R prior)
-    frames = render_cli.run_stage(cat, "e0", scene, tmp_path / "frames.h5", 3, optics=optics)
     psfr = _pooled(run_stage(frames, {"psf_prior": str(prior)}, tmp_path / "r.h5"))
     epsf = _pooled(run_stage(frames, {}, tmp_path / "e.h5"))
     for lo, limit in ((17, 1.5), (20, 1.3), (22, 1.2)):
@@ -346,23 +353,7 @@ def test_frame_built_epsf_on_a_rendered_frame_with_every_term(tmp_path):
     Each node is now centred after the fit on all well-measured stars near it
     (``epsf_centring = "all"``): 1.06 / 1.18 / 1.15 x, normalised residuals 0.79 /
     1.04 / 1.05; the limits are issue 14's targets (the old code fails V 17-20)."""
-    render_cli = pytest.importorskip("mavispm.simulate.render.cli")
-    from mavispm.simulate.cluster.cli import run_stage as cluster_stage
-    from mavispm.simulate.optics.psf_grid import default_cache_dir
-
-    cat = cluster_stage(
-        {"preset": "ngc3201", "n_stars": 1750, "field_size": "15 arcsec"}, tmp_path / "c.h5", 21
-    )
-    scene = {
-        "exptime": "30 s",
-        "nexp": 120,
-        "detector": {"nx": 2000, "ny": 2000},
-        "optics": {"tiptilt": {"asterism": "typical"}},
-    }
-    optics = render_cli.build_scene_optics(
-        render_cli.validate_settings(scene), cache_dir=default_cache_dir()
-    )
-    frames = render_cli.run_stage(cat, "e0", scene, tmp_path / "frames.h5", 3, optics=optics)
+    frames, _ = _every_term_frame(tmp_path, 1750, 15, 2000)
     epsf = _pooled(run_stage(frames, {"psf_model": "epsf"}, tmp_path / "e.h5"))
     for lo, limit in ((17, 1.5), (20, 1.3), (22, 1.2)):
         ratio, norm_std, n = epsf[lo]
