@@ -34,6 +34,7 @@ from tqdm import tqdm
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
 from mavispm.measure.stars.halo import halo_profile
+from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped
 from mavispm.measure.stars.joint_step import coupled_groups, cross_blocks, solve_groups
 from mavispm.measure.stars.stamp_kernel import deposit_radial
 from mavispm.measure.stars.stamp_kernel import normal_equations as fused_normal_equations
@@ -434,6 +435,7 @@ def fit_stars(
     return_model: bool = True,
     uncertainties: bool = True,
     halo: np.ndarray | None = None,
+    halo_shape: HaloShape | None = None,
 ) -> FitResult:
     """Fit positions, fluxes and local skies of all stars simultaneously.
 
@@ -469,6 +471,10 @@ def fit_stars(
         of the frame, and measuring it (:func:`~mavispm.measure.stars.halo.halo_profile`)
         costs ~0.3 s per fit at 3,500 stars. None (default): measured from the
         image around this fit's brightest stars.
+    halo_shape : HaloShape, optional
+        The non-round shape of the halo (:mod:`~mavispm.measure.stars.halo_shape`, from
+        the PSF-R prior): each bright star's light outside its stamp is the radial
+        profile times this modulation. None (default): round.
 
     Returns
     -------
@@ -690,15 +696,12 @@ def fit_stars(
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
         # into the model directly (kept apart only for the returned star-model image)
-        deposit_radial(
-            pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r,
-            flux[bright], profile, radii[0], out=model,
-        )  # fmt: skip
-        if len(halo_light):
-            deposit_radial(
-                pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r,
-                flux[bright], profile, radii[0], out=halo_light,
-            )  # fmt: skip
+        for out in (model, halo_light) if len(halo_light) else (model,):
+            args = (pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r)
+            if halo_shape is None:
+                deposit_radial(*args, flux[bright], profile, radii[0], out=out)
+            else:
+                deposit_shaped(*args, flux[bright], profile, radii[0], halo_shape, out)
 
     models_halo = opt.wing_threshold > 0 and opt.halo_radius > r + 1
     halo_pending = models_halo

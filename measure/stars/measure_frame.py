@@ -50,6 +50,7 @@ from mavispm.measure.stars.error_model import (
     epsf_difference_shifts,
     estimate_error_model,
 )
+from mavispm.measure.stars.halo_shape import HaloShape, prior_halo_shape
 from mavispm.measure.stars.measured_table import MEASURED_SPEC
 from mavispm.measure.stars.node_centring import centred_on_all_stars, centring_summary
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
@@ -308,6 +309,7 @@ def run_engine(
     engine=None,
     return_model: bool = True,
     halo: np.ndarray | None = None,
+    halo_shape: HaloShape | None = None,
 ) -> FitResult:
     """Fit all stars with the selected engine.
 
@@ -329,6 +331,8 @@ def run_engine(
     halo : ndarray, optional
         The frame's halo profile from an earlier fit of the frame
         (:attr:`FitResult.halo_profile`); None: the fast engine measures it.
+    halo_shape : HaloShape, optional
+        The halo's non-round shape (:attr:`FramePSF.halo_shape`); None: round.
 
     Returns
     -------
@@ -356,6 +360,7 @@ def run_engine(
             options=fit_options(settings),
             return_model=return_model,
             halo=halo,
+            halo_shape=halo_shape,
             **common,
         )
     if engine == "photutils":
@@ -392,6 +397,10 @@ class FramePSF:
         The node centring on all stars
         (:func:`mavispm.measure.stars.node_centring.centred_on_all_stars`) of the
         ePSF and its halves; None: the nodes are centred on their PSF stars.
+    halo_shape : HaloShape or None
+        PSF-R model: the non-round shape of the bright stars' light beyond their stamps
+        (:func:`~mavispm.measure.stars.halo_shape.prior_halo_shape`), for the fast
+        engine; None: round.
     """
 
     psf: VariableEPSF
@@ -400,6 +409,7 @@ class FramePSF:
     psfr_kernels: np.ndarray | None = None
     halo: np.ndarray | None = None
     centring: tuple | None = None
+    halo_shape: HaloShape | None = None
 
 
 #: PSF stars per node needed to build the two half-set ePSFs of the error model.
@@ -613,7 +623,11 @@ def build_psfr(
             ]
             for h in (0, 1)
         )
-    return FramePSF(psf, len(used), halves, kernels)
+    shape = prior_halo_shape(
+        prior, frame.to_pixel, frame.pixel_scale * 1000.0, kernels,
+        int(settings.halo_radius), settings.stamp_radius,
+    )  # fmt: skip
+    return FramePSF(psf, len(used), halves, kernels, halo_shape=shape)
 
 
 def psfr_summary(frame_psf: FramePSF, settings: MeasureSettings) -> str | None:
@@ -1022,7 +1036,10 @@ def measure_frame(
     frame_psf = build_psf(frame, x0, y0, settings, anchor, halo)
     psf, n_psf = frame_psf.psf, frame_psf.n_psf_stars
     t_psf = time.perf_counter()
-    fit = run_engine(frame, psf, x0, y0, settings, return_model=False, halo=frame_psf.halo)
+    fit = run_engine(
+        frame, psf, x0, y0, settings, return_model=False, halo=frame_psf.halo,
+        halo_shape=frame_psf.halo_shape,
+    )  # fmt: skip
     centring = None
     # a carried start holds the stars' motions: a later epoch keeps its convention
     # (the earlier ePSF, or its PSF stars' carried positions with epsf_anchor = "start")

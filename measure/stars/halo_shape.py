@@ -1,0 +1,237 @@
+"""The non-round shape of bright stars' light beyond their fitting stamps, from the PSF-R prior.
+
+The fitter models a bright star's light outside its stamp as ``flux * profile(r)``, a
+radial profile measured on the frame (:mod:`~mavispm.measure.stars.halo`). An AO PSF is
+not round there: between the fitting stamp and the control radius its structure (the
+DM's fitting-error ring, the aliasing and servo lobes) modulates the azimuthal mean by
+-30 to +40 % (1st-99th percentile, MAVIS grid, 5-52 px), hundreds of times a faint
+neighbour's pixel noise around a V < 15 star. The observer's PSF reconstruction (the
+``psfgrid`` prior of the PSF-R model, :mod:`~mavispm.measure.stars.psf_reconstruction`)
+knows that structure: this module turns each prior node's PSF, blurred by the kernel the
+PSF-R fit found and sampled on the detector pixels, into a *modulation* map, the PSF
+over its own azimuthal mean in 1-px annuli. The fitter multiplies the measured radial
+profile by it (bilinear in the field between the nodes and in the offset from the
+star), so the frame keeps the radial calibration and the prior adds only the shape
+(docs/measure.md, "Scale").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy.ndimage import gaussian_filter, map_coordinates, uniform_filter
+
+from mavispm.measure.stars.psf_reconstruction import PSFRPrior, stretch_psf
+
+__all__ = ["HaloShape", "deposit_shaped", "modulation", "prior_halo_shape"]
+
+
+@dataclass(frozen=True)
+class HaloShape:
+    """Modulation maps of the halo's azimuthal mean at a grid of field nodes.
+
+    Parameters
+    ----------
+    maps : ndarray, shape (len(node_y), len(node_x), 2 R + 1, 2 R + 1)
+        Light over its azimuthal mean (1 where not known), offsets ``-R..R`` [pixel]
+        from the star, row (y) first.
+    node_x, node_y : ndarray
+        Node positions [pixel] of the frame, increasing.
+    """
+
+    maps: np.ndarray
+    node_x: np.ndarray
+    node_y: np.ndarray
+
+    @property
+    def radius(self) -> int:
+        """Half-width ``R`` of the maps [pixel]."""
+        return (self.maps.shape[-1] - 1) // 2
+
+    def weights(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The four bracketing nodes (flat indices) and their bilinear weights per star."""
+
+        def axis(nodes, v):
+            if len(nodes) == 1:
+                return np.zeros(len(v), np.int64), np.zeros(len(v))
+            v = np.clip(v, nodes[0], nodes[-1])
+            i = np.clip(np.searchsorted(nodes, v, side="right") - 1, 0, len(nodes) - 2)
+            return i, (v - nodes[i]) / (nodes[i + 1] - nodes[i])
+
+        nxn = len(self.node_x)
+        ix, wx = axis(self.node_x, np.asarray(x, float))
+        iy, wy = axis(self.node_y, np.asarray(y, float))
+        jx1 = np.minimum(ix + 1, nxn - 1)
+        jy1 = np.minimum(iy + 1, len(self.node_y) - 1)
+        index = np.stack([iy * nxn + ix, iy * nxn + jx1, jy1 * nxn + ix, jy1 * nxn + jx1], 1)
+        w = np.stack([(1 - wy) * (1 - wx), (1 - wy) * wx, wy * (1 - wx), wy * wx], 1)
+        return index.astype(np.int64), w
+
+
+def modulation(image: np.ndarray, inner: float) -> np.ndarray:
+    """An image (optical axis at its centre) over its azimuthal mean in 1-px annuli.
+
+    Parameters
+    ----------
+    image : ndarray, shape (2 R + 1, 2 R + 1)
+        Light per pixel around a star [any unit].
+    inner : float
+        Radius [pixel] up to which the map is 1 (the fitting stamp models that light).
+
+    Returns
+    -------
+    ndarray
+        The modulation; 1 within ``inner``, beyond ``R`` and where the mean is not
+        positive.
+    """
+    n = image.shape[0]
+    half = (n - 1) // 2
+    off = np.arange(n) - half
+    r = np.hypot(off[None, :], off[:, None])
+    ring = np.rint(r).astype(int)
+    mean = np.bincount(ring.ravel(), image.ravel()) / np.bincount(ring.ravel())
+    m = mean[ring]
+    ok = (r > inner) & (r <= half) & (m > 0)
+    return np.where(ok, image / np.where(ok, m, 1.0), 1.0)
+
+
+def prior_halo_shape(
+    prior: PSFRPrior,
+    to_pixel,
+    pixel_scale: float,
+    kernel: np.ndarray,
+    radius: int,
+    inner: float,
+) -> HaloShape:
+    """The halo's modulation maps from the PSF-R prior (:func:`modulation` per node).
+
+    Parameters
+    ----------
+    prior : PSFRPrior
+        The observer's PSF reconstruction (already degraded by its width error).
+    to_pixel : callable
+        ``(x_arcsec, y_arcsec) -> (x_pix, y_pix)`` of the frame.
+    pixel_scale : float
+        Detector pixel [mas].
+    kernel : ndarray, shape (K, 4)
+        The PSF-R fit's kernels ``(cxx, cyy, cxy, stretch)`` [mas^2, 1]: the median
+        width (round, ``sqrt((cxx + cyy) / 2)``, 0 where not positive) and stretch blur
+        and stretch the prior before it is sampled.
+    radius : int
+        Half-width of the maps [pixel] (at most the prior's half-width).
+    inner : float
+        Radius [pixel] within which the maps are 1.
+
+    Returns
+    -------
+    HaloShape
+    """
+    k = np.median(np.asarray(kernel, float), axis=0)
+    sigma = np.sqrt(max(0.5 * (k[0] + k[1]), 0.0)) / prior.pixel_scale
+    ratio = pixel_scale / prior.pixel_scale
+    n = prior.cube.shape[-1]
+    centre = (n - 1) / 2.0
+    radius = int(min(radius, np.floor(centre / ratio) - 1))
+    d = np.arange(-radius, radius + 1.0) * ratio + centre
+    rows, cols = np.meshgrid(d, d, indexing="ij")
+    maps = np.empty(prior.cube.shape[:2] + (2 * radius + 1,) * 2)
+    for j in range(maps.shape[0]):
+        for i in range(maps.shape[1]):
+            psf = stretch_psf(prior.cube[j, i], k[3])
+            if sigma > 0:
+                psf = gaussian_filter(psf, sigma)
+            # pixel integration (a box of the detector pixel), then bilinear sampling
+            psf = uniform_filter(psf, size=max(int(round(ratio)), 1), mode="constant")
+            maps[j, i] = modulation(map_coordinates(psf, [rows, cols], order=1), inner)
+    nx, _ = to_pixel(prior.nodes_x, np.full(len(prior.nodes_x), np.median(prior.nodes_y)))
+    _, ny = to_pixel(np.full(len(prior.nodes_y), np.median(prior.nodes_x)), prior.nodes_y)
+    nx, ny = np.asarray(nx, float), np.asarray(ny, float)
+    if nx[-1] < nx[0]:
+        nx, maps = nx[::-1], maps[:, ::-1]
+    if ny[-1] < ny[0]:
+        ny, maps = ny[::-1], maps[::-1]
+    return HaloShape(np.ascontiguousarray(maps), nx, ny)
+
+
+@numba.njit(nogil=True, cache=True)
+def _deposit(pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in, maps, nodes, w, out):
+    ny, nx = shape
+    r_out = r_in + len(profile) - 1
+    half = (maps.shape[-1] - 1) // 2
+    for k in range(len(xs)):
+        row0 = max(0, int(np.floor(ys[k] - r_out)))
+        row1 = min(ny - 1, int(np.ceil(ys[k] + r_out)))
+        for row in range(row0, row1 + 1):
+            dy = row - ys[k]
+            if dy * dy >= r_out * r_out:
+                continue
+            span = np.sqrt(r_out * r_out - dy * dy)
+            c0 = max(0, int(np.floor(xs[k] - span)))
+            c1 = min(nx - 1, int(np.ceil(xs[k] + span)))
+            lo = np.searchsorted(pixels, row * nx + c0)
+            hi = np.searchsorted(pixels, row * nx + c1 + 1)
+            own_row = abs(row - cys[k]) <= radius
+            fy = dy + half
+            jy = int(np.floor(fy))
+            uy = fy - jy
+            for q in range(lo, hi):
+                col = pixels[q] - row * nx
+                if own_row and abs(col - cxs[k]) <= radius:
+                    continue
+                dx = col - xs[k]
+                r = np.sqrt(dx * dx + dy * dy)
+                t = r - r_in
+                if t < 0.0 or t >= len(profile) - 1:
+                    continue
+                i = int(t)
+                f = t - i
+                m = 1.0
+                fx = dx + half
+                jx = int(np.floor(fx))
+                if jx >= 0 and jy >= 0 and jx < 2 * half and jy < 2 * half:
+                    ux = fx - jx
+                    m = 0.0
+                    for a in range(4):
+                        if w[k, a] == 0.0:
+                            continue
+                        g = maps[nodes[k, a]]
+                        m += w[k, a] * (
+                            (1 - uy) * ((1 - ux) * g[jy, jx] + ux * g[jy, jx + 1])
+                            + uy * ((1 - ux) * g[jy + 1, jx] + ux * g[jy + 1, jx + 1])
+                        )
+                out[q] += flux[k] * m * (profile[i] * (1.0 - f) + profile[i + 1] * f)
+
+
+def deposit_shaped(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, halo_shape, out):
+    """:func:`~mavispm.measure.stars.stamp_kernel.deposit_radial` times the halo's shape.
+
+    Each star adds ``flux * profile(r) * m(dx, dy)`` to the pixels of ``pixels`` outside
+    its own stamp, ``m`` the :class:`HaloShape` modulation at the star's field position
+    (bilinear between the nodes) and offset (bilinear between pixels; 1 beyond the maps).
+
+    Parameters
+    ----------
+    pixels, shape, x, y, cx, cy, radius, flux, profile, r_in
+        As :func:`~mavispm.measure.stars.stamp_kernel.deposit_radial` [pixel, electron,
+        1/pixel].
+    halo_shape : HaloShape
+    out : ndarray of float64, shape (P,)
+        Added to in place.
+
+    Returns
+    -------
+    ndarray
+        ``out``.
+    """
+    if len(x) == 0 or len(profile) < 2:
+        return out
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    nodes, w = halo_shape.weights(x, y)
+    maps = halo_shape.maps.reshape(-1, *halo_shape.maps.shape[-2:])
+    _deposit(
+        pixels, shape, x, y, np.asarray(cx, np.int64), np.asarray(cy, np.int64), int(radius),
+        np.asarray(flux, float), np.asarray(profile, float), float(r_in), maps, nodes, w, out,
+    )  # fmt: skip
+    return out

@@ -1,0 +1,165 @@
+"""The halo's non-round shape (measure/stars/halo_shape.py): the deposit against a direct
+sum, the modulation of an analytic image, and faint stars in a non-round halo against
+the truth of the injected frame (docs/measure.md, "Scale")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped, modulation
+
+_CORE, _FRAC, _SCALE, _AMP = 1.2, 0.3, 8.0, 0.5  # core [px], halo fraction, scale [px], m - 1
+
+
+def _wing(dx, dy, angle):
+    """The halo per unit flux [1/pixel]: exponential, ``1 + _AMP cos 2(theta - angle)``
+    beyond 7 px (round inside 4 px, a linear ramp between)."""
+    r = np.hypot(dx, dy)
+    ramp = np.clip((r - 4.0) / 3.0, 0.0, 1.0)
+    shape = 1 + _AMP * ramp * np.cos(2 * (np.arctan2(dy, dx) - angle))
+    return _FRAC * np.exp(-r / _SCALE) / (2 * np.pi * _SCALE**2) * shape
+
+
+def test_deposit_shaped_equals_the_direct_sum():
+    """Two nodes of random maps: every pixel's light is the direct sum over stars of
+    ``flux * profile(r) * m``, ``m`` bilinear between the nodes and the pixels."""
+    rng = np.random.default_rng(0)
+    shape, radius, half = (90, 120), 3, 9
+    maps = rng.uniform(0.5, 1.5, (1, 2, 2 * half + 1, 2 * half + 1))
+    hs = HaloShape(maps, np.array([20.0, 100.0]), np.array([45.0]))
+    x, y = rng.uniform(5, 115, 6), rng.uniform(5, 85, 6)
+    cx, cy = np.rint(x).astype(int), np.rint(y).astype(int)
+    flux, profile, r_in = rng.uniform(1, 10, 6), rng.uniform(0, 1, 12), 3.5
+    pixels = np.sort(rng.choice(shape[0] * shape[1], 4000, replace=False))
+    got = deposit_shaped(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, hs,
+                         np.zeros(len(pixels)))  # fmt: skip
+    rows, cols = pixels // shape[1], pixels % shape[1]
+    want = np.zeros(len(pixels))
+    for k in range(len(x)):
+        dx, dy = cols - x[k], rows - y[k]
+        t = np.hypot(dx, dy) - r_in
+        on = (t >= 0) & (t < len(profile) - 1)
+        on &= ~((np.abs(rows - cy[k]) <= radius) & (np.abs(cols - cx[k]) <= radius))
+        wx = np.clip((x[k] - 20.0) / 80.0, 0, 1)
+        g = (1 - wx) * maps[0, 0] + wx * maps[0, 1]
+        fy, fx = dy + half, dx + half
+        jy, jx = np.floor(fy).astype(int), np.floor(fx).astype(int)
+        inm = (jx >= 0) & (jy >= 0) & (jx < 2 * half) & (jy < 2 * half)
+        jyc, jxc = np.clip(jy, 0, 2 * half - 1), np.clip(jx, 0, 2 * half - 1)
+        uy, ux = fy - jy, fx - jx
+        m = (1 - uy) * ((1 - ux) * g[jyc, jxc] + ux * g[jyc, jxc + 1]) + uy * (
+            (1 - ux) * g[jyc + 1, jxc] + ux * g[jyc + 1, jxc + 1]
+        )
+        m = np.where(inm, m, 1.0)
+        tc = np.where(on, t, 0.0)
+        i = tc.astype(int)
+        prof = profile[i] * (1 - (tc - i)) + profile[i + 1] * (tc - i)
+        want += np.where(on, flux[k] * m * prof, 0.0)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_modulation_recovers_an_analytic_shape():
+    """``1 + a cos 2 theta`` on an exponential: its ring means are the exponential, so
+    the modulation is the shape (within the 1-px rings' sampling), and 1 inside."""
+    off = np.arange(-30, 31.0)
+    dx, dy = off[None, :], off[:, None]
+    m = modulation(_wing(dx, dy, 0.3), inner=5.0)
+    r = np.hypot(dx, dy)
+    far = (r > 10) & (r <= 30)
+    want = 1 + _AMP * np.cos(2 * (np.arctan2(dy, dx) - 0.3))
+    assert np.max(np.abs(m[far] - want[far])) < 0.12
+    assert np.all(m[r <= 5] == 1.0) and np.all(m[r > 30] == 1.0)
+
+
+def _epsf(oversampling=2, half=12):
+    """The PSF's round part out to 6 px, its halo tapered to zero at 12 px (an ePSF
+    that models the star on its fitting stamp)."""
+    from mavispm.measure.stars.variable_psf import constant_epsf
+
+    off = np.arange(-half * oversampling, half * oversampling + 1) / oversampling
+    r = np.hypot(off[None, :], off[:, None])
+    s2 = _CORE**2 + 1.0 / 12
+    core = (1 - _FRAC) * np.exp(-0.5 * r**2 / s2) / (2 * np.pi * s2)
+    taper = np.where(r < 6, 1.0, np.cos(0.5 * np.pi * np.clip((r - 6) / 6, 0, 1)) ** 2)
+    halo = _FRAC * np.exp(-r / _SCALE) / (2 * np.pi * _SCALE**2)
+    return constant_epsf(core + halo * taper, oversampling)
+
+
+def _frame(seed, angle):
+    """Bright stars with the non-round halo of :func:`_wing`, faint stars 7-30 px from
+    them along the halo's long and short axes, and faint stars far from any."""
+    from scipy.special import ndtr
+
+    rng = np.random.default_rng(seed)
+    shape, sky, rn, m = (600, 600), 50.0, 5.0, 45
+    grid = np.arange(75.0, 600.0, 150.0)
+    bx, by = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(grid, grid))
+    bflux = 10 ** rng.uniform(6.0, 6.7, bx.size)
+    dist = np.array([7.0, 10.0, 14.0, 19.0, 25.0, 30.0])
+    xs, ys, ds, axes = [bx], [by], [np.full(bx.size, np.nan)], [np.zeros(bx.size)]
+    for k in range(bx.size):
+        for j, d in enumerate(dist):  # alternately on the long and the short axis
+            a = angle + (j % 2) * np.pi / 2 + (k % 2) * np.pi / 2 + rng.choice([0, np.pi])
+            xs.append([bx[k] + d * np.cos(a)])
+            ys.append([by[k] + d * np.sin(a)])
+            ds.append([d])
+            axes.append([1.0 if (j + k) % 2 == 0 else -1.0])
+    mid = np.arange(150.0, 500.0, 150.0)
+    fx, fy = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(mid, mid))
+    x, y = np.concatenate([*xs, fx]), np.concatenate([*ys, fy])
+    d = np.concatenate([*ds, np.full(fx.size, np.inf)])
+    axis = np.concatenate([*axes, np.zeros(fx.size)])
+    flux = np.concatenate([bflux, np.full(x.size - bx.size, 4000.0)])
+    image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)
+    off = np.arange(-m, m + 1)
+    for k in range(x.size):
+        cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
+        dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
+        core = (ndtr((dx + 0.5) / _CORE) - ndtr((dx - 0.5) / _CORE)) * (
+            ndtr((dy + 0.5) / _CORE) - ndtr((dy - 0.5) / _CORE)
+        )
+        image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
+            (1 - _FRAC) * core + _wing(dx, dy, angle)
+        )
+    image = rng.poisson(image[m:-m, m:-m]).astype(float) + rng.normal(0, rn, shape)
+    return image, x, y, flux, d, axis, sky, rn**2
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_faint_fluxes_in_a_non_round_halo_are_unbiased_with_its_shape(seed):
+    """Faint stars 7-30 px from bright stars whose halo is 1 +- 0.5 times its azimuthal
+    mean along its long / short axis: with the halo's shape (the maps of
+    :func:`modulation` from the PSF's image, as the PSF-R prior gives it) their fitted
+    over true fluxes match those of far stars within 10 % at 6-12 px and 6 % at 12-31
+    px on either axis and none fails (measured: <= 8.2 % and <= 4.9 %). With the round
+    halo alone (the code before the shape) faint stars fail (6 of 96 for seed 0) and
+    the fluxes at 6-12 px are off by 80-96 %."""
+    from mavispm.measure.stars import batched_fit
+
+    angle = 0.4 + seed
+    image, x, y, flux, d, axis, sky, rn2 = _frame(seed, angle)
+    off = np.arange(-40, 41.0)
+    shape = HaloShape(modulation(_wing(off[None, :], off[:, None], angle), inner=5.0)[None, None],
+                      np.array([300.0]), np.array([300.0]))  # fmt: skip
+    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
+                                 iterations=40, relative_tolerance=0.2)  # fmt: skip
+    worst = {}
+    for name, hs in (("round", None), ("shaped", shape)):
+        fit = batched_fit.fit_stars(image, _epsf(), x, y, read_noise_var=rn2, sky0=sky,
+                                    options=opt, halo_shape=hs)  # fmt: skip
+        ratio = fit.flux / flux
+        far = np.median(ratio[np.isinf(d)])
+        assert 0.95 < far < 1.05
+        failed = np.count_nonzero(fit.flag[~np.isnan(d)] & batched_fit.FLAG_FAILED)
+        dev = []  # |median ratio / far - 1| per distance bin, long and short axis
+        for lo, hi in ((6, 12), (12, 20), (20, 31)):
+            for ax in (1, -1):
+                b = (d >= lo) & (d < hi) & (axis == ax)
+                dev.append(abs(np.median(ratio[b]) / far - 1))
+        worst[name] = (failed, np.array(dev))
+    failed, dev = worst["shaped"]
+    assert failed == 0
+    assert np.all(dev[:2] < 0.10) and np.all(dev[2:] < 0.06), dev
+    failed, dev = worst["round"]  # the old code: failures or a bias of >= 0.5 at 6-12 px
+    assert failed > 0 and np.max(dev[:2]) > 0.5, dev
