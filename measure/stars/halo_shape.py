@@ -19,11 +19,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates, uniform_filter
 
 from mavispm.measure.stars.psf_reconstruction import PSFRPrior
+from mavispm.measure.stars.stamp_kernel import deposit_radial
 
 __all__ = ["HaloShape", "deposit_shaped", "modulation", "prior_halo_shape"]
 
@@ -164,55 +164,6 @@ def prior_halo_shape(
     return HaloShape(np.ascontiguousarray(maps), nx, ny)
 
 
-@numba.njit(nogil=True, cache=True)
-def _deposit(pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in, maps, nodes, w, out):
-    ny, nx = shape
-    r_out = r_in + len(profile) - 1
-    half = (maps.shape[-1] - 1) // 2
-    for k in range(len(xs)):
-        row0 = max(0, int(np.floor(ys[k] - r_out)))
-        row1 = min(ny - 1, int(np.ceil(ys[k] + r_out)))
-        for row in range(row0, row1 + 1):
-            dy = row - ys[k]
-            if dy * dy >= r_out * r_out:
-                continue
-            span = np.sqrt(r_out * r_out - dy * dy)
-            c0 = max(0, int(np.floor(xs[k] - span)))
-            c1 = min(nx - 1, int(np.ceil(xs[k] + span)))
-            lo = np.searchsorted(pixels, row * nx + c0)
-            hi = np.searchsorted(pixels, row * nx + c1 + 1)
-            own_row = abs(row - cys[k]) <= radius
-            fy = dy + half
-            jy = int(np.floor(fy))
-            uy = fy - jy
-            for q in range(lo, hi):
-                col = pixels[q] - row * nx
-                if own_row and abs(col - cxs[k]) <= radius:
-                    continue
-                dx = col - xs[k]
-                r = np.sqrt(dx * dx + dy * dy)
-                t = r - r_in
-                if t < 0.0 or t >= len(profile) - 1:
-                    continue
-                i = int(t)
-                f = t - i
-                m = 1.0
-                fx = dx + half
-                jx = int(np.floor(fx))
-                if jx >= 0 and jy >= 0 and jx < 2 * half and jy < 2 * half:
-                    ux = fx - jx
-                    m = 0.0
-                    for a in range(4):
-                        if w[k, a] == 0.0:
-                            continue
-                        g = maps[nodes[k, a]]
-                        m += w[k, a] * (
-                            (1 - uy) * ((1 - ux) * g[jy, jx] + ux * g[jy, jx + 1])
-                            + uy * ((1 - ux) * g[jy + 1, jx] + ux * g[jy + 1, jx + 1])
-                        )
-                out[q] += flux[k] * m * (profile[i] * (1.0 - f) + profile[i + 1] * f)
-
-
 def deposit_shaped(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, halo_shape, out):
     """:func:`~mavispm.measure.stars.stamp_kernel.deposit_radial` times the halo's shape.
 
@@ -234,13 +185,9 @@ def deposit_shaped(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, hal
     ndarray
         ``out``.
     """
-    if len(x) == 0 or len(profile) < 2:
-        return out
     x, y = np.asarray(x, float), np.asarray(y, float)
     nodes, w = halo_shape.weights(x, y)
     maps = halo_shape.maps.reshape(-1, *halo_shape.maps.shape[-2:])
-    _deposit(
-        pixels, shape, x, y, np.asarray(cx, np.int64), np.asarray(cy, np.int64), int(radius),
-        np.asarray(flux, float), np.asarray(profile, float), float(r_in), maps, nodes, w, out,
-    )  # fmt: skip
-    return out
+    return deposit_radial(
+        pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out, modulation=(maps, nodes, w)
+    )

@@ -270,9 +270,14 @@ def normal_equations(value, dvx, dvy, data, model_all, own, valid, flux, sky, sl
 
 
 @numba.njit(nogil=True, cache=True)
-def _deposit_radial(pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in, out):
+def _deposit_radial(
+    pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in, maps, nodes, w, out
+):
+    # maps (M, 2 half + 1, 2 half + 1): the modulation, mixed per star by the weights w
+    # of its nodes (N, 4); half = 0 (one 1 x 1 map): none, every pixel's factor is 1
     ny, nx = shape
     r_out = r_in + len(profile) - 1
+    half = (maps.shape[-1] - 1) // 2
     for k in range(len(xs)):
         row0 = max(0, int(np.floor(ys[k] - r_out)))
         row1 = min(ny - 1, int(np.ceil(ys[k] + r_out)))
@@ -280,12 +285,15 @@ def _deposit_radial(pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in
             dy = row - ys[k]
             if dy * dy >= r_out * r_out:
                 continue
-            half = np.sqrt(r_out * r_out - dy * dy)
-            c0 = max(0, int(np.floor(xs[k] - half)))
-            c1 = min(nx - 1, int(np.ceil(xs[k] + half)))
+            span = np.sqrt(r_out * r_out - dy * dy)
+            c0 = max(0, int(np.floor(xs[k] - span)))
+            c1 = min(nx - 1, int(np.ceil(xs[k] + span)))
             lo = np.searchsorted(pixels, row * nx + c0)
             hi = np.searchsorted(pixels, row * nx + c1 + 1)
             own_row = abs(row - cys[k]) <= radius
+            fy = dy + half
+            jy = int(np.floor(fy))
+            uy = fy - jy
             for q in range(lo, hi):
                 col = pixels[q] - row * nx
                 if own_row and abs(col - cxs[k]) <= radius:
@@ -297,10 +305,26 @@ def _deposit_radial(pixels, shape, xs, ys, cxs, cys, radius, flux, profile, r_in
                     continue
                 i = int(t)
                 f = t - i
-                out[q] += flux[k] * (profile[i] * (1.0 - f) + profile[i + 1] * f)
+                m = 1.0
+                fx = dx + half
+                jx = int(np.floor(fx))
+                if jx >= 0 and jy >= 0 and jx < 2 * half and jy < 2 * half:
+                    ux = fx - jx
+                    m = 0.0
+                    for a in range(4):
+                        if w[k, a] == 0.0:
+                            continue
+                        g = maps[nodes[k, a]]
+                        m += w[k, a] * (
+                            (1 - uy) * ((1 - ux) * g[jy, jx] + ux * g[jy, jx + 1])
+                            + uy * ((1 - ux) * g[jy + 1, jx] + ux * g[jy + 1, jx + 1])
+                        )
+                out[q] += flux[k] * m * (profile[i] * (1.0 - f) + profile[i + 1] * f)
 
 
-def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out=None):
+def deposit_radial(
+    pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out=None, modulation=None
+):
     """Light of stars with a radial profile, on a sorted set of frame pixels.
 
     Each star adds ``flux * profile(r)`` (linear in ``r``, samples 1 pixel apart from
@@ -328,6 +352,10 @@ def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out
         Radius of the first sample [pixel].
     out : ndarray of float64, shape (P,), optional
         Added to in place (no new array: the fitter's model on 1e7 pixels).
+    modulation : (maps, nodes, weights), optional
+        A factor on each star's light (:mod:`~mavispm.measure.stars.halo_shape`): maps
+        of shape (M, 2 h + 1, 2 h + 1) centred on the star (bilinear between pixels, 1
+        beyond them), mixed by ``weights`` (N, 4) over the maps ``nodes`` (N, 4).
 
     Returns
     -------
@@ -340,6 +368,14 @@ def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out
         return out
     if pixels.dtype not in (np.int32, np.int64) or not pixels.flags.c_contiguous:
         pixels = np.ascontiguousarray(pixels, dtype=np.int64)
+    if modulation is None:
+        maps, nodes, weights = (
+            np.ones((1, 1, 1)),
+            np.zeros((len(x), 4), np.int64),
+            np.zeros((len(x), 4)),
+        )
+    else:
+        maps, nodes, weights = modulation
     _deposit_radial(
         pixels,
         (int(shape[0]), int(shape[1])),
@@ -351,6 +387,9 @@ def deposit_radial(pixels, shape, x, y, cx, cy, radius, flux, profile, r_in, out
         np.ascontiguousarray(flux, dtype=np.float64),
         np.ascontiguousarray(profile, dtype=np.float64),
         float(r_in),
+        np.ascontiguousarray(maps, dtype=np.float64),
+        np.ascontiguousarray(nodes, dtype=np.int64),
+        np.ascontiguousarray(weights, dtype=np.float64),
         out,
     )
     return out
