@@ -1,11 +1,18 @@
 """Node centring of a gridded ePSF on all stars (mavispm.measure.stars.node_centring)."""
 
 import numpy as np
+import pytest
 from measure_helpers import SynthPSF, grid_positions, render_image, true_epsf
 
 from mavispm.measure.stars.batched_fit import fit_stars
 from mavispm.measure.stars.epsf_anchor import shift_epsf
-from mavispm.measure.stars.node_centring import node_shifts, recentred_epsf
+from mavispm.measure.stars.node_centring import (
+    NodeCentring,
+    centring_from_summary,
+    centring_summary,
+    node_shifts,
+    recentred_epsf,
+)
 from mavispm.measure.stars.variable_psf import gridded_epsf
 
 
@@ -54,3 +61,26 @@ def test_node_shifts_undo_known_node_offsets_from_noisy_start_positions():
     # the fitted positions moved by the interpolated shift (first order)
     shift = centring.at(off_psf, first.x, first.y)
     assert np.allclose(first.x[good] - shift[good, 0], second.x[good], atol=0.003)
+
+
+def test_centring_error_passes_through_the_product_attribute():
+    """A later epoch centred on an earlier ePSF adds that ePSF's centring error: the
+    covariance written into the ``epsf_centring`` attribute gives back, at a node, the
+    node's own variance, and midway between two nodes the bilinear mix
+    ``sqrt(c_aa + c_bb + 2 c_ab) / 2`` (analytic)."""
+    psf = true_epsf(SynthPSF(1.3), (300, 300), grid=3, size=11, oversampling=2)
+    rng = np.random.default_rng(1)
+    root = rng.normal(0, 1e-3, (9, 9))
+    cov = root @ root.T  # a full, positive definite covariance [pixel^2]
+    back = centring_from_summary(
+        centring_summary((NodeCentring(np.zeros((9, 2)), 0.01, 500, cov),), 7.36e-3)
+    )
+    nx, ny = np.asarray(psf.meta["nodes_x"]), np.asarray(psf.meta["nodes_y"])
+    gx, gy = np.meshgrid(nx, ny)  # row-major, as the nodes
+    np.testing.assert_allclose(back.error_at(psf, gx.ravel(), gy.ravel()), np.sqrt(np.diag(cov)))
+    mid = back.error_at(psf, np.array([(nx[0] + nx[1]) / 2]), np.array([ny[2]]))
+    a, b = 6, 7  # nodes (0, 2) and (1, 2)
+    assert mid[0] == pytest.approx(0.5 * np.sqrt(cov[a, a] + cov[b, b] + 2 * cov[a, b]))
+    assert np.all(back.shifts == 0)  # the earlier ePSF is already centred
+    # nodes centred on their PSF stars: nothing to inherit
+    assert centring_from_summary(centring_summary(None, 7.36e-3)) is None

@@ -190,22 +190,9 @@ def _epoch_difference_scatter(m1, m2, mag_max):
     return 1.4826 * np.median(np.abs(res - np.median(res))), len(k2)
 
 
-@pytest.mark.slow
-def test_later_epoch_as_good_as_truth_forced(tmp_path):
-    """Stars moving 0.3 px rms between the epochs (as the NGC 3201 field over 10 yr):
-    in the epoch difference of the bright stars (what a proper motion sees), the
-    observer's later epoch is within 1.2x of the truth-forced one. It measured
-    0.029 mas against 0.077 (truth-forced) here: anchored to the earlier ePSF, both
-    epochs share its errors, which cancel. The method before
-    (``epsf_anchor = "start"``: a quick ePSF built on the carried positions refined
-    the start, and each node ePSF was centred on its PSF stars' mean start, i.e.
-    their mean motion, keeping the quick ePSF's pixel-phase errors) measured 0.060,
-    2.1x the observer's (1.3-1.9x the truth-forced on the NGC 3201 frame,
-    docs/measure.md). ~25 s CPU. The truth-forced later epoch is centred on its PSF
-    stars, as the observer's later epoch (anchored) effectively is: centred on all its
-    stars' true positions (``epsf_centring = "all"``, the default where the start is
-    not carried) it measured 0.013 mas, the truth pinning every node; the observer's
-    later epoch does not get that (docs/measure.md)."""
+def _moving_pair(tmp_path):
+    """Two epochs of 300 stars (240 x 240 px, 3 x 3 nodes, V 15-21) moving 0.3 px rms
+    between them (as the NGC 3201 field over 10 yr) plus a frame offset; the settings."""
     rng = np.random.default_rng(7)
     n, side = 300, 240
     x, y = rng.uniform(8, side - 8, n), rng.uniform(8, side - 8, n)
@@ -220,27 +207,93 @@ def test_later_epoch_as_good_as_truth_forced(tmp_path):
     write_frames(
         f2, (side, side), x2[inside], y2[inside], mag[inside], psf, seed=22, epoch=10.0, ids=ids
     )
-    cfg = {**FAST, "psf_stars_per_node": 40, "psf_grid": 3}
+    return f1, f2, {**FAST, "psf_stars_per_node": 40, "psf_grid": 3}
+
+
+def _epoch_scatter(path, mag_max):
+    """Robust scatter [mas] of measured - true (x and y pooled, median removed) and the
+    robust std of the normalised residuals of one epoch's bright stars."""
+    s = _stars(path)
+    good = ((np.asarray(s["flag"]) & (4 | 8 | 16 | 32)) == 0) & (s["mag"].to_value(u.mag) < mag_max)
+    d = np.concatenate([(s[a] - s[a + "_true"]).to_value(u.mas)[good] for a in "xy"])
+    err = np.concatenate([s[a + "_err"].to_value(u.mas)[good] for a in "xy"])
+    d = d - np.median(d)
+    return 1.4826 * np.median(np.abs(d)), 1.4826 * np.median(np.abs(d / err))
+
+
+@pytest.mark.slow
+def test_later_epoch_as_good_as_truth_forced(tmp_path):
+    """In the epoch difference of the bright stars (what a proper motion sees), the
+    observer's later epoch is within 1.3x of a truth-forced one centred on all its true
+    positions, and its own scatter against the truth within 1.5x, with honest errors.
+
+    The observer's nodes are centred on all stars against its start refined with the
+    earlier ePSF (measured on this frame: no motion absorbed), so the later epoch takes
+    the earlier ePSF's convention star by star. Measured: epoch difference 0.0142 mas
+    (truth-forced 0.0130), per epoch 0.0139 mas (0.0115), normalised residuals 0.78.
+    Before, each node ePSF's core was only matched to the earlier ePSF
+    (``epsf_anchor``) and kept its PSF stars' start convention: 0.035 mas, per epoch
+    0.035 mas, normalised 0.39 (2.7 / 3.0 x, errors 2.6 x too large; seeds 8-10 1.6-2.0
+    x the truth-forced, new 0.95-1.17 x). The method before that
+    (``epsf_anchor = "start"``: a quick ePSF built on the carried positions refined the
+    start, each node centred on its PSF stars' mean motion) is kept as the reference
+    for a worse method (~0.06 mas). ~6 s CPU."""
+    f1, f2, cfg = _moving_pair(tmp_path)
     m1 = run_stage(f1, cfg, tmp_path / "m1.h5", seed=0)
-    scatter = {}
+    scatter, per_epoch = {}, {}
     for label, extra in (
-        ("truth", {"later_epochs": "truth", "epsf_centring": "psf_stars"}),
+        ("truth", {"later_epochs": "truth"}),
         ("observer", {}),
         ("start", {"epsf_anchor": "start"}),
     ):
         out = run_stage(f2, {**cfg, **extra}, tmp_path / f"m2_{label}.h5", seed=0, earlier=[m1])
         scatter[label], n_bright = _epoch_difference_scatter(m1, out, 19.0)
+        per_epoch[label] = _epoch_scatter(out, 19.0)
         assert n_bright > 40
-    assert scatter["observer"] <= 1.2 * scatter["truth"], scatter
+    assert scatter["observer"] <= 1.3 * scatter["truth"], scatter
+    assert per_epoch["observer"][0] <= 1.5 * per_epoch["truth"][0], per_epoch
+    assert 0.7 <= per_epoch["observer"][1] <= 1.3, per_epoch
     assert scatter["start"] > 1.5 * scatter["observer"], scatter  # the old method's excess
     anchor = json.loads(read_product(tmp_path / "m2_observer.h5", "measured").attrs["epsf_anchor"])
     assert anchor["anchor"] == "earlier"
-    # the first epoch's nodes are centred on all its stars (the input list's convention);
-    # a carried start holds the stars' motions, so no later epoch is centred on it: a
-    # proper-motion pattern is not absorbed beyond what the PSF stars' starts did
-    for name, kind in (("m1", "all"), ("m2_observer", "psf_stars"), ("m2_start", "psf_stars")):
-        attrs = read_product(tmp_path / f"{name}.h5", "measured").attrs
-        assert json.loads(attrs["epsf_centring"])["centring"] == kind, name
+    # the first epoch's nodes are centred on all its stars (the input list); the
+    # observer's later epoch on its refined start; a carried start that holds the
+    # motions (epsf_anchor = "start": refined with a quick ePSF of the carried
+    # positions) is not used
+    for name, kind, reference in (
+        ("m1", "all", "start"),
+        ("m2_observer", "all", "refined"),
+        ("m2_start", "psf_stars", None),
+    ):
+        centring = json.loads(
+            read_product(tmp_path / f"{name}.h5", "measured").attrs["epsf_centring"]
+        )
+        assert centring["centring"] == kind, name
+        assert centring.get("reference") == reference, name
+
+
+def test_later_epoch_after_a_noisy_input_list(tmp_path):
+    """A first epoch forced from an input list with 0.05 px errors is registered to it
+    node by node (~35 stars per node: 0.05 / sqrt(35) ~ 0.008 px ~ 0.06 mas, beyond the
+    bright stars' bound; its errors say so). The observer's later epoch takes that
+    convention from the earlier ePSF star by star: its epoch difference stays within
+    1.3x of the one after an exact input list (measured 0.0165 against 0.0142 mas), and
+    its errors include the earlier convention's (normalised residuals against the truth
+    0.94). Before: 0.029 mas and 1.59 (the errors missed the inherited registration);
+    without the inherited term 6.6."""
+    f1, f2, cfg = _moving_pair(tmp_path)
+    scatter = {}
+    for label, perturbation in (("exact", 0.0), ("noisy", 0.05)):
+        m1 = run_stage(
+            f1, {**cfg, "perturbation": perturbation}, tmp_path / f"m1_{label}.h5", seed=0
+        )
+        m2 = run_stage(f2, cfg, tmp_path / f"m2_{label}.h5", seed=0, earlier=[m1])
+        scatter[label] = _epoch_difference_scatter(m1, m2, 19.0)[0]
+        first, later = _epoch_scatter(m1, 19.0), _epoch_scatter(m2, 19.0)
+        if label == "noisy":
+            assert first[0] > 3 * scatter["exact"]  # the registration to the noisy list
+            assert 0.7 <= first[1] <= 1.3 and 0.7 <= later[1] <= 1.3, (first, later)
+    assert scatter["noisy"] <= 1.3 * scatter["exact"], scatter
 
 
 def _gaussian_epsf(oversampling, x0=0.0, y0=0.0, sigma=1.3):

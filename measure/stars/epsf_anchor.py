@@ -195,6 +195,9 @@ class EarlierAnchor:
         Core radius [pixel] of the match.
     shifts : list of tuple
         ``(x, y, sx, sy)`` [pixel] of every node anchored (diagnostics).
+    centring : NodeCentring, optional
+        The error of the earlier ePSF's node centring
+        (:class:`~mavispm.measure.stars.node_centring.NodeCentring`); None: not known.
     """
 
     psf: VariableEPSF
@@ -202,6 +205,25 @@ class EarlierAnchor:
     b: np.ndarray
     radius: float = ANCHOR_RADIUS
     shifts: list = field(default_factory=list)
+    centring: object = None
+
+    def centring_error(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Per-axis error [pixel] of the earlier ePSF's centre convention at new-frame
+        positions ``x, y`` (zeros where its node centring is not known): a later epoch
+        centred on the earlier ePSF's positions shares it.
+
+        Parameters
+        ----------
+        x, y : ndarray
+            Positions in the new frame [pixel].
+
+        Returns
+        -------
+        ndarray, shape (N,)
+        """
+        if self.centring is None:
+            return np.zeros(np.shape(x))
+        return self.centring.error_at(self.psf, *self.to_earlier_many(x, y))
 
     def to_earlier(self, x: float, y: float) -> tuple[float, float]:
         """A new-frame position [pixel] in the earlier frame (inverse of the affine map).

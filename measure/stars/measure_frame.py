@@ -716,7 +716,11 @@ def epsf_flux_fraction(fit: FitResult, flux_true: np.ndarray, usable: np.ndarray
 
 
 def error_terms(
-    frame: Frame, frame_psf: FramePSF, fit: FitResult, settings: MeasureSettings
+    frame: Frame,
+    frame_psf: FramePSF,
+    fit: FitResult,
+    settings: MeasureSettings,
+    inherited: np.ndarray | None = None,
 ) -> ErrorModel:
     """Error-model terms of every fitted star (:mod:`mavispm.measure.stars.error_model`).
 
@@ -730,6 +734,11 @@ def error_terms(
         The fit.
     settings : MeasureSettings
         ``error_model`` and the fitter settings.
+    inherited : ndarray, optional
+        Per-axis error [pixel] of the centre convention a later epoch's nodes were
+        centred on (the earlier ePSF's node centring,
+        :meth:`~mavispm.measure.stars.epsf_anchor.EarlierAnchor.centring_error`), added
+        to the centring's own error; None: none.
 
     Returns
     -------
@@ -763,15 +772,17 @@ def error_terms(
     if frame_psf.psfr_kernels is None:
         # nodes centred on all stars: a bright star's chi^2 grows with its flux (the
         # ePSF's shape misfit) without moving it, as with the PSF-R model; its
-        # position error beyond Fisher is the half-set term
-        # position error beyond Fisher is the half-set term (within a cell) and the
-        # node centring's own error (its least-squares covariance)
+        # position error beyond Fisher is the half-set term (within a cell), the
+        # node centring's own error (its least-squares covariance) and, at a later
+        # epoch, the error of the earlier convention it was centred on
         centred = frame_psf.centring is not None
         model = estimate_error_model(
             fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=centred
         )
         if centred:
             node_err = frame_psf.centring[0].error_at(frame_psf.psf, fit.x, fit.y)
+            if inherited is not None:
+                node_err = np.hypot(node_err, inherited)
             model = replace(model, position=np.hypot(model.position, node_err))
         return model
     # PSF-R model: chi^2 against the star's peers, plus the model-error floor
@@ -904,7 +915,7 @@ def earlier_anchor(
         return None
     for ep, tr in zip(sorted(earlier, key=_epoch), transforms):
         if ep.psf is not None:
-            return EarlierAnchor(ep.psf, tr.a, tr.b)
+            return EarlierAnchor(ep.psf, tr.a, tr.b, centring=ep.centring)
     return None
 
 
@@ -1041,13 +1052,24 @@ def measure_frame(
         halo_shape=frame_psf.halo_shape,
     )  # fmt: skip
     centring = None
-    # a carried start holds the stars' motions: a later epoch keeps its convention
-    # (the earlier ePSF, or its PSF stars' carried positions with epsf_anchor = "start")
-    if not carried and settings.epsf_centring == "all" and frame_psf.psfr_kernels is None:
+    inherited = None
+    # a later epoch's start refined with the earlier ePSF is measured on this frame (the
+    # motions are in it): centred on it, the new ePSF keeps the earlier one's convention
+    # star by star. A carried start not refined so holds the stars' motions: that epoch
+    # keeps its builder's convention (the earlier ePSF's core, or its PSF stars' carried
+    # positions with epsf_anchor = "start")
+    refined = carried and anchor is not None and settings.refine_start
+    if (
+        (refined or not carried)
+        and settings.epsf_centring == "all"
+        and frame_psf.psfr_kernels is None
+    ):
         frame_psf, fit = centred_on_all_stars(frame, frame_psf, fit, x0, y0, settings)
         psf, centring = frame_psf.psf, frame_psf.centring
+        if refined and centring:
+            inherited = anchor.centring_error(fit.x, fit.y)
     t_fit = time.perf_counter()
-    errors = error_terms(frame, frame_psf, fit, settings)
+    errors = error_terms(frame, frame_psf, fit, settings, inherited)
     t_err = time.perf_counter()
     flag = fit.flag.copy()
     flag[
@@ -1148,7 +1170,9 @@ def measure_frame(
         "start": extra.pop("start"),
         "start_transform": extra.pop("start_transform", None),
         "epsf_anchor": anchor_summary(anchor, frame.pixel_scale),
-        "epsf_centring": centring_summary(centring, frame.pixel_scale),
+        "epsf_centring": centring_summary(
+            centring, frame.pixel_scale, "refined" if carried else "start"
+        ),
         "psf_model": "psfr" if frame_psf.psfr_kernels is not None else "epsf",
         "psfr": psfr_summary(frame_psf, settings),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),

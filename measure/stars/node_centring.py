@@ -19,12 +19,20 @@ shift, a few hundredths of a pixel). The convention stays the start list's: the
 mean correction over the stars near each node is zero, as it was over its PSF
 stars, now averaged over ~10 x more stars.
 
-Used only where the start list is the epoch's own (a first epoch, forced or
-blind, or a truth-forced one): a start carried from earlier epochs holds the
-stars' motions, which the centring would take up node by node; observer mode's
-later epochs keep the earlier ePSF's centre instead
-(:mod:`mavispm.measure.stars.epsf_anchor`). The centring's own error
-(:meth:`NodeCentring.error_at`) enters the error model.
+The reference list is the epoch's own start: a first epoch's input list (forced,
+or the detections), or, at a later epoch in observer mode, the start refined on
+this frame with the earlier epoch's ePSF
+(:func:`mavispm.measure.stars.measure_frame.refined_start`). Those refined
+positions are measured at this epoch, so the stars' motions are in both the
+reference and the fit and no proper motion is absorbed, not even a node's mean
+motion; what the centring takes up is the difference between the earlier and the
+new ePSF's centre as the stars' fits see it (a bilinear field over the nodes), so
+the later epoch keeps the first epoch's convention star by star. A carried start
+that was not refined with the earlier ePSF (``refine_start = false``, or
+``epsf_anchor = "start"``) holds the motions (0.3 px rms over 10 yr on the NGC 3201
+field: 0.3 / sqrt(~350) ~ 0.016 px per node) and is not used. The centring's own
+error (:meth:`NodeCentring.error_at`) enters the error model; a later epoch adds
+the earlier epoch's (its convention's error, :func:`centring_from_summary`).
 """
 
 from __future__ import annotations
@@ -47,6 +55,7 @@ from mavispm.measure.stars.variable_psf import VariableEPSF, constant_epsf, grid
 __all__ = [
     "NodeCentring",
     "centred_on_all_stars",
+    "centring_from_summary",
     "centring_summary",
     "node_shifts",
     "recentred_epsf",
@@ -281,9 +290,12 @@ def centred_on_all_stars(frame, frame_psf, fit, x0, y0, settings):
     return frame_psf, moved
 
 
-def centring_summary(centring, pixel_scale: float) -> str:
+def centring_summary(centring, pixel_scale: float, reference: str = "start") -> str:
     """JSON of the node centring: ``"psf_stars"``, or ``"all"`` with the rms node shift
-    [mas], the stars used and the estimated start-position scatter [mas].
+    [mas], the stars used, the estimated scatter of the reference positions [mas], the
+    reference (``"start"``: the input list; ``"refined"``: a later epoch's start
+    refined with the earlier ePSF) and the node shifts' covariance per axis
+    ``cov_pix2`` [pixel^2] (a later epoch anchored to this one adds its error).
 
     Parameters
     ----------
@@ -291,6 +303,8 @@ def centring_summary(centring, pixel_scale: float) -> str:
         :func:`centred_on_all_stars`'s centrings (full ePSF first).
     pixel_scale : float
         [arcsec / pixel].
+    reference : {"start", "refined"}
+        The positions the nodes were centred on.
 
     Returns
     -------
@@ -301,11 +315,45 @@ def centring_summary(centring, pixel_scale: float) -> str:
     full = centring[0]
     mas = pixel_scale * 1000.0
     rms = np.sqrt(np.mean(full.shifts**2, axis=0)) * mas
-    return json.dumps(
-        {
-            "centring": "all",
-            "n_stars": full.n_used,
-            "rms_shift_mas": [float(v) for v in rms],
-            "start_sigma_mas": float(full.start_sigma * mas),
-        }
-    )
+    out = {
+        "centring": "all",
+        "reference": reference,
+        "n_stars": full.n_used,
+        "rms_shift_mas": [float(v) for v in rms],
+        "start_sigma_mas": float(full.start_sigma * mas),
+    }
+    if full.cov is not None:
+        out["cov_pix2"] = full.cov.tolist()
+    return json.dumps(out)
+
+
+def centring_from_summary(text: str | None) -> NodeCentring | None:
+    """The node centring's error of an earlier product (its ``epsf_centring`` attribute).
+
+    Parameters
+    ----------
+    text : str or None
+        The attribute (JSON, :func:`centring_summary`).
+
+    Returns
+    -------
+    NodeCentring or None
+        Zero shifts (the earlier ePSF is already centred) and the covariance
+        ``cov_pix2``; None where the nodes were not centred on all stars or no
+        covariance was written.
+
+    Raises
+    ------
+    ValueError
+        A covariance that is not square.
+    """
+    if not text:
+        return None
+    meta = json.loads(text)
+    if meta.get("centring") != "all" or "cov_pix2" not in meta:
+        return None
+    cov = np.asarray(meta["cov_pix2"], float)
+    if cov.ndim != 2 or cov.shape[0] != cov.shape[1]:
+        raise ValueError(f"epsf_centring: cov_pix2 of shape {cov.shape} is not square")
+    # the start scatter is kept in mas there; the covariance is what a later epoch needs
+    return NodeCentring(np.zeros((cov.shape[0], 2)), np.nan, int(meta.get("n_stars", 0)), cov)

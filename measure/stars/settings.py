@@ -229,12 +229,15 @@ class MeasureSettings:
         the first epoch, where the start is the input list). An earlier product
         without an ePSF falls back to "start".
     epsf_centring : {"all", "psf_stars"}
-        What centres each node of a frame-built ePSF whose start list is not carried
-        from earlier epochs (a first epoch, blind or forced). "all"
-        (default): after the fit, every well-measured star near the node, weighted
-        by the node's interpolation weight and its Fisher and start-position errors
-        (:mod:`mavispm.measure.stars.node_centring`). "psf_stars" (the method
-        before): the mean start position of the node's PSF stars only.
+        What centres each node of a frame-built ePSF. "all" (default): after the
+        fit, every well-measured star near the node, weighted by the node's
+        interpolation weight and its Fisher and start-position errors
+        (:mod:`mavispm.measure.stars.node_centring`), against the start list of a
+        first epoch (blind or forced) or, at a later epoch in observer mode, the start
+        refined on the frame with the earlier epoch's ePSF (``refine_start`` with
+        ``epsf_anchor = "earlier"``; a carried start not refined so holds the
+        motions and is not used). "psf_stars" (the method before): the mean start
+        position of the node's PSF stars only.
     match_radius : float [pix]
         Truth cross-match distance cut.
     crowding_radius : float [pix]

@@ -34,6 +34,7 @@ from scipy.spatial import cKDTree
 from mavispm.core.errors import InputError
 from mavispm.core.products import TableSpec, read_product
 from mavispm.measure.stars.epsf_anchor import epsf_from_product
+from mavispm.measure.stars.node_centring import NodeCentring, centring_from_summary
 from mavispm.measure.stars.variable_psf import VariableEPSF
 
 __all__ = [
@@ -81,6 +82,10 @@ class EarlierEpoch:
     psf : VariableEPSF or None
         That epoch's ePSF (the ``epsf_basis`` array and ``epsf`` attribute of its
         product), the centre convention a later epoch's ePSF is anchored to.
+    centring : NodeCentring or None
+        The error of that ePSF's node centring (its ``epsf_centring`` attribute's
+        covariance, :func:`~mavispm.measure.stars.node_centring.centring_from_summary`),
+        which a later epoch centred on it inherits; None: not known.
     """
 
     epoch: float
@@ -92,6 +97,7 @@ class EarlierEpoch:
     path: Path | None = None
     psf: VariableEPSF | None = None
     ids_true: np.ndarray | None = None
+    centring: NodeCentring | None = None
 
 
 def read_earlier(path) -> EarlierEpoch:
@@ -129,8 +135,18 @@ def read_earlier(path) -> EarlierEpoch:
         except (InputError, KeyError, ValueError, TypeError) as exc:
             raise InputError(f"array 'epsf_basis' / attribute 'epsf': {exc}", path=path) from None
     ids_true = np.asarray(stars["id_true"], np.int64)[keep] if "id_true" in stars.colnames else None
+    try:
+        centring = centring_from_summary(prod.attrs.get("epsf_centring"))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"attribute 'epsf_centring': {exc}", path=path) from None
+    if centring is not None and (psf is None or centring.cov.shape[0] != psf.n_basis):
+        raise InputError(
+            "attribute 'epsf_centring': its covariance does not fit the product's ePSF",
+            path=path,
+        )
     return EarlierEpoch(
         psf=psf,
+        centring=centring,
         ids_true=ids_true,
         epoch=epoch,
         ids=np.asarray(stars["id"], np.int64)[keep],
