@@ -571,9 +571,10 @@ def fit_stars(
         np.add.at(model, flat[idx][ins], (new - own[idx])[ins])
         own[idx] = new
 
-    def evaluate(idx):
+    def evaluate(idx, derivatives=True):
         sub = (mix[0][idx], mix[1][idx])
-        return psf.evaluate(x[idx], y[idx], StampGeometry(geom.cx[idx], geom.cy[idx], r), mix=sub)
+        stamps = StampGeometry(geom.cx[idx], geom.cy[idx], r)
+        return psf.evaluate(x[idx], y[idx], stamps, mix=sub, derivatives=derivatives)
 
     def normal_equations(idx):
         v, dvx, dvy = (a.reshape(len(idx), -1) for a in evaluate(idx))
@@ -761,10 +762,10 @@ def fit_stars(
     s_err = np.full(n, np.nan)
     chi2 = np.full(n, np.nan)
     crowding = np.full(n, np.nan)
-    all_idx = np.flatnonzero(usable)
+    all_idx = order  # the usable stars in bands of rows (cache reuse; see the colours)
     if uncertainties or return_model:  # exact (not linearised) models at the solution
         for idx in _chunks(all_idx, opt.chunk):
-            v, *_ = normal_equations(idx)
+            v = evaluate(idx, derivatives=False).reshape(len(idx), -1)
             deposit(idx, flux[idx, None] * v)
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
