@@ -93,6 +93,12 @@ class FitOptions:
         Largest allowed distance from the starting position [pixel].
     max_step : float
         Largest position step per iteration [pixel] (trust region).
+    check_cut_steps : bool
+        A star whose last position step was cut to ``max_step`` counts as converged only
+        if the Gauss-Newton step it would take at the solution is below its tolerance
+        there too (the tolerance of the cut step came from the state before it, and can
+        exceed ``max_step``: a fixed-pass flux and the start's misfit). Flags only; the
+        sweeps are unchanged. Needs the uncertainties.
     damping : float
         Levenberg-Marquardt damping (fraction of the diagonal).
     min_snr : float
@@ -136,6 +142,7 @@ class FitOptions:
     flux_refresh: bool = False
     max_shift: float = 2.0
     max_step: float = 0.5
+    check_cut_steps: bool = False
     damping: float = 1e-3
     min_snr: float = 3.0
     chunk: int = 512
@@ -645,6 +652,7 @@ def fit_stars(
             length = np.hypot(step[:, 0], step[:, 1])
             shrink = np.minimum(1.0, opt.max_step / np.maximum(length, 1e-300))
             step[:, :2] *= shrink[:, None]
+            cut[idx] = shrink < 1.0
         dx, dy = step[:, 0], step[:, 1]
         x[idx] += dx
         y[idx] += dy
@@ -714,6 +722,7 @@ def fit_stars(
     sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
     steps = np.zeros(n)
     thresh = np.full(n, opt.tolerance)
+    cut = np.zeros(n, bool)  # the star's last position step was cut to max_step
     done = 0
     bar = tqdm(sweeps, desc="fit sweeps", disable=not opt.progress, leave=False)
     for fixed in bar:
@@ -768,9 +777,14 @@ def fit_stars(
             deposit(idx, flux[idx, None] * v)
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
+    next_step = np.zeros(n)  # the position step each star would take at the solution
     for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
-        _, _, _, a, _, w, resid = normal_equations(idx)
+        _, _, _, a, b, w, resid = normal_equations(idx)
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
+        if opt.check_cut_steps:
+            diag = np.einsum("nkk->nk", a)
+            step = _solve(a + opt.damping * diag[:, :, None] * np.eye(npar), b)
+            next_step[idx] = np.hypot(step[:, 0], step[:, 1])
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
         crowding[idx] = _neighbour_misfit(
@@ -792,6 +806,14 @@ def fit_stars(
         err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
         x_err[all_idx], y_err[all_idx], f_err[all_idx], s_err[all_idx] = err.T
         flag[all_idx[~ok_plain]] |= FLAG_FAILED
+        if opt.check_cut_steps:
+            # the tolerance at the solution, as step_stars takes it (own Fisher block,
+            # times the neighbours' misfit)
+            sigma_pos = np.sqrt(np.abs(plain[:, 0, 0]) + np.abs(plain[:, 1, 1]))
+            if opt.chi2_tolerance:
+                sigma_pos *= np.sqrt(np.nan_to_num(crowding[all_idx], nan=1.0))
+            final = np.maximum(opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos))
+            flag[all_idx[cut[all_idx] & (next_step[all_idx] >= final)]] |= FLAG_NOT_CONVERGED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0)
     if uncertainties:

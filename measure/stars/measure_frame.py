@@ -267,6 +267,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         relative_tolerance=settings.relative_tolerance,
         chi2_tolerance=settings.chi2_tolerance,
         flux_refresh=settings.flux_refresh,
+        check_cut_steps=settings.check_cut_steps,
         max_shift=settings.max_shift,
         min_snr=settings.min_snr,
         chunk=settings.chunk,
