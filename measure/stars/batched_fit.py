@@ -93,6 +93,16 @@ class FitOptions:
         Largest allowed distance from the starting position [pixel].
     max_step : float
         Largest position step per iteration [pixel] (trust region).
+    crowded_window : int
+        Half-width [pixel] of the fitting window of a *crowded* star (below
+        ``stamp radius``; 0: none): one whose own model light on its stamp outside that
+        window is below ``crowded_ratio`` times its neighbours' there (stars and halos,
+        after the first pass). Only its fit uses the smaller window; its model still
+        covers the whole stamp for its neighbours. In a crowd the outer stamp of a faint
+        star holds mostly its neighbours' light, whose model errors bias its flux and
+        position more than that light informs them (docs/measure.md, "Scale").
+    crowded_ratio : float
+        The own / neighbours' light ratio below which ``crowded_window`` applies.
     check_cut_steps : bool
         A star whose last position step was cut to ``max_step`` counts as converged only
         if the Gauss-Newton step it would take at the solution is below its tolerance
@@ -143,6 +153,8 @@ class FitOptions:
     max_shift: float = 2.0
     max_step: float = 0.5
     check_cut_steps: bool = False
+    crowded_window: int = 0
+    crowded_ratio: float = 0.05
     damping: float = 1e-3
     min_snr: float = 3.0
     chunk: int = 512
@@ -718,6 +730,22 @@ def fit_stars(
         add_halo()
         halo_pending = False
 
+    window_pending = 0 < opt.crowded_window < r
+
+    def narrow_windows():
+        """Fit the crowded stars on the central window only (``crowded_window``)."""
+        off = np.abs(np.arange(s) - r)
+        inner = (
+            (off[:, None] <= opt.crowded_window) & (off[None, :] <= opt.crowded_window)
+        ).ravel()
+        for idx in _chunks(np.flatnonzero(usable), opt.chunk):
+            mine = own[idx][:, ~inner]
+            others = np.maximum(model[flat[idx][:, ~inner]] - mine, 0.0)
+            outer = valid[idx][:, ~inner]
+            ratio = np.sum(np.abs(mine) * outer, 1) / np.maximum(np.sum(others * outer, 1), 1e-300)
+            narrow = (ratio < opt.crowded_ratio) & (np.sum(valid[idx][:, inner], 1) > 2 * npar)
+            valid[idx[narrow]] &= inner
+
     # initial fluxes: linear fit at fixed positions (positions frozen)
     sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
     steps = np.zeros(n)
@@ -737,6 +765,9 @@ def fit_stars(
         if halo_pending:
             add_halo()
             halo_pending = False
+        if window_pending:
+            narrow_windows()
+            window_pending = False
         done += 0 if fixed else 1
         # converged stars rest until they or an overlapping neighbour move again
         moved = usable & (steps >= thresh)

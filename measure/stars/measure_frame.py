@@ -268,6 +268,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         chi2_tolerance=settings.chi2_tolerance,
         flux_refresh=settings.flux_refresh,
         check_cut_steps=settings.check_cut_steps,
+        crowded_window=int(settings.crowded_window),
+        crowded_ratio=settings.crowded_ratio,
         max_shift=settings.max_shift,
         min_snr=settings.min_snr,
         chunk=settings.chunk,
