@@ -93,6 +93,22 @@ class FitOptions:
         Largest allowed distance from the starting position [pixel].
     max_step : float
         Largest position step per iteration [pixel] (trust region).
+    crowded_window : int
+        Half-width [pixel] of the fitting window of a *crowded* star (below
+        ``stamp radius``; 0: none): one whose own model light on its stamp outside that
+        window is below ``crowded_ratio`` times its neighbours' there (stars and halos,
+        after the first pass). Only its fit uses the smaller window; its model still
+        covers the whole stamp for its neighbours. In a crowd the outer stamp of a faint
+        star holds mostly its neighbours' light, whose model errors bias its flux and
+        position more than that light informs them (docs/measure.md, "Scale").
+    crowded_ratio : float
+        The own / neighbours' light ratio below which ``crowded_window`` applies.
+    check_cut_steps : bool
+        A star whose last position step was cut to ``max_step`` counts as converged only
+        if the Gauss-Newton step it would take at the solution is below its tolerance
+        there too (the tolerance of the cut step came from the state before it, and can
+        exceed ``max_step``: a fixed-pass flux and the start's misfit). Flags only; the
+        sweeps are unchanged. Needs the uncertainties.
     damping : float
         Levenberg-Marquardt damping (fraction of the diagonal).
     min_snr : float
@@ -136,6 +152,9 @@ class FitOptions:
     flux_refresh: bool = False
     max_shift: float = 2.0
     max_step: float = 0.5
+    check_cut_steps: bool = False
+    crowded_window: int = 0
+    crowded_ratio: float = 0.05
     damping: float = 1e-3
     min_snr: float = 3.0
     chunk: int = 512
@@ -646,6 +665,7 @@ def fit_stars(
             length = np.hypot(step[:, 0], step[:, 1])
             shrink = np.minimum(1.0, opt.max_step / np.maximum(length, 1e-300))
             step[:, :2] *= shrink[:, None]
+            cut[idx] = shrink < 1.0
         dx, dy = step[:, 0], step[:, 1]
         x[idx] += dx
         y[idx] += dy
@@ -711,10 +731,27 @@ def fit_stars(
         add_halo()
         halo_pending = False
 
+    window_pending = 0 < opt.crowded_window < r
+
+    def narrow_windows():
+        """Fit the crowded stars on the central window only (``crowded_window``)."""
+        off = np.abs(np.arange(s) - r)
+        inner = (
+            (off[:, None] <= opt.crowded_window) & (off[None, :] <= opt.crowded_window)
+        ).ravel()
+        for idx in _chunks(np.flatnonzero(usable), opt.chunk):
+            mine = own[idx][:, ~inner]
+            others = np.maximum(model[flat[idx][:, ~inner]] - mine, 0.0)
+            outer = valid[idx][:, ~inner]
+            ratio = np.sum(np.abs(mine) * outer, 1) / np.maximum(np.sum(others * outer, 1), 1e-300)
+            narrow = (ratio < opt.crowded_ratio) & (np.sum(valid[idx][:, inner], 1) > 2 * npar)
+            valid[idx[narrow]] &= inner
+
     # initial fluxes: linear fit at fixed positions (positions frozen)
     sweeps = ([True] if flux0 is None else []) + [False] * int(opt.iterations)
     steps = np.zeros(n)
     thresh = np.full(n, opt.tolerance)
+    cut = np.zeros(n, bool)  # the star's last position step was cut to max_step
     done = 0
     bar = tqdm(sweeps, desc="fit sweeps", disable=not opt.progress, leave=False)
     for fixed in bar:
@@ -729,6 +766,9 @@ def fit_stars(
         if halo_pending:
             add_halo()
             halo_pending = False
+        if window_pending:
+            narrow_windows()
+            window_pending = False
         done += 0 if fixed else 1
         # converged stars rest until they or an overlapping neighbour move again
         moved = usable & (steps >= thresh)
@@ -769,9 +809,14 @@ def fit_stars(
             deposit(idx, flux[idx, None] * v)
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
+    next_step = np.zeros(n)  # the position step each star would take at the solution
     for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
-        _, _, _, a, _, w, resid = normal_equations(idx)
+        _, _, _, a, b, w, resid = normal_equations(idx)
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
+        if opt.check_cut_steps:
+            diag = np.einsum("nkk->nk", a)
+            step = _solve(a + opt.damping * diag[:, :, None] * np.eye(npar), b)
+            next_step[idx] = np.hypot(step[:, 0], step[:, 1])
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
         crowding[idx] = _neighbour_misfit(
@@ -793,6 +838,14 @@ def fit_stars(
         err = np.sqrt(np.abs(np.einsum("nkk->nk", cov)))
         x_err[all_idx], y_err[all_idx], f_err[all_idx], s_err[all_idx] = err.T
         flag[all_idx[~ok_plain]] |= FLAG_FAILED
+        if opt.check_cut_steps:
+            # the tolerance at the solution, as step_stars takes it (own Fisher block,
+            # times the neighbours' misfit)
+            sigma_pos = np.sqrt(np.abs(plain[:, 0, 0]) + np.abs(plain[:, 1, 1]))
+            if opt.chi2_tolerance:
+                sigma_pos *= np.sqrt(np.nan_to_num(crowding[all_idx], nan=1.0))
+            final = np.maximum(opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos))
+            flag[all_idx[cut[all_idx] & (next_step[all_idx] >= final)]] |= FLAG_NOT_CONVERGED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0)
     if uncertainties:
