@@ -289,3 +289,27 @@ def test_reused_batch_buffers_give_the_stamps_of_fresh_arrays(airy_optics, threa
         stamp, x0, y0 = r.render_stamps(m, *one)
         ref[y0[0] : y0[0] + m, x0[0] : x0[0] + m] += stamp[0]
     assert np.abs(image - ref).max() < 1e-6 * flux.max()
+
+
+@pytest.mark.parametrize("cplx", [np.complex64, np.complex128])
+def test_batch_transform_columns_equal_the_plan_columns(airy_optics, tmp_path, cplx):
+    """The batches' node transforms, taken from the kept copy of the columns in use
+    (extended as batches need more, from a plan memory-mapped from the disk cache),
+    equal the plan's columns cast to the batch's type, C-contiguous."""
+    StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(), tmp_path).plan(24)  # on disk
+    r = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(), tmp_path)
+    plan = r.plan(24)
+    n = plan.transforms.shape[1]
+    rng = np.random.default_rng(5)
+    first = np.sort(rng.choice(n, n // 3, replace=False))
+    selections = [
+        first,
+        first[::2],  # a subset
+        np.sort(rng.choice(n, n // 2, replace=False)),  # partly new columns
+        np.arange(n),  # all
+        first[:1],
+    ]
+    for sel in selections:
+        got = r._typed_columns(plan, cplx, sel)
+        assert got.flags.c_contiguous and got.dtype == cplx
+        assert np.array_equal(got, np.asarray(plan.transforms)[:, sel].astype(cplx))

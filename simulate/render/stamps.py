@@ -611,14 +611,11 @@ class StarRenderer:
         real = np.float32 if (dtype or self.params.dtype) == "float32" else np.float64
         cplx = np.complex64 if real is np.float32 else np.complex128
         cov = np.asarray(cov, dtype=np.float64)
-        # drop samples the batch's narrowest kernel suppresses below the floor
-        sig2_min = max(float(np.linalg.eigvalsh(cov)[:, 0].min(initial=np.inf)), 0.0)
-        damp = plan.peak * np.exp(-2.0 * np.pi**2 * sig2_min * (plan.u**2 + plan.v**2))
-        sel = np.flatnonzero(damp > floor)
+        sel = _batch_samples(plan, cov, floor)
         u, v = plan.u[sel], plan.v[sel]
         node, w = self._node_weights(x_field, y_field)
         if self.n_slices == 1 and spectrum is None:
-            transforms = np.take(self._typed_transforms(plan, cplx), sel, axis=1)  # C order
+            transforms = self._typed_columns(plan, cplx, sel)
         else:
             mixed = self._mixed_transforms(plan.transforms[:, sel], u, v, spectrum)
             transforms = np.ascontiguousarray(mixed, dtype=cplx)
@@ -648,21 +645,40 @@ class StarRenderer:
             stamps = np.fft.irfft(folded, n=m, axis=2, out=work.stamps((nst, m, m), real))
         return stamps, ixc - m // 2, iyc - m // 2
 
-    def _typed_transforms(self, plan: StampPlan, cplx) -> np.ndarray:
-        """The plan's node transforms in ``cplx``, C-contiguous and aligned (made once).
+    def _typed_columns(self, plan: StampPlan, cplx, sel) -> np.ndarray:
+        """``plan.transforms[:, sel]`` in ``cplx``, C-contiguous: a batch's node transforms.
 
-        Each batch takes its columns from this copy: the same values as casting the
-        columns batch by batch (a cast commutes with taking columns), without a
-        cast per batch or reading the memory map of a cached plan, whose members are
-        not aligned in the ``.npz`` file (numpy's unaligned copies are several times
-        slower; ~0.2 s of CPU at 10,000 stars).
+        Taken from a copy of the columns that the batches use (kept per plan and
+        type, extended when a batch needs more; :meth:`render` makes it for all its
+        batches before they start): the same values as casting each batch's columns
+        (a cast commutes with taking columns), without a cast per batch or reading
+        the memory map of a cached plan, whose members are not aligned in the
+        ``.npz`` file (numpy's unaligned copies are several times slower; ~0.2 s of
+        CPU at 10,000 stars). The faint stars' batches use about a third of a plan's
+        columns.
+
+        Parameters
+        ----------
+        plan : StampPlan
+        cplx : numpy dtype
+            complex64 or complex128.
+        sel : ndarray of int, sorted
+            The batch's columns.
         """
         key = (plan.m, np.dtype(cplx).str)
-        typed = self._typed.get(key)
-        if typed is None or typed[0] is not plan:
-            typed = (plan, np.require(plan.transforms, dtype=cplx, requirements=["C", "A"]))
-            self._typed[key] = typed
-        return typed[1]
+        entry = self._typed.get(key)
+        if entry is None or entry[0] is not plan:
+            self._keep_columns(plan, cplx, sel)
+        elif not _is_subset(sel, entry[1]):
+            self._keep_columns(plan, cplx, np.union1d(entry[1], sel))
+        _, cols, typed = self._typed[key]
+        return np.take(typed, np.searchsorted(cols, sel), axis=1)  # C order (a[:, i] is not)
+
+    def _keep_columns(self, plan: StampPlan, cplx, cols) -> None:
+        """Keep ``plan.transforms[:, cols]`` in ``cplx`` for :meth:`_typed_columns`."""
+        cols = np.asarray(cols, dtype=np.int64)
+        typed = np.require(plan.transforms[:, cols], dtype=cplx, requirements=["C", "A"])
+        self._typed[(plan.m, np.dtype(cplx).str)] = (plan, cols, typed)
 
     def _mixed_transforms(self, transforms, u, v, spectrum):
         """Node transforms of the batch's kernel: the slices weighted and phase-shifted.
@@ -791,6 +807,8 @@ class StarRenderer:
 
         for renderer in parts.values():  # build plans once, before the threads share them
             renderer.plans({m for m, _, r in jobs if r is renderer})
+        if spectra is None:  # and the columns of their transforms that the batches take
+            self._prepare_columns(jobs, flux, cov, noise_sigma)
         # reused memory: fresh arrays of a batch's size (tens of MB) are zeroed page by page
         # by the kernel on first touch (~0.3 s of a 3,500-star frames process, perf).
         # One batch more than the threads is in flight: each thread renders one while the
@@ -873,6 +891,28 @@ class StarRenderer:
         if mode == "auto" and mask.sum() < self.params.split_min_stars:
             return none
         return mask
+
+    @staticmethod
+    def _prepare_columns(jobs, flux, cov, noise_sigma) -> None:
+        """Copy, per renderer, plan and type, the transform columns that ``jobs`` take.
+
+        Done before the batches start, so that the threads only read the copies (see
+        :meth:`_typed_columns`).
+        """
+        need: dict[tuple, tuple] = {}
+        for m, sel, renderer in jobs:
+            floor, dtype = renderer._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            cplx = np.complex64 if dtype == "float32" else np.complex128
+            plan = renderer.plan(m)
+            key = (id(renderer), m, np.dtype(cplx).str)
+            cols = _batch_samples(plan, cov[sel], floor)
+            if key in need:
+                cols = np.union1d(need[key][3], cols)
+            need[key] = (renderer, plan, cplx, cols)
+        for renderer, plan, cplx, cols in need.values():
+            entry = renderer._typed.get((plan.m, np.dtype(cplx).str))
+            if entry is None or entry[0] is not plan or not _is_subset(cols, entry[1]):
+                renderer._keep_columns(plan, cplx, cols)
 
     @staticmethod
     def _largest_batch_bytes(jobs, flux, noise_sigma) -> tuple[int, int]:
@@ -1037,6 +1077,25 @@ class _TaperedGrid:
 
     def bilinear_weights(self, x, y):
         return self._grid.bilinear_weights(x, y)
+
+
+def _is_subset(values, sorted_set) -> bool:
+    """Whether every element of ``values`` is in the sorted array ``sorted_set``."""
+    if len(sorted_set) == 0:
+        return len(values) == 0
+    pos = np.minimum(np.searchsorted(sorted_set, values), len(sorted_set) - 1)
+    return bool(np.array_equal(sorted_set[pos], values))
+
+
+def _batch_samples(plan: StampPlan, cov, floor: float) -> np.ndarray:
+    """The plan's spectrum samples a batch evaluates (sorted indices).
+
+    Those the batch's narrowest kernel (covariances ``cov`` (S, 2, 2) [mas^2]) does not
+    suppress below ``floor``.
+    """
+    sig2_min = max(float(np.linalg.eigvalsh(cov)[:, 0].min(initial=np.inf)), 0.0)
+    damp = plan.peak * np.exp(-2.0 * np.pi**2 * sig2_min * (plan.u**2 + plan.v**2))
+    return np.flatnonzero(damp > floor)
 
 
 def stamp_centre(pix) -> np.ndarray:
