@@ -631,11 +631,12 @@ class StarRenderer:
         # the flux scales the node weights: the transform is linear, and the stamps need
         # no separate pass to scale them
         w = w * np.asarray(flux, dtype=np.float64)[:, None]
+        col, row = plan.col[sel], plan.row[sel]
         mix_kernel_fold(
             transforms, node,
             np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
-            u.astype(real), v.astype(real), phx, phy, plan.col[sel], plan.row[sel],
-            plan.target[sel], folded,
+            u.astype(real), v.astype(real), df, _column_steps(plan.fx[col], row), phx, phy,
+            col, row, plan.target[sel], folded,
         )  # fmt: skip
         folded = folded.reshape(nst, m, m // 2 + 1)
         if work is None or not _FFT_OUT:
@@ -1077,6 +1078,25 @@ class _TaperedGrid:
 
     def bilinear_weights(self, x, y):
         return self._grid.bilinear_weights(x, y)
+
+
+def _column_steps(fx, row) -> np.ndarray:
+    """Which samples lie one column step after the previous sample, in its row.
+
+    ``step[k]``: ``row[k] == row[k - 1]`` and ``fx[k] == fx[k - 1] + 1`` (integer
+    frequencies); there the mixing pass continues its Gaussian by the recurrence
+    (see :func:`~mavispm.simulate.render.stamp_kernels.mix_kernel_fold`).
+
+    Parameters
+    ----------
+    fx : ndarray (K,)
+        Integer column frequency of each sample.
+    row : ndarray of int (K,)
+        Row of each sample.
+    """
+    step = np.zeros(len(row), dtype=np.bool_)
+    step[1:] = (row[1:] == row[:-1]) & (fx[1:] == fx[:-1] + 1)
+    return step
 
 
 def _phase_ramps(shift, freq, df: float, cplx) -> np.ndarray:
