@@ -330,7 +330,7 @@ class StarRenderer:
         self._cube = cube.reshape(-1, n, n)
         self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
         self._plans: dict[int, StampPlan] = {}
-        self._typed: dict[tuple, tuple] = {}  # (m, dtype) -> (plan, its transforms in dtype)
+        self._typed: dict[tuple, tuple] = {}  # (m, dtype) -> (plan, columns, their copy)
         self._split = None  # (inner renderer, OuterConvolver), built on first split render
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._cache_key = None
