@@ -152,10 +152,54 @@ def test_compiled_kernel_matches_numpy_reference(real, cplx):
     target = rng.integers(0, n_out, n)  # several samples fold onto one frequency
     a = np.zeros((s, n_out), dtype=cplx)
     b = np.zeros((s, n_out), dtype=np.complex128)
-    mix_kernel_fold(transforms, node, w, coef, u, v, phx, phy, col, row, target, a)
-    mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, target, b)
+    step = np.zeros(n, dtype=bool)  # scattered samples: no runs of columns
+    mix_kernel_fold(transforms, node, w, coef, u, v, 0.0, step, phx, phy, col, row, target, a)
+    mix_kernel_fold_numpy(transforms, node, w, coef, u, v, 0.0, step, phx, phy, col, row, target, b)
     tol = 1e-5 if real is np.float32 else 1e-12
     assert np.abs(a - b).max() <= tol * np.abs(b).max()
+
+
+@pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
+def test_compiled_kernel_recurrence_along_columns_matches_numpy_reference(real, cplx):
+    """Samples on a frequency grid in runs of consecutive columns (a stamp plan's layout:
+    rows of a disc, the fold's two column blocks), wide and narrow anisotropic kernels:
+    the compiled pass's Gaussian recurrence along the runs against an exp per sample."""
+    from mavispm.simulate.render.stamp_kernels import mix_kernel_fold, mix_kernel_fold_numpy
+    from mavispm.simulate.render.stamps import _column_steps, _folding_frequencies
+
+    m, scale = 144, 7.5
+    fy, fx = _folding_frequencies(m, 2)
+    df = 1.0 / (m * scale)
+    rows, cols = np.nonzero(np.hypot(fy[:, None], fx[None, :]) * df < 0.0705)
+    u, v = fx[cols] * df, fy[rows] * df
+    step = _column_steps(fx[cols], rows)
+    assert step.mean() > 0.9  # long runs (up to ~75 steps)
+    rng = np.random.default_rng(4)
+    s, nodes, n = 6, 5, len(u)
+    transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
+    node = rng.integers(0, nodes, (s, 4))
+    w = rng.random((s, 4)).astype(real)
+    cov = [
+        [[20.0, 6.0], [6.0, 12.0]],
+        [[80.0, -30.0], [-30.0, 50.0]],
+        [[0.0, 0.0], [0.0, 0.0]],
+        [[400.0, 100.0], [100.0, 90.0]],
+        [[5.0, 0.0], [0.0, 300.0]],
+        [[60.0, 59.0], [59.0, 60.0]],
+    ]
+    cov = np.asarray(cov)
+    coef = (cov.reshape(s, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0] * (-2.0 * np.pi**2)).astype(real)
+    phx = np.exp(1j * rng.random((s, len(fx)))).astype(cplx)
+    phy = np.exp(1j * rng.random((s, len(fy)))).astype(cplx)
+    target = ((rows % m) * (m // 2 + 1) + (cols % (m // 2 + 1))).astype(np.int64)
+    a = np.zeros((s, m * (m // 2 + 1)), dtype=cplx)
+    b = np.zeros((s, m * (m // 2 + 1)), dtype=np.complex128)
+    args = (u.astype(real), v.astype(real), df, step, phx, phy, cols, rows, target)
+    mix_kernel_fold(transforms, node, w, coef, *args, a)
+    mix_kernel_fold_numpy(transforms, node, w, coef, *args, b)
+    tol = 1e-6 if real is np.float32 else 1e-12
+    for i in range(s):  # each star against its own largest value
+        assert np.abs(a[i] - b[i]).max() <= tol * np.abs(b[i]).max()
 
 
 def test_compiled_stamp_adder_clips_like_slicing():
@@ -289,3 +333,27 @@ def test_reused_batch_buffers_give_the_stamps_of_fresh_arrays(airy_optics, threa
         stamp, x0, y0 = r.render_stamps(m, *one)
         ref[y0[0] : y0[0] + m, x0[0] : x0[0] + m] += stamp[0]
     assert np.abs(image - ref).max() < 1e-6 * flux.max()
+
+
+@pytest.mark.parametrize("cplx", [np.complex64, np.complex128])
+def test_batch_transform_columns_equal_the_plan_columns(airy_optics, tmp_path, cplx):
+    """The batches' node transforms, taken from the kept copy of the columns in use
+    (extended as batches need more, from a plan memory-mapped from the disk cache),
+    equal the plan's columns cast to the batch's type, C-contiguous."""
+    StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(), tmp_path).plan(24)  # on disk
+    r = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(), tmp_path)
+    plan = r.plan(24)
+    n = plan.transforms.shape[1]
+    rng = np.random.default_rng(5)
+    first = np.sort(rng.choice(n, n // 3, replace=False))
+    selections = [
+        first,
+        first[::2],  # a subset
+        np.sort(rng.choice(n, n // 2, replace=False)),  # partly new columns
+        np.arange(n),  # all
+        first[:1],
+    ]
+    for sel in selections:
+        got = r._typed_columns(plan, cplx, sel)
+        assert got.flags.c_contiguous and got.dtype == cplx
+        assert np.array_equal(got, np.asarray(plan.transforms)[:, sel].astype(cplx))

@@ -208,7 +208,8 @@ def expose_stack(
         subs += rng.normal(0.0, rn, subs.shape)
         saturated[risky] = np.any(subs >= full, axis=0)
         total[risky] = np.minimum(subs, full).sum(axis=0)
-    total *= np.float32(1.0 / settings.gain)
+    if settings.gain != 1.0:  # a pass over the frame for nothing at unit gain
+        total *= np.float32(1.0 / settings.gain)
     return total.reshape(mean.shape), saturated.reshape(mean.shape)
 
 

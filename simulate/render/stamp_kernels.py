@@ -8,7 +8,14 @@ sample onto its alias ``target[k]`` among the stamp's rfft2 frequencies::
     out[s, target[k]] += (sum_j w[s, j] T[node[s, j], k])
                          * exp(a_s u_k^2 + b_s u_k v_k + c_s v_k^2) * phx[s, col_k] * phy[s, row_k]
 
-with ``(a, b, c) = -2 pi^2 (C_xx, 2 C_xy, C_yy)``. The numpy version needs a
+with ``(a, b, c) = -2 pi^2 (C_xx, 2 C_xy, C_yy)``. Along a run of samples in one row at
+consecutive frequencies (``u_k = u_{k-1} + du``) the compiled pass updates the Gaussian
+by a recurrence instead of an ``exp`` per sample (``exp`` was ~40 % of the pass; numba
+has no vectorised ``exp`` here): with ``q(u) = a u^2 + b u v + c v^2``,
+``g_k = g_{k-1} r_k`` and ``r_k = r_{k-1} exp(2 a du^2)``, ``r_k = exp(q(u_k) - q(u_{k-1}))``,
+in float64 (relative error ~ n^2 1e-16 after n steps, below 1e-11 for the longest runs
+of a 512-pixel stamp; the float32 ``exp`` of the float32 exponent it replaces was off by
+up to ~1e-6). The numpy version needs a
 sparse mixing product, three temporaries of the size of the batch spectrum and a
 sparse folding product (whose transposed result made the inverse FFTs strided);
 the fused loop makes one pass with no temporaries, writes the folded spectrum
@@ -31,8 +38,13 @@ __all__ = [
 ]
 
 
-def mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, target, out):
+def mix_kernel_fold_numpy(
+    transforms, node, w, coef, u, v, du, step, phx, phy, col, row, target, out
+):
     """Reference implementation (adds into ``out`` (S, n_out)). ``coef`` (S, 3) = (a, b, c).
+
+    Every Gaussian factor is an ``exp`` of its own (``du`` and ``step`` are accepted for
+    the compiled version's signature and not used).
 
     Parameters
     ----------
@@ -46,6 +58,10 @@ def mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, t
         ``(a, b, c)`` of each star's Gaussian OTF exponent.
     u, v : ndarray, shape (K,)
         Spatial frequencies of the samples (units matching ``coef``).
+    du : float
+        Frequency step between consecutive columns (units of ``u``).
+    step : ndarray of bool, shape (K,)
+        Sample ``k`` lies at ``u[k - 1] + du`` in the row of sample ``k - 1``.
     phx, phy : ndarray, shape (S, n_col), (S, n_row), complex
         Sub-pixel phase ramps along x and y.
     col, row : ndarray of int, shape (K,)
@@ -75,7 +91,7 @@ def mix_kernel_fold_numpy(transforms, node, w, coef, u, v, phx, phy, col, row, t
 
 @numba.njit(nogil=True, cache=True)
 def mix_kernel_fold(
-    transforms, node, w, coef, u, v, phx, phy, col, row, target, out
+    transforms, node, w, coef, u, v, du, step, phx, phy, col, row, target, out
 ):  # pragma: no cover
     """Fused version of :func:`mix_kernel_fold_numpy` (numba; adds into ``out``).
 
@@ -94,6 +110,11 @@ def mix_kernel_fold(
         ``(a, b, c)`` of each star's Gaussian OTF exponent.
     u, v : ndarray, shape (K,)
         Spatial frequencies of the samples (units matching ``coef``).
+    du : float
+        Frequency step between consecutive columns (units of ``u``).
+    step : ndarray of bool, shape (K,)
+        Sample ``k`` lies at ``u[k - 1] + du`` in the row of sample ``k - 1``: its
+        Gaussian factor follows from the previous one by the recurrence.
     phx, phy : ndarray, shape (S, n_col), (S, n_row), complex
         Sub-pixel phase ramps along x and y.
     col, row : ndarray of int, shape (K,)
@@ -119,16 +140,24 @@ def mix_kernel_fold(
             for k in range(n_samp):
                 re[k] += tj[k].real * wj
                 im[k] += tj[k].imag * wj
-        a = coef[s, 0]
-        b = coef[s, 1]
-        c = coef[s, 2]
+        a = np.float64(coef[s, 0])
+        b = np.float64(coef[s, 1])
+        c = np.float64(coef[s, 2])
+        kappa = np.exp(2.0 * a * du * du)
         px = phx[s]
         py = phy[s]
         o = out[s]
+        g = 0.0  # the Gaussian at sample k and its ratio to sample k - 1 (float64)
+        r = 0.0
         for k in range(n_samp):
-            uk = u[k]
-            vk = v[k]
-            g = np.exp(a * uk * uk + b * uk * vk + c * vk * vk)
+            if step[k]:
+                r *= kappa
+                g *= r
+            else:
+                uk = np.float64(u[k])
+                vk = np.float64(v[k])
+                g = np.exp(a * uk * uk + b * uk * vk + c * vk * vk)
+                r = np.exp(a * du * (2.0 * uk - du) + b * vk * du)
             p = px[col[k]]
             q = py[row[k]]
             pr = (p.real * q.real - p.imag * q.imag) * g
@@ -158,9 +187,13 @@ def add_stamps(image, stamps, x0, y0) -> None:  # pragma: no cover
         yb = min(cy + m, ny)
         xa = max(cx, 0)
         xb = min(cx + m, nx)
+        # row views: a unit-stride inner loop that LLVM vectorises (2.2 -> 0.8 ns per
+        # pixel, measured; indexing image[yy, xx] in the inner loop was not)
         for yy in range(ya, yb):
-            for xx in range(xa, xb):
-                image[yy, xx] += stamps[s, yy - cy, xx - cx]
+            row = image[yy, xa:xb]
+            src = stamps[s, yy - cy, xa - cx : xb - cx]
+            for i in range(xb - xa):
+                row[i] += src[i]
 
 
 @numba.njit(nogil=True, cache=True)

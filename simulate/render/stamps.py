@@ -330,6 +330,7 @@ class StarRenderer:
         self._cube = cube.reshape(-1, n, n)
         self.psf_pixel_scale = float(_value(psf_grid.pixel_scale, "mas"))
         self._plans: dict[int, StampPlan] = {}
+        self._typed: dict[tuple, tuple] = {}  # (m, dtype) -> (plan, columns, their copy)
         self._split = None  # (inner renderer, OuterConvolver), built on first split render
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self._cache_key = None
@@ -610,17 +611,18 @@ class StarRenderer:
         real = np.float32 if (dtype or self.params.dtype) == "float32" else np.float64
         cplx = np.complex64 if real is np.float32 else np.complex128
         cov = np.asarray(cov, dtype=np.float64)
-        # drop samples the batch's narrowest kernel suppresses below the floor
-        sig2_min = max(float(np.linalg.eigvalsh(cov)[:, 0].min(initial=np.inf)), 0.0)
-        damp = plan.peak * np.exp(-2.0 * np.pi**2 * sig2_min * (plan.u**2 + plan.v**2))
-        sel = np.flatnonzero(damp > floor)
+        sel = _batch_samples(plan, cov, floor)
         u, v = plan.u[sel], plan.v[sel]
         node, w = self._node_weights(x_field, y_field)
-        transforms = self._mixed_transforms(plan.transforms[:, sel], u, v, spectrum)
+        if self.n_slices == 1 and spectrum is None:
+            transforms = self._typed_columns(plan, cplx, sel)
+        else:
+            mixed = self._mixed_transforms(plan.transforms[:, sel], u, v, spectrum)
+            transforms = np.ascontiguousarray(mixed, dtype=cplx)
         # Gaussian OTF exp(-2 pi^2 u^T C u) and the phase ramp of the sub-pixel shift
         coef = (cov.reshape(nst, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0]) * (-2.0 * np.pi**2)
-        phx = np.exp((-2j * np.pi * df) * np.outer(dx, plan.fx)).astype(cplx)
-        phy = np.exp((-2j * np.pi * df) * np.outer(dy, plan.fy)).astype(cplx)
+        phx = _phase_ramps(dx, plan.fx, df, cplx)
+        phy = _phase_ramps(dy, plan.fy, df, cplx)
         if work is None:
             folded = np.zeros((nst, m * (m // 2 + 1)), dtype=cplx)
         else:
@@ -629,11 +631,12 @@ class StarRenderer:
         # the flux scales the node weights: the transform is linear, and the stamps need
         # no separate pass to scale them
         w = w * np.asarray(flux, dtype=np.float64)[:, None]
+        col, row = plan.col[sel], plan.row[sel]
         mix_kernel_fold(
-            np.ascontiguousarray(transforms, dtype=cplx), node,
+            transforms, node,
             np.ascontiguousarray(w, dtype=real), np.ascontiguousarray(coef, dtype=real),
-            u.astype(real), v.astype(real), phx, phy, plan.col[sel], plan.row[sel],
-            plan.target[sel], folded,
+            u.astype(real), v.astype(real), df, _column_steps(plan.fx[col], row), phx, phy,
+            col, row, plan.target[sel], folded,
         )  # fmt: skip
         folded = folded.reshape(nst, m, m // 2 + 1)
         if work is None or not _FFT_OUT:
@@ -642,6 +645,41 @@ class StarRenderer:
             np.fft.ifft(folded, axis=1, out=folded)
             stamps = np.fft.irfft(folded, n=m, axis=2, out=work.stamps((nst, m, m), real))
         return stamps, ixc - m // 2, iyc - m // 2
+
+    def _typed_columns(self, plan: StampPlan, cplx, sel) -> np.ndarray:
+        """``plan.transforms[:, sel]`` in ``cplx``, C-contiguous: a batch's node transforms.
+
+        Taken from a copy of the columns that the batches use (kept per plan and
+        type, extended when a batch needs more; :meth:`render` makes it for all its
+        batches before they start): the same values as casting each batch's columns
+        (a cast commutes with taking columns), without a cast per batch or reading
+        the memory map of a cached plan, whose members are not aligned in the
+        ``.npz`` file (numpy's unaligned copies are several times slower; ~0.2 s of
+        CPU at 10,000 stars). The faint stars' batches use about a third of a plan's
+        columns.
+
+        Parameters
+        ----------
+        plan : StampPlan
+        cplx : numpy dtype
+            complex64 or complex128.
+        sel : ndarray of int, sorted
+            The batch's columns.
+        """
+        key = (plan.m, np.dtype(cplx).str)
+        entry = self._typed.get(key)
+        if entry is None or entry[0] is not plan:
+            self._keep_columns(plan, cplx, sel)
+        elif not _is_subset(sel, entry[1]):
+            self._keep_columns(plan, cplx, np.union1d(entry[1], sel))
+        _, cols, typed = self._typed[key]
+        return np.take(typed, np.searchsorted(cols, sel), axis=1)  # C order (a[:, i] is not)
+
+    def _keep_columns(self, plan: StampPlan, cplx, cols) -> None:
+        """Keep ``plan.transforms[:, cols]`` in ``cplx`` for :meth:`_typed_columns`."""
+        cols = np.asarray(cols, dtype=np.int64)
+        typed = np.require(plan.transforms[:, cols], dtype=cplx, requirements=["C", "A"])
+        self._typed[(plan.m, np.dtype(cplx).str)] = (plan, cols, typed)
 
     def _mixed_transforms(self, transforms, u, v, spectrum):
         """Node transforms of the batch's kernel: the slices weighted and phase-shifted.
@@ -770,13 +808,15 @@ class StarRenderer:
 
         for renderer in parts.values():  # build plans once, before the threads share them
             renderer.plans({m for m, _, r in jobs if r is renderer})
+        if spectra is None:  # and the columns of their transforms that the batches take
+            self._prepare_columns(jobs, flux, cov, noise_sigma)
         # reused memory: fresh arrays of a batch's size (tens of MB) are zeroed page by page
         # by the kernel on first touch (~0.3 s of a 3,500-star frames process, perf).
         # One batch more than the threads is in flight: each thread renders one while the
         # oldest is added to the image (with 2 per thread, two more buffers of up to
         # ~85 MB were touched for no gain in wall time: ~0.1-0.3 s more sys CPU, 2 cores)
         in_flight = max(threads, 1) + 1
-        buffers = _WorkPool(in_flight)
+        buffers = _WorkPool(in_flight, *self._largest_batch_bytes(jobs, flux, noise_sigma))
         with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
             # bounded memory; stamps are added in job order, so the image does not
             # depend on the number of threads
@@ -854,6 +894,45 @@ class StarRenderer:
         return mask
 
     @staticmethod
+    def _prepare_columns(jobs, flux, cov, noise_sigma) -> None:
+        """Copy, per renderer, plan and type, the transform columns that ``jobs`` take.
+
+        Done before the batches start, so that the threads only read the copies (see
+        :meth:`_typed_columns`).
+        """
+        need: dict[tuple, tuple] = {}
+        for m, sel, renderer in jobs:
+            floor, dtype = renderer._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            cplx = np.complex64 if dtype == "float32" else np.complex128
+            plan = renderer.plan(m)
+            key = (id(renderer), m, np.dtype(cplx).str)
+            cols = _batch_samples(plan, cov[sel], floor)
+            if key in need:
+                cols = np.union1d(need[key][3], cols)
+            need[key] = (renderer, plan, cplx, cols)
+        for renderer, plan, cplx, cols in need.values():
+            entry = renderer._typed.get((plan.m, np.dtype(cplx).str))
+            if entry is None or entry[0] is not plan or not _is_subset(cols, entry[1]):
+                renderer._keep_columns(plan, cplx, cols)
+
+    @staticmethod
+    def _largest_batch_bytes(jobs, flux, noise_sigma) -> tuple[int, int]:
+        """Bytes of the largest folded spectra and of the largest stamps among ``jobs``.
+
+        The work buffers are reserved this large up front: grown batch by batch (the
+        stamp sizes rise through the jobs), each growth was a fresh array whose pages
+        the kernel zeroed again on first touch. Reserved pages that no batch reaches
+        are never touched.
+        """
+        folded = stamps = 0
+        for m, sel, renderer in jobs:
+            _, dtype = renderer._batch_accuracy(float(flux[sel].max()), noise_sigma)
+            real = np.dtype(dtype).itemsize
+            folded = max(folded, len(sel) * m * (m // 2 + 1) * 2 * real)
+            stamps = max(stamps, len(sel) * m * m * real)
+        return folded, stamps
+
+    @staticmethod
     def _add_done(image, item, bar, buffers) -> None:
         """Wait for one batch of stamps, add it to the image and release its buffers."""
         (_, sel, _), future = item
@@ -885,11 +964,17 @@ _FFT_OUT = int(np.__version__.split(".")[0]) >= 2
 
 
 class _WorkBuffers:
-    """Memory of one batch in flight: its folded spectra and its stamps, grown as needed."""
+    """Memory of one batch in flight: its folded spectra and its stamps, grown as needed.
 
-    def __init__(self):
-        self._folded = np.empty(0, dtype=np.uint8)
-        self._stamps = np.empty(0, dtype=np.uint8)
+    Parameters
+    ----------
+    folded_bytes, stamps_bytes : int
+        Memory reserved up front (untouched until used).
+    """
+
+    def __init__(self, folded_bytes: int = 0, stamps_bytes: int = 0):
+        self._folded = np.empty(folded_bytes, dtype=np.uint8)
+        self._stamps = np.empty(stamps_bytes, dtype=np.uint8)
 
     @staticmethod
     def _view(buf, shape, dtype):
@@ -914,14 +999,21 @@ class _WorkPool:
 
     A batch takes a free one before it renders and gives it back once its stamps
     are in the image.
+
+    Parameters
+    ----------
+    size : int
+        Buffers.
+    folded_bytes, stamps_bytes : int
+        Memory reserved in each (see :class:`_WorkBuffers`).
     """
 
-    def __init__(self, size: int):
+    def __init__(self, size: int, folded_bytes: int = 0, stamps_bytes: int = 0):
         import queue
 
         self._free = queue.SimpleQueue()
         for _ in range(size):
-            self._free.put(_WorkBuffers())
+            self._free.put(_WorkBuffers(folded_bytes, stamps_bytes))
 
     def take(self) -> _WorkBuffers:
         """A free buffer (waits while every buffer is in use)."""
@@ -986,6 +1078,69 @@ class _TaperedGrid:
 
     def bilinear_weights(self, x, y):
         return self._grid.bilinear_weights(x, y)
+
+
+def _column_steps(fx, row) -> np.ndarray:
+    """Which samples lie one column step after the previous sample, in its row.
+
+    ``step[k]``: ``row[k] == row[k - 1]`` and ``fx[k] == fx[k - 1] + 1`` (integer
+    frequencies); there the mixing pass continues its Gaussian by the recurrence
+    (see :func:`~mavispm.simulate.render.stamp_kernels.mix_kernel_fold`).
+
+    Parameters
+    ----------
+    fx : ndarray (K,)
+        Integer column frequency of each sample.
+    row : ndarray of int (K,)
+        Row of each sample.
+    """
+    step = np.zeros(len(row), dtype=np.bool_)
+    step[1:] = (row[1:] == row[:-1]) & (fx[1:] == fx[:-1] + 1)
+    return step
+
+
+def _phase_ramps(shift, freq, df: float, cplx) -> np.ndarray:
+    """``exp(-2 pi i df * outer(shift, freq))`` in ``cplx``, from real cosines and sines.
+
+    numpy's complex ``exp`` calls the C library's ``cexp`` element by element; its
+    real ``cos`` / ``sin`` are vectorised (~1.8x faster here, the same values at
+    complex64: the phase argument is the same product).
+
+    Parameters
+    ----------
+    shift : ndarray (S,)
+        Star offsets [mas].
+    freq : ndarray (F,)
+        Integer frequencies (units of ``df``).
+    df : float
+        Frequency step [cycles/mas].
+    cplx : numpy dtype
+        complex64 or complex128.
+    """
+    angle = (-2.0 * np.pi * df) * np.outer(shift, freq)
+    out = np.empty(angle.shape, dtype=cplx)
+    out.real = np.cos(angle)
+    out.imag = np.sin(angle)
+    return out
+
+
+def _is_subset(values, sorted_set) -> bool:
+    """Whether every element of ``values`` is in the sorted array ``sorted_set``."""
+    if len(sorted_set) == 0:
+        return len(values) == 0
+    pos = np.minimum(np.searchsorted(sorted_set, values), len(sorted_set) - 1)
+    return bool(np.array_equal(sorted_set[pos], values))
+
+
+def _batch_samples(plan: StampPlan, cov, floor: float) -> np.ndarray:
+    """The plan's spectrum samples a batch evaluates (sorted indices).
+
+    Those the batch's narrowest kernel (covariances ``cov`` (S, 2, 2) [mas^2]) does not
+    suppress below ``floor``.
+    """
+    sig2_min = max(float(np.linalg.eigvalsh(cov)[:, 0].min(initial=np.inf)), 0.0)
+    damp = plan.peak * np.exp(-2.0 * np.pi**2 * sig2_min * (plan.u**2 + plan.v**2))
+    return np.flatnonzero(damp > floor)
 
 
 def stamp_centre(pix) -> np.ndarray:
