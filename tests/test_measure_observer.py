@@ -280,7 +280,13 @@ def test_later_epoch_after_a_noisy_input_list(tmp_path):
     1.3x of the one after an exact input list (measured 0.0165 against 0.0142 mas), and
     its errors include the earlier convention's (normalised residuals against the truth
     0.94). Before: 0.029 mas and 1.59 (the errors missed the inherited registration);
-    without the inherited term 6.6."""
+    without the inherited term 6.6.
+
+    The ratio noisy / exact depends on how the nine nodes' registrations fall (~35 stars
+    a node). Measured over perturbation seeds 0-3 with the crowded-star window (the
+    default since 2026-12-02): 1.32 / 1.15 / 1.09 / 1.20 (without it 1.16 / 1.00 / 1.03 /
+    1.15); the code before the inherited centring gave ~2.0. The bound, 1.4, sits between
+    the seed spread and the old method."""
     f1, f2, cfg = _moving_pair(tmp_path)
     scatter = {}
     for label, perturbation in (("exact", 0.0), ("noisy", 0.05)):
@@ -293,7 +299,7 @@ def test_later_epoch_after_a_noisy_input_list(tmp_path):
         if label == "noisy":
             assert first[0] > 3 * scatter["exact"]  # the registration to the noisy list
             assert 0.7 <= first[1] <= 1.3 and 0.7 <= later[1] <= 1.3, (first, later)
-    assert scatter["noisy"] <= 1.3 * scatter["exact"], scatter
+    assert scatter["noisy"] <= 1.4 * scatter["exact"], scatter
 
 
 def _gaussian_epsf(oversampling, x0=0.0, y0=0.0, sigma=1.3):
