@@ -204,6 +204,10 @@ class ErrorModel:
     kind : {"epsf", "chi2", "fisher"}
         What the terms hold: the ePSF model error and the chi^2 terms, the
         chi^2 terms only, or nothing beyond the Fisher errors.
+    registration : ndarray, optional
+        The part of ``position`` [pixel] that is the ePSF's registration to a reference
+        list (the node centring's error), shared by every epoch registered to the same
+        list; None: none.
     """
 
     position: np.ndarray
@@ -211,6 +215,7 @@ class ErrorModel:
     chi2_ratio: np.ndarray
     chi2_inflation: np.ndarray
     kind: str = "epsf"
+    registration: np.ndarray | None = None
 
     @classmethod
     def fisher_only(
@@ -240,10 +245,18 @@ class ErrorModel:
             "fisher" if plain else "chi2",
         )
 
-    def total(self, fisher_err: np.ndarray, model_err: np.ndarray) -> np.ndarray:
+    def total(
+        self,
+        fisher_err: np.ndarray,
+        model_err: np.ndarray,
+        registration: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Total 1-sigma error from a Fisher error and the matching model error.
 
-        ``sqrt(fisher_err^2 chi2_inflation + model_err^2 chi2_ratio)``.
+        ``sqrt(fisher_err^2 chi2_inflation + (model_err^2 - r^2) chi2_ratio + r^2)``
+        with ``r`` the registration part of the model error: a field error of the
+        ePSF's nodes, which a star's misfit against its peers does not enlarge (it was
+        inflated with the rest until 2026-12-02).
 
         Parameters
         ----------
@@ -251,13 +264,19 @@ class ErrorModel:
             Fisher (Cramer-Rao) errors of the fit.
         model_err : ndarray
             ePSF model errors of the same quantity, same unit.
+        registration : ndarray, optional
+            The registration part of ``model_err`` (:attr:`registration`), same unit;
+            None: none.
 
         Returns
         -------
         ndarray
             Total errors, same unit.
         """
-        return np.sqrt(fisher_err**2 * self.chi2_inflation + model_err**2 * self.chi2_ratio)
+        r2 = 0.0 if registration is None else np.minimum(registration**2, model_err**2)
+        return np.sqrt(
+            fisher_err**2 * self.chi2_inflation + (model_err**2 - r2) * self.chi2_ratio + r2
+        )
 
 
 def estimate_error_model(
