@@ -292,8 +292,8 @@ def test_later_epoch_after_a_noisy_input_list(input_lists):
     convention from the earlier ePSF star by star: its epoch difference stays within
     1.3x of the one after an exact input list (measured 0.0165 against 0.0142 mas), and
     its errors include the earlier convention's (normalised residuals against the truth
-    0.99 / 1.06 since the registration part is no longer inflated by the chi^2 ratio;
-    0.85 / 0.94 before). Before the inherited term: 0.029 mas and 1.59; without it 6.6."""
+    0.85 / 0.94). Before: 0.029 mas and 1.59 (the errors missed the inherited
+    registration); without the inherited term 6.6."""
     scatter = {}
     for label, (m1, m2) in input_lists.items():
         scatter[label] = _epoch_difference_scatter(m1, m2, 19.0)[0]
@@ -326,11 +326,12 @@ def test_proper_motion_errors_after_a_noisy_input_list(input_lists):
     motion, and the products say so (``x_err_registration``, the same
     ``registration_reference`` in both). The PM errors leave it out: the normalised
     residuals of V < 21 (~66 stars, 132 values; the robust std's sampling scatter
-    ~1.17 / sqrt(132) ~ 0.10) measured 0.77 (seeds 1, 2 of the list: 0.70, 0.65),
+    ~1.17 / sqrt(132) ~ 0.10) measured 0.77 (seeds 1, 2 of the list: 0.68, 0.63),
     as after the exact list (0.61, where the registration is small): the rest below 1
     is the per-epoch error model's excess at the bright end (epoch difference at the
     Fisher bound, 14.8 uas, against 22 predicted; docs/measure.md). Before, the errors
-    kept the shared registration: 0.09 (errors 8 x too large)."""
+    kept the shared registration: 0.09 (errors 8 x too large); with the shared part
+    stored without the chi^2 ratio that multiplies it in ``x_err`` 0.40."""
     refs = [
         read_product(m, "measured").attrs["registration_reference"] for m in input_lists["noisy"]
     ]

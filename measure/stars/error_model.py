@@ -245,18 +245,10 @@ class ErrorModel:
             "fisher" if plain else "chi2",
         )
 
-    def total(
-        self,
-        fisher_err: np.ndarray,
-        model_err: np.ndarray,
-        registration: np.ndarray | None = None,
-    ) -> np.ndarray:
+    def total(self, fisher_err: np.ndarray, model_err: np.ndarray) -> np.ndarray:
         """Total 1-sigma error from a Fisher error and the matching model error.
 
-        ``sqrt(fisher_err^2 chi2_inflation + (model_err^2 - r^2) chi2_ratio + r^2)``
-        with ``r`` the registration part of the model error: a field error of the
-        ePSF's nodes, which a star's misfit against its peers does not enlarge (it was
-        inflated with the rest until 2026-12-02).
+        ``sqrt(fisher_err^2 chi2_inflation + model_err^2 chi2_ratio)``.
 
         Parameters
         ----------
@@ -264,19 +256,26 @@ class ErrorModel:
             Fisher (Cramer-Rao) errors of the fit.
         model_err : ndarray
             ePSF model errors of the same quantity, same unit.
-        registration : ndarray, optional
-            The registration part of ``model_err`` (:attr:`registration`), same unit;
-            None: none.
 
         Returns
         -------
         ndarray
             Total errors, same unit.
         """
-        r2 = 0.0 if registration is None else np.minimum(registration**2, model_err**2)
-        return np.sqrt(
-            fisher_err**2 * self.chi2_inflation + (model_err**2 - r2) * self.chi2_ratio + r2
-        )
+        return np.sqrt(fisher_err**2 * self.chi2_inflation + model_err**2 * self.chi2_ratio)
+
+    def shared_position(self) -> np.ndarray:
+        """The registration part of the total position error [pixel] as it enters
+        :meth:`total` (``registration sqrt(chi2_ratio)``; zeros without one), so that
+        ``total^2 - shared^2`` is the rest.
+
+        Returns
+        -------
+        ndarray
+        """
+        if self.registration is None:
+            return np.zeros(len(self.position))
+        return self.registration * np.sqrt(self.chi2_ratio)
 
 
 def estimate_error_model(

@@ -1156,12 +1156,8 @@ def measure_frame(
     stars["y_pix"] = fit.y
     stars["x"] = x_as * u.arcsec
     stars["y"] = y_as * u.arcsec
-    stars["x_err"] = (
-        errors.total(fit.x_err, errors.position, errors.registration) * scale * u.arcsec
-    )
-    stars["y_err"] = (
-        errors.total(fit.y_err, errors.position, errors.registration) * scale * u.arcsec
-    )
+    stars["x_err"] = errors.total(fit.x_err, errors.position) * scale * u.arcsec
+    stars["y_err"] = errors.total(fit.y_err, errors.position) * scale * u.arcsec
     stars["flux"] = fit.flux * u.electron
     stars["flux_err"] = errors.total(fit.flux_err, errors.flux) * u.electron
     stars["sky"] = fit.sky * u.electron
@@ -1179,7 +1175,7 @@ def measure_frame(
     stars["y_err_fisher"] = fit.y_err * scale * u.arcsec
     stars["flux_err_fisher"] = fit.flux_err * u.electron
     stars["err_epsf"] = errors.position * scale * u.arcsec
-    registration = np.zeros(n) if errors.registration is None else errors.registration
+    registration = errors.shared_position()  # as it enters x_err, y_err
     stars["x_err_registration"] = registration * scale * u.arcsec
     stars["y_err_registration"] = registration * scale * u.arcsec
     attrs = {
