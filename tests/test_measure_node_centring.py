@@ -12,6 +12,7 @@ from mavispm.measure.stars.node_centring import (
     centring_summary,
     node_shifts,
     recentred_epsf,
+    reference_list_id,
 )
 from mavispm.measure.stars.variable_psf import gridded_epsf
 
@@ -72,9 +73,13 @@ def test_centring_error_passes_through_the_product_attribute():
     rng = np.random.default_rng(1)
     root = rng.normal(0, 1e-3, (9, 9))
     cov = root @ root.T  # a full, positive definite covariance [pixel^2]
+    name = reference_list_id("truth", 0.0, np.arange(3), np.zeros(3), np.ones(3))
     back = centring_from_summary(
-        centring_summary((NodeCentring(np.zeros((9, 2)), 0.01, 500, cov),), 7.36e-3)
+        centring_summary((NodeCentring(np.zeros((9, 2)), 0.01, 500, cov),), 7.36e-3, "start", name)
     )
+    assert back.reference_id == name  # what a later epoch names as its registration
+    # another list (one position moved by 1e-9 px), another name
+    assert reference_list_id("truth", 0.0, np.arange(3), np.zeros(3), np.ones(3) + 1e-9) != name
     nx, ny = np.asarray(psf.meta["nodes_x"]), np.asarray(psf.meta["nodes_y"])
     gx, gy = np.meshgrid(nx, ny)  # row-major, as the nodes
     np.testing.assert_allclose(back.error_at(psf, gx.ravel(), gy.ravel()), np.sqrt(np.diag(cov)))

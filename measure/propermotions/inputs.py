@@ -35,9 +35,20 @@ MEASURED_PM_SPEC = TableSpec(
         "mag_fit": "mag",
         "x_true": "arcsec",
         "y_true": "arcsec",
+        "x_err_registration": "arcsec",
+        "y_err_registration": "arcsec",
     },
     id_column="id",
-    allow_nan=("x_err", "y_err", "x_true", "y_true", "mag", "mag_fit"),
+    allow_nan=(
+        "x_err",
+        "y_err",
+        "x_true",
+        "y_true",
+        "mag",
+        "mag_fit",
+        "x_err_registration",
+        "y_err_registration",
+    ),
 )
 
 #: Two epochs closer than this [yr] are the same epoch.
@@ -75,6 +86,13 @@ class EpochCatalogue:
         and must not be used to cross-match epochs.
     ids_true : ndarray of int or None
         The product's ``id_true`` column (truth id for scoring; -1 unmatched).
+    x_err_registration, y_err_registration : ndarray or None
+        The part of ``x_err``, ``y_err`` [arcsec] that is the registration to the
+        reference list ``registration_reference`` (None: products without the
+        columns, read as no shared part).
+    registration_reference : str or None
+        The product's ``registration_reference`` attribute: epochs naming the same
+        list share that part (:mod:`~mavispm.measure.propermotions.shared_errors`).
     """
 
     epoch: float
@@ -92,6 +110,9 @@ class EpochCatalogue:
     path: Path | None = None
     blind: bool = False
     ids_true: np.ndarray | None = None
+    x_err_registration: np.ndarray | None = None
+    y_err_registration: np.ndarray | None = None
+    registration_reference: str | None = None
 
     @property
     def label(self) -> str:
@@ -150,9 +171,11 @@ def epoch_catalogue(
     ----------
     stars : Table or QTable
         Columns of :data:`MEASURED_PM_SPEC` (``id``, ``x``, ``y``, ``x_err``,
-        ``y_err`` [arcsec], optional ``flag``, ``mag``, ``x_true``, ``y_true``).
+        ``y_err`` [arcsec], optional ``flag``, ``mag``, ``x_true``, ``y_true``,
+        ``x_err_registration``, ``y_err_registration``).
     attrs : mapping, optional
-        ``epoch`` [yr] (required) and optional ``distance`` [kpc]; default
+        ``epoch`` [yr] (required), optional ``distance`` [kpc] and
+        ``registration_reference``; default
         ``stars.meta`` (what :func:`mavispm.measure_stars` returns).
     path : path, optional
         Source file, for messages.
@@ -202,6 +225,9 @@ def epoch_catalogue(
         ids_true=(
             np.asarray(stars["id_true"], dtype=np.int64) if "id_true" in stars.colnames else None
         ),
+        x_err_registration=col("x_err_registration"),
+        y_err_registration=col("y_err_registration"),
+        registration_reference=attrs.get("registration_reference") or None,
     )
 
 

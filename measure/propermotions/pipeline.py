@@ -7,7 +7,7 @@ products and writing the propermotions product; the CLI and the benchmark call
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import astropy.units as u
 import numpy as np
@@ -31,6 +31,11 @@ from mavispm.measure.propermotions.motion_fit import (
     radial_tangential,
 )
 from mavispm.measure.propermotions.settings import ProperMotionSettings
+from mavispm.measure.propermotions.shared_errors import (
+    independent_errors,
+    shared_mask,
+    shared_motion_covariance,
+)
 
 __all__ = [
     "ORDER_NOTE_P",
@@ -199,6 +204,16 @@ def derive_proper_motions(
     valid = (match.index >= 0) & np.isfinite(x) & np.isfinite(y)
     valid &= np.isfinite(sx) & np.isfinite(sy) & (sx > 0) & (sy > 0)
     err = np.fmax(sx, sy)
+    # the registration to a reference list that epochs share cancels between them: the
+    # alignment and the motion fit weigh by the rest, and its remainder is added after
+    references = [
+        e.registration_reference if e.x_err_registration is not None else None for e in epochs
+    ]
+    shared = shared_mask(references, valid)
+    rx = _gather(epochs, match, "x_err_registration")
+    ry = _gather(epochs, match, "y_err_registration")
+    sx, sy = independent_errors(sx, rx, shared), independent_errors(sy, ry, shared)
+    _note_shared(epochs, shared, rx, ry, notes)
     if settings.ref_mag_max is not None and not np.any(np.isfinite(mag_ref)):
         raise InputError("ref_mag_max is set but no epoch has a 'mag_fit' or 'mag' column")
 
@@ -214,6 +229,7 @@ def derive_proper_motions(
     vxy = np.zeros_like(vx)
     fits: list[AlignmentFit | None] = [None] * n_ep
     frame_sd = np.zeros((x.shape[0], n_ep, 2))
+    jac = np.broadcast_to(np.eye(2), (x.shape[0], n_ep, 2, 2)).copy()
     flag = np.zeros(x.shape[0], np.int64)
     ever_candidate = np.zeros(x.shape[0], bool)
     for k in range(n_ep):
@@ -239,7 +255,7 @@ def derive_proper_motions(
         fits[k] = fit
         _note_order(fit, x[:, k], y[:, k], x[:, ref], y[:, ref], t[k], notes)
         flag[cand & ~fit.used] |= PMFlag.CLIPPED
-        ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k], tvar = _aligned(
+        ax[:, k], ay[:, k], vx[:, k], vy[:, k], vxy[:, k], tvar, jac[:, k] = _aligned(
             fit, x[:, k], y[:, k], sx[:, k], sy[:, k], valid[:, k]
         )
         flag[valid[:, k] & extrapolated(fit, x[:, k], y[:, k], *tvar)] |= PMFlag.EXTRAPOLATED
@@ -254,6 +270,16 @@ def derive_proper_motions(
     motion = fit_linear_motion(
         t, ax[keep], ay[keep], vx[keep], vy[keep], vxy[keep], valid[keep], t_ref=t[ref]
     )
+    if np.any(shared):
+        extra = shared_motion_covariance(
+            references, shared[keep], motion.coef_x, motion.coef_y, jac[keep], rx[keep], ry[keep]
+        )
+        motion = replace(
+            motion,
+            var_pm_x=motion.var_pm_x + extra[0],
+            var_pm_y=motion.var_pm_y + extra[1],
+            cov_pm_xy=motion.cov_pm_xy + extra[2],
+        )
     flag = flag[keep]
     flag[~ever_candidate[keep]] |= PMFlag.NOT_REFERENCE
     flag[motion.n_epochs < n_ep] |= PMFlag.MISSING_EPOCHS
@@ -327,6 +353,22 @@ def _note_order(fit, x, y, x_ref, y_ref, epoch, notes) -> None:
         )
 
 
+def _note_shared(epochs, shared, rx, ry, notes) -> None:
+    """A note naming the epochs whose shared registration cancels, and its median [mas]."""
+    cols = np.flatnonzero(np.any(shared, axis=0))
+    if len(cols) == 0:
+        return
+    r = np.concatenate([rx[:, cols][shared[:, cols]], ry[:, cols][shared[:, cols]]])
+    r = r[np.isfinite(r)]
+    median = float(np.median(r)) * MAS if len(r) else 0.0
+    names = ", ".join(f"{epochs[k].epoch:g}" for k in cols)
+    notes.append(
+        f"epochs {names} yr share the registration to "
+        f"'{epochs[cols[0]].registration_reference}' (median {median:.3g} mas per axis): "
+        "it cancels in the motions and is left out of their errors"
+    )
+
+
 def extrapolated(fit: AlignmentFit, x, y, tx, ty) -> np.ndarray:
     """Where a star's position needs the transformation beyond what its reference stars tie down.
 
@@ -361,8 +403,9 @@ def extrapolated(fit: AlignmentFit, x, y, tx, ty) -> np.ndarray:
 
 
 def _aligned(fit: AlignmentFit, x, y, sx, sy, valid):
-    """Aligned positions, their covariance (measurement + transformation), and the
-    transformation's own position variances ``(tx, ty)`` [arcsec^2]."""
+    """Aligned positions, their covariance (measurement + transformation), the
+    transformation's own position variances ``(tx, ty)`` [arcsec^2] and its Jacobian
+    (n, 2, 2)."""
     xx = np.where(valid, x, 0.0)
     yy = np.where(valid, y, 0.0)
     mx, my = fit.apply(xx, yy)
@@ -373,7 +416,7 @@ def _aligned(fit: AlignmentFit, x, y, sx, sy, valid):
     var_y = jac[:, 1, 0] ** 2 * s2x + jac[:, 1, 1] ** 2 * s2y
     cov = jac[:, 0, 0] * jac[:, 1, 0] * s2x + jac[:, 0, 1] * jac[:, 1, 1] * s2y
     tx, ty, txy = fit.model.position_covariance(fit.measurement_covariance, xx, yy)
-    return mx, my, var_x + tx, var_y + ty, cov + txy, (tx, ty)
+    return mx, my, var_x + tx, var_y + ty, cov + txy, (tx, ty), jac
 
 
 def _frame_sd(fit: AlignmentFit, x, y, valid, dt: float) -> np.ndarray:

@@ -204,6 +204,10 @@ class ErrorModel:
     kind : {"epsf", "chi2", "fisher"}
         What the terms hold: the ePSF model error and the chi^2 terms, the
         chi^2 terms only, or nothing beyond the Fisher errors.
+    registration : ndarray, optional
+        The part of ``position`` [pixel] that is the ePSF's registration to a reference
+        list (the node centring's error), shared by every epoch registered to the same
+        list; None: none.
     """
 
     position: np.ndarray
@@ -211,6 +215,7 @@ class ErrorModel:
     chi2_ratio: np.ndarray
     chi2_inflation: np.ndarray
     kind: str = "epsf"
+    registration: np.ndarray | None = None
 
     @classmethod
     def fisher_only(
@@ -258,6 +263,19 @@ class ErrorModel:
             Total errors, same unit.
         """
         return np.sqrt(fisher_err**2 * self.chi2_inflation + model_err**2 * self.chi2_ratio)
+
+    def shared_position(self) -> np.ndarray:
+        """The registration part of the total position error [pixel] as it enters
+        :meth:`total` (``registration sqrt(chi2_ratio)``; zeros without one), so that
+        ``total^2 - shared^2`` is the rest.
+
+        Returns
+        -------
+        ndarray
+        """
+        if self.registration is None:
+            return np.zeros(len(self.position))
+        return self.registration * np.sqrt(self.chi2_ratio)
 
 
 def estimate_error_model(

@@ -52,7 +52,11 @@ from mavispm.measure.stars.error_model import (
 )
 from mavispm.measure.stars.halo_shape import HaloShape, prior_halo_shape
 from mavispm.measure.stars.measured_table import MEASURED_SPEC
-from mavispm.measure.stars.node_centring import centred_on_all_stars, centring_summary
+from mavispm.measure.stars.node_centring import (
+    centred_on_all_stars,
+    centring_summary,
+    reference_list_id,
+)
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
 from mavispm.measure.stars.psf_reconstruction import build_psfr_epsf, read_prior
 from mavispm.measure.stars.settings import MeasureSettings
@@ -746,7 +750,9 @@ def error_terms(
     Returns
     -------
     ErrorModel
-        Per-star terms (Fisher only when ``error_model = "fisher"``).
+        Per-star terms (Fisher only when ``error_model = "fisher"``). With nodes centred
+        on all stars, ``registration`` is the part shared with every epoch registered
+        to the same list: ``inherited`` where given, else the centring's own error.
     """
     n = len(fit.x)
     if settings.error_model == "fisher":
@@ -784,9 +790,14 @@ def error_terms(
         )
         if centred:
             node_err = frame_psf.centring[0].error_at(frame_psf.psf, fit.x, fit.y)
+            # the registration to the reference list: the first epoch's own centring,
+            # a later epoch's inherited one (its own is against its refined start)
+            registration = node_err if inherited is None else inherited
             if inherited is not None:
                 node_err = np.hypot(node_err, inherited)
-            model = replace(model, position=np.hypot(model.position, node_err))
+            model = replace(
+                model, position=np.hypot(model.position, node_err), registration=registration
+            )
         return model
     # PSF-R model: chi^2 against the star's peers, plus the model-error floor
     return estimate_error_model(
@@ -1056,6 +1067,7 @@ def measure_frame(
     )  # fmt: skip
     centring = None
     inherited = None
+    registration_reference = None
     # a later epoch's start refined with the earlier ePSF is measured on this frame (the
     # motions are in it): centred on it, the new ePSF keeps the earlier one's convention
     # star by star. A carried start not refined so holds the stars' motions: that epoch
@@ -1069,8 +1081,15 @@ def measure_frame(
     ):
         frame_psf, fit = centred_on_all_stars(frame, frame_psf, fit, x0, y0, settings)
         psf, centring = frame_psf.psf, frame_psf.centring
+        if centring:
+            own = "refined" if carried else extra["start"]
+            centring[0].reference_id = reference_list_id(
+                own, float(frame.epoch.to_value(u.yr)), ids, x0, y0
+            )
+            registration_reference = centring[0].reference_id
         if refined and centring:
             inherited = anchor.centring_error(fit.x, fit.y)
+            registration_reference = getattr(anchor.centring, "reference_id", None)
     t_fit = time.perf_counter()
     errors = error_terms(frame, frame_psf, fit, settings, inherited)
     t_err = time.perf_counter()
@@ -1159,6 +1178,9 @@ def measure_frame(
     stars["y_err_fisher"] = fit.y_err * scale * u.arcsec
     stars["flux_err_fisher"] = fit.flux_err * u.electron
     stars["err_epsf"] = errors.position * scale * u.arcsec
+    registration = errors.shared_position()  # as it enters x_err, y_err
+    stars["x_err_registration"] = registration * scale * u.arcsec
+    stars["y_err_registration"] = registration * scale * u.arcsec
     attrs = {
         "engine": settings.engine,
         "psf_variation": psf.kind,
@@ -1174,7 +1196,13 @@ def measure_frame(
         "start_transform": extra.pop("start_transform", None),
         "epsf_anchor": anchor_summary(anchor, frame.pixel_scale),
         "epsf_centring": centring_summary(
-            centring, frame.pixel_scale, "refined" if carried else "start"
+            centring,
+            frame.pixel_scale,
+            "refined" if carried else "start",
+            centring[0].reference_id if centring else None,
+        ),
+        "registration_reference": (
+            registration_reference if errors.registration is not None else None
         ),
         "psf_model": "psfr" if frame_psf.psfr_kernels is not None else "epsf",
         "psfr": psfr_summary(frame_psf, settings),

@@ -41,6 +41,8 @@ MEASURED_SPEC = TableSpec(
         "y_err_fisher": "arcsec",
         "flux_err_fisher": "electron",
         "err_epsf": "arcsec",
+        "x_err_registration": "arcsec",
+        "y_err_registration": "arcsec",
     },
     allow_nan=(
         "x_err",
@@ -62,5 +64,7 @@ MEASURED_SPEC = TableSpec(
         "y_err_fisher",
         "flux_err_fisher",
         "err_epsf",
+        "x_err_registration",
+        "y_err_registration",
     ),
 )

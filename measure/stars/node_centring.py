@@ -37,6 +37,7 @@ the earlier epoch's (its convention's error, :func:`centring_from_summary`).
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import replace
 
@@ -59,6 +60,7 @@ __all__ = [
     "centring_summary",
     "node_shifts",
     "recentred_epsf",
+    "reference_list_id",
 ]
 
 #: Rejection threshold of the corrections [sigma].
@@ -79,13 +81,20 @@ class NodeCentring:
     cov : ndarray, shape (K, K), optional
         Covariance of the node shifts per axis [pixel^2] (the least-squares inverse
         normal matrix scaled by the residuals' reduced chi^2); None: unknown.
+    reference_id : str, optional
+        Names the reference list the nodes were registered to
+        (:func:`reference_list_id`); epochs whose errors hold this registration share
+        it. None: not known (products written before 2026-12-02).
     """
 
-    def __init__(self, shifts: np.ndarray, start_sigma: float, n_used: int, cov=None):
+    def __init__(
+        self, shifts: np.ndarray, start_sigma: float, n_used: int, cov=None, reference_id=None
+    ):
         self.shifts = np.asarray(shifts, float)
         self.start_sigma = float(start_sigma)
         self.n_used = int(n_used)
         self.cov = None if cov is None else np.asarray(cov, float)
+        self.reference_id = reference_id
 
     def error_at(self, psf: VariableEPSF, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Per-axis error [pixel] of the interpolated shift at ``x, y`` (zeros without ``cov``).
@@ -290,11 +299,43 @@ def centred_on_all_stars(frame, frame_psf, fit, x0, y0, settings):
     return frame_psf, moved
 
 
-def centring_summary(centring, pixel_scale: float, reference: str = "start") -> str:
+def reference_list_id(label: str, epoch: float, ids, x, y) -> str:
+    """Name of a reference list: ``"<label>@<epoch>yr:<digest>"``, the digest (SHA-256,
+    16 hex digits) of its ids and pixel positions.
+
+    Two measurements centred on the same list share its registration error, and only
+    then (the proper-motion stage cancels it between epochs that name the same list).
+
+    Parameters
+    ----------
+    label : str
+        Where the list came from (the measured product's ``start``: ``"truth"``,
+        ``"detected"``, ``"measured"``).
+    epoch : float
+        Epoch of the frame it was used on [yr].
+    ids : ndarray of int
+        Star ids.
+    x, y : ndarray
+        Positions [pixel].
+
+    Returns
+    -------
+    str
+    """
+    digest = hashlib.sha256()
+    for a, dtype in ((ids, np.int64), (x, np.float64), (y, np.float64)):
+        digest.update(np.ascontiguousarray(a, dtype).tobytes())
+    return f"{label}@{epoch:g}yr:{digest.hexdigest()[:16]}"
+
+
+def centring_summary(
+    centring, pixel_scale: float, reference: str = "start", reference_id: str | None = None
+) -> str:
     """JSON of the node centring: ``"psf_stars"``, or ``"all"`` with the rms node shift
     [mas], the stars used, the estimated scatter of the reference positions [mas], the
     reference (``"start"``: the input list; ``"refined"``: a later epoch's start
-    refined with the earlier ePSF) and the node shifts' covariance per axis
+    refined with the earlier ePSF), its name ``reference_id``
+    (:func:`reference_list_id`) and the node shifts' covariance per axis
     ``cov_pix2`` [pixel^2] (a later epoch anchored to this one adds its error).
 
     Parameters
@@ -305,6 +346,8 @@ def centring_summary(centring, pixel_scale: float, reference: str = "start") -> 
         [arcsec / pixel].
     reference : {"start", "refined"}
         The positions the nodes were centred on.
+    reference_id : str, optional
+        Their name (:func:`reference_list_id`).
 
     Returns
     -------
@@ -318,6 +361,7 @@ def centring_summary(centring, pixel_scale: float, reference: str = "start") -> 
     out = {
         "centring": "all",
         "reference": reference,
+        "reference_id": reference_id,
         "n_stars": full.n_used,
         "rms_shift_mas": [float(v) for v in rms],
         "start_sigma_mas": float(full.start_sigma * mas),
@@ -338,8 +382,8 @@ def centring_from_summary(text: str | None) -> NodeCentring | None:
     Returns
     -------
     NodeCentring or None
-        Zero shifts (the earlier ePSF is already centred) and the covariance
-        ``cov_pix2``; None where the nodes were not centred on all stars or no
+        Zero shifts (the earlier ePSF is already centred), the covariance
+        ``cov_pix2`` and the ``reference_id`` (None where not written); None where the nodes were not centred on all stars or no
         covariance was written.
 
     Raises
@@ -356,4 +400,10 @@ def centring_from_summary(text: str | None) -> NodeCentring | None:
     if cov.ndim != 2 or cov.shape[0] != cov.shape[1]:
         raise ValueError(f"epsf_centring: cov_pix2 of shape {cov.shape} is not square")
     # the start scatter is kept in mas there; the covariance is what a later epoch needs
-    return NodeCentring(np.zeros((cov.shape[0], 2)), np.nan, int(meta.get("n_stars", 0)), cov)
+    return NodeCentring(
+        np.zeros((cov.shape[0], 2)),
+        np.nan,
+        int(meta.get("n_stars", 0)),
+        cov,
+        reference_id=meta.get("reference_id"),
+    )
