@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 from astropy.stats import sigma_clip
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from workflows_helpers import (
     TINY_WORKFLOW,
@@ -184,15 +184,20 @@ def test_dry_run_counts_identical_nodes_once(tmp_path, capsys, monkeypatch):
     st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=0, max_size=60),
     st.integers(1, 5),
 )
+@example([0.0, 5.7e-228], 2)
 def test_clipped_dispersion_matches_a_brute_force_clipping_loop(values, iterations):
     """Against the paper's statistic written out: ``iterations`` rounds of keeping the
-    values within mean +- 2 std of the values kept so far (stop when none is dropped)."""
+    values within mean +- 2 std of the values kept so far (stop when none is dropped).
+    The clipping is scale-free, so the reference clips the values over their largest
+    magnitude: a std of values near 1e-228 underflows in the squares (found by
+    hypothesis: [0, 5.7e-228] kept none against the library's 2)."""
     v = np.array(values)
     disp, kept = clipped_dispersion(v, sigma=2.0, iterations=iterations)
     if v.size < 2:
         assert np.isnan(disp)
         return
-    ref = v.copy()
+    scale = np.max(np.abs(v)) or 1.0
+    ref = v / scale
     for _ in range(iterations):
         if ref.size < 2:
             break
@@ -203,7 +208,7 @@ def test_clipped_dispersion_matches_a_brute_force_clipping_loop(values, iteratio
         ref = inside
     assert kept == ref.size
     if kept >= 2:
-        assert disp == pytest.approx(ref.std(), rel=1e-9, abs=1e-9)
+        assert disp == pytest.approx(ref.std() * scale, rel=1e-9, abs=1e-9)
 
 
 def test_dispersion_profile_recovers_a_known_dispersion():
