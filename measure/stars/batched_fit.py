@@ -617,23 +617,20 @@ def fit_stars(
         """One damped Gauss-Newton step of the stars ``idx``; ``together`` (their group
         labels, each group's stars consecutive) couples the stars of a group."""
         v, dvx, dvy, a, b, w, resid = normal_equations(idx)
-        diag = np.einsum("nkk->nk", a)
-        a_d = a + opt.damping * diag[:, :, None] * np.eye(npar)
+        a_d = _damped(a, opt.damping)
         if fixed:
             frozen = np.ones(len(idx), bool)
         else:
             cov, ok = safe_inverse(a)
             snr = flux[idx] / np.sqrt(np.abs(cov[:, 2, 2]))
-            sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
-            if opt.chi2_tolerance:
-                sigma_pos *= np.sqrt(
-                    _neighbour_misfit(
-                        w * resid**2, model[flat[idx]] - own[idx], own[idx], valid[idx], npar
-                    )
+            misfit = (
+                _neighbour_misfit(
+                    w * resid**2, model[flat[idx]] - own[idx], own[idx], valid[idx], npar
                 )
-            thresh[idx] = np.maximum(
-                opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos)
+                if opt.chi2_tolerance
+                else None
             )
+            thresh[idx] = _position_tolerance(cov, misfit, opt)
             frozen = ~ok | ~(snr > opt.min_snr)
         # positions of frozen stars held: identity rows, no right-hand side
         a_d[frozen, :2, :] = 0.0
@@ -814,8 +811,7 @@ def fit_stars(
         _, _, _, a, b, w, resid = normal_equations(idx)
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
         if opt.check_cut_steps:
-            diag = np.einsum("nkk->nk", a)
-            step = _solve(a + opt.damping * diag[:, :, None] * np.eye(npar), b)
+            step = _solve(_damped(a, opt.damping), b)
             next_step[idx] = np.hypot(step[:, 0], step[:, 1])
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
@@ -841,10 +837,8 @@ def fit_stars(
         if opt.check_cut_steps:
             # the tolerance at the solution, as step_stars takes it (own Fisher block,
             # times the neighbours' misfit)
-            sigma_pos = np.sqrt(np.abs(plain[:, 0, 0]) + np.abs(plain[:, 1, 1]))
-            if opt.chi2_tolerance:
-                sigma_pos *= np.sqrt(np.nan_to_num(crowding[all_idx], nan=1.0))
-            final = np.maximum(opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos))
+            misfit = np.nan_to_num(crowding[all_idx], nan=1.0) if opt.chi2_tolerance else None
+            final = _position_tolerance(plain, misfit, opt)
             flag[all_idx[cut[all_idx] & (next_step[all_idx] >= final)]] |= FLAG_NOT_CONVERGED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0)
@@ -1045,6 +1039,47 @@ def _group_pairs(label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     same = label[:, None] == label[None, :]
     np.fill_diagonal(same, False)
     return np.nonzero(same)
+
+
+def _damped(a: np.ndarray, damping: float) -> np.ndarray:
+    """Levenberg-Marquardt normal matrices: ``a`` with ``damping`` times its diagonal added.
+
+    Parameters
+    ----------
+    a : ndarray, shape (n, p, p)
+    damping : float
+
+    Returns
+    -------
+    ndarray, shape (n, p, p)
+    """
+    diag = np.einsum("nkk->nk", a)
+    return a + damping * diag[:, :, None] * np.eye(a.shape[-1])
+
+
+def _position_tolerance(cov: np.ndarray, misfit, opt: FitOptions) -> np.ndarray:
+    """Convergence threshold [pixel] of each star's position step.
+
+    ``max(tolerance, relative_tolerance * sigma)``, with ``sigma`` the position error
+    of the covariance ``cov`` (x and y in quadrature), times ``sqrt(misfit)`` (the
+    neighbours' misfit) when ``opt.chi2_tolerance``.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, p, p)
+        Covariances, position first [pixel^2].
+    misfit : ndarray (n,) or None
+        The neighbours' misfit ratio (used with ``chi2_tolerance``).
+    opt : FitOptions
+
+    Returns
+    -------
+    ndarray (n,)
+    """
+    sigma_pos = np.sqrt(np.abs(cov[:, 0, 0]) + np.abs(cov[:, 1, 1]))
+    if opt.chi2_tolerance:
+        sigma_pos = sigma_pos * np.sqrt(misfit)
+    return np.maximum(opt.tolerance, opt.relative_tolerance * np.nan_to_num(sigma_pos))
 
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
