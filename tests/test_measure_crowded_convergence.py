@@ -195,35 +195,33 @@ def _misfit_score(options, seeds=range(8)):
 def test_misfit_crowd_converges_without_stopping_early():
     """In a crowd 1.6 x as dense as the 1e5-star frame (250 stars on 160 x 160 px) fitted with
     a misfitting ePSF, the stage's fitter converges for >= 99 % of the stars with m < 24,
-    fails for <= 2 % (<= 1 % before the never-fitted positions were counted as failed,
-    2026-12-03: 0.80 %, 1.72 %, 1.56; the 1.3 % more had a negative flux each time they
-    were stepped and sat at their start, the truth, counted converged with zero error;
-    docs/measure.md, "Scale", tenth pass), and the converged stars at m 22-24 stay within
-    1.7 x the CRLB
+    fails for <= 1 %, and the converged stars at m 22-24 stay within 1.7 x the CRLB
     (measured 2026-12-02: 0.29 % unconverged, 0.69 % failed, 1.58; with
     ``check_cut_steps`` 1.15 %, 0.69 %, 1.54: the 15 stars it flags were stopped by one
     cut step a median 25 x CRLB from the truth, against 2.1 for those still called
-    converged; with ``crowded_window`` 0.80 %, 0.40 %, 1.52). The convergence test
+    converged; with ``crowded_window`` 0.80 %, 0.40 %, 1.52; 2026-12-03, held positions
+    retried and a never-fitted one failed: 0.80 %, 0.29 %, 1.59, while counting the
+    never-fitted ones without the retry gave 1.72 % failed: they had sat at their start,
+    the truth, as converged; docs/measure.md, "Scale", tenth pass). The convergence test
     counts a step against the position error that the neighbours' share of the stamp's
     misfit implies (``chi2_tolerance``): against the Fisher error alone 4.4 % were still
     moving after 40 sweeps (0.52 % failed, 1.66;
     ``test_misfit_crowd_check_fails_the_fisher_criterion``)."""
     unconverged, failed, spread = _misfit_score(fit_options(validate_settings({})))
-    assert unconverged <= 0.01 and failed <= 0.02 and spread <= 1.7, (unconverged, failed, spread)
+    assert unconverged <= 0.01 and failed <= 0.01 and spread <= 1.7, (unconverged, failed, spread)
 
 
 def test_misfit_crowd_fits_crowded_stars_on_their_central_window():
     """On the same frames, the crowded stars' smaller fitting window (``crowded_window``:
     their outer stamp holds mostly their neighbours' mis-modelled light) leaves fewer stars
     with m < 24 unconverged or failed than the whole stamp, at no more scatter about the
-    truth (measured: 1.20 % against 1.84 %, 1.52 against 1.54 x CRLB; with the
-    never-fitted positions counted as failed, 2026-12-03: 2.52 % against 3.21 %, 1.56
-    against 1.61: the limit 0.75 -> 0.85 of the whole stamp's count)."""
+    truth (measured: 1.20 % against 1.84 %, 1.52 against 1.54 x CRLB; with held
+    positions retried, 2026-12-03: 1.09 % against 1.72 %, 1.59 against 1.64)."""
     options = fit_options(validate_settings({}))
     assert options.crowded_window == 4
     unconverged, failed, spread = _misfit_score(options)
     whole = _misfit_score(dataclasses.replace(options, crowded_window=0))
-    assert unconverged + failed <= 0.85 * (whole[0] + whole[1]), (unconverged, failed, whole)
+    assert unconverged + failed <= 0.75 * (whole[0] + whole[1]), (unconverged, failed, whole)
     assert spread <= whole[2] * 1.02, (spread, whole)
 
 
