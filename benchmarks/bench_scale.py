@@ -8,8 +8,11 @@ defaults and the grid as the PSF-R prior, and prints the stage times, the peak R
 the process so far, the failed / not-converged fractions among stars with V < 25 whose
 centres lie inside the frame (those outside fail by design), and the robust scatter
 over the CRLB and the robust std of the normalised residuals ``(x - x_true - offset) /
-x_err`` (the frame's common offset removed) per magnitude bin. Run each N in its own
-process (``/usr/bin/time -v``) for a clean peak memory.
+x_err`` (the frame's common offset removed) per magnitude bin, and the same fractions
+by confusion class (docs/measure.md, "Scale", tenth pass): the stars with a comparable
+neighbour (at most 1 mag fainter) within 1.5 FWHM of the frame's PSF model, and the
+isolated ones per magnitude bin. Run each N in its own process (``/usr/bin/time -v``)
+for a clean peak memory.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mavispm.measure.stars.cli import validate_settings
+from mavispm.measure.stars.confusion import effective_fwhm, nearest_comparable
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
 
 
@@ -64,7 +68,7 @@ def measure(path: Path, prior: Path) -> None:
     frame = read_frame(path)
     cfg = validate_settings({"psf_prior": str(prior)})
     t0 = time.perf_counter()
-    stars, attrs, _ = measure_frame(frame, cfg, 0)
+    stars, attrs, psf = measure_frame(frame, cfg, 0)
     wall = time.perf_counter() - t0
     ny, nx = frame.shape
     tx = np.asarray(frame.truth["x_pix"], float)
@@ -79,6 +83,22 @@ def measure(path: Path, prior: Path) -> None:
         f"(PSF {attrs['time_epsf'].value:.1f}, fit {attrs['time_fit'].value:.1f}, errors "
         f"{attrs['time_errors'].value:.1f}), peak RSS {peak:.2f} GB; V < 25 inside: "
         f"failed {np.mean(flag[sel] & 32 > 0):.2%}, not converged {np.mean(flag[sel] & 1 > 0):.2%}"
+    )
+    failed, unconverged = flag & 32 > 0, flag & 1 > 0
+    fwhm = effective_fwhm(psf.epsf_at((nx - 1) / 2, (ny - 1) / 2), psf.oversampling)[0]
+    near, _ = nearest_comparable(tx, ty, mag, 1.5 * fwhm)
+    blend = sel & (near < 1.5 * fwhm)
+    iso = sel & ~blend
+    print(
+        f"  FWHM {fwhm:.2f} px; comparable neighbour within 1.5 FWHM: {blend.mean() / sel.mean():.2%}"
+        f" of them, failed / not converged {failed[blend].mean():.2%} / "
+        f"{unconverged[blend].mean():.2%}; isolated {failed[iso].mean():.2%} / "
+        f"{unconverged[iso].mean():.2%}, V "
+        + ", ".join(
+            f"{lo}-{hi} {failed[b].mean():.2%} / {unconverged[b].mean():.2%}"
+            for lo, hi in ((10, 22), (22, 24), (24, 25))
+            for b in [iso & (mag >= lo) & (mag < hi)]
+        )
     )
     scale = frame.pixel_scale
     ok = inside & (flag & 32 == 0)
