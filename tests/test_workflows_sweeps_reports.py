@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import json
+import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -179,36 +181,73 @@ def test_dry_run_counts_identical_nodes_once(tmp_path, capsys, monkeypatch):
     assert "shared  b/cluster" in out and "to run  b/dynamics/main" in out
 
 
+def _exact_clipping(values, sigma, iterations, slack):
+    """The paper's clipping loop in exact rational arithmetic (no rounding, no underflow).
+
+    A value is kept when its squared deviation from the mean is at most ``sigma^2``
+    times the variance, that bound scaled by ``1 + slack``: ``slack`` of +-1e-9 brackets
+    the values that lie on a boundary, where floating point may fall either side.
+    """
+    kept = [Fraction(x) for x in values]
+    limit = Fraction(sigma) ** 2 * (1 + Fraction(slack))
+    for _ in range(iterations):
+        if len(kept) < 2:
+            break
+        mean = sum(kept) / len(kept)
+        var = sum((x - mean) ** 2 for x in kept) / len(kept)
+        inside = [x for x in kept if (x - mean) ** 2 <= limit * var]
+        if len(inside) == len(kept):
+            break
+        kept = inside
+    return kept
+
+
 @settings(max_examples=30, deadline=None)
 @given(
     st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=0, max_size=60),
     st.integers(1, 5),
 )
 @example([0.0, 5.7e-228], 2)
-def test_clipped_dispersion_matches_a_brute_force_clipping_loop(values, iterations):
-    """Against the paper's statistic written out: ``iterations`` rounds of keeping the
-    values within mean +- 2 std of the values kept so far (stop when none is dropped).
-    The clipping is scale-free, so the reference clips the values over their largest
-    magnitude: a std of values near 1e-228 underflows in the squares (found by
-    hypothesis: [0, 5.7e-228] kept none against the library's 2)."""
-    v = np.array(values)
-    disp, kept = clipped_dispersion(v, sigma=2.0, iterations=iterations)
-    if v.size < 2:
-        assert np.isnan(disp)
+@example([0.0, 1.3009091608217257e-198], 1)
+@example([0.0, 0.0, 0.0, 0.0, 1.0, 3.9626824456483515e-297], 3)
+def test_clipped_dispersion_matches_exact_arithmetic(values, iterations):
+    """Against the paper's statistic written out in exact rational arithmetic. Found by
+    hypothesis: values near 1e-200 underflowed in the squares of a float reference and
+    of astropy's ``sigma_clip`` ([0, 1.3e-198] kept none; [0, 0, 0, 0, 1, 4e-297] kept the
+    1 and everything, against 5 values kept exactly)."""
+    disp, kept = clipped_dispersion(np.array(values), sigma=2.0, iterations=iterations)
+    if len(values) < 2:
+        assert np.isnan(disp) and kept == len(values)
         return
-    scale = np.max(np.abs(v)) or 1.0
-    ref = v / scale
-    for _ in range(iterations):
-        if ref.size < 2:
-            break
-        mean, std = ref.mean(), ref.std()
-        inside = ref[(ref >= mean - 2 * std) & (ref <= mean + 2 * std)]
-        if inside.size == ref.size:
-            break
-        ref = inside
-    assert kept == ref.size
+    tight = _exact_clipping(values, 2.0, iterations, -1e-9)
+    loose = _exact_clipping(values, 2.0, iterations, 1e-9)
+    assert kept in (len(tight), len(loose))
+    ref = tight if kept == len(tight) else loose
     if kept >= 2:
-        assert disp == pytest.approx(ref.std() * scale, rel=1e-9, abs=1e-9)
+        mean = sum(ref) / len(ref)
+        dev = [x - mean for x in ref]
+        top = max(abs(d) for d in dev)  # std taken over it: float() of 1e-455 is 0
+        std = (
+            float(top) * math.sqrt(float(sum((d / top) ** 2 for d in dev) / len(ref)))
+            if top
+            else 0.0
+        )
+        assert disp == pytest.approx(std, rel=1e-9, abs=0.0)
+    else:
+        assert np.isnan(disp)
+
+
+def test_clipped_dispersion_matches_astropy_sigma_clip():
+    """The library path as the cross-check on values of ordinary size (with outliers)."""
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        v = rng.normal(0.3, 0.05, 200)
+        v[rng.integers(0, 200, 8)] += rng.normal(0, 1.0, 8)
+        for iterations in (1, 3, 5):
+            ref = sigma_clip(v, sigma=2.0, maxiters=iterations, cenfunc="mean", stdfunc="std")
+            disp, kept = clipped_dispersion(v, sigma=2.0, iterations=iterations)
+            assert kept == ref.count()
+            assert disp == pytest.approx(float(ref.compressed().std()), rel=1e-12)
 
 
 def test_dispersion_profile_recovers_a_known_dispersion():
