@@ -214,3 +214,29 @@ def test_stack_without_noiseless_has_the_same_image_and_truth():
     ok = ~clean.saturated  # the noise-free image is clipped at saturation
     assert ok.mean() > 0.9
     np.testing.assert_allclose(full.noiseless[ok], clean.adu[ok], rtol=1e-6)
+
+
+def test_in_place_taper_equals_the_tapered_copy():
+    from mavispm.simulate.optics.model import taper_grid
+    from mavispm.simulate.optics.psf_grid import PSFGrid
+    from mavispm.simulate.optics.seeing_halo import Halo
+
+    rng = np.random.default_rng(6)
+    n = 21
+    cube = rng.random((2, 3, n, n))
+    grid = PSFGrid(cube, np.arange(3.0), np.arange(2.0), 3.75, 550.0, np.ones((2, 3)))
+    halo = Halo(np.linspace(0, 100, 50), np.ones(50), 10.0, 30.0, 40.0, 0.1)
+    # brute force: each stamp times 1 - ramp, over its own sum
+    yy, xx = np.mgrid[:n, :n] - n // 2
+    radius = np.hypot(xx, yy) * 3.75  # mas
+    from mavispm.simulate.optics.seeing_halo import ramp
+
+    taper = 1.0 - ramp(radius, halo.ramp_start, halo.ramp_end)
+    ref = cube * taper
+    ref /= ref.sum(axis=(-2, -1), keepdims=True)
+    copy = taper_grid(grid, halo)
+    np.testing.assert_allclose(copy.cube, ref, rtol=1e-12)
+    assert np.array_equal(grid.cube, cube) and copy.cube is not cube  # left alone
+    same = taper_grid(grid, halo, in_place=True)
+    assert same.cube is cube  # tapered where it was
+    np.testing.assert_array_equal(same.cube, copy.cube)
