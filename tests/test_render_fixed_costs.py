@@ -240,3 +240,45 @@ def test_in_place_taper_equals_the_tapered_copy():
     same = taper_grid(grid, halo, in_place=True)
     assert same.cube is cube  # tapered where it was
     np.testing.assert_array_equal(same.cube, copy.cube)
+
+
+def test_cached_halo_kernel_transform_equals_the_fresh_one(tmp_path):
+    from mavispm.simulate.optics.seeing_halo import Halo
+    from mavispm.simulate.render import halo_convolution as hc
+
+    radius = np.linspace(0.0, 4000.0, 400)
+    halo = Halo(radius, np.exp(-radius / 500.0), 100.0, 200.0, 6000.0, 0.1)
+    rng = np.random.default_rng(9)
+    shape = (90, 70)
+    x, y = rng.uniform(-5, 75, 40), rng.uniform(-5, 95, 40)
+    flux = rng.uniform(1.0, 1e4, 40)
+    args = (x, y, flux, shape)
+    fresh = halo_field(*args, halo, 7.5, 8)
+    hc._SPECTRA.clear()
+    first = halo_field(*args, halo, 7.5, 8, cache_dir=tmp_path)  # computes and stores
+    assert len(list(tmp_path.glob("halospec-*.npz"))) == 1
+    hc._SPECTRA.clear()
+    loaded = halo_field(*args, halo, 7.5, 8, cache_dir=tmp_path)  # read back from the file
+    np.testing.assert_array_equal(first, fresh)
+    np.testing.assert_array_equal(loaded, fresh)
+    # brute force: the convolution of the deposited fluxes with the kernel, linear
+    # (scipy), away from the rim, interpolated back as halo_field does
+    import scipy.signal
+
+    b = 8
+    kernel = halo.kernel(7.5 * b)
+    hk = kernel.shape[0] // 2
+    ncy, ncx = -(-shape[0] // b), -(-shape[1] // b)
+    padded = np.zeros((ncy + 2 * hk, ncx + 2 * hk))
+    deposit_cic(padded, (x + 0.5) / b - 0.5 + hk, (y + 0.5) / b - 0.5 + hk, flux)
+    coarse = scipy.signal.fftconvolve(padded, kernel, mode="same")[hk : hk + ncy, hk : hk + ncx]
+    ylo, yf = _linear_interpolation_weights(shape[0], ncy, b)
+    xlo, xf = _linear_interpolation_weights(shape[1], ncx, b)
+    ref = _bilinear_reference(coarse / b**2, ylo, yf, xlo, xf)
+    np.testing.assert_allclose(loaded, ref, rtol=0, atol=1e-10 * ref.max())
+    # another halo (its fraction only) is not served the stored transform
+    other = Halo(radius, halo.profile, 100.0, 200.0, 6000.0, 0.2)
+    hc._SPECTRA.clear()
+    doubled = halo_field(*args, other, 7.5, 8, cache_dir=tmp_path)
+    np.testing.assert_allclose(doubled, 2 * fresh, rtol=1e-12)
+    assert len(list(tmp_path.glob("halospec-*.npz"))) == 2

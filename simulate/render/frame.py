@@ -337,6 +337,7 @@ def render_stack(
             par.threads,
             out=np.empty((det.ny, det.nx), dtype=np.float64),
             fill=sky,
+            cache_dir=getattr(renderer, "cache_dir", None),
         )
     else:
         image = np.full((det.ny, det.nx), sky, dtype=np.float64)

@@ -13,8 +13,13 @@ The transforms are numpy's (pocketfft, as scipy's): importing ``scipy.fft`` cost
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numba
 import numpy as np
+
+from mavispm.core.array_cache import content_key, load_arrays, save_arrays
 
 __all__ = [
     "add_bilinear",
@@ -80,6 +85,7 @@ def halo_field(
     threads: int = 1,
     out: np.ndarray | None = None,
     fill: float | None = None,
+    cache_dir=None,
 ) -> np.ndarray:
     """The seeing field of a set of stars on the detector grid.
 
@@ -106,6 +112,9 @@ def halo_field(
         ``out`` holds nothing yet (e.g. ``np.empty``): it is set to ``fill`` plus the
         field, in one pass over the frame (the same values as filling it with ``fill``
         first and adding the field).
+    cache_dir : path, optional
+        Keep the transform of the halo kernel in this folder
+        (``halospec-<key>.npz``, see :func:`_kernel_spectrum`).
 
     Returns
     -------
@@ -117,9 +126,8 @@ def halo_field(
     if out is None:
         out = np.zeros(shape) if fill is None else np.empty(shape)
     b = int(max(downsample, 1))
-    kernel = np.asarray(halo.kernel(pixel_scale * b), dtype=np.float64)
-    hky, hkx = kernel.shape[0] // 2, kernel.shape[1] // 2
     ncy, ncx = -(-ny // b), -(-nx // b)
+    kspec, (hky, hkx), fshape = _kernel_spectrum(halo, pixel_scale * b, (ncy, ncx), cache_dir)
     padded = np.zeros((ncy + 2 * hky, ncx + 2 * hkx))
     xc = (np.asarray(x_pix, dtype=float) + 0.5) / b - 0.5 + hkx
     yc = (np.asarray(y_pix, dtype=float) + 0.5) / b - 0.5 + hky
@@ -129,7 +137,7 @@ def halo_field(
             out.fill(fill)
         return out
     # the kernel field is padded by the kernel half-size, so the frame never wraps
-    seeing = _convolve_same(padded, kernel)
+    seeing = _convolve_spectrum(padded, kspec, fshape)
     coarse = np.ascontiguousarray(seeing[hky : hky + ncy, hkx : hkx + ncx])
     if b == 1:
         if fill is None:
@@ -147,6 +155,81 @@ def halo_field(
     return out
 
 
+#: Version of the cached halo-kernel transforms (bump when their computation changes).
+HALO_SPECTRUM_CACHE_VERSION = 1
+
+#: Kernel transforms made or loaded in this process, by cache key (a few per scene).
+_SPECTRA: dict[str, tuple] = {}
+
+
+def _kernel_spectrum(halo, kernel_pixel_mas: float, coarse_shape, cache_dir=None):
+    """The halo kernel's transform for a coarse frame of ``coarse_shape``.
+
+    The kernel (``halo.kernel``: its profile interpolated on ~670 x 670 coarse
+    pixels) and its transform cost ~0.03-0.04 s of every ``simulate frames``
+    process; for a :class:`~mavispm.simulate.optics.seeing_halo.Halo` (a dataclass of
+    arrays and numbers) they are a pure function of its fields, the coarse pixel and
+    the frame shape, and are kept in ``cache_dir`` (the stamp plans' folder) and in
+    this process. Other halo objects are transformed every time.
+
+    Returns
+    -------
+    spectrum : ndarray complex128
+        ``rfft2`` of the kernel wrapped around ``fshape`` (centre at [0, 0]).
+    half : tuple of int
+        The kernel's half-sizes (ky, kx).
+    fshape : list of int
+        Transform shape: the coarse frame padded by ``half`` on each side, rounded up
+        to a fast length.
+    """
+    key = None
+    if dataclasses.is_dataclass(halo) and not isinstance(halo, type):
+        parts = [
+            np.asarray(v) if isinstance(v, np.ndarray) else v
+            for v in (getattr(halo, f.name) for f in dataclasses.fields(halo))
+        ]
+        key = content_key(
+            HALO_SPECTRUM_CACHE_VERSION,
+            type(halo).__name__,
+            np.__version__,  # its pocketfft made the stored transform
+            [float(kernel_pixel_mas), [int(n) for n in coarse_shape]],
+            *parts,
+        )
+        if key in _SPECTRA:
+            return _SPECTRA[key]
+        path = None if cache_dir is None else Path(cache_dir) / f"halospec-{key}.npz"
+        stored = load_arrays(path) if path is not None else None
+        if stored is not None and set(stored) == {"spectrum", "half", "fshape"}:
+            found = (
+                stored["spectrum"],
+                tuple(int(k) for k in stored["half"]),
+                [int(n) for n in stored["fshape"]],
+            )
+            _SPECTRA[key] = found
+            return found
+    kernel = np.asarray(halo.kernel(kernel_pixel_mas), dtype=np.float64)
+    ky, kx = kernel.shape[0] // 2, kernel.shape[1] // 2
+    padded_shape = (coarse_shape[0] + 2 * ky, coarse_shape[1] + 2 * kx)
+    fshape = [max(next_fast_len(n), 2 * k + 1) for n, k in zip(padded_shape, (ky, kx))]
+    made = (np.fft.rfft2(_wrap_kernel(kernel, fshape)), (ky, kx), fshape)
+    if key is not None:
+        _SPECTRA[key] = made
+        if cache_dir is not None:
+            save_arrays(
+                Path(cache_dir) / f"halospec-{key}.npz",
+                {"spectrum": made[0], "half": np.array(made[1]), "fshape": np.array(fshape)},
+            )
+    return made
+
+
+def _convolve_spectrum(field: np.ndarray, kernel_spectrum: np.ndarray, fshape) -> np.ndarray:
+    """:func:`_convolve_same` with the kernel's transform on ``fshape`` already made."""
+    spec = np.fft.rfft2(field, fshape)
+    spec *= kernel_spectrum
+    conv = np.fft.irfft2(spec, fshape)
+    return conv[: field.shape[0], : field.shape[1]]
+
+
 def _convolve_same(field: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """Convolution of ``field`` with an odd-sized centred ``kernel``, exact away from the rim.
 
@@ -158,10 +241,7 @@ def _convolve_same(field: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """
     ky, kx = kernel.shape[0] // 2, kernel.shape[1] // 2
     fshape = [max(next_fast_len(n), 2 * k + 1) for n, k in zip(field.shape, (ky, kx))]
-    spec = np.fft.rfft2(field, fshape)
-    spec *= np.fft.rfft2(_wrap_kernel(kernel, fshape))
-    conv = np.fft.irfft2(spec, fshape)
-    return conv[: field.shape[0], : field.shape[1]]
+    return _convolve_spectrum(field, np.fft.rfft2(_wrap_kernel(kernel, fshape)), fshape)
 
 
 def _wrap_kernel(kernel: np.ndarray, fshape) -> np.ndarray:
