@@ -3,8 +3,9 @@
 Two caches grow without bound unless cleaned:
 
 * the disk cache (``$MAVISPM_CACHE``, default ``~/.cache/mavispm``): PSF grids
-  (``psfgrid-*.h5``), seeing halos (``halo-*.npz``) and stamp plans
-  (``stampplan-*.npz``), shared by every work directory;
+  (``psfgrid-*.h5``), seeing halos (``halo-*.npz``) and their kernels' transforms
+  (``halospec-*.npz``) and stamp plans (``stampplan-*.npz``), shared by every work
+  directory;
 * a work directory's product store (``<workdir>/store/<stage>/<key>/``), one
   folder per node.
 
@@ -40,7 +41,7 @@ __all__ = [
 ]
 
 #: File patterns of the disk cache (nothing else there is ever removed).
-CACHE_PATTERNS = ("psfgrid-*.h5", "halo-*.npz", "stampplan-*.npz", ".*.tmp")
+CACHE_PATTERNS = ("psfgrid-*.h5", "halo-*.npz", "halospec-*.npz", "stampplan-*.npz", ".*.tmp")
 
 _SIZE_UNITS = {
     "": 1,

@@ -291,7 +291,14 @@ def run_stage(
     if renderer is None:
         renderer = make_renderer(optics, settings, plan_cache_dir(optics, cache_dir))
     stack = render_stack(
-        table, t, settings, optics, epoch_rng(seed, epoch), renderer=renderer, progress=progress
+        table,
+        t,
+        settings,
+        optics,
+        epoch_rng(seed, epoch),
+        renderer=renderer,
+        progress=progress,
+        noiseless=settings.save_noiseless,  # not written otherwise: not scaled either
     )
     return write_frame(stack, output, settings, cat, seed, fits_path)
 

@@ -183,9 +183,10 @@ def expose_stack(
         sl = slice(start, start + NOISE_CHUNK)
         mu_chunk = flat_mu[sl]
         out = total[sl]
-        z = crng.standard_normal(mu_chunk.size, dtype=np.float32)
-        # one compiled pass: Gaussian, skew-corrected where skewness >= skew_limit
-        normal_stack_draws(mu_chunk, z, nexp, var_rn, skew_limit if corrected else np.inf, out)
+        # one compiled pass: the chunk's standard normals (numpy's float32 sampler, run
+        # compiled: the same stream), then Gaussian, skew-corrected where skewness >=
+        # skew_limit
+        z = _draw_chunk(mu_chunk, crng, nexp, var_rn, skew_limit if corrected else np.inf, out)
         # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches
         # the limit: the window [lo, hi] of lam where it does (see _skewed_window)
         if lo <= hi:
@@ -253,7 +254,10 @@ def skewed_normal(lam: np.ndarray, var_rn: float, z: np.ndarray, skew_limit: flo
     return out
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
+# error_model="numpy": IEEE division (no ZeroDivisionError branch), which lets LLVM
+# vectorise the loop (half the CPU of the draw, 16e6 pixels: ~0.09 -> ~0.05 s); the
+# divisor is never 0 (the 1e-300 guard), so the results are the same bits.
+@numba.njit(nogil=True, cache=True, fastmath=True, error_model="numpy")
 def normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out) -> None:  # pragma: no cover
     """Compiled :func:`skewed_normal` of ``lam = nexp * max(mu, 0)`` into ``out`` (float32).
 
@@ -281,6 +285,97 @@ def normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out) -> None:  # pragma:
         a = g * (1.0 / 6.0) if g >= skew_limit else 0.0
         zi = z[i]
         out[i] = lam + sd * (zi + a * (zi * zi - 1.0)) / np.sqrt(1.0 + 2.0 * a * a)
+
+
+try:  # numba's bit-generator access and numpy's ziggurat tables (numba.np.random)
+    from numba.np.random._constants import (
+        fi_float,
+        ki_float,
+        wi_float,
+        ziggurat_nor_inv_r_f,
+        ziggurat_nor_r_f,
+    )
+    from numba.np.random.generator_core import next_float, next_uint32
+except ImportError:  # pragma: no cover - a numba without them: numpy draws the normals
+    _COMPILED_NORMALS = False
+else:
+    _COMPILED_NORMALS = True
+
+    @numba.extending.register_jitable
+    def _standard_normal_f32(bitgen):  # pragma: no cover
+        """numpy's ``random_standard_normal_f`` (float32 ziggurat), operation by operation.
+
+        numba's own ``Generator.standard_normal(dtype=np.float32)`` rounds the wedge
+        test's ``exp`` to float32 where numpy compares in double: a different
+        accept/reject about once in 1e5 draws, after which the stream shifts. Here
+        the test is numpy's, so the draws are numpy's (tested against it).
+        """
+        while True:
+            r = next_uint32(bitgen)
+            idx = r & 0xFF
+            sign = (r >> 8) & 0x1
+            rabs = (r >> 9) & 0x0007FFFFF
+            x = np.float32(np.float32(rabs) * wi_float[idx])
+            if sign & 0x1:
+                x = -x
+            if rabs < ki_float[idx]:
+                return x
+            if idx == 0:
+                while True:
+                    xx = np.float32(
+                        -ziggurat_nor_inv_r_f * np.log1p(np.float32(-next_float(bitgen)))
+                    )
+                    yy = np.float32(-np.log1p(np.float32(-next_float(bitgen))))
+                    if np.float32(yy + yy) > np.float32(xx * xx):
+                        if (rabs >> 8) & 0x1:
+                            return -np.float32(ziggurat_nor_r_f + xx)
+                        return np.float32(ziggurat_nor_r_f + xx)
+            else:
+                left = (fi_float[idx - 1] - fi_float[idx]) * next_float(bitgen) + fi_float[idx]
+                xd = np.float64(x)
+                if np.float64(left) < np.exp(-0.5 * xd * xd):
+                    return x
+
+
+@numba.njit(nogil=True, cache=True)
+def _compiled_standard_normal_f32(rng, n):  # pragma: no cover
+    """``rng.standard_normal(n, dtype=np.float32)``, compiled (the same numbers; tested)."""
+    bitgen = rng.bit_generator
+    z = np.empty(n, dtype=np.float32)
+    for i in range(n):
+        z[i] = _standard_normal_f32(bitgen)
+    return z
+
+
+@numba.njit(nogil=True, cache=True)
+def _normal_stack_chunk(mu, rng, nexp, var_rn, skew_limit, out):  # pragma: no cover
+    """``rng.standard_normal(mu.size, dtype=np.float32)``, then :func:`normal_stack_draws`.
+
+    The normals are numpy's float32 ziggurat run compiled on the same bit generator
+    (:func:`_standard_normal_f32`: the same numbers, and ``rng`` continues after
+    them; tested), at ~60 % of the CPU of numpy's call (16e6 draws: ~0.09 s instead
+    of ~0.15 s).
+
+    Returns
+    -------
+    ndarray of float32
+        The standard normals drawn.
+    """
+    z = np.empty(mu.size, dtype=np.float32)
+    bitgen = rng.bit_generator
+    for i in range(mu.size):
+        z[i] = _standard_normal_f32(bitgen)
+    normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out)
+    return z
+
+
+def _draw_chunk(mu, rng, nexp, var_rn, skew_limit, out) -> np.ndarray:
+    """The chunk's standard normals and its Gaussian draws (compiled when numba can)."""
+    if _COMPILED_NORMALS:
+        return _normal_stack_chunk(mu, rng, nexp, var_rn, skew_limit, out)
+    z = rng.standard_normal(mu.size, dtype=np.float32)  # pragma: no cover
+    normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out)  # pragma: no cover
+    return z  # pragma: no cover
 
 
 def _skewed_window(var_rn: float, skew_limit: float) -> tuple[float, float]:

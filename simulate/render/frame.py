@@ -157,8 +157,8 @@ class RenderedStack:
         The stacked image [adu].
     saturated : ndarray (ny, nx) bool
         Pixels saturated in at least one sub-exposure.
-    noiseless : ndarray (ny, nx) float64
-        The noise-free stack [electron].
+    noiseless : ndarray (ny, nx) float64 or None
+        The noise-free stack [electron] (None: not kept, see :func:`render_stack`).
     truth : QTable
         The rendered stars (``TRUTH_SPEC`` columns).
     attrs : dict
@@ -167,7 +167,7 @@ class RenderedStack:
 
     adu: np.ndarray
     saturated: np.ndarray
-    noiseless: np.ndarray
+    noiseless: np.ndarray | None
     truth: QTable
     attrs: dict
 
@@ -228,6 +228,7 @@ def render_stack(
     rng: np.random.Generator,
     renderer: StarRenderer | None = None,
     progress: bool = False,
+    noiseless: bool = True,
 ) -> RenderedStack:
     """Render one epoch of a catalogue into the arrays of a stacked frame.
 
@@ -252,6 +253,9 @@ def render_stack(
         Reuse a renderer (cached PSF transforms) across epochs.
     progress : bool
         Show progress bars.
+    noiseless : bool
+        Keep the noise-free stack (False: ``RenderedStack.noiseless`` is None, and the
+        pass over the frame that scales it to the stack is left out).
 
     Returns
     -------
@@ -318,13 +322,25 @@ def render_stack(
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max, x, y)
     sky = sky_electrons_per_pixel(phot, s * u.mas, sub_exposure).value
     # the sky fills the frame in one sequential pass (touching a fresh 128 MB array
-    # first in the scattered order of the stamps costs ~0.5 s of page faults)
-    image = np.full((det.ny, det.nx), sky, dtype=np.float64)
+    # first in the scattered order of the stamps costs ~0.5 s of page faults); with a
+    # halo, the same pass writes sky + halo (halo_field's ``fill``)
     if halo is not None and len(x):
         b = par.halo_downsample or max(1, int(round(HALO_COARSE_PIXEL_MAS / s)))
-        halo_field(
-            render_x_pix, render_y_pix, flux_sub, image.shape, halo, s, b, par.threads, out=image
+        image = halo_field(
+            render_x_pix,
+            render_y_pix,
+            flux_sub,
+            (det.ny, det.nx),
+            halo,
+            s,
+            b,
+            par.threads,
+            out=np.empty((det.ny, det.nx), dtype=np.float64),
+            fill=sky,
+            cache_dir=getattr(renderer, "cache_dir", None),
         )
+    else:
+        image = np.full((det.ny, det.nx), sky, dtype=np.float64)
     rendered = renderer.render(
         image,
         render_x_pix,
@@ -352,7 +368,10 @@ def render_stack(
         threads=par.threads,
         poisson_skew_limit=par.poisson_skew_limit,
     )
-    image *= scene.nexp  # in place: the noise-free stack (electron)
+    if noiseless:
+        image *= scene.nexp  # in place: the noise-free stack (electron)
+    else:
+        image = None
     keep = rendered
     truth = QTable()
     truth["id"] = np.asarray(stars["id"], dtype=np.int64)[keep]
