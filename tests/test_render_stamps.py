@@ -160,6 +160,62 @@ def test_compiled_kernel_matches_numpy_reference(real, cplx):
 
 
 @pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
+@pytest.mark.parametrize("n_j", [1, 4])
+def test_run_kernel_matches_numpy_reference(real, cplx, n_j):
+    """The run-wise pass (the renderer's) against an exp per sample and sparse products:
+    a stamp plan's layout (rows of a disc, the fold's two column blocks, several samples
+    folding onto one frequency), narrow to extreme anisotropic kernels (the last one's
+    exponent falls below -700 at the runs' ends: the exact-exp path)."""
+    from mavispm.simulate.render.stamp_kernels import (
+        fold_runs,
+        mix_kernel_fold_numpy,
+        mix_kernel_fold_runs,
+    )
+    from mavispm.simulate.render.stamps import _folding_frequencies
+
+    m, scale = 112, 7.5
+    fy, fx = _folding_frequencies(m, 2)
+    df = 1.0 / (m * scale)
+    rows, cols = np.nonzero(np.hypot(fy[:, None], fx[None, :]) * df < 0.09)
+    u, v = fx[cols] * df, fy[rows] * df
+    target = ((rows % m) * (m // 2 + 1) + (cols % (m // 2 + 1))).astype(np.int64)
+    runs = fold_runs(cols, rows, target, fx)
+    assert runs[:, 4].sum() == len(u) and runs[:, 4].max() > 50
+    assert len(np.unique(target)) < len(target)  # aliases fold onto shared frequencies
+    rng = np.random.default_rng(7)
+    cov = np.asarray(
+        [
+            [[20.0, 6.0], [6.0, 12.0]],
+            [[80.0, -30.0], [-30.0, 50.0]],
+            [[0.0, 0.0], [0.0, 0.0]],
+            [[400.0, 100.0], [100.0, 90.0]],
+            [[5.0, 0.0], [0.0, 300.0]],
+            [[60.0, 59.0], [59.0, 60.0]],
+            [[9000.0, 8900.0], [8900.0, 9000.0]],
+        ]
+    )
+    s, nodes, n = len(cov), 6, len(u)
+    transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
+    node = rng.integers(0, nodes, (s, n_j))
+    w = rng.random((s, n_j)).astype(real)
+    coef = (cov.reshape(s, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0] * (-2.0 * np.pi**2)).astype(real)
+    phx = np.exp(2j * np.pi * rng.random((s, len(fx)))).astype(cplx)
+    phy = np.exp(2j * np.pi * rng.random((s, len(fy)))).astype(cplx)
+    a = np.zeros((s, m * (m // 2 + 1)), dtype=cplx)
+    a[:, 3] = 1.0  # added into
+    b = np.zeros((s, m * (m // 2 + 1)), dtype=np.complex128)
+    b[:, 3] = 1.0
+    args = (fx * df, fy * df, df, phx, phy, runs, a.view(real))
+    mix_kernel_fold_runs(transforms, node, w, coef, *args)
+    step = np.zeros(n, dtype=bool)
+    ref = (u, v, df, step, phx, phy, cols, rows, target, b)
+    mix_kernel_fold_numpy(transforms, node, w, coef.astype(np.float64), *ref)
+    tol = 1e-6 if real is np.float32 else 1e-12
+    for k in range(s):  # each star against its own scale (the wide kernels are tiny)
+        assert np.abs(a[k] - b[k]).max() <= tol * np.abs(b[k]).max(), k
+
+
+@pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
 def test_compiled_kernel_recurrence_along_columns_matches_numpy_reference(real, cplx):
     """Samples on a frequency grid in runs of consecutive columns (a stamp plan's layout:
     rows of a disc, the fold's two column blocks), wide and narrow anisotropic kernels:
@@ -200,6 +256,24 @@ def test_compiled_kernel_recurrence_along_columns_matches_numpy_reference(real, 
     tol = 1e-6 if real is np.float32 else 1e-12
     for i in range(s):  # each star against its own largest value
         assert np.abs(a[i] - b[i]).max() <= tol * np.abs(b[i]).max()
+
+
+@pytest.mark.parametrize("cplx", [np.complex64, np.complex128])
+def test_phase_ramps_match_complex_exponential(cplx):
+    """The recurrence-built ramps against numpy's exp of every phase (long ramps of a
+    512-pixel stamp's folding frequencies, both signs, shifts across the stamp)."""
+    from mavispm.simulate.render.stamps import _folding_frequencies, _phase_ramps
+
+    m, scale = 512, 7.5
+    df = 1.0 / (m * scale)
+    fy, fx = _folding_frequencies(m, 2)
+    shift = np.random.default_rng(5).uniform(0, m * scale, 9)
+    for freq in (fx, fy):
+        got = _phase_ramps(shift, freq, df, cplx)
+        assert got.dtype == cplx
+        want = np.exp(-2j * np.pi * df * np.outer(shift, freq))
+        tol = 3e-7 if cplx is np.complex64 else 1e-12
+        assert np.abs(got - want).max() < tol
 
 
 def test_compiled_stamp_adder_clips_like_slicing():
