@@ -117,6 +117,39 @@ def test_bright_star_wing_below_threshold_at_stamp_edge(renderer):
     assert inner.sum() > flux * 0.99
 
 
+def test_square_wing_gets_square_stamp_holding_it():
+    """An AO-like PSF (core + a square halo out to the control radius): the stamp is
+    sized on the square radius, smaller than the disc a radial criterion needs, and
+    the light beyond it (truth: the star rendered on a stamp four times wider) stays
+    below the threshold."""
+    from render_helpers import AnalyticPSFGrid
+
+    half_side = 150.0  # mas: the square halo's half side (20 pixels)
+
+    def profile(dx, dy, nx, ny):
+        core = np.exp(-(dx**2 + dy**2) / (2 * 6.0**2))
+        square = (np.maximum(abs(dx), abs(dy)) <= half_side) * 1e-4
+        return core + square
+
+    nodes = np.array([0.0])
+    grid = AnalyticPSFGrid(profile, nodes, nodes, n=129, pixel_scale=3.75)
+    r = StarRenderer(grid, SCALE, RenderParams())
+    cov = np.array([[[20.0, 0.0], [0.0, 20.0]]])
+    noise, flux = 1.0, 1e5
+    m = int(r.stamp_sizes([flux], noise, [np.sqrt(20.0)], [0.0], [0.0])[0])
+    big = 4 * m
+    image = np.zeros((big, big))
+    c = big // 2
+    r.render(image, [c + 0.3], [c - 0.2], [0.0], [0.0], cov, [flux], [big], noise)
+    threshold = r.params.stamp_threshold * noise
+    lit = np.argwhere(image > threshold) - c
+    disc = np.hypot(lit[:, 0], lit[:, 1]).max()  # radius of the lit disc, pixels
+    assert m / 2 < disc  # a disc-sized stamp would be larger
+    outside = image.copy()
+    outside[c - m // 2 : c + m // 2, c - m // 2 : c + m // 2] = 0
+    assert 0 < outside.max() < threshold
+
+
 def test_render_clips_stamps_at_edges_and_skips_outside(renderer):
     """A small frame equals the matching crop of a larger frame (edges, corners)."""
     cov = np.tile(np.diag([30.0, 30.0]), (5, 1, 1))
@@ -317,7 +350,7 @@ def test_wing_envelope_cache_equals_fresh_computation(airy_optics, tmp_path):
     from mavispm.simulate.render.stamps import _wing_envelope
 
     first = StarRenderer(airy_optics.psf_grid, SCALE, cache_dir=tmp_path)
-    assert len(list(tmp_path.glob("stampenv-*.npz"))) == 1
+    assert len(list(tmp_path.glob("stampenv*-*.npz"))) == 1
     again = StarRenderer(airy_optics.psf_grid, SCALE, cache_dir=tmp_path)
     cube = np.asarray(airy_optics.psf_grid.cube, float)
     fresh = _wing_envelope(cube.reshape(-1, *cube.shape[2:]), first.psf_pixel_scale, SCALE)

@@ -76,6 +76,9 @@ STAMP_CENTRE_BIAS = 1e-7
 #: together (a few stars: they stay in a core's 2 MB L2 cache between the two passes).
 STAMP_CHUNK_BYTES = 1 << 19
 
+#: Version of the wing envelope (part of its disk-cache file name; 2: square radii).
+ENVELOPE_VERSION = 2
+
 #: Version of the stamp-plan computation (part of the disk-cache key).
 PLAN_CACHE_VERSION = 2
 
@@ -362,7 +365,7 @@ class StarRenderer:
         """:func:`_wing_envelope` of the cube, kept in ``cache_dir`` next to the stamp plans."""
         path = None
         if self.cache_dir is not None:
-            path = self.cache_dir / f"stampenv-{self._cache_key}.npz"
+            path = self.cache_dir / f"stampenv{ENVELOPE_VERSION}-{self._cache_key}.npz"
             stored = load_arrays(path)
             if stored is not None and set(stored) == {"radii", "env"}:
                 return np.asarray(stored["radii"]), np.asarray(stored["env"])
@@ -434,6 +437,7 @@ class StarRenderer:
                     sel = sel[w[sel, k] > 0]
                     here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
                     pos[sel] = np.maximum(pos[sel], here)
+        # square radius (see _wing_envelope): the stamp's square holds the square of it
         radius_pix = radii[np.minimum(pos, len(radii) - 1)]
         half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
         return np.minimum(_stamp_sizes_at_least(2 * half, self.params.min_stamp), biggest)
@@ -1234,20 +1238,28 @@ def _node_transforms_fft(cube, requests, chunk: int = 8, workers: int = 1) -> li
 
 
 def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
-    """Radial envelope of each PSF node in detector-pixel units.
+    """Envelope of each PSF node in detector-pixel units, against the square radius.
+
+    The radius of a sample is its Chebyshev distance ``max(|dx|, |dy|)`` from the
+    optical axis: a stamp is a square, and the light it misses (wrapped inside it) is
+    the light outside the square of its half side, whatever its Euclidean radius. An
+    AO PSF's wing is square too (the corrected region of the deformable mirror's
+    actuator grid), so the square radius where it falls below a level is up to ~10 %
+    smaller than the Euclidean one (MAVIS PSF database: 53.5 instead of 60 pixels at
+    1e-7 of the flux), and the stamps of bright stars one or two sizes smaller.
 
     Returns
     -------
     radii : ndarray (nr,)
-        Radii in detector pixels (0, 0.5, 1, ...).
+        Square radii in detector pixels (0, 0.5, 1, ...).
     env : ndarray (n_nodes, nr)
         Upper bound of the fraction of a star's flux in one detector pixel at or
-        beyond each radius, per node, non-increasing in radius.
+        beyond each square radius, per node, non-increasing in radius.
     """
     n = cube.shape[-1]
     c = (n - 1) / 2
     yy, xx = np.mgrid[0:n, 0:n]
-    r_pix = np.hypot(xx - c, yy - c).ravel() * psf_scale / pixel_scale
+    r_pix = np.maximum(abs(xx - c), abs(yy - c)).ravel() * psf_scale / pixel_scale
     radii = np.arange(0.0, r_pix.max() + 1.0, 0.5)
     # bin k holds the samples with radii[k] <= r < radii[k + 1]; the envelope at
     # radii[k] is the largest bin maximum at or beyond k
