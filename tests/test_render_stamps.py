@@ -117,6 +117,39 @@ def test_bright_star_wing_below_threshold_at_stamp_edge(renderer):
     assert inner.sum() > flux * 0.99
 
 
+def test_square_wing_gets_square_stamp_holding_it():
+    """An AO-like PSF (core + a square halo out to the control radius): the stamp is
+    sized on the square radius, smaller than the disc a radial criterion needs, and
+    the light beyond it (truth: the star rendered on a stamp four times wider) stays
+    below the threshold."""
+    from render_helpers import AnalyticPSFGrid
+
+    half_side = 150.0  # mas: the square halo's half side (20 pixels)
+
+    def profile(dx, dy, nx, ny):
+        core = np.exp(-(dx**2 + dy**2) / (2 * 6.0**2))
+        square = (np.maximum(abs(dx), abs(dy)) <= half_side) * 1e-4
+        return core + square
+
+    nodes = np.array([0.0])
+    grid = AnalyticPSFGrid(profile, nodes, nodes, n=129, pixel_scale=3.75)
+    r = StarRenderer(grid, SCALE, RenderParams())
+    cov = np.array([[[20.0, 0.0], [0.0, 20.0]]])
+    noise, flux = 1.0, 1e5
+    m = int(r.stamp_sizes([flux], noise, [np.sqrt(20.0)], [0.0], [0.0])[0])
+    big = 4 * m
+    image = np.zeros((big, big))
+    c = big // 2
+    r.render(image, [c + 0.3], [c - 0.2], [0.0], [0.0], cov, [flux], [big], noise)
+    threshold = r.params.stamp_threshold * noise
+    lit = np.argwhere(image > threshold) - c
+    disc = np.hypot(lit[:, 0], lit[:, 1]).max()  # radius of the lit disc, pixels
+    assert m / 2 < disc  # a disc-sized stamp would be larger
+    outside = image.copy()
+    outside[c - m // 2 : c + m // 2, c - m // 2 : c + m // 2] = 0
+    assert 0 < outside.max() < threshold
+
+
 def test_render_clips_stamps_at_edges_and_skips_outside(renderer):
     """A small frame equals the matching crop of a larger frame (edges, corners)."""
     cov = np.tile(np.diag([30.0, 30.0]), (5, 1, 1))
@@ -157,6 +190,62 @@ def test_compiled_kernel_matches_numpy_reference(real, cplx):
     mix_kernel_fold_numpy(transforms, node, w, coef, u, v, 0.0, step, phx, phy, col, row, target, b)
     tol = 1e-5 if real is np.float32 else 1e-12
     assert np.abs(a - b).max() <= tol * np.abs(b).max()
+
+
+@pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
+@pytest.mark.parametrize("n_j", [1, 4])
+def test_run_kernel_matches_numpy_reference(real, cplx, n_j):
+    """The run-wise pass (the renderer's) against an exp per sample and sparse products:
+    a stamp plan's layout (rows of a disc, the fold's two column blocks, several samples
+    folding onto one frequency), narrow to extreme anisotropic kernels (the last one's
+    exponent falls below -700 at the runs' ends: the exact-exp path)."""
+    from mavispm.simulate.render.stamp_kernels import (
+        fold_runs,
+        mix_kernel_fold_numpy,
+        mix_kernel_fold_runs,
+    )
+    from mavispm.simulate.render.stamps import _folding_frequencies
+
+    m, scale = 112, 7.5
+    fy, fx = _folding_frequencies(m, 2)
+    df = 1.0 / (m * scale)
+    rows, cols = np.nonzero(np.hypot(fy[:, None], fx[None, :]) * df < 0.09)
+    u, v = fx[cols] * df, fy[rows] * df
+    target = ((rows % m) * (m // 2 + 1) + (cols % (m // 2 + 1))).astype(np.int64)
+    runs = fold_runs(cols, rows, target, fx)
+    assert runs[:, 4].sum() == len(u) and runs[:, 4].max() > 50
+    assert len(np.unique(target)) < len(target)  # aliases fold onto shared frequencies
+    rng = np.random.default_rng(7)
+    cov = np.asarray(
+        [
+            [[20.0, 6.0], [6.0, 12.0]],
+            [[80.0, -30.0], [-30.0, 50.0]],
+            [[0.0, 0.0], [0.0, 0.0]],
+            [[400.0, 100.0], [100.0, 90.0]],
+            [[5.0, 0.0], [0.0, 300.0]],
+            [[60.0, 59.0], [59.0, 60.0]],
+            [[9000.0, 8900.0], [8900.0, 9000.0]],
+        ]
+    )
+    s, nodes, n = len(cov), 6, len(u)
+    transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
+    node = rng.integers(0, nodes, (s, n_j))
+    w = rng.random((s, n_j)).astype(real)
+    coef = (cov.reshape(s, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0] * (-2.0 * np.pi**2)).astype(real)
+    phx = np.exp(2j * np.pi * rng.random((s, len(fx)))).astype(cplx)
+    phy = np.exp(2j * np.pi * rng.random((s, len(fy)))).astype(cplx)
+    a = np.zeros((s, m * (m // 2 + 1)), dtype=cplx)
+    a[:, 3] = 1.0  # added into
+    b = np.zeros((s, m * (m // 2 + 1)), dtype=np.complex128)
+    b[:, 3] = 1.0
+    args = (fx * df, fy * df, df, phx, phy, runs, a.view(real))
+    mix_kernel_fold_runs(transforms, node, w, coef, *args)
+    step = np.zeros(n, dtype=bool)
+    ref = (u, v, df, step, phx, phy, cols, rows, target, b)
+    mix_kernel_fold_numpy(transforms, node, w, coef.astype(np.float64), *ref)
+    tol = 1e-6 if real is np.float32 else 1e-12
+    for k in range(s):  # each star against its own scale (the wide kernels are tiny)
+        assert np.abs(a[k] - b[k]).max() <= tol * np.abs(b[k]).max(), k
 
 
 @pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
@@ -202,6 +291,24 @@ def test_compiled_kernel_recurrence_along_columns_matches_numpy_reference(real, 
         assert np.abs(a[i] - b[i]).max() <= tol * np.abs(b[i]).max()
 
 
+@pytest.mark.parametrize("cplx", [np.complex64, np.complex128])
+def test_phase_ramps_match_complex_exponential(cplx):
+    """The recurrence-built ramps against numpy's exp of every phase (long ramps of a
+    512-pixel stamp's folding frequencies, both signs, shifts across the stamp)."""
+    from mavispm.simulate.render.stamps import _folding_frequencies, _phase_ramps
+
+    m, scale = 512, 7.5
+    df = 1.0 / (m * scale)
+    fy, fx = _folding_frequencies(m, 2)
+    shift = np.random.default_rng(5).uniform(0, m * scale, 9)
+    for freq in (fx, fy):
+        got = _phase_ramps(shift, freq, df, cplx)
+        assert got.dtype == cplx
+        want = np.exp(-2j * np.pi * df * np.outer(shift, freq))
+        tol = 3e-7 if cplx is np.complex64 else 1e-12
+        assert np.abs(got - want).max() < tol
+
+
 def test_compiled_stamp_adder_clips_like_slicing():
     from mavispm.simulate.render.stamp_kernels import add_stamps
 
@@ -243,7 +350,7 @@ def test_wing_envelope_cache_equals_fresh_computation(airy_optics, tmp_path):
     from mavispm.simulate.render.stamps import _wing_envelope
 
     first = StarRenderer(airy_optics.psf_grid, SCALE, cache_dir=tmp_path)
-    assert len(list(tmp_path.glob("stampenv-*.npz"))) == 1
+    assert len(list(tmp_path.glob("stampenv*-*.npz"))) == 1
     again = StarRenderer(airy_optics.psf_grid, SCALE, cache_dir=tmp_path)
     cube = np.asarray(airy_optics.psf_grid.cube, float)
     fresh = _wing_envelope(cube.reshape(-1, *cube.shape[2:]), first.psf_pixel_scale, SCALE)

@@ -247,3 +247,202 @@ def binned_max(values, bins, n_bins, out) -> None:  # pragma: no cover
             b = bins[p]
             if values[i, p] > out[i, b]:
                 out[i, b] = values[i, p]
+
+
+@numba.njit(nogil=True, cache=True)
+def mix_kernel_fold_runs(
+    transforms, node, w, coef, fxu, fyv, du, phx, phy, runs, out
+):  # pragma: no cover
+    """:func:`mix_kernel_fold` over runs of samples: one row, consecutive columns.
+
+    The same sum: the Gaussian follows each run by the float64 recurrence of
+    :func:`mix_kernel_fold` (in its own sequential loop; an exact ``exp`` per sample
+    where the run's exponent falls below -700), then one loop over the run multiplies the mixed transform,
+    the phase ramps and the Gaussian and adds into the folded spectrum (accumulated
+    per star in split real / imaginary buffers). That loop reads every array at
+    consecutive addresses through slices (non-negative indices, no wrap-around
+    checks), so LLVM vectorises it: ~1.5x faster than :func:`mix_kernel_fold`
+    (measured, 128-pixel stamps, float32).
+
+    Parameters
+    ----------
+    transforms : ndarray, shape (n_nodes, K), complex
+        PSF-node transfer functions at the retained spectrum samples, in run order.
+    node, w, coef
+        As in :func:`mix_kernel_fold`.
+    fxu : ndarray, shape (n_col,)
+        Frequency ``u`` of each phase-ramp column (units matching ``coef``).
+    fyv : ndarray, shape (n_row,)
+        Frequency ``v`` of each phase-ramp row.
+    du : float
+        Frequency step between consecutive columns.
+    phx, phy : ndarray, shape (S, n_col), (S, n_row), complex
+        Sub-pixel phase ramps along x and y.
+    runs : ndarray of int, shape (R, 5)
+        ``(row, first column, first sample, first target, length)`` of each run: sample
+        ``k0 + i`` lies in phase-ramp row ``row`` and column ``c0 + i`` and folds onto
+        target ``t0 + i``.
+    out : ndarray, shape (S, 2 n_out), real
+        Folded spectra as (real, imaginary) pairs (``complex_array.view(real)``),
+        added into in place.
+    """
+    n_star, n_j = node.shape
+    n_samp = transforms.shape[1]
+    n_col = fxu.shape[0]
+    longest = 1
+    for r in range(runs.shape[0]):
+        longest = max(longest, runs[r, 4])
+    re = np.empty(n_samp, dtype=w.dtype)
+    im = np.empty(n_samp, dtype=w.dtype)
+    col_re = np.empty(n_col, dtype=w.dtype)
+    col_im = np.empty(n_col, dtype=w.dtype)
+    gauss = np.empty(longest, dtype=w.dtype)
+    n_out = out.shape[1] // 2
+    acc_re = np.zeros(n_out, dtype=w.dtype)
+    acc_im = np.zeros(n_out, dtype=w.dtype)
+    for s in range(n_star):
+        t0 = transforms[node[s, 0]]
+        w0 = w[s, 0]
+        for k in range(n_samp):
+            re[k] = t0[k].real * w0
+            im[k] = t0[k].imag * w0
+        for j in range(1, n_j):
+            tj = transforms[node[s, j]]
+            wj = w[s, j]
+            for k in range(n_samp):
+                re[k] += tj[k].real * wj
+                im[k] += tj[k].imag * wj
+        a = np.float64(coef[s, 0])
+        b = np.float64(coef[s, 1])
+        c = np.float64(coef[s, 2])
+        px = phx[s]
+        py = phy[s]
+        kappa = np.exp(2.0 * a * du * du)
+        for q in range(n_col):
+            col_re[q] = px[q].real
+            col_im[q] = px[q].imag
+        o = out[s]  # real view: (re, im) pairs
+        for r in range(runs.shape[0]):
+            row = runs[r, 0]
+            c0 = runs[r, 1]
+            k0 = runs[r, 2]
+            g0 = runs[r, 3]
+            n = runs[r, 4]
+            vr = np.float64(fyv[row])
+            qr = py[row].real
+            qi = py[row].imag
+            # the Gaussian along the run by the float64 recurrence; its exponent is
+            # concave along the run, smallest at an end: where an end's would underflow,
+            # an exact exp per sample instead (extreme kernels only)
+            u0 = np.float64(fxu[c0])
+            u1 = u0 + (n - 1) * du
+            q0 = a * u0 * u0 + b * u0 * vr + c * vr * vr
+            q1 = a * u1 * u1 + b * u1 * vr + c * vr * vr
+            if min(q0, q1) > -700.0:
+                g = np.exp(q0)
+                ratio = np.exp(a * du * (2.0 * u0 + du) + b * vr * du)
+                for i in range(n):
+                    gauss[i] = g
+                    g *= ratio
+                    ratio *= kappa
+            else:
+                for i in range(n):
+                    uk = u0 + i * du
+                    gauss[i] = np.exp(a * uk * uk + b * uk * vr + c * vr * vr)
+            # slices: unit-stride loops over non-negative indices (LLVM vectorises them)
+            cre = col_re[c0 : c0 + n]
+            cim = col_im[c0 : c0 + n]
+            ore = acc_re[g0 : g0 + n]
+            oim = acc_im[g0 : g0 + n]
+            rek = re[k0 : k0 + n]
+            imk = im[k0 : k0 + n]
+            for i in range(n):
+                # phase ramps x Gaussian, times the mixed transform
+                fr = (cre[i] * qr - cim[i] * qi) * gauss[i]
+                fi = (cre[i] * qi + cim[i] * qr) * gauss[i]
+                ore[i] += rek[i] * fr - imk[i] * fi
+                oim[i] += rek[i] * fi + imk[i] * fr
+        for t in range(n_out):
+            o[2 * t] += acc_re[t]
+            o[2 * t + 1] += acc_im[t]
+            acc_re[t] = 0
+            acc_im[t] = 0
+
+
+def fold_runs(col, row, target, fx) -> np.ndarray:
+    """Runs of samples for :func:`mix_kernel_fold_runs` (samples already in run order).
+
+    A run continues while the row is the same and the column, its integer frequency
+    and the target each advance by one.
+
+    Parameters
+    ----------
+    col, row, target : ndarray of int, shape (K,)
+        Phase-ramp column and row and folding target of each sample.
+    fx : ndarray, shape (n_col,)
+        Integer frequency of each phase-ramp column.
+
+    Returns
+    -------
+    ndarray of int64, shape (R, 5)
+        ``(row, first column, first sample, first target, length)`` per run.
+    """
+    col = np.asarray(col, dtype=np.int64)
+    row = np.asarray(row, dtype=np.int64)
+    target = np.asarray(target, dtype=np.int64)
+    n = len(col)
+    cont = np.zeros(n, dtype=bool)
+    if n > 1:
+        cont[1:] = (
+            (row[1:] == row[:-1])
+            & (col[1:] == col[:-1] + 1)
+            & (target[1:] == target[:-1] + 1)
+            & (np.asarray(fx)[col[1:]] == np.asarray(fx)[col[:-1]] + 1)
+        )
+    first = np.flatnonzero(~cont)
+    length = np.diff(np.append(first, n))
+    return np.stack([row[first], col[first], first, target[first], length], axis=1)
+
+
+@numba.njit(nogil=True, cache=True)
+def phase_ramps_into(shift, freq, df, out) -> None:  # pragma: no cover
+    """``out[s, i] = exp(-2 pi i df shift[s] freq[i])`` for integer frequencies ``freq``.
+
+    Per star one ``cos`` / ``sin`` pair, then the powers ``z**f`` of
+    ``z = exp(-2 pi i df shift)`` by a float64 recurrence (relative error ~ |f| 1e-16,
+    below 1e-13 for a 512-pixel stamp) and their conjugates for negative ``f``:
+    ~10x faster than ``numpy``'s ``cos`` and ``sin`` of every phase.
+
+    Parameters
+    ----------
+    shift : ndarray (S,)
+        Star offsets [mas].
+    freq : ndarray of int (F,)
+        Integer frequencies (units of ``df``), any order and sign.
+    df : float
+        Frequency step [cycles/mas].
+    out : ndarray (S, F), complex
+        Receives the phase ramps.
+    """
+    top = 0
+    for i in range(freq.shape[0]):
+        top = max(top, abs(freq[i]))
+    pw_re = np.empty(top + 1)
+    pw_im = np.empty(top + 1)
+    for s in range(shift.shape[0]):
+        angle = -2.0 * np.pi * df * shift[s]
+        zr = np.cos(angle)
+        zi = np.sin(angle)
+        xr = 1.0
+        xi = 0.0
+        for f in range(top + 1):
+            pw_re[f] = xr
+            pw_im[f] = xi
+            xr, xi = xr * zr - xi * zi, xr * zi + xi * zr
+        o = out[s]
+        for i in range(freq.shape[0]):
+            f = freq[i]
+            if f >= 0:
+                o[i] = complex(pw_re[f], pw_im[f])
+            else:
+                o[i] = complex(pw_re[-f], -pw_im[-f])
