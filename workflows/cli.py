@@ -182,7 +182,10 @@ def main(argv: list[str] | None = None) -> int:
         Command-line words (None: ``sys.argv[1:]``, the program: the objects of the
         imports are then frozen out of the cyclic garbage collector, ``gc.freeze``, and
         numba's BLAS module is loaded without ``scipy.linalg``, see
-        :mod:`mavispm.core.blas_preload`).
+        :mod:`mavispm.core.blas_preload`, and ``astropy.table`` without its file-format
+        connectors until ``Table.read`` / ``write`` needs them, see
+        :mod:`mavispm.core.table_preload`, and numba's cached kernels are loaded before
+        its compiler registries, see :mod:`mavispm.core.numba_start`).
 
     Returns
     -------
@@ -191,8 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     """
     if argv is None:  # the mavispm program: numba's BLAS check without scipy.linalg
         from mavispm.core.blas_preload import load_cython_blas_alone
+        from mavispm.core.numba_start import load_cached_kernels_first
+        from mavispm.core.table_preload import import_table_without_connectors
 
         load_cython_blas_alone()
+        import_table_without_connectors()
+        load_cached_kernels_first()
     parser = build_parser(argv, everything=False)
     try:
         args = parser.parse_args(argv)
