@@ -172,3 +172,32 @@ def test_warm_frames_program_defers_connectors_and_registries(tmp_path):
     assert sorted(a) == sorted(b) and "image" in " ".join(a)
     for name in a:
         assert np.array_equal(a[name], b[name]), name
+
+
+def test_program_imports_with_the_collector_off():
+    """The program keeps the cyclic collector off while the command's modules are imported,
+    then freezes them and turns it back on; ``main(argv)`` called from Python leaves the
+    collector alone."""
+    code = """
+        import gc, sys
+        import importlib.abc
+        seen = []
+
+        class Watch(importlib.abc.MetaPathFinder):
+            def find_spec(self, fullname, path, target=None):
+                if fullname == "mavispm.simulate.render.cli":
+                    seen.append(gc.isenabled())
+                return None
+
+        sys.meta_path.insert(0, Watch())
+        from mavispm.workflows import cli
+        words = ["simulate", "frames", "--help"]
+        sys.argv = ["mavispm"] + words
+        try:
+            cli.main({call})
+        except SystemExit:
+            pass
+        print(seen, gc.isenabled(), gc.get_freeze_count() > 0)
+        """
+    assert _run(code.format(call=""))[-1] == "[False] True True"
+    assert _run(code.format(call="words"))[-1] == "[True] True False"
