@@ -772,17 +772,24 @@ def fit_stars(
         adds = []
         for k in big:
             cxk, cyk = int(geom.cx[k]), int(geom.cy[k])
-            lo = np.searchsorted(pixels, max(cyk - reach, 0) * nx)
-            hi = np.searchsorted(pixels, min(cyk + reach + 1, ny) * nx)
-            pix = pixels[lo:hi]
+            # the touched pixels of the box around the star: one range per frame row
+            band = np.arange(max(cyk - reach, 0), min(cyk + reach + 1, ny)) * nx
+            # keys of the pixels' own dtype: int64 keys into int32 pixels cast the whole
+            # array on every call (15 ms at 1e5 stars)
+            first = np.searchsorted(pixels, (band + max(cxk - reach, 0)).astype(pixels.dtype))
+            ends = (band + min(cxk + reach + 1, nx)).astype(pixels.dtype)
+            lens = np.searchsorted(pixels, ends) - first
+            at_box = np.repeat(first - np.cumsum(lens) + lens, lens) + np.arange(lens.sum())
+            pix = pixels[at_box]
             px, py = pix % nx, pix // nx
             d = np.hypot(px - x[k], py - y[k])
             ring = np.floor(d - (rr[0] - 0.5)).astype(np.int64)
             keep = (ring >= 0) & (ring < nr) & ((np.abs(px - cxk) > r) | (np.abs(py - cyk) > r))
             sel = np.flatnonzero(keep)
-            v = values[lo:hi][sel] - model[lo:hi][sel]
+            sel_pix = at_box[sel]
+            v = values[sel_pix] - model[sel_pix]
             lab = ring[sel]
-            ok = np.isfinite(v) & ~bad_pix[lo:hi][sel]
+            ok = np.isfinite(v) & ~bad_pix[sel_pix]
             v, lab = v[ok], lab[ok]
             order = np.lexsort((v, lab))
             v, lab = v[order], lab[order]
@@ -796,7 +803,7 @@ def fit_stars(
             if not np.any(np.isfinite(med[outer_rings])):
                 continue
             fix = np.nan_to_num(med - np.nanmedian(med[outer_rings])) * taper
-            adds.append((lo + sel, np.interp(d[sel], rr, fix, left=0.0, right=0.0)))
+            adds.append((sel_pix, np.interp(d[sel], rr, fix, left=0.0, right=0.0)))
         for where, light in adds:  # after all are measured: none sees another's
             for out in (model, halo_light) if len(halo_light) else (model,):
                 out[where] += light
