@@ -148,6 +148,20 @@ class FitOptions:
         the neighbours' sky planes).
     halo_radius : float
         Outer radius of that light [pixel].
+    halo_rings : float
+        Stars whose halo at 20 px (the frame's profile times their flux) exceeds this
+        many times the sky's pixel noise also get their own radial misfit added to the
+        model, once, with the halos: the median of the residual (image less every star
+        model and halo) in 1-px annuli from the stamp edge to 34 px, outside the star's
+        stamp, less its median at 28-34 px, tapered from 22 to 30 px; 0: none. On the
+        1e5-star MAVIS frame the frame's one profile misses each V < 15 star's own
+        radial light by up to 2 faint-star fluxes at 12-20 px (docs/measure.md,
+        "Scale", eleventh pass).
+    halo_taper : float
+        The profile falls to zero over this many pixels inside ``halo_radius`` (raised
+        cosine) instead of stopping at it [pixel]: the profile is measured relative to
+        the light at ``halo_radius`` to ``+ 10`` px and a sharp edge there leaves a step
+        that a neighbour's sky plane cannot absorb; 0: a sharp edge.
     """
 
     radius: int = 5
@@ -172,6 +186,8 @@ class FitOptions:
     joint_trust: float = 10.0
     wing_threshold: float = 0.0
     halo_radius: float = 60.0
+    halo_rings: float = 0.0
+    halo_taper: float = 0.0
 
 
 @dataclass
@@ -718,6 +734,9 @@ def fit_stars(
         # to the measured profile left a step at the footprint's edge that drove faint
         # neighbours' fluxes negative; docs/measure.md, "Scale")
         profile = measured
+        if opt.halo_taper > 0:
+            t = np.clip((radii[-1] + 0.5 - radii) / opt.halo_taper, 0.0, 1.0)
+            profile = profile * (0.5 - 0.5 * np.cos(np.pi * t))
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
         # into the model directly (kept apart only for the returned star-model image)
@@ -727,6 +746,67 @@ def fit_stars(
                 deposit_radial(*args, flux[bright], profile, radii[0], out=out)
             else:
                 deposit_shaped(*args, flux[bright], profile, radii[0], halo_shape, out)
+        if opt.halo_rings > 0:
+            ring_corrections(bright, profile)
+
+    def ring_corrections(bright, profile):
+        """Add each very bright star's own radial misfit to the model (``halo_rings``).
+
+        For the stars whose halo at 20 px exceeds ``halo_rings`` times the sky's pixel
+        noise: the median of the residual (image less every star model and halo) in
+        1-px annuli from the stamp edge to 34 px, outside the star's own stamp, less its
+        median at 28-34 px, tapered (raised cosine) from 22 to 30 px, zero beyond.
+        """
+        at = min(int(round(20 - radii[0])), len(profile) - 1)
+        noise = np.sqrt(max(sky0 + read_noise_var, 1e-300))
+        big = bright[flux[bright] * profile[at] > opt.halo_rings * noise]
+        if len(big) == 0:
+            return
+        use = radii < 34
+        rr = radii[use]
+        nr = len(rr)
+        reach = int(np.ceil(rr[-1] + 0.5))
+        taper = np.clip((30.0 - rr) / 8.0, 0.0, 1.0)
+        taper = 0.5 - 0.5 * np.cos(np.pi * taper)
+        outer_rings = rr >= 28
+        adds = []
+        for k in big:
+            cxk, cyk = int(geom.cx[k]), int(geom.cy[k])
+            # the touched pixels of the box around the star: one range per frame row
+            band = np.arange(max(cyk - reach, 0), min(cyk + reach + 1, ny)) * nx
+            # keys of the pixels' own dtype: int64 keys into int32 pixels cast the whole
+            # array on every call (15 ms at 1e5 stars)
+            first = np.searchsorted(pixels, (band + max(cxk - reach, 0)).astype(pixels.dtype))
+            ends = (band + min(cxk + reach + 1, nx)).astype(pixels.dtype)
+            lens = np.searchsorted(pixels, ends) - first
+            at_box = np.repeat(first - np.cumsum(lens) + lens, lens) + np.arange(lens.sum())
+            pix = pixels[at_box]
+            px, py = pix % nx, pix // nx
+            d = np.hypot(px - x[k], py - y[k])
+            ring = np.floor(d - (rr[0] - 0.5)).astype(np.int64)
+            keep = (ring >= 0) & (ring < nr) & ((np.abs(px - cxk) > r) | (np.abs(py - cyk) > r))
+            sel = np.flatnonzero(keep)
+            sel_pix = at_box[sel]
+            v = values[sel_pix] - model[sel_pix]
+            lab = ring[sel]
+            ok = np.isfinite(v) & ~bad_pix[sel_pix]
+            v, lab = v[ok], lab[ok]
+            order = np.lexsort((v, lab))
+            v, lab = v[order], lab[order]
+            counts = np.bincount(lab, minlength=nr)
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            med = np.full(nr, np.nan)
+            some = counts > 4
+            a = starts[some] + (counts[some] - 1) // 2
+            b = starts[some] + counts[some] // 2
+            med[some] = 0.5 * (v[a] + v[b])
+            if not np.any(np.isfinite(med[outer_rings])):
+                continue
+            fix = np.nan_to_num(med - np.nanmedian(med[outer_rings])) * taper
+            adds.append((sel_pix, np.interp(d[sel], rr, fix, left=0.0, right=0.0)))
+        for where, light in adds:  # after all are measured: none sees another's
+            for out in (model, halo_light) if len(halo_light) else (model,):
+                out[where] += light
 
     models_halo = opt.wing_threshold > 0 and opt.halo_radius > r + 1
     halo_pending = models_halo

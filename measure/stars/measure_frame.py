@@ -281,6 +281,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         sky_gradient=settings.sky_gradient,
         wing_threshold=settings.wing_threshold,
         halo_radius=settings.halo_radius,
+        halo_rings=settings.halo_rings,
+        halo_taper=settings.halo_taper,
     )
 
 

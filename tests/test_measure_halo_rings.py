@@ -1,0 +1,102 @@
+"""Each very bright star's own radial misfit (``FitOptions.halo_rings``) against the
+truth of a rendered frame (docs/measure.md, "Scale", eleventh pass)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+_CORE, _FRAC = 1.2, 0.3  # Gaussian core [px], halo fraction
+
+
+def _halo_light(r, scale):
+    """Halo per unit flux [1/pixel]: exponential of the given scale, 30 % of the light."""
+    return _FRAC * np.exp(-r / scale) / (2 * np.pi * scale**2)
+
+
+def _epsf(oversampling=2, half=12):
+    """The core exact, the halo of the median scale (8 px) tapered to zero at 12 px."""
+    from mavispm.measure.stars.variable_psf import constant_epsf
+
+    off = np.arange(-half * oversampling, half * oversampling + 1) / oversampling
+    r = np.hypot(off[None, :], off[:, None])
+    s2 = _CORE**2 + 1.0 / 12
+    core = (1 - _FRAC) * np.exp(-0.5 * r**2 / s2) / (2 * np.pi * s2)
+    taper = np.where(r < 6, 1.0, np.cos(0.5 * np.pi * np.clip((r - 6) / 6, 0, 1)) ** 2)
+    return constant_epsf(core + _halo_light(r, 8.0) * taper, oversampling)
+
+
+def _frame(seed, scales=(5.5, 11.0), dist=(8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 23.0, 26.0)):
+    """16 bright stars whose halos differ star by star (scale 5.5 or 11 px, alternating:
+    the frame's one radial profile fits none of them), faint stars 8-26 px from them
+    and others far from any; Poisson and read noise. Returns the image, the true
+    positions and fluxes, each star's distance to its bright star (NaN: bright, inf:
+    far), the sky and the read-noise variance."""
+    rng = np.random.default_rng(seed)
+    shape, sky, rn = (600, 600), 50.0, 5.0
+    grid = np.arange(75.0, 600.0, 150.0)
+    bx, by = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(grid, grid))
+    bflux = 10 ** rng.uniform(6.3, 6.7, bx.size)
+    scale = np.where(np.arange(bx.size) % 2 == 0, *scales)
+    dist = np.array(dist)
+    near_x, near_y, near_d = [], [], []
+    for k in range(bx.size):
+        a = np.arange(len(dist)) * 2 * np.pi / len(dist) + rng.uniform(0, 2 * np.pi)
+        near_x.append(bx[k] + dist * np.cos(a))
+        near_y.append(by[k] + dist * np.sin(a))
+        near_d.append(dist)
+    mid = np.arange(150.0, 500.0, 150.0)
+    fx, fy = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(mid, mid))
+    x = np.concatenate([bx, *near_x, fx])
+    y = np.concatenate([by, *near_y, fy])
+    d = np.concatenate([np.full(bx.size, np.nan), *near_d, np.full(fx.size, np.inf)])
+    flux = np.concatenate([bflux, np.full(x.size - bx.size, 4000.0)])
+    star_scale = np.concatenate([scale, np.full(x.size - bx.size, 8.0)])
+    m = 60
+    image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)
+    off = np.arange(-m, m + 1)
+    for k in range(x.size):
+        cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
+        dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
+        core = (ndtr((dx + 0.5) / _CORE) - ndtr((dx - 0.5) / _CORE)) * (
+            ndtr((dy + 0.5) / _CORE) - ndtr((dy - 0.5) / _CORE)
+        )
+        image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
+            (1 - _FRAC) * core + _halo_light(np.hypot(dx, dy), star_scale[k])
+        )
+    image = rng.poisson(image[m:-m, m:-m]).astype(float) + rng.normal(0, rn, shape)
+    return image, x, y, flux, d, sky, rn**2
+
+
+def _bias(rings, seed):
+    """Per distance bin the faint stars' median fitted / true flux over the far stars'."""
+    from mavispm.measure.stars import batched_fit
+
+    image, x, y, flux, d, sky, rn2 = _frame(seed)
+    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
+                                 iterations=40, relative_tolerance=0.2, halo_rings=rings)  # fmt: skip
+    fit = batched_fit.fit_stars(image, _epsf(), x, y, read_noise_var=rn2, sky0=sky, options=opt)
+    ratio = fit.flux / flux
+    far = np.median(ratio[np.isinf(d)])
+    out = []
+    for lo, hi in ((11, 15), (15, 19), (19, 27)):
+        b = (d >= lo) & (d < hi)
+        out.append(np.median(np.abs(ratio[b] / far - 1)))
+    return np.array(out), far
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ring_medians_mend_each_bright_stars_own_halo(seed):
+    """Faint stars 11-26 px from bright stars whose halos are 0.7 / 1.4 times the frame's
+    median scale (the truth of the rendered frame): with the frame's one profile their
+    fluxes are off by a median 11-13 % at 11-19 px (measured 0.106-0.130); with each
+    bright star's own ring medians added (``halo_rings``) within 7.5 % in every bin
+    (measured 0.021-0.057). Closer (8-11 px, the stamps overlapping) both are off by
+    ~50 % and the rings make it worse (0.50-0.51 -> 0.58-0.63): not scored here, see
+    docs/measure.md."""
+    off_old, far_old = _bias(0.0, seed)
+    off_new, far_new = _bias(5.0, seed)
+    assert 0.95 < far_new < 1.05 and 0.95 < far_old < 1.05
+    assert np.all(off_new < 0.075), off_new
+    assert np.all(off_new <= off_old + 0.01), (off_new, off_old)
