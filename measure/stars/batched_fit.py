@@ -157,11 +157,6 @@ class FitOptions:
         1e5-star MAVIS frame the frame's one profile misses each V < 15 star's own
         radial light by up to 2 faint-star fluxes at 12-20 px (docs/measure.md,
         "Scale", eleventh pass).
-    halo_taper : float
-        The profile falls to zero over this many pixels inside ``halo_radius`` (raised
-        cosine) instead of stopping at it [pixel]: the profile is measured relative to
-        the light at ``halo_radius`` to ``+ 10`` px and a sharp edge there leaves a step
-        that a neighbour's sky plane cannot absorb; 0: a sharp edge.
     """
 
     radius: int = 5
@@ -187,7 +182,6 @@ class FitOptions:
     wing_threshold: float = 0.0
     halo_radius: float = 60.0
     halo_rings: float = 0.0
-    halo_taper: float = 0.0
 
 
 @dataclass
@@ -734,9 +728,6 @@ def fit_stars(
         # to the measured profile left a step at the footprint's edge that drove faint
         # neighbours' fluxes negative; docs/measure.md, "Scale")
         profile = measured
-        if opt.halo_taper > 0:
-            t = np.clip((radii[-1] + 0.5 - radii) / opt.halo_taper, 0.0, 1.0)
-            profile = profile * (0.5 - 0.5 * np.cos(np.pi * t))
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
         # into the model directly (kept apart only for the returned star-model image)

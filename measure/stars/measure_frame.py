@@ -282,7 +282,6 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         wing_threshold=settings.wing_threshold,
         halo_radius=settings.halo_radius,
         halo_rings=settings.halo_rings,
-        halo_taper=settings.halo_taper,
     )
 
 

@@ -132,9 +132,6 @@ class MeasureKnobs:
         V < 15 on the MAVIS frames) get
         their own radial correction, the residual's medians in 1-px annuli out to 30
         px after the first pass (docs/measure.md, "Scale", eleventh pass); 0: off.
-    halo_taper : float [pix]
-        The halo profile falls to zero over this many pixels inside ``halo_radius``
-        (raised cosine) instead of stopping there; 0: a sharp edge.
     min_snr : float
         Stars below this flux SNR have positions held fixed and are flagged 32.
     chunk : int
@@ -168,7 +165,6 @@ class MeasureKnobs:
     wing_threshold: float = 3.0
     halo_radius: float = unit_field(60.0, "pix")
     halo_rings: float = 1000.0
-    halo_taper: float = 0.0
     min_snr: float = 3.0
     chunk: int = 512
     photutils_fitter: Literal["levmar", "default"] = "levmar"
@@ -207,7 +203,6 @@ class MeasureKnobs:
             "wing_threshold",
             "halo_radius",
             "halo_rings",
-            "halo_taper",
             "crowded_window",
             "crowded_ratio",
         ):
