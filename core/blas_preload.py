@@ -18,40 +18,27 @@ affected.
 
 from __future__ import annotations
 
-import importlib.abc
 import importlib.machinery
 import importlib.util
 import sys
 from pathlib import Path
+
+from mavispm.core.import_hook import wrap_on_import
 
 __all__ = ["load_cython_blas_alone"]
 
 _NAME = "scipy.linalg.cython_blas"
 
 
-class _LinkOnImport(importlib.abc.MetaPathFinder):
-    """Sets ``scipy.linalg.cython_blas`` on the package when ``scipy.linalg`` is imported.
+def _link(exec_module, module) -> None:
+    """Run ``scipy.linalg``'s code, then set the preloaded ``cython_blas`` on it.
 
     The import system sets a submodule as an attribute of its package only when it
-    loads the submodule itself; the preloaded one is linked here instead (once).
+    loads the submodule itself; the preloaded one is linked here instead.
     """
-
-    def find_spec(self, fullname, path, target=None):
-        if fullname != "scipy.linalg":
-            return None
-        sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
-        if spec is None or spec.loader is None:
-            return spec
-        exec_module = spec.loader.exec_module
-
-        def exec_and_link(module):
-            exec_module(module)
-            if _NAME in sys.modules and not hasattr(module, "cython_blas"):
-                module.cython_blas = sys.modules[_NAME]
-
-        spec.loader.exec_module = exec_and_link
-        return spec
+    exec_module(module)
+    if _NAME in sys.modules and not hasattr(module, "cython_blas"):
+        module.cython_blas = sys.modules[_NAME]
 
 
 def load_cython_blas_alone() -> bool:
@@ -84,5 +71,5 @@ def load_cython_blas_alone() -> bool:
     except Exception:  # an unusual build: leave it to numba's own import
         sys.modules.pop(_NAME, None)
         return False
-    sys.meta_path.insert(0, _LinkOnImport())
+    wrap_on_import("scipy.linalg", _link)
     return True

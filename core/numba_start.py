@@ -20,9 +20,9 @@ Only the ``mavispm`` program calls it (``workflows/cli.py``: ``main()`` reading
 
 from __future__ import annotations
 
-import importlib.abc
-import importlib.machinery
 import sys
+
+from mavispm.core.import_hook import wrap_on_import
 
 __all__ = ["load_cached_kernels_first"]
 
@@ -55,24 +55,9 @@ def _patch(caching) -> None:
     caching.Cache.load_overload = load_overload
 
 
-class _PatchOnImport(importlib.abc.MetaPathFinder):
-    """Patches ``numba.core.caching`` when it is imported (once)."""
-
-    def find_spec(self, fullname, path, target=None):
-        if fullname != "numba.core.caching":
-            return None
-        sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
-        if spec is None or spec.loader is None:
-            return spec
-        exec_module = spec.loader.exec_module
-
-        def exec_and_patch(module):
-            exec_module(module)
-            _patch(module)
-
-        spec.loader.exec_module = exec_and_patch
-        return spec
+def _exec_and_patch(exec_module, module) -> None:
+    exec_module(module)
+    _patch(module)
 
 
 def load_cached_kernels_first() -> bool:
@@ -92,7 +77,4 @@ def load_cached_kernels_first() -> bool:
             return False
         _patch(caching)
         return True
-    if any(isinstance(f, _PatchOnImport) for f in sys.meta_path):
-        return False
-    sys.meta_path.insert(0, _PatchOnImport())
-    return True
+    return wrap_on_import("numba.core.caching", _exec_and_patch)

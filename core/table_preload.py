@@ -21,10 +21,10 @@ affected.
 from __future__ import annotations
 
 import importlib
-import importlib.abc
-import importlib.machinery
 import sys
 import types
+
+from mavispm.core.import_hook import wrap_on_import
 
 __all__ = ["CONNECTORS", "import_table_without_connectors", "load_connectors"]
 
@@ -70,34 +70,23 @@ def _deferred(name: str):
     return method
 
 
-class _DeferOnImport(importlib.abc.MetaPathFinder):
-    """Holds the connectors out while ``astropy.table`` itself is imported (once)."""
+def _exec_deferring(exec_module, module) -> None:
+    """Run ``astropy.table``'s code with the connectors held out, then shadow the registry."""
+    if any(n in sys.modules for n in CONNECTORS):  # one came in meanwhile: as usual
+        exec_module(module)
+        return
+    placeholders = {n: types.ModuleType(n) for n in CONNECTORS}
+    sys.modules.update(placeholders)
+    try:
+        exec_module(module)
+    finally:
+        for name, placeholder in placeholders.items():
+            if sys.modules.get(name) is placeholder:
+                del sys.modules[name]
+    from astropy.io.registry import compat
 
-    def find_spec(self, fullname, path, target=None):
-        if fullname != "astropy.table":
-            return None
-        sys.meta_path.remove(self)
-        spec = importlib.machinery.PathFinder.find_spec(fullname, path)
-        if spec is None or spec.loader is None or any(n in sys.modules for n in CONNECTORS):
-            return spec
-        exec_module = spec.loader.exec_module
-
-        def exec_deferring(module):
-            placeholders = {n: types.ModuleType(n) for n in CONNECTORS}
-            sys.modules.update(placeholders)
-            try:
-                exec_module(module)
-            finally:
-                for name, placeholder in placeholders.items():
-                    if sys.modules.get(name) is placeholder:
-                        del sys.modules[name]
-            from astropy.io.registry import compat
-
-            for name in _REGISTRY_METHODS:
-                setattr(compat.default_registry, name, _deferred(name))
-
-        spec.loader.exec_module = exec_deferring
-        return spec
+    for name in _REGISTRY_METHODS:
+        setattr(compat.default_registry, name, _deferred(name))
 
 
 def import_table_without_connectors() -> bool:
@@ -112,7 +101,4 @@ def import_table_without_connectors() -> bool:
     """
     if "astropy.table" in sys.modules or any(n in sys.modules for n in CONNECTORS):
         return False
-    if any(isinstance(f, _DeferOnImport) for f in sys.meta_path):
-        return False
-    sys.meta_path.insert(0, _DeferOnImport())
-    return True
+    return wrap_on_import("astropy.table", _exec_deferring)

@@ -201,3 +201,28 @@ def test_program_imports_with_the_collector_off():
         """
     assert _run(code.format(call=""))[-1] == "[False] True True"
     assert _run(code.format(call="words"))[-1] == "[True] True False"
+
+
+def test_wrap_on_import_runs_its_wrapper_once_around_the_module():
+    """The one import hook of the start-up loaders (``core/import_hook.py``): the wrapper
+    runs around the module's own code on its first import, the hook then leaves
+    ``sys.meta_path``, and a second hook for the same module is refused."""
+    code = """
+        import sys
+        from mavispm.core.import_hook import WrapOnImport, wrap_on_import
+        calls = []
+        def wrap(exec_module, module):
+            calls.append(hasattr(module, "rgb_to_hsv"))
+            exec_module(module)
+            calls.append(hasattr(module, "rgb_to_hsv"))
+        assert "colorsys" not in sys.modules
+        print(wrap_on_import("colorsys", wrap), wrap_on_import("colorsys", wrap))
+        import colorsys
+        import colorsys as again
+        print(calls, colorsys.rgb_to_hsv(1.0, 0.0, 0.0))
+        print(any(isinstance(f, WrapOnImport) for f in sys.meta_path))
+    """
+    lines = _run(code)
+    assert lines[0] == "True False"
+    assert lines[1] == "[False, True] (0.0, 1.0, 1.0)"
+    assert lines[2] == "False"
