@@ -89,6 +89,27 @@ def mix_kernel_fold_numpy(
     out += np.asarray((fold.T @ spec.T).T)
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _mix_nodes(transforms, nodes, weights, re, im):  # pragma: no cover
+    """One star's node-weighted transfer function into split real / imaginary buffers.
+
+    ``re + i im = sum_j weights[j] transforms[nodes[j]]`` at every sample (the mixing
+    step of :func:`mix_kernel_fold` and :func:`mix_kernel_fold_runs`).
+    """
+    n_samp = transforms.shape[1]
+    t0 = transforms[nodes[0]]
+    w0 = weights[0]
+    for k in range(n_samp):
+        re[k] = t0[k].real * w0
+        im[k] = t0[k].imag * w0
+    for j in range(1, nodes.shape[0]):
+        tj = transforms[nodes[j]]
+        wj = weights[j]
+        for k in range(n_samp):
+            re[k] += tj[k].real * wj
+            im[k] += tj[k].imag * wj
+
+
 @numba.njit(nogil=True, cache=True)
 def mix_kernel_fold(
     transforms, node, w, coef, u, v, du, step, phx, phy, col, row, target, out
@@ -124,22 +145,12 @@ def mix_kernel_fold(
     out : ndarray, shape (S, n_out), complex
         Folded spectra, added into in place.
     """
-    n_star, n_j = node.shape
+    n_star = node.shape[0]
     n_samp = u.shape[0]
     re = np.empty(n_samp, dtype=u.dtype)
     im = np.empty(n_samp, dtype=u.dtype)
     for s in range(n_star):
-        t0 = transforms[node[s, 0]]
-        w0 = w[s, 0]
-        for k in range(n_samp):
-            re[k] = t0[k].real * w0
-            im[k] = t0[k].imag * w0
-        for j in range(1, n_j):
-            tj = transforms[node[s, j]]
-            wj = w[s, j]
-            for k in range(n_samp):
-                re[k] += tj[k].real * wj
-                im[k] += tj[k].imag * wj
+        _mix_nodes(transforms, node[s], w[s], re, im)
         a = np.float64(coef[s, 0])
         b = np.float64(coef[s, 1])
         c = np.float64(coef[s, 2])
@@ -286,7 +297,7 @@ def mix_kernel_fold_runs(
         Folded spectra as (real, imaginary) pairs (``complex_array.view(real)``),
         added into in place.
     """
-    n_star, n_j = node.shape
+    n_star = node.shape[0]
     n_samp = transforms.shape[1]
     n_col = fxu.shape[0]
     longest = 1
@@ -301,17 +312,7 @@ def mix_kernel_fold_runs(
     acc_re = np.zeros(n_out, dtype=w.dtype)
     acc_im = np.zeros(n_out, dtype=w.dtype)
     for s in range(n_star):
-        t0 = transforms[node[s, 0]]
-        w0 = w[s, 0]
-        for k in range(n_samp):
-            re[k] = t0[k].real * w0
-            im[k] = t0[k].imag * w0
-        for j in range(1, n_j):
-            tj = transforms[node[s, j]]
-            wj = w[s, j]
-            for k in range(n_samp):
-                re[k] += tj[k].real * wj
-                im[k] += tj[k].imag * wj
+        _mix_nodes(transforms, node[s], w[s], re, im)
         a = np.float64(coef[s, 0])
         b = np.float64(coef[s, 1])
         c = np.float64(coef[s, 2])
