@@ -11,6 +11,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mavispm.measure.stars.halo import halo_profile
 from mavispm.measure.stars.stamp_kernel import deposit_radial
@@ -282,3 +284,24 @@ def test_faint_fluxes_near_a_bright_star_with_a_broad_halo_are_unbiased(seed, sa
         b = (d >= lo) & (d < hi)
         got = np.median(ratio[b]) / far
         assert abs(got - 1) < 0.06, (lo, hi, got)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.tuples(st.integers(0, 6), st.floats(-1e3, 1e3)), min_size=0, max_size=80),
+    st.integers(1, 4),
+)
+def test_grouped_median_matches_numpy_per_group(pairs, min_count):
+    """``grouped_median`` (the ring medians of the halo profile and of the bright stars'
+    ring corrections) against ``np.median`` of each group separately."""
+    from mavispm.measure.stars.halo import grouped_median
+
+    label = np.array([p[0] for p in pairs], dtype=np.int64)
+    value = np.array([p[1] for p in pairs], dtype=float)
+    med = grouped_median(label, value, 7, min_count=min_count)
+    for g in range(7):
+        vals = value[label == g]
+        if vals.size >= min_count:
+            assert med[g] == pytest.approx(np.median(vals), rel=1e-12, abs=1e-12)
+        else:
+            assert np.isnan(med[g])

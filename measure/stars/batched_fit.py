@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
-from mavispm.measure.stars.halo import halo_profile
+from mavispm.measure.stars.halo import grouped_median, halo_profile
 from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped
 from mavispm.measure.stars.joint_step import coupled_groups, cross_blocks, solve_groups
 from mavispm.measure.stars.stamp_kernel import deposit_radial
@@ -779,18 +779,8 @@ def fit_stars(
             sel = np.flatnonzero(keep)
             sel_pix = at_box[sel]
             v = values[sel_pix] - model[sel_pix]
-            lab = ring[sel]
             ok = np.isfinite(v) & ~bad_pix[sel_pix]
-            v, lab = v[ok], lab[ok]
-            order = np.lexsort((v, lab))
-            v, lab = v[order], lab[order]
-            counts = np.bincount(lab, minlength=nr)
-            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            med = np.full(nr, np.nan)
-            some = counts > 4
-            a = starts[some] + (counts[some] - 1) // 2
-            b = starts[some] + counts[some] // 2
-            med[some] = 0.5 * (v[a] + v[b])
+            med = grouped_median(ring[sel][ok], v[ok], nr, min_count=5)
             if not np.any(np.isfinite(med[outer_rings])):
                 continue
             fix = np.nan_to_num(med - np.nanmedian(med[outer_rings])) * taper

@@ -22,7 +22,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["halo_excess", "halo_profile"]
+__all__ = ["grouped_median", "halo_excess", "halo_profile"]
 
 
 def halo_profile(
@@ -167,18 +167,39 @@ def _ring_medians(cut, r, radii, back_lo, back_hi):
     n = radii.size
     ring = np.floor(r - (radii[0] - 0.5)).astype(np.int64)
     keep = np.isfinite(cut) & (ring >= 0) & (ring < n)
-    lab, val = ring[keep], cut[keep]
-    by_value = np.argsort(val)
-    order = by_value[np.argsort(lab[by_value], kind="stable")]
-    val = val[order]
-    counts = np.bincount(lab, minlength=n)
+    med = grouped_median(ring[keep], cut[keep], n)
+    return _background_median(cut, r, back_lo, back_hi), med
+
+
+def grouped_median(label: np.ndarray, value: np.ndarray, n: int, min_count: int = 1) -> np.ndarray:
+    """Median of ``value`` in each group ``label = 0 .. n - 1``, from one sort.
+
+    Parameters
+    ----------
+    label : ndarray of int
+        Group of each value, in ``[0, n)``.
+    value : ndarray of float
+        Finite values.
+    n : int
+        Number of groups.
+    min_count : int
+        Groups with fewer values get NaN.
+
+    Returns
+    -------
+    ndarray (n,)
+        The groups' medians (the mean of the two middle values for an even count).
+    """
+    order = np.lexsort((value, label))  # by group, then by value
+    value = value[order]
+    counts = np.bincount(label, minlength=n)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     med = np.full(n, np.nan)
-    some = counts > 0
+    some = counts >= max(min_count, 1)
     lo = starts[some] + (counts[some] - 1) // 2
     hi = starts[some] + counts[some] // 2
-    med[some] = 0.5 * (val[lo] + val[hi])
-    return _background_median(cut, r, back_lo, back_hi), med
+    med[some] = 0.5 * (value[lo] + value[hi])
+    return med
 
 
 def _flux_scaled(d: np.ndarray, f: np.ndarray, min_stars: int, significance: float) -> np.ndarray:
