@@ -33,7 +33,8 @@ from tqdm import tqdm
 
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
-from mavispm.measure.stars.halo import grouped_median, halo_profile
+from mavispm.measure.stars.halo import RING_REFERENCE, halo_profile
+from mavispm.measure.stars.halo import ring_corrections as halo_ring_corrections
 from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped
 from mavispm.measure.stars.joint_step import coupled_groups, cross_blocks, solve_groups
 from mavispm.measure.stars.stamp_kernel import deposit_radial
@@ -741,50 +742,15 @@ def fit_stars(
             ring_corrections(bright, profile)
 
     def ring_corrections(bright, profile):
-        """Add each very bright star's own radial misfit to the model (``halo_rings``).
-
-        For the stars whose halo at 20 px exceeds ``halo_rings`` times the sky's pixel
-        noise: the median of the residual (image less every star model and halo) in
-        1-px annuli from the stamp edge to 34 px, outside the star's own stamp, less its
-        median at 28-34 px, tapered (raised cosine) from 22 to 30 px, zero beyond.
-        """
-        at = min(int(round(20 - radii[0])), len(profile) - 1)
+        """Add each very bright star's own radial misfit to the model (``halo_rings``):
+        :func:`~mavispm.measure.stars.halo.ring_corrections` for the stars whose halo at
+        ``RING_REFERENCE`` px exceeds ``halo_rings`` times the sky's pixel noise."""
+        at = min(int(round(RING_REFERENCE - radii[0])), len(profile) - 1)
         noise = np.sqrt(max(sky0 + read_noise_var, 1e-300))
         big = bright[flux[bright] * profile[at] > opt.halo_rings * noise]
-        if len(big) == 0:
-            return
-        use = radii < 34
-        rr = radii[use]
-        nr = len(rr)
-        reach = int(np.ceil(rr[-1] + 0.5))
-        taper = np.clip((30.0 - rr) / 8.0, 0.0, 1.0)
-        taper = 0.5 - 0.5 * np.cos(np.pi * taper)
-        outer_rings = rr >= 28
-        adds = []
-        for k in big:
-            cxk, cyk = int(geom.cx[k]), int(geom.cy[k])
-            # the touched pixels of the box around the star: one range per frame row
-            band = np.arange(max(cyk - reach, 0), min(cyk + reach + 1, ny)) * nx
-            # keys of the pixels' own dtype: int64 keys into int32 pixels cast the whole
-            # array on every call (15 ms at 1e5 stars)
-            first = np.searchsorted(pixels, (band + max(cxk - reach, 0)).astype(pixels.dtype))
-            ends = (band + min(cxk + reach + 1, nx)).astype(pixels.dtype)
-            lens = np.searchsorted(pixels, ends) - first
-            at_box = np.repeat(first - np.cumsum(lens) + lens, lens) + np.arange(lens.sum())
-            pix = pixels[at_box]
-            px, py = pix % nx, pix // nx
-            d = np.hypot(px - x[k], py - y[k])
-            ring = np.floor(d - (rr[0] - 0.5)).astype(np.int64)
-            keep = (ring >= 0) & (ring < nr) & ((np.abs(px - cxk) > r) | (np.abs(py - cyk) > r))
-            sel = np.flatnonzero(keep)
-            sel_pix = at_box[sel]
-            v = values[sel_pix] - model[sel_pix]
-            ok = np.isfinite(v) & ~bad_pix[sel_pix]
-            med = grouped_median(ring[sel][ok], v[ok], nr, min_count=5)
-            if not np.any(np.isfinite(med[outer_rings])):
-                continue
-            fix = np.nan_to_num(med - np.nanmedian(med[outer_rings])) * taper
-            adds.append((sel_pix, np.interp(d[sel], rr, fix, left=0.0, right=0.0)))
+        adds = halo_ring_corrections(
+            pixels, (ny, nx), values, model, bad_pix, x[big], y[big], geom.cx[big], geom.cy[big], r, radii
+        )  # fmt: skip
         for where, light in adds:  # after all are measured: none sees another's
             for out in (model, halo_light) if len(halo_light) else (model,):
                 out[where] += light
