@@ -11,6 +11,21 @@ from mavispm.simulate.render.stamps import RenderParams, StarRenderer
 SCALE = 7.5  # mas
 
 
+#: Blur-kernel covariances [mas^2] of the mixing-kernel tests: round, tilted, zero,
+#: wide, elongated, nearly singular and (last, first test only) very wide.
+KERNEL_COVARIANCES = np.asarray(
+    [
+        [[20.0, 6.0], [6.0, 12.0]],
+        [[80.0, -30.0], [-30.0, 50.0]],
+        [[0.0, 0.0], [0.0, 0.0]],
+        [[400.0, 100.0], [100.0, 90.0]],
+        [[5.0, 0.0], [0.0, 300.0]],
+        [[60.0, 59.0], [59.0, 60.0]],
+        [[9000.0, 8900.0], [8900.0, 9000.0]],
+    ]
+)
+
+
 @pytest.fixture(scope="module")
 def airy_optics():
     return make_optics("airy")  # symmetric nodes
@@ -216,17 +231,7 @@ def test_run_kernel_matches_numpy_reference(real, cplx, n_j):
     assert runs[:, 4].sum() == len(u) and runs[:, 4].max() > 50
     assert len(np.unique(target)) < len(target)  # aliases fold onto shared frequencies
     rng = np.random.default_rng(7)
-    cov = np.asarray(
-        [
-            [[20.0, 6.0], [6.0, 12.0]],
-            [[80.0, -30.0], [-30.0, 50.0]],
-            [[0.0, 0.0], [0.0, 0.0]],
-            [[400.0, 100.0], [100.0, 90.0]],
-            [[5.0, 0.0], [0.0, 300.0]],
-            [[60.0, 59.0], [59.0, 60.0]],
-            [[9000.0, 8900.0], [8900.0, 9000.0]],
-        ]
-    )
+    cov = KERNEL_COVARIANCES
     s, nodes, n = len(cov), 6, len(u)
     transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
     node = rng.integers(0, nodes, (s, n_j))
@@ -268,15 +273,7 @@ def test_compiled_kernel_recurrence_along_columns_matches_numpy_reference(real, 
     transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
     node = rng.integers(0, nodes, (s, 4))
     w = rng.random((s, 4)).astype(real)
-    cov = [
-        [[20.0, 6.0], [6.0, 12.0]],
-        [[80.0, -30.0], [-30.0, 50.0]],
-        [[0.0, 0.0], [0.0, 0.0]],
-        [[400.0, 100.0], [100.0, 90.0]],
-        [[5.0, 0.0], [0.0, 300.0]],
-        [[60.0, 59.0], [59.0, 60.0]],
-    ]
-    cov = np.asarray(cov)
+    cov = KERNEL_COVARIANCES[:6]
     coef = (cov.reshape(s, 4)[:, [0, 1, 3]] * [1.0, 2.0, 1.0] * (-2.0 * np.pi**2)).astype(real)
     phx = np.exp(1j * rng.random((s, len(fx)))).astype(cplx)
     phy = np.exp(1j * rng.random((s, len(fy)))).astype(cplx)
