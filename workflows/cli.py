@@ -190,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         ``scipy.linalg``, :mod:`mavispm.core.blas_preload`; imports ``astropy.table``
         without its file-format connectors until ``Table.read`` / ``write`` needs them,
         :mod:`mavispm.core.table_preload`; loads numba's cached kernels before its
-        compiler registries, :mod:`mavispm.core.numba_start`).
+        compiler registries, :mod:`mavispm.core.numba_start`; keeps the memory it frees
+        for its next arrays, :mod:`mavispm.core.malloc_policy`).
 
     Returns
     -------
@@ -202,9 +203,11 @@ def main(argv: list[str] | None = None) -> int:
 
         gc.disable()  # while importing: see _freeze_imports
         from mavispm.core.blas_preload import load_cython_blas_alone
+        from mavispm.core.malloc_policy import keep_freed_memory
         from mavispm.core.numba_start import load_cached_kernels_first
         from mavispm.core.table_preload import import_table_without_connectors
 
+        keep_freed_memory()
         load_cython_blas_alone()
         import_table_without_connectors()
         load_cached_kernels_first()
