@@ -2,6 +2,8 @@
 
 * the halo's cloud-in-cell deposit (one ``np.bincount``) against a point-by-point loop;
 * the wrapped halo kernel against ``np.roll`` of the zero-padded kernel;
+* the halo's convolution in one real grid and one spectrum against numpy's ``rfft2`` /
+  ``irfft2`` (bit for bit), allocating only the spectrum;
 * the halo's bilinear interpolation (rows shared between fine rows, optionally
   filling the frame with the sky in the same pass) against per-pixel interpolation;
 * the compiled float32 standard normals of the noise draw against numpy's sampler,
@@ -10,6 +12,7 @@
 
 from __future__ import annotations
 
+import tracemalloc
 import zlib
 
 import numpy as np
@@ -18,6 +21,7 @@ import pytest
 from mavispm.simulate.render import detector
 from mavispm.simulate.render.halo_convolution import (
     _bilinear_into,
+    _convolve_spectrum,
     _linear_interpolation_weights,
     _wrap_kernel,
     add_bilinear,
@@ -136,6 +140,30 @@ def test_halo_field_fill_equals_fill_then_add(b):
         np.array([1e4]), np.array([1e4]), np.ones(1), shape, _BoxHalo(), 7.5, b, fill=3.0
     )
     np.testing.assert_array_equal(empty, 3.0)
+
+
+@pytest.mark.parametrize("fshape", [(240, 256), (225, 250)])
+def test_halo_convolution_in_two_buffers_equals_numpys_2d_transforms(fshape):
+    """The halo's convolution (one-axis passes into one real grid and one spectrum) equals
+    ``irfft2(rfft2(field, fshape) * spectrum, fshape)`` bit for bit; given the grid it
+    allocates the spectrum alone (numpy's 2-D transforms make a fresh array per pass)."""
+    rng = np.random.default_rng(5)
+    field = rng.uniform(0, 1e4, (fshape[0] - 31, fshape[1] - 17))
+    kspec = np.fft.rfft2(rng.uniform(0, 1, fshape))
+    ny, nx = field.shape
+    want = np.fft.irfft2(np.fft.rfft2(field, fshape) * kspec, fshape)[:ny, :nx]
+    np.testing.assert_array_equal(_convolve_spectrum(field, kspec, fshape), want)
+    grid = np.zeros(fshape)
+    grid[:ny, :nx] = field
+    tracemalloc.start()
+    try:
+        got = _convolve_spectrum(grid[:ny, :nx], kspec, fshape, grid=grid)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(got, want)
+    assert np.shares_memory(got, grid)
+    assert kspec.nbytes <= peak < 1.25 * kspec.nbytes
 
 
 #: The first noise chunk of epoch "e0", seed 0 (the frames command's generator): numba's
