@@ -270,6 +270,54 @@ def test_in_place_taper_equals_the_tapered_copy():
     np.testing.assert_array_equal(same.cube, copy.cube)
 
 
+def test_cached_tapered_cube_is_the_brute_force_taper_mapped_from_the_cache(tmp_path):
+    """``cached_taper`` keeps the tapered cube next to the grid's cache file: the first
+    call tapers (equal to a per-stamp brute force) and saves it, the next maps it
+    read-only from there (the grid's own cube is not used: here it is another one), a
+    grid file written again is tapered again; ``read_grid(mapped=True)`` maps the cube of
+    a ``psfgrid`` product with the values ``read_grid`` reads."""
+    import os
+
+    from mavispm.simulate.optics.model import cached_taper
+    from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, read_grid, write_grid
+    from mavispm.simulate.optics.seeing_halo import Halo, ramp
+
+    rng = np.random.default_rng(7)
+    n = 21
+    cube = rng.random((2, 3, n, n))
+    grid = PSFGrid(cube.copy(), np.arange(3.0), np.arange(2.0), 3.75, 550.0, np.ones((2, 3)))
+    halo = Halo(np.linspace(0, 100, 50), np.ones(50), 10.0, 30.0, 40.0, 0.1)
+    yy, xx = np.mgrid[:n, :n] - n // 2
+    ref = np.empty_like(cube)
+    for iy in range(2):
+        for ix in range(3):
+            t = cube[iy, ix] * (1.0 - ramp(np.hypot(xx, yy) * 3.75, 10.0, 30.0))
+            ref[iy, ix] = t / t.sum()
+    path = tmp_path / "psfgrid-abc.h5"
+    write_grid(path, GridResult(grid, np.arange(4.0), np.ones(4)), "abc")
+    read, mapped = read_grid(path), read_grid(path, mapped=True)
+    assert isinstance(mapped.grid.cube, np.memmap) and not mapped.grid.cube.flags.writeable
+    np.testing.assert_array_equal(mapped.grid.cube, read.grid.cube)
+    np.testing.assert_array_equal(mapped.grid.cube, cube)
+
+    first = cached_taper(mapped.grid, halo, path)
+    np.testing.assert_allclose(first.cube, ref, rtol=1e-12)
+    np.testing.assert_array_equal(mapped.grid.cube, cube)  # the mapped file left alone
+    assert len(list(tmp_path.glob("psftaper-*.npy"))) == 1
+    flipped = np.ascontiguousarray(cube[:, :, ::-1, :])  # another cube (the taper is even)
+    garbage = PSFGrid(flipped, grid.nodes_x, grid.nodes_y, 3.75, 550.0, grid.strehl)
+    again = cached_taper(garbage, halo, path)
+    assert not again.cube.flags.writeable  # mapped from the cache file
+    np.testing.assert_array_equal(again.cube, first.cube)
+    # the grid written again (a new modification time): tapered again, not the stale cube
+    write_grid(path, GridResult(garbage, np.arange(4.0), np.ones(4)), "abc")
+    stat = path.stat()
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    fresh = cached_taper(read_grid(path, mapped=True).grid, halo, path)
+    np.testing.assert_allclose(fresh.cube, ref[:, :, ::-1, :], rtol=1e-12)
+    assert len(list(tmp_path.glob("psftaper-*.npy"))) == 2
+
+
 def test_cached_halo_kernel_transform_equals_the_fresh_one(tmp_path):
     from mavispm.simulate.optics.seeing_halo import Halo
     from mavispm.simulate.render import halo_convolution as hc
