@@ -2,6 +2,8 @@
 
 * the halo's cloud-in-cell deposit (one ``np.bincount``) against a point-by-point loop;
 * the wrapped halo kernel against ``np.roll`` of the zero-padded kernel;
+* the halo's convolution in one real grid and one spectrum against numpy's ``rfft2`` /
+  ``irfft2`` (bit for bit), allocating only the spectrum;
 * the halo's bilinear interpolation (rows shared between fine rows, optionally
   filling the frame with the sky in the same pass) against per-pixel interpolation;
 * the compiled float32 standard normals of the noise draw against numpy's sampler,
@@ -10,6 +12,7 @@
 
 from __future__ import annotations
 
+import tracemalloc
 import zlib
 
 import numpy as np
@@ -18,6 +21,7 @@ import pytest
 from mavispm.simulate.render import detector
 from mavispm.simulate.render.halo_convolution import (
     _bilinear_into,
+    _convolve_spectrum,
     _linear_interpolation_weights,
     _wrap_kernel,
     add_bilinear,
@@ -138,6 +142,30 @@ def test_halo_field_fill_equals_fill_then_add(b):
     np.testing.assert_array_equal(empty, 3.0)
 
 
+@pytest.mark.parametrize("fshape", [(240, 256), (225, 250)])
+def test_halo_convolution_in_two_buffers_equals_numpys_2d_transforms(fshape):
+    """The halo's convolution (one-axis passes into one real grid and one spectrum) equals
+    ``irfft2(rfft2(field, fshape) * spectrum, fshape)`` bit for bit; given the grid it
+    allocates the spectrum alone (numpy's 2-D transforms make a fresh array per pass)."""
+    rng = np.random.default_rng(5)
+    field = rng.uniform(0, 1e4, (fshape[0] - 31, fshape[1] - 17))
+    kspec = np.fft.rfft2(rng.uniform(0, 1, fshape))
+    ny, nx = field.shape
+    want = np.fft.irfft2(np.fft.rfft2(field, fshape) * kspec, fshape)[:ny, :nx]
+    np.testing.assert_array_equal(_convolve_spectrum(field, kspec, fshape), want)
+    grid = np.zeros(fshape)
+    grid[:ny, :nx] = field
+    tracemalloc.start()
+    try:
+        got = _convolve_spectrum(grid[:ny, :nx], kspec, fshape, grid=grid)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(got, want)
+    assert np.shares_memory(got, grid)
+    assert kspec.nbytes <= peak < 1.25 * kspec.nbytes
+
+
 #: The first noise chunk of epoch "e0", seed 0 (the frames command's generator): numba's
 #: own float32 sampler (its wedge test rounds ``exp`` to float32) leaves numpy's stream
 #: at draw 64,137 of it.
@@ -240,6 +268,54 @@ def test_in_place_taper_equals_the_tapered_copy():
     same = taper_grid(grid, halo, in_place=True)
     assert same.cube is cube  # tapered where it was
     np.testing.assert_array_equal(same.cube, copy.cube)
+
+
+def test_cached_tapered_cube_is_the_brute_force_taper_mapped_from_the_cache(tmp_path):
+    """``cached_taper`` keeps the tapered cube next to the grid's cache file: the first
+    call tapers (equal to a per-stamp brute force) and saves it, the next maps it
+    read-only from there (the grid's own cube is not used: here it is another one), a
+    grid file written again is tapered again; ``read_grid(mapped=True)`` maps the cube of
+    a ``psfgrid`` product with the values ``read_grid`` reads."""
+    import os
+
+    from mavispm.simulate.optics.model import cached_taper
+    from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, read_grid, write_grid
+    from mavispm.simulate.optics.seeing_halo import Halo, ramp
+
+    rng = np.random.default_rng(7)
+    n = 21
+    cube = rng.random((2, 3, n, n))
+    grid = PSFGrid(cube.copy(), np.arange(3.0), np.arange(2.0), 3.75, 550.0, np.ones((2, 3)))
+    halo = Halo(np.linspace(0, 100, 50), np.ones(50), 10.0, 30.0, 40.0, 0.1)
+    yy, xx = np.mgrid[:n, :n] - n // 2
+    ref = np.empty_like(cube)
+    for iy in range(2):
+        for ix in range(3):
+            t = cube[iy, ix] * (1.0 - ramp(np.hypot(xx, yy) * 3.75, 10.0, 30.0))
+            ref[iy, ix] = t / t.sum()
+    path = tmp_path / "psfgrid-abc.h5"
+    write_grid(path, GridResult(grid, np.arange(4.0), np.ones(4)), "abc")
+    read, mapped = read_grid(path), read_grid(path, mapped=True)
+    assert isinstance(mapped.grid.cube, np.memmap) and not mapped.grid.cube.flags.writeable
+    np.testing.assert_array_equal(mapped.grid.cube, read.grid.cube)
+    np.testing.assert_array_equal(mapped.grid.cube, cube)
+
+    first = cached_taper(mapped.grid, halo, path)
+    np.testing.assert_allclose(first.cube, ref, rtol=1e-12)
+    np.testing.assert_array_equal(mapped.grid.cube, cube)  # the mapped file left alone
+    assert len(list(tmp_path.glob("psftaper-*.npy"))) == 1
+    flipped = np.ascontiguousarray(cube[:, :, ::-1, :])  # another cube (the taper is even)
+    garbage = PSFGrid(flipped, grid.nodes_x, grid.nodes_y, 3.75, 550.0, grid.strehl)
+    again = cached_taper(garbage, halo, path)
+    assert not again.cube.flags.writeable  # mapped from the cache file
+    np.testing.assert_array_equal(again.cube, first.cube)
+    # the grid written again (a new modification time): tapered again, not the stale cube
+    write_grid(path, GridResult(garbage, np.arange(4.0), np.ones(4)), "abc")
+    stat = path.stat()
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    fresh = cached_taper(read_grid(path, mapped=True).grid, halo, path)
+    np.testing.assert_allclose(fresh.cube, ref[:, :, ::-1, :], rtol=1e-12)
+    assert len(list(tmp_path.glob("psftaper-*.npy"))) == 2
 
 
 def test_cached_halo_kernel_transform_equals_the_fresh_one(tmp_path):

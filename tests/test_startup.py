@@ -226,3 +226,49 @@ def test_wrap_on_import_runs_its_wrapper_once_around_the_module():
     assert lines[0] == "True False"
     assert lines[1] == "[False, True] (0.0, 1.0, 1.0)"
     assert lines[2] == "False"
+
+
+def test_program_keeps_freed_memory_for_its_next_arrays():
+    """The ``simulate frames`` program (``main()`` reading ``sys.argv``) sets glibc's
+    allocator to keep what it frees (``core/malloc_policy.py``): a 24 MB array freed by the
+    main thread is reused by the next one and by a worker thread's, with no fresh page
+    faults (the kernel's count); ``main(argv)`` called from Python, and the program of a
+    command it was not measured on, leave the allocator as it is (each array faulted in
+    afresh: one fault per 4 KB page)."""
+    code = """
+        import resource, sys, threading
+        import numpy as np
+        from mavispm.workflows import cli
+        words = {words}
+        sys.argv = ["mavispm"] + words
+        try:
+            cli.main({call})
+        except SystemExit:
+            pass
+
+        def faults_of_a_fresh_array():
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            a = np.empty(3 << 20)  # 24 MB
+            a.fill(1.0)
+            del a
+            return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+        counts = [faults_of_a_fresh_array(), faults_of_a_fresh_array()]
+        thread = threading.Thread(target=lambda: counts.append(faults_of_a_fresh_array()))
+        thread.start()
+        thread.join()
+        print(counts)
+        """
+    env = {**os.environ, "NUMPY_MADVISE_HUGEPAGE": "0"}  # 4 KB pages: one fault per page
+    for k in ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"):
+        env.pop(k, None)
+    frames = '["simulate", "frames", "--help"]'
+    program = json.loads(_run(code.format(words=frames, call=""), env=env)[-1])
+    library = json.loads(_run(code.format(words=frames, call="words"), env=env)[-1])
+    measure = '["measure", "stars", "--help"]'
+    other = json.loads(_run(code.format(words=measure, call=""), env=env)[-1])
+    pages = (3 << 20) * 8 // 4096
+    assert program[0] >= 0.9 * pages  # the first array is new memory either way
+    assert max(program[1:]) < 0.02 * pages  # then reused, in the main thread and a worker
+    for counts in (library, other):  # glibc's defaults: unmapped, faulted in again
+        assert min(counts[1:]) >= 0.9 * pages

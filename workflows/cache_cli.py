@@ -3,7 +3,7 @@
 Two caches grow without bound unless cleaned:
 
 * the disk cache (``$MAVISPM_CACHE``, default ``~/.cache/mavispm``): PSF grids
-  (``psfgrid-*.h5``), seeing halos (``halo-*.npz``) and their kernels' transforms
+  (``psfgrid-*.h5``) and their tapered cubes (``psftaper-*.npy``), seeing halos (``halo-*.npz``) and their kernels' transforms
   (``halospec-*.npz``) and stamp plans (``stampplan-*.npz``), shared by every work
   directory;
 * a work directory's product store (``<workdir>/store/<stage>/<key>/``), one
@@ -41,7 +41,14 @@ __all__ = [
 ]
 
 #: File patterns of the disk cache (nothing else there is ever removed).
-CACHE_PATTERNS = ("psfgrid-*.h5", "halo-*.npz", "halospec-*.npz", "stampplan-*.npz", ".*.tmp")
+CACHE_PATTERNS = (
+    "psfgrid-*.h5",
+    "psftaper-*.npy",
+    "halo-*.npz",
+    "halospec-*.npz",
+    "stampplan-*.npz",
+    ".*.tmp",
+)
 
 _SIZE_UNITS = {
     "": 1,

@@ -795,13 +795,18 @@ def write_grid(
     )
 
 
-def read_grid(path: Path) -> GridResult:
+def read_grid(path: Path, mapped: bool = False) -> GridResult:
     """Read a ``psfgrid`` product written by :func:`write_grid`.
 
     Parameters
     ----------
     path : pathlib.Path
         The product.
+    mapped : bool
+        Map the cube read-only from the file (a float64 dataset stored contiguous and
+        unfiltered, as :func:`write_grid` writes it) instead of reading it: nothing is
+        read until it is used (a caller that replaces it, such as ``build_optics`` with a
+        cached tapered cube, never pays for it). Otherwise, or for another layout, read.
 
     Returns
     -------
@@ -810,7 +815,9 @@ def read_grid(path: Path) -> GridResult:
     """
     with open_product(path, "psfgrid") as f:
         try:
-            cube = np.asarray(f["cube"], float)
+            cube = _mapped_cube(path, f["cube"]) if mapped else None
+            if cube is None:
+                cube = np.asarray(f["cube"], float)
             nx = np.asarray(f["nodes_x"], float)
             ny = np.asarray(f["nodes_y"], float)
             strehl = np.asarray(f["strehl"], float)
@@ -825,6 +832,23 @@ def read_grid(path: Path) -> GridResult:
     return GridResult(PSFGrid(cube, nx, ny, scale, lam, strehl), pf, pp)
 
 
+def _mapped_cube(path: Path, ds) -> np.ndarray | None:
+    """A read-only memory map of the HDF5 dataset ``ds`` of ``path``, or None.
+
+    Only for a native float64 dataset stored contiguous without filters (its bytes are
+    the array's, at ``ds.id.get_offset()``).
+    """
+    try:
+        offset = ds.id.get_offset()
+    except Exception:  # no storage allocated, or an h5py without it
+        return None
+    if offset is None or ds.chunks is not None or ds.dtype != np.dtype("<f8") or ds.size == 0:
+        return None
+    if ds.compression is not None or ds.external:
+        return None
+    return np.memmap(path, dtype=ds.dtype, mode="r", offset=offset, shape=ds.shape)
+
+
 def cached_grid(
     psf: PSFSettings,
     pupil: PupilSettings,
@@ -832,6 +856,7 @@ def cached_grid(
     ao: AOSettings,
     cache_dir: Path | None = None,
     progress: bool = True,
+    mapped: bool = False,
 ) -> tuple[GridResult, Path]:
     """The grid for these settings, from the disk cache or computed and cached.
 
@@ -849,6 +874,8 @@ def cached_grid(
         Cache folder (default: :func:`default_cache_dir`).
     progress : bool
         Show a progress bar (on a terminal only).
+    mapped : bool
+        A cached grid's cube mapped read-only from the file (see :func:`read_grid`).
 
     Returns
     -------
@@ -859,7 +886,7 @@ def cached_grid(
     path = cache / f"psfgrid-{key}.h5"
     if path.exists():
         try:
-            return read_grid(path), path
+            return read_grid(path, mapped), path
         except Exception:  # a corrupt cache entry is recomputed, never trusted
             path.unlink(missing_ok=True)
     result = compute_grid(psf, pupil, atmosphere, ao, progress)

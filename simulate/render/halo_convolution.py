@@ -128,7 +128,10 @@ def halo_field(
     b = int(max(downsample, 1))
     ncy, ncx = -(-ny // b), -(-nx // b)
     kspec, (hky, hkx), fshape = _kernel_spectrum(halo, pixel_scale * b, (ncy, ncx), cache_dir)
-    padded = np.zeros((ncy + 2 * hky, ncx + 2 * hkx))
+    # the kernel field, padded by the kernel half-size so that the frame never wraps, is
+    # deposited straight into the transform's zero grid (transformed there in place)
+    grid = np.zeros(fshape)
+    padded = grid[: ncy + 2 * hky, : ncx + 2 * hkx]
     xc = (np.asarray(x_pix, dtype=float) + 0.5) / b - 0.5 + hkx
     yc = (np.asarray(y_pix, dtype=float) + 0.5) / b - 0.5 + hky
     deposit_cic(padded, xc, yc, np.asarray(flux, dtype=float))
@@ -136,8 +139,7 @@ def halo_field(
         if fill is not None:
             out.fill(fill)
         return out
-    # the kernel field is padded by the kernel half-size, so the frame never wraps
-    seeing = _convolve_spectrum(padded, kspec, fshape)
+    seeing = _convolve_spectrum(padded, kspec, fshape, grid=grid)
     coarse = np.ascontiguousarray(seeing[hky : hky + ncy, hkx : hkx + ncx])
     if b == 1:
         if fill is None:
@@ -222,12 +224,44 @@ def _kernel_spectrum(halo, kernel_pixel_mas: float, coarse_shape, cache_dir=None
     return made
 
 
-def _convolve_spectrum(field: np.ndarray, kernel_spectrum: np.ndarray, fshape) -> np.ndarray:
-    """:func:`_convolve_same` with the kernel's transform on ``fshape`` already made."""
-    spec = np.fft.rfft2(field, fshape)
+def _convolve_spectrum(
+    field: np.ndarray, kernel_spectrum: np.ndarray, fshape, grid: np.ndarray | None = None
+) -> np.ndarray:
+    """:func:`_convolve_same` with the kernel's transform on ``fshape`` already made.
+
+    The transforms of ``np.fft.rfft2`` / ``irfft2`` (the same one-axis passes in the same
+    order, the same values bit for bit; tested) written into two buffers: the real grid
+    and one spectrum, instead of a fresh array per pass (~35 -> ~23 MB of fresh memory at
+    1200 x 1200).
+
+    Parameters
+    ----------
+    field : ndarray (ny, nx)
+        The field, at most ``fshape``.
+    kernel_spectrum : ndarray complex128 (fshape[0], fshape[1] // 2 + 1)
+        ``rfft2`` of the wrapped kernel.
+    fshape : sequence of 2 int
+        Transform shape.
+    grid : ndarray float64 (fshape), C-contiguous, optional
+        A zero grid whose top-left block is ``field`` (a view of it): transformed in
+        place and overwritten by the convolution (default: a new one).
+
+    Returns
+    -------
+    ndarray (ny, nx)
+        The convolution's top-left block (a view of the grid).
+    """
+    fy, fx = (int(n) for n in fshape)
+    if grid is None:
+        grid = np.zeros((fy, fx))
+        grid[: field.shape[0], : field.shape[1]] = field
+    spec = np.empty((fy, fx // 2 + 1), dtype=np.complex128)
+    np.fft.rfft(grid, axis=1, out=spec)
+    np.fft.fft(spec, axis=0, out=spec)
     spec *= kernel_spectrum
-    conv = np.fft.irfft2(spec, fshape)
-    return conv[: field.shape[0], : field.shape[1]]
+    np.fft.ifft(spec, axis=0, out=spec)
+    np.fft.irfft(spec, fx, axis=1, out=grid)
+    return grid[: field.shape[0], : field.shape[1]]
 
 
 def _convolve_same(field: np.ndarray, kernel: np.ndarray) -> np.ndarray:
