@@ -698,8 +698,10 @@ def fit_stars(
             cut[idx] = shrink < 1.0
         elif opt.flux_passes > 1:
             # the flux step over the flux error at fixed positions (flux_passes)
-            inv, _ = safe_inverse(a_d)
-            flux_moved[idx] = np.abs(step[:, 2]) / np.sqrt(np.abs(inv[:, 2, 2]))
+            unit = np.zeros_like(b)
+            unit[:, 2] = 1.0
+            variance = _solve(a_d, unit)[:, 2]  # the flux's diagonal element of a_d^-1
+            flux_moved[idx] = np.abs(step[:, 2]) / np.sqrt(np.maximum(variance, 1e-300))
         dx, dy = step[:, 0], step[:, 1]
         x[idx] += dx
         y[idx] += dy
