@@ -108,7 +108,7 @@ class MeasureKnobs:
         sees neither the halos nor the fluxes of the neighbours fitted after the star
         (:class:`~mavispm.measure.stars.batched_fit.FitOptions`). On the 1e5-star frame
         failed / not converged at V < 25 go from 1.71 / 3.85 % (one pass) to 1.70 / 1.80
-        %, the scatter 2-7 % lower at V 20-26 (docs/measure.md, "Scale", twelfth pass).
+        %, the scatter 3-8 % lower at V 20-26 (docs/measure.md, "Scale", twelfth pass).
     crowded_window : int
         Half-width of the fitting window of a crowded star (0: the whole stamp): one
         whose own light on its stamp outside it is below ``crowded_ratio`` times its
