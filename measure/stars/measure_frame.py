@@ -271,6 +271,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         relative_tolerance=settings.relative_tolerance,
         chi2_tolerance=settings.chi2_tolerance,
         flux_refresh=settings.flux_refresh,
+        flux_passes=settings.flux_passes,
         check_cut_steps=settings.check_cut_steps,
         crowded_window=int(settings.crowded_window),
         crowded_ratio=settings.crowded_ratio,
