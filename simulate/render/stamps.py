@@ -76,6 +76,10 @@ STAMP_CENTRE_BIAS = 1e-7
 #: two passes; 128 KB - 2 MB measured within the load's noise, 256 KB the steadiest).
 STAMP_CHUNK_BYTES = 1 << 18
 
+#: Kernel sigmas are rounded up to a multiple of this [pixel] when the wing envelope is
+#: blurred to size the stamps (see ``StarRenderer._blurred_envelope``).
+BLUR_SIGMA_STEP = 0.125
+
 #: Version of the wing envelope (part of its disk-cache file name; 2: square radii).
 ENVELOPE_VERSION = 2
 
@@ -364,6 +368,7 @@ class StarRenderer:
         radii, env = self._cached_envelope()
         # a star's wing is at most the widest of its slices
         self._envelope = radii, env.reshape(self.n_slices, -1, env.shape[-1]).max(axis=0)
+        self._blurred: dict[int, tuple] = {}  # blur step -> blurred envelope
 
     def _cached_envelope(self):
         """:func:`_wing_envelope` of the cube, kept in ``cache_dir`` next to the stamp plans."""
@@ -424,27 +429,64 @@ class StarRenderer:
         biggest = self.max_stamp(float(np.max(sigma_mas, initial=0.0)))
         if noise_sigma <= 0:
             return np.full(flux.shape, biggest, dtype=int)
-        radii, env_nodes = self._envelope
         level = self.params.stamp_threshold * noise_sigma / np.maximum(flux, 1e-300)
-        # index of the first envelope radius at or below the level (env non-increasing)
-        if x_field is None or len(flux) == 0:
-            pos = np.searchsorted(-env_nodes.max(axis=0), -level, side="left")
-        else:
+        # the wing blurred by each star's kernel (its largest sigma, rounded up to a step)
+        steps = np.ceil(sigma_mas / self.pixel_scale / BLUR_SIGMA_STEP - 1e-9).astype(np.int64)
+        steps = np.maximum(steps, 0)
+        node = w = None
+        if x_field is not None and len(flux):
             node, w = self._node_weights(x_field, y_field)
-            pos = np.zeros(len(flux), dtype=np.int64)
-            for k in range(node.shape[1]):
-                # stars grouped by node through one sort (not one pass over all per node)
-                order = np.argsort(node[:, k], kind="stable")
-                nodes, first = np.unique(node[order, k], return_index=True)
-                for n, a, b in zip(nodes, first, np.append(first[1:], len(order))):
-                    sel = order[a:b]
-                    sel = sel[w[sel, k] > 0]
-                    here = np.searchsorted(-env_nodes[n], -level[sel], side="left")
-                    pos[sel] = np.maximum(pos[sel], here)
+        radius_pix = np.zeros(len(flux))
+        if len(steps):
+            self._blurred_envelope(int(steps.max()))  # every step up to the widest at once
+        for step in np.unique(steps):
+            radii, env_nodes = self._blurred_envelope(int(step))
+            mine = np.flatnonzero(steps == step)
+            # index of the first envelope radius at or below the level (env non-increasing)
+            if node is None:
+                pos = np.searchsorted(-env_nodes.max(axis=0), -level[mine], side="left")
+            else:
+                pos = np.zeros(len(mine), dtype=np.int64)
+                for k in range(node.shape[1]):
+                    # stars grouped by node through one sort (not one pass over all per node)
+                    order = np.argsort(node[mine, k], kind="stable")
+                    nodes, first = np.unique(node[mine[order], k], return_index=True)
+                    for n, a, b in zip(nodes, first, np.append(first[1:], len(order))):
+                        sel = order[a:b]
+                        sel = sel[w[mine[sel], k] > 0]
+                        here = np.searchsorted(-env_nodes[n], -level[mine[sel]], side="left")
+                        pos[sel] = np.maximum(pos[sel], here)
+            radius_pix[mine] = radii[np.minimum(pos, len(radii) - 1)]
         # square radius (see _wing_envelope): the stamp's square holds the square of it
-        radius_pix = radii[np.minimum(pos, len(radii) - 1)]
-        half = radius_pix + 4 * sigma_mas / self.pixel_scale + 1.5
+        half = radius_pix + 1.5
         return np.minimum(_stamp_sizes_at_least(2 * half, self.params.min_stamp), biggest)
+
+    def _blurred_envelope(self, step: int):
+        """The stamp-sizing envelope for kernels of largest sigma ``step * BLUR_SIGMA_STEP`` px.
+
+        A star's image is its PSF convolved with its kernel (and the pixel). At a pixel
+        ``q`` at square radius ``R``, say ``|q_x| = R``, the PSF at ``p`` is at most
+        ``env(|p|_inf) <= env(|p_x|)`` (non-increasing), so the blurred value is at most
+        the 1-D convolution of ``env(|x|)`` with the kernel's marginal along x
+        (:func:`_blur_envelope`), whose sigma is at most the kernel's largest. A narrower
+        Gaussian keeps more of a plateau near its edge, a wider one pushes more of it
+        outwards: the envelope is the largest of the convolutions with every sigma from
+        0 to the kernel's largest rounded up, in steps of ``BLUR_SIGMA_STEP`` (between two
+        steps the convolution changes by ~(step / sigma)**2 of itself). Replaces the
+        margin of 4 sigma that was added to the unblurred envelope's radius. Cached.
+
+        Returns
+        -------
+        radii : ndarray (nr,)
+            Square radii [pixel] (0, 0.5, ...), beyond the PSF by 8 sigma.
+        env : ndarray (n_nodes, nr)
+            The envelope per node, non-increasing.
+        """
+        if step not in self._blurred:
+            radii, env = self._envelope
+            for k, got in enumerate(_sizing_envelopes(radii, env, step, BLUR_SIGMA_STEP)):
+                self._blurred[k] = got
+        return self._blurred[step]
 
     # ------------------------------------------------------------- transforms
     def plan(self, m: int) -> StampPlan:
@@ -1374,6 +1416,83 @@ def _wing_envelope(cube: np.ndarray, psf_scale: float, pixel_scale: float):
     env = np.maximum.accumulate(bin_max[:, ::-1], axis=1)[:, ::-1]
     # a detector pixel holds about (s/p)^2 PSF samples; clip so it never exceeds 1
     return radii, np.minimum(env * (pixel_scale / psf_scale) ** 2, 1.0)
+
+
+def _blur_envelope(radii, env, sigma: float, r_out=None):
+    """The wing envelope ``env`` convolved with a 1-D Gaussian of ``sigma`` pixels (a bound).
+
+    ``env[:, k]`` bounds the PSF at square radii ``>= radii[k]`` (steps of 0.5 pixel), so
+    on ``|x|`` in ``[radii[k], radii[k] + 0.5)`` the function ``env(|x|)`` is at most
+    ``env[:, k]`` (and 0 beyond the last radius); its convolution with the Gaussian at
+    ``R`` is at most the sum over ``k`` of ``env[:, k]`` times the Gaussian's mass on
+    those two intervals (exact, from ``erf``). The result is symmetric and unimodal in
+    ``R``, hence non-increasing on the returned radii.
+
+    Parameters
+    ----------
+    radii : ndarray (nr,)
+        0, 0.5, 1, ... [pixel].
+    env : ndarray (n, nr)
+        Envelopes, non-increasing along the radius.
+    sigma : float
+        Gaussian sigma [pixel]; 0 returns ``env`` on ``r_out`` (0 beyond ``radii``).
+    r_out : ndarray, optional
+        Radii of the result, on the grid of ``radii`` (default: ``radii`` extended by 8
+        sigma).
+
+    Returns
+    -------
+    r_out : ndarray (nr_out,)
+    blurred : ndarray (n, nr_out)
+    """
+    import math
+
+    dr = 0.5
+    nr = len(radii)
+    if r_out is None:
+        r_out = np.arange(0.0, radii[-1] + dr + 8 * sigma + dr, dr)
+    n_out = len(r_out)
+    if sigma <= 0:
+        out = np.zeros((len(env), n_out))
+        out[:, : min(nr, n_out)] = env[:, :n_out]
+        return r_out, out
+    # the Gaussian's CDF at every multiple of dr that the interval ends take
+    top = n_out + nr + 1
+    near = min(top, int(10 * sigma / dr) + 1)  # beyond 10 sigma the CDF is 0 or 1
+    half = np.ones(top + 1)
+    half[:near] = [0.5 * (1.0 + math.erf(j * dr / (sigma * math.sqrt(2.0)))) for j in range(near)]
+    cdf = np.concatenate([1.0 - half[:0:-1], half])  # at -top..top (symmetric)
+
+    def at(j):  # CDF at j * dr
+        return cdf[j + top]
+
+    i = np.arange(n_out)[:, None]
+    k = np.arange(nr)[None, :]
+    mass = (at(i - k) - at(i - k - 1)) + (at(i + k + 1) - at(i + k))
+    blurred = env @ mass.T
+    # non-increasing to round-off (the bound is unimodal): enforce it for searchsorted
+    return r_out, np.maximum.accumulate(blurred[:, ::-1], axis=1)[:, ::-1]
+
+
+def _sizing_envelopes(radii, env, steps: int, step: float) -> list:
+    """For ``k = 0..steps``: the largest of ``env`` blurred by ``0, step, ..., k step`` pixels.
+
+    See ``StarRenderer._blurred_envelope``: entry ``k`` bounds the PSF convolved with any
+    Gaussian kernel whose marginal sigmas are at most ``k step`` (on the grid of sigmas).
+
+    Returns
+    -------
+    list of (radii, envelope)
+        Per ``k``, radii extended 8 ``k step`` beyond ``radii`` and the envelopes on them.
+    """
+    r_top, _ = _blur_envelope(radii, env, steps * step)
+    out, best = [], None
+    for k in range(steps + 1):
+        _, blurred = _blur_envelope(radii, env, k * step, r_top)
+        best = blurred if best is None else np.maximum(best, blurred)
+        n_k = len(np.arange(0.0, radii[-1] + 1.0 + 8 * k * step, 0.5))  # _blur_envelope's
+        out.append((r_top[:n_k], best[:, :n_k].copy()))
+    return out
 
 
 def _value(q, unit: str) -> float:
