@@ -470,10 +470,11 @@ def test_batch_transform_columns_equal_the_plan_columns(airy_optics, tmp_path, c
     data=st.data(),
 )
 def test_bands_of_one_parity_touch_disjoint_image_rows(height, ny, data):
-    """The band layout of the fused render + add: every star in one band, bands ordered,
-    left to right inside a band, and two bands of the same parity never reach the same
-    image row (so they can be added in parallel in any order), for stamps up to the band
-    height centred anywhere, also beyond the image. Checked against the stamps' rows."""
+    """The band layout of the fused render + add: every star in one band, the even bands
+    then the odd ones, left to right inside a band, and two bands of the same parity never
+    reach the same image row (so they can be added in parallel in any order), for stamps
+    up to the band height centred anywhere, also beyond the image. Checked against the
+    stamps' rows."""
     from mavispm.simulate.render.stamps import _band_order
 
     n = data.draw(st.integers(1, 60))
@@ -481,12 +482,18 @@ def test_bands_of_one_parity_touch_disjoint_image_rows(height, ny, data):
     cx = np.asarray(data.draw(st.lists(st.integers(-50, 50), min_size=n, max_size=n)))
     m = np.asarray(data.draw(st.lists(st.integers(1, height // 2), min_size=n, max_size=n))) * 2
     n_bands = max(1, -(-ny // height))
-    order, edges = _band_order(cx, cy, height, n_bands)
-    assert sorted(order) == list(range(n)) and edges[0] == 0 and edges[-1] == n
+    order, bounds = _band_order(cx, cy, height, n_bands)
+    assert sorted(order) == list(range(n))
+    # the even bands first, then the odd ones, each a consecutive run of stars
+    ranked = list(range(0, n_bands, 2)) + list(range(1, n_bands, 2))
+    assert bounds[ranked[0], 0] == 0 and bounds[ranked[-1], 1] == n
+    for a, b in zip(ranked[:-1], ranked[1:]):
+        assert bounds[a, 1] == bounds[b, 0]
     rows = []  # image rows each band's stamps reach
     for k in range(n_bands):
-        members = order[edges[k] : edges[k + 1]]
+        members = order[bounds[k, 0] : bounds[k, 1]]
         assert np.all(np.diff(cx[members]) >= 0)
+        assert np.all(np.clip(cy[members] // height, 0, n_bands - 1) == k)
         reach = set()
         for i in members:
             reach |= set(range(max(cy[i] - m[i] // 2, 0), min(cy[i] + m[i] // 2, ny)))
@@ -498,23 +505,28 @@ def test_bands_of_one_parity_touch_disjoint_image_rows(height, ny, data):
 
 def test_banded_render_equals_the_sum_of_single_stamps_on_any_thread_count(airy_optics):
     """Many bands (a tall image, stamps of three sides), stars on and beyond every edge,
-    batches of a few stars: the image is the sum of each star's stamp rendered alone and
-    added by slicing (to float64 round-off), the same bit for bit on 1, 2 and 3 threads."""
+    batches of a few stars and of more than SPLIT_BANDS_STARS (bands on several threads):
+    the image is the sum of each star's stamp rendered alone and added by slicing (to
+    float64 round-off), the same bit for bit on 1, 2 and 3 threads."""
     rng = np.random.default_rng(11)
-    n, ny, nx = 90, 260, 70
+    n, ny, nx = 300, 260, 70
     xp, yp = rng.uniform(-12, nx + 12, n), rng.uniform(-12, ny + 12, n)
     xf, yf = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
     cov = np.tile(np.diag([20.0, 12.0]), (n, 1, 1))
-    flux = 10 ** rng.uniform(1, 4, n)
+    flux = 10 ** rng.uniform(2, 2.9, n)  # one flux class: batches of batch_size stars
     sizes = rng.choice([16, 24, 32], n)
     images = []
     for threads in (1, 2, 3):
-        r = StarRenderer(airy_optics.psf_grid, SCALE, RenderParams(batch_size=7, threads=threads))
-        image = np.zeros((ny, nx))
-        r.render(image, xp, yp, xf, yf, cov, flux, sizes)
-        images.append(image)
-    np.testing.assert_array_equal(images[0], images[1])
-    np.testing.assert_array_equal(images[0], images[2])
+        for batch in (7, 100):
+            r = StarRenderer(
+                airy_optics.psf_grid, SCALE, RenderParams(batch_size=batch, threads=threads)
+            )
+            image = np.zeros((ny, nx))
+            r.render(image, xp, yp, xf, yf, cov, flux, sizes)
+            images.append(image)
+    for k in (2, 4):  # the same batches on 2 and 3 threads
+        np.testing.assert_array_equal(images[0], images[k])
+        np.testing.assert_array_equal(images[1], images[k + 1])
     ref = np.zeros((ny + 64, nx + 64))  # margin: stamps beyond the edges, cropped after
     for i in range(n):
         m = int(sizes[i])
@@ -522,7 +534,8 @@ def test_banded_render_equals_the_sum_of_single_stamps_on_any_thread_count(airy_
         stamp, x0, y0 = r.render_stamps(m, *one)
         ref[y0[0] + 32 : y0[0] + 32 + m, x0[0] + 32 : x0[0] + 32 + m] += stamp[0]
     ref = ref[32 : 32 + ny, 32 : 32 + nx]
-    assert np.abs(images[0] - ref).max() <= 1e-13 * flux.max()
+    for image in images[:2]:
+        assert np.abs(image - ref).max() <= 1e-13 * flux.max()
 
 
 @pytest.mark.parametrize(

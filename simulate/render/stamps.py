@@ -896,7 +896,7 @@ class StarRenderer:
         with ThreadPoolExecutor(max_workers=max(threads, 1)) as pool:
             for m, sel, renderer in jobs:
                 floor, dtype = renderer._batch_accuracy(float(flux[sel].max()), noise_sigma)
-                order, edges = _band_order(cx[sel], cy[sel], height, n_bands)
+                order, bounds = _band_order(cx[sel], cy[sel], height, n_bands)
                 sel = sel[order]
                 spectrum = None if spectra is None else spectra[colour[sel[0]]]
                 prep = renderer._prepare(
@@ -904,16 +904,11 @@ class StarRenderer:
                     flux[sel], floor, dtype, spectrum,
                 )  # fmt: skip
                 for parity in (0, 1):
-                    items = [
-                        (prep, int(edges[k]), int(edges[k + 1]))
-                        for k in range(parity, n_bands, 2)
-                        if edges[k + 1] > edges[k]
-                    ]
-                    if threads > 1 and len(items) > 1:
+                    items = [(prep, int(lo), int(hi)) for lo, hi in bounds[parity::2] if hi > lo]
+                    if threads > 1 and len(sel) >= SPLIT_BANDS_STARS and len(items) > 1:
                         list(pool.map(add_band, items))
-                    else:
-                        for item in items:
-                            add_band(item)
+                    elif items:  # one thread: the parity's bands in turn, as one run of stars
+                        add_band((prep, items[0][1], items[-1][2]))
                 if bar is not None:
                     bar.update(len(sel))
         buffers = None  # freed before the outer convolution's own memory peak
@@ -1085,6 +1080,10 @@ class _WorkPool:
         """Give ``buf`` back (after its stamps were added)."""
         self._free.put(buf)
 
+
+#: Batches of fewer stars are rendered by one thread (each parity's bands as one run of
+#: stars: full chunks, no hand-over between threads); the image is the same.
+SPLIT_BANDS_STARS = 64
 
 #: A batch of stars spans at most this factor in flux: its spectrum floor follows its
 #: brightest star, so a wider batch would evaluate its faint stars to a needlessly low floor.
@@ -1269,7 +1268,8 @@ def _band_order(cx, cy, height: int, n_bands: int):
     A stamp of side ``m <= height`` centred in band ``k`` covers rows
     ``[k height - m / 2, (k + 1) height + m / 2)``, so bands ``k`` and ``k + 2`` touch
     disjoint rows; centres above or below the image go to its first or last band (only
-    their rows inside the image matter).
+    their rows inside the image matter). The even bands come first, then the odd ones,
+    so that each parity's stars are consecutive.
 
     Parameters
     ----------
@@ -1283,13 +1283,20 @@ def _band_order(cx, cy, height: int, n_bands: int):
     Returns
     -------
     order : ndarray of int (S,)
-        The stars by band, then by column (stable).
-    edges : ndarray of int (n_bands + 1,)
-        Band ``k`` holds ``order[edges[k]:edges[k + 1]]``.
+        The stars by band parity, band, then column (stable).
+    bounds : ndarray of int (n_bands, 2)
+        Band ``k`` holds ``order[bounds[k, 0]:bounds[k, 1]]``.
     """
     band = np.clip(np.asarray(cy) // height, 0, n_bands - 1)
-    order = np.lexsort((cx, band))
-    return order, np.searchsorted(band[order], np.arange(n_bands + 1))
+    order = np.lexsort((cx, band, band % 2))
+    ranked = np.arange(n_bands)
+    ranked = np.concatenate([ranked[0::2], ranked[1::2]])  # bands in the order of ``order``
+    counts = np.bincount(band, minlength=n_bands)[ranked]
+    ends = np.cumsum(counts)
+    bounds = np.empty((n_bands, 2), dtype=np.int64)
+    bounds[ranked, 0] = ends - counts
+    bounds[ranked, 1] = ends
+    return order, bounds
 
 
 def _is_subset(values, sorted_set) -> bool:
