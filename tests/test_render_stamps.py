@@ -461,3 +461,151 @@ def test_batch_transform_columns_equal_the_plan_columns(airy_optics, tmp_path, c
         got = r._typed_columns(plan, cplx, sel)
         assert got.flags.c_contiguous and got.dtype == cplx
         assert np.array_equal(got, np.asarray(plan.transforms)[:, sel].astype(cplx))
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    height=st.integers(2, 64),
+    ny=st.integers(1, 400),
+    data=st.data(),
+)
+def test_bands_of_one_parity_touch_disjoint_image_rows(height, ny, data):
+    """The band layout of the fused render + add: every star in one band, the even bands
+    then the odd ones, left to right inside a band, and two bands of the same parity never
+    reach the same image row (so they can be added in parallel in any order), for stamps
+    up to the band height centred anywhere, also beyond the image. Checked against the
+    stamps' rows."""
+    from mavispm.simulate.render.stamps import _band_order
+
+    n = data.draw(st.integers(1, 60))
+    cy = np.asarray(data.draw(st.lists(st.integers(-height, ny + height), min_size=n, max_size=n)))
+    cx = np.asarray(data.draw(st.lists(st.integers(-50, 50), min_size=n, max_size=n)))
+    m = np.asarray(data.draw(st.lists(st.integers(1, height // 2), min_size=n, max_size=n))) * 2
+    n_bands = max(1, -(-ny // height))
+    order, bounds = _band_order(cx, cy, height, n_bands)
+    assert sorted(order) == list(range(n))
+    # the even bands first, then the odd ones, each a consecutive run of stars
+    ranked = list(range(0, n_bands, 2)) + list(range(1, n_bands, 2))
+    assert bounds[ranked[0], 0] == 0 and bounds[ranked[-1], 1] == n
+    for a, b in zip(ranked[:-1], ranked[1:]):
+        assert bounds[a, 1] == bounds[b, 0]
+    rows = []  # image rows each band's stamps reach
+    for k in range(n_bands):
+        members = order[bounds[k, 0] : bounds[k, 1]]
+        assert np.all(np.diff(cx[members]) >= 0)
+        assert np.all(np.clip(cy[members] // height, 0, n_bands - 1) == k)
+        reach = set()
+        for i in members:
+            reach |= set(range(max(cy[i] - m[i] // 2, 0), min(cy[i] + m[i] // 2, ny)))
+        rows.append(reach)
+    for k in range(n_bands):
+        for j in range(k + 2, n_bands, 2):
+            assert not rows[k] & rows[j], (k, j)
+
+
+def test_banded_render_equals_the_sum_of_single_stamps_on_any_thread_count(airy_optics):
+    """Many bands (a tall image, stamps of three sides), stars on and beyond every edge,
+    batches of a few stars and of more than SPLIT_BANDS_STARS (bands on several threads):
+    the image is the sum of each star's stamp rendered alone and added by slicing (to
+    float64 round-off), the same bit for bit on 1, 2 and 3 threads."""
+    rng = np.random.default_rng(11)
+    n, ny, nx = 300, 260, 70
+    xp, yp = rng.uniform(-12, nx + 12, n), rng.uniform(-12, ny + 12, n)
+    xf, yf = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
+    cov = np.tile(np.diag([20.0, 12.0]), (n, 1, 1))
+    flux = 10 ** rng.uniform(2, 2.9, n)  # one flux class: batches of batch_size stars
+    sizes = rng.choice([16, 24, 32], n)
+    images = []
+    for threads in (1, 2, 3):
+        for batch in (7, 100):
+            r = StarRenderer(
+                airy_optics.psf_grid, SCALE, RenderParams(batch_size=batch, threads=threads)
+            )
+            image = np.zeros((ny, nx))
+            r.render(image, xp, yp, xf, yf, cov, flux, sizes)
+            images.append(image)
+    for k in (2, 4):  # the same batches on 2 and 3 threads
+        np.testing.assert_array_equal(images[0], images[k])
+        np.testing.assert_array_equal(images[1], images[k + 1])
+    ref = np.zeros((ny + 64, nx + 64))  # margin: stamps beyond the edges, cropped after
+    for i in range(n):
+        m = int(sizes[i])
+        one = [a[i : i + 1] for a in (xp, yp, xf, yf, cov, flux)]
+        stamp, x0, y0 = r.render_stamps(m, *one)
+        ref[y0[0] + 32 : y0[0] + 32 + m, x0[0] + 32 : x0[0] + 32 + m] += stamp[0]
+    ref = ref[32 : 32 + ny, 32 : 32 + nx]
+    for image in images[:2]:
+        assert np.abs(image - ref).max() <= 1e-13 * flux.max()
+
+
+@pytest.mark.parametrize(
+    "cov", [[[4.0, 0.0], [0.0, 4.0]], [[9.0, 3.0], [3.0, 2.0]], [[1.5, 0.0], [0.0, 6.0]]]
+)
+def test_blurred_wing_envelope_bounds_the_blurred_psf(cov):
+    """The blurred envelope that sizes the stamps bounds the PSF convolved with a Gaussian
+    kernel (any covariance with the given largest sigma) at every pixel's square radius.
+    Truth: a PSF with a core, a square plateau cut sharply (as the MAVIS database's taper)
+    and a faint ring, convolved directly with the Gaussian density on the pixel lattice
+    (a linear convolution; 1-pixel PSF samples)."""
+    from mavispm.simulate.render.stamps import BLUR_SIGMA_STEP, _sizing_envelopes, _wing_envelope
+
+    n = 81
+    yy, xx = np.mgrid[0:n, 0:n] - (n - 1) / 2
+    cheb = np.maximum(abs(xx), abs(yy))
+    psf = np.exp(-(xx**2 + yy**2) / 8.0) + 1e-3 * (cheb <= 25) + 2e-4 * (abs(cheb - 32) < 1)
+    psf /= psf.sum()
+    radii, env = _wing_envelope(psf[None], 1.0, 1.0)
+    cov = np.asarray(cov)
+    sigma = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
+    steps = int(np.ceil(sigma / BLUR_SIGMA_STEP))
+    r_out, bound = _sizing_envelopes(radii, env, steps, BLUR_SIGMA_STEP)[-1]
+    assert np.all(np.diff(bound[0]) <= 0)
+    h = 40  # kernel half side: 12 sigma
+    ky, kx = np.mgrid[-h : h + 1, -h : h + 1]
+    icov = np.linalg.inv(cov)
+    quad = icov[0, 0] * kx**2 + 2 * icov[0, 1] * kx * ky + icov[1, 1] * ky**2
+    kernel = np.exp(-0.5 * quad) / (2 * np.pi * np.sqrt(np.linalg.det(cov)))
+    size = n + 2 * h
+    spec = np.fft.rfft2(psf, (size, size)) * np.fft.rfft2(kernel, (size, size))
+    blurred = np.fft.irfft2(spec, (size, size))  # linear: no wrap-around
+    yq, xq = np.mgrid[0:size, 0:size] - (size - 1) / 2
+    r_q = np.maximum(abs(xq), abs(yq))
+    k = np.minimum(np.floor(r_q / 0.5).astype(int), len(r_out) - 1)
+    assert np.all(blurred <= bound[0][k] * (1 + 1e-9) + 1e-15)
+    # and it is the blur that the bound follows: the unblurred envelope is exceeded
+    # just beyond the plateau's sharp edge
+    k0 = np.minimum(np.floor(r_q / 0.5).astype(int), len(radii) - 1)
+    assert np.any(blurred > env[0][k0] * 1.1 + 1e-15)
+
+
+def test_stamp_holds_the_blurred_wing_and_no_more():
+    """A PSF whose wing ends sharply (a square plateau, like the MAVIS PSF database's
+    tapered edge) under a wide kernel: the stamp reaches past the plateau by what the
+    blurred edge needs (~3 sigma at this flux), not by a fixed 4 sigma margin, and the
+    light beyond it (truth: the star on a stamp four times wider) stays below the
+    threshold."""
+    from render_helpers import AnalyticPSFGrid
+
+    half_side = 150.0  # mas: 20 pixels
+
+    def profile(dx, dy, nx, ny):
+        core = np.exp(-(dx**2 + dy**2) / (2 * 6.0**2))
+        return core + (np.maximum(abs(dx), abs(dy)) <= half_side) * 1e-4
+
+    nodes = np.array([0.0])
+    grid = AnalyticPSFGrid(profile, nodes, nodes, n=129, pixel_scale=3.75)
+    r = StarRenderer(grid, SCALE, RenderParams())
+    sigma = 3.0 * SCALE  # mas
+    cov = np.array([[[sigma**2, 0.0], [0.0, sigma**2]]])
+    noise, flux = 1.0, 1e5
+    m = int(r.stamp_sizes([flux], noise, [sigma], [0.0], [0.0])[0])
+    # the plateau (20 px) + ~3 sigma (9 px) + 1.5: 64 px; with 4 sigma added to the
+    # unblurred radius (20 + 12 + 1.5) it was 80
+    assert m <= 64
+    big = 4 * m
+    image = np.zeros((big, big))
+    c = big // 2
+    r.render(image, [c + 0.3], [c - 0.2], [0.0], [0.0], cov, [flux], [big], noise)
+    outside = image.copy()
+    outside[c - m // 2 : c + m // 2, c - m // 2 : c + m // 2] = 0
+    assert 0 < outside.max() < r.params.stamp_threshold * noise
