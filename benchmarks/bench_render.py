@@ -454,7 +454,7 @@ def whole_process(cmd, env=None) -> tuple[float, float]:
 
 
 def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: int = 10_000,
-                       cache: Path | None = None):  # fmt: skip
+                       cache: Path | None = None, threads: int = 0):  # fmt: skip
     """Whole-process and in-process times of MAVISIM 1.1.20 and ``mavispm simulate frames``.
 
     Same star list and same PSF database (MAVISIM FITS, read by both); MAVISIM
@@ -463,6 +463,8 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     packages alternate so that both see the same load. Star counts above
     ``mavisim_max`` are not run through MAVISIM: its time there is extrapolated
     linearly from its two largest measured counts (marked "extrap.").
+    ``threads`` is mavispm's ``render.threads`` (0: all cores, its default; 1: one
+    thread, as MAVISIM's einsum runs with one BLAS thread here).
     """
     import json
     import os
@@ -472,9 +474,11 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     py = mavisim_python(cache)
     psfs = write_mavisim_psfs(cache / "mavisim_psfs_256_3.75mas.fits")
     scene_map = bench_scene(psfs)
+    if threads:
+        scene_map["render"] = {"threads": threads}
     work = cache / "inputs"
     work.mkdir(parents=True, exist_ok=True)
-    scene_file = work / "scene.toml"
+    scene_file = work / ("scene.toml" if not threads else f"scene_threads{threads}.toml")
     scene_file.write_text(_toml(scene_map))
     plan_cache = cache / "mavispm-cache"
     env = dict(os.environ)
@@ -491,7 +495,8 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     print(f"   distortion, halo, sky, photon + read noise, 120 x 30 s); warm caches; best of "
           f"{repeats} alternating runs")  # fmt: skip
     print("   one BLAS thread (OPENBLAS_NUM_THREADS=1: MAVISIM's cheapest setting); mavispm")
-    print("   renders on all cores; CPU = user + sys of the process, all threads")
+    ours_threads = "all cores" if not threads else f"render.threads = {threads}"
+    print(f"   renders on {ours_threads}; CPU = user + sys of the process, all threads")
     print(f"   load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     rows = []
     for n in counts:
@@ -591,6 +596,12 @@ def main(argv=None):
     ap.add_argument("--stars", type=int, nargs="+", help="star counts of the MAVISIM comparison")
     ap.add_argument("--repeats", type=int, default=2, help="timed runs per package and count")
     ap.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="mavispm's render.threads in the MAVISIM comparison (default 0: all cores)",
+    )
+    ap.add_argument(
         "--mavisim-max",
         type=int,
         default=10_000,
@@ -602,7 +613,9 @@ def main(argv=None):
     )  # fmt: skip
     args = ap.parse_args(argv)
     if args.only == "mavisim":
-        mavisim_comparison(args.quick, args.stars, args.repeats, args.mavisim_max, args.cache)
+        mavisim_comparison(
+            args.quick, args.stars, args.repeats, args.mavisim_max, args.cache, args.threads
+        )
         return
     if args.mavisim_psfs:
         from mavispm.simulate.render import cli as render_cli
@@ -624,7 +637,9 @@ def main(argv=None):
     if args.only in (None, "scaling"):
         scaling(optics, args.quick)
     if args.only is None:
-        mavisim_comparison(args.quick, args.stars, args.repeats, args.mavisim_max, args.cache)
+        mavisim_comparison(
+            args.quick, args.stars, args.repeats, args.mavisim_max, args.cache, args.threads
+        )
 
 
 if __name__ == "__main__":
