@@ -140,6 +140,11 @@ class MeasureKnobs:
         V < 15 on the MAVIS frames) get
         their own radial correction, the residual's medians in 1-px annuli out to 30
         px after the first pass (docs/measure.md, "Scale", eleventh pass); 0: off.
+    halo_field_radial : bool
+        PSF-R model: the halo's maps also carry the prior's radial variation over the
+        field (each star's own profile, not only its shape;
+        :func:`~mavispm.measure.stars.halo_shape.prior_halo_shape`; docs/measure.md,
+        "Scale", thirteenth pass).
     min_snr : float
         Stars below this flux SNR have positions held fixed and are flagged 32.
     chunk : int
@@ -174,6 +179,7 @@ class MeasureKnobs:
     wing_threshold: float = 3.0
     halo_radius: float = unit_field(60.0, "pix")
     halo_rings: float = 1000.0
+    halo_field_radial: bool = True
     min_snr: float = 3.0
     chunk: int = 512
     photutils_fitter: Literal["levmar", "default"] = "levmar"
