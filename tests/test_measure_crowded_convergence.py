@@ -166,11 +166,12 @@ NARROW = SynthPSF(0.92)
 
 def _misfit_score(options, seeds=range(8)):
     """On the crowded frames fitted with :data:`NARROW` (started at the truth): the
-    fractions of the stars with m < 24 flagged 1 (still moving) and 32 (failed), and the
+    fractions of the stars with m < 24 flagged 1 (still moving) and 32 (failed), the
     robust std of (fit - truth) / CRLB of the others at m 22-24 (the bound of the true
-    PSF)."""
+    PSF), and the fraction of the m < 24 stars called converged while resting at
+    ``max_shift`` from their start (the truth)."""
     psf, exact = true_epsf(NARROW, SHAPE), true_epsf(PSF, SHAPE)
-    unconverged = failed = total = 0
+    unconverged = failed = total = clamped = 0
     pos = []
     for seed in seeds:
         image, sat, x, y, mag = _frame(seed + 10, n=250)
@@ -184,12 +185,14 @@ def _misfit_score(options, seeds=range(8)):
         still = ((fit.flag & FLAG_NOT_CONVERGED) > 0) & ~bad
         unconverged += np.sum(still[scored])
         failed += np.sum(bad[scored])
+        moved = np.hypot(fit.x - x, fit.y - y)
+        clamped += np.sum(scored & ~bad & ~still & (moved > options.max_shift - 1e-9))
         good = (mag >= 22) & (mag < 24) & ~bad & ~still
         bound = crlb(exact, x[good], y[good], mag_to_flux(mag[good]), DET.sky, RN2)
         pos.append(
             np.r_[(fit.x[good] - x[good]) / bound[:, 0], (fit.y[good] - y[good]) / bound[:, 1]]
         )
-    return unconverged / total, failed / total, robust_sigma(np.concatenate(pos))
+    return unconverged / total, failed / total, robust_sigma(np.concatenate(pos)), clamped / total
 
 
 def test_misfit_crowd_converges_without_stopping_early():
@@ -206,9 +209,15 @@ def test_misfit_crowd_converges_without_stopping_early():
     counts a step against the position error that the neighbours' share of the stamp's
     misfit implies (``chi2_tolerance``): against the Fisher error alone 4.4 % were still
     moving after 40 sweeps (0.52 % failed, 1.66;
-    ``test_misfit_crowd_check_fails_the_fisher_criterion``)."""
-    unconverged, failed, spread = _misfit_score(fit_options(validate_settings({})))
-    assert unconverged <= 0.01 and failed <= 0.01 and spread <= 1.7, (unconverged, failed, spread)
+    ``test_misfit_crowd_check_fails_the_fisher_criterion``). Since 2026-12-03
+    (thirteenth pass) a star resting at ``max_shift`` with a free step above its
+    tolerance is not converged either: 18 of the 1,743 stars (1.03 %) sat at the 2-px
+    clamp, 2 px (a median 35 of their own errors) from the truth, called converged
+    (0.86 % unconverged then); now none is, and 1.89 % are flagged (the bound <= 2.5 %
+    counts them honestly)."""
+    unconverged, failed, spread, clamped = _misfit_score(fit_options(validate_settings({})))
+    assert unconverged <= 0.025 and failed <= 0.01 and spread <= 1.7, (unconverged, failed, spread)
+    assert clamped == 0, clamped
 
 
 def test_misfit_crowd_fits_crowded_stars_on_their_central_window():
@@ -225,7 +234,7 @@ def test_misfit_crowd_fits_crowded_stars_on_their_central_window():
     %; docs/measure.md, "Scale", twelfth pass)."""
     options = dataclasses.replace(fit_options(validate_settings({})), flux_passes=1)
     assert options.crowded_window == 4
-    unconverged, failed, spread = _misfit_score(options)
+    unconverged, failed, spread, _ = _misfit_score(options)
     whole = _misfit_score(dataclasses.replace(options, crowded_window=0))
     assert unconverged + failed <= 0.75 * (whole[0] + whole[1]), (unconverged, failed, whole)
     assert spread <= whole[2] * 1.02, (spread, whole)
@@ -237,7 +246,7 @@ def test_misfit_crowd_check_fails_the_fisher_criterion():
     options = dataclasses.replace(
         fit_options(validate_settings({})), chi2_tolerance=False, flux_refresh=False
     )
-    unconverged, _, _ = _misfit_score(options)
+    unconverged, *_ = _misfit_score(options)
     assert unconverged > 0.01, unconverged
 
 

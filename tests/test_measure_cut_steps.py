@@ -76,3 +76,32 @@ def test_a_star_stopped_by_a_cut_step_is_flagged_not_converged():
     assert np.all((off[mid] > 0.1) & (off[mid] < 0.3))
     assert not np.any(new.flag[~far] & batched_fit.FLAG_NOT_CONVERGED)
     assert not np.any(new.flag & batched_fit.FLAG_FAILED)
+
+
+def test_a_star_resting_at_max_shift_is_flagged_not_converged():
+    """A star whose free optimum lies beyond ``max_shift`` rests at the clamp: its last
+    steps are pulled back to nothing and it was called converged (on the 1e5-star frame
+    683 of the V < 25 stars, 1.05 %; docs/measure.md, "Scale", thirteenth pass). The
+    Gauss-Newton step at the solution (its own errors, no truth) says it is not at a free
+    optimum: flagged 1. Stars started inside the clamp keep their flag. The truth of the
+    rendered frame is the reference."""
+    image, psf, x, y = _frame(7)
+    common = dict(read_noise_var=25.0, sky0=SKY)
+    rng = np.random.default_rng(8)
+    angle = rng.uniform(0, 2 * np.pi, len(x))
+    beyond = np.arange(len(x)) % 2 == 0
+    # 1.3 px off with max_shift 1: the clamp holds the star 0.3 px from the truth, a free
+    # step below max_step (0.5 px), so no step was cut by the trust region
+    start = np.where(beyond, 1.3, 0.7)
+    x0, y0 = x + start * np.cos(angle), y + start * np.sin(angle)
+    opt = batched_fit.FitOptions(iterations=40, max_shift=1.0, check_cut_steps=True)
+    fit = batched_fit.fit_stars(image, psf, x0, y0, options=opt, **common)
+    off = np.hypot(fit.x - x, fit.y - y)
+    sigma_pos = np.median(np.hypot(fit.x_err, fit.y_err))
+    at_clamp = np.hypot(fit.x - x0, fit.y - y0) > 1.0 - 1e-9
+    assert np.all(at_clamp[beyond]) and not np.any(at_clamp[~beyond])
+    assert np.all(off[beyond] > 10 * sigma_pos)  # held many errors from the truth ...
+    assert np.all(fit.flag[beyond] & batched_fit.FLAG_NOT_CONVERGED)  # ... and flagged
+    assert np.all(off[~beyond] < 5 * sigma_pos)
+    assert not np.any(fit.flag[~beyond] & batched_fit.FLAG_NOT_CONVERGED)
+    assert not np.any(fit.flag & batched_fit.FLAG_FAILED)

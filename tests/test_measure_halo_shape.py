@@ -203,3 +203,46 @@ def test_prior_maps_follow_the_stretch_of_a_radius_dependent_shape():
     want = 1 + amp(rho * 4.0 / stretch) * np.cos(2 * (theta - angle))
     ring = (rho >= 6) & (rho <= 12)
     assert np.max(np.abs(m[ring] - want[ring])) < 0.03
+
+
+def test_prior_maps_carry_the_radial_variation_over_the_field():
+    """Two prior nodes with round exponential PSFs of different scales (40 and 120 prior
+    pixels, ratio 4 to the detector): with ``field_radial`` each node's map at detector
+    distance rho is its own light per unit flux over the median of the nodes' (here
+    their mean), ``exp(-4 rho / s_k) / Z_k`` from the analytic images (ring means of
+    the analytic function on the detector grid); the old maps carry the shape alone
+    and miss that factor, up to 23 % at 6-16 px here."""
+    from mavispm.measure.stars.halo_shape import prior_halo_shape
+    from mavispm.measure.stars.psf_reconstruction import PSFRPrior
+
+    n, scales = 161, (40.0, 120.0)
+    off = np.arange(n) - (n - 1) / 2
+    r = np.hypot(off[None, :], off[:, None])
+    cube = np.stack([np.exp(-r / s) / np.exp(-r / s).sum() for s in scales])[None]
+    prior = PSFRPrior(cube, np.array([-1.0, 1.0]), np.array([0.0]), 1.875)
+
+    def to_pixel(x, y):
+        return np.asarray(x) / 0.0075 + 300.0, np.asarray(y) / 0.0075 + 300.0
+
+    kernel = np.array([[0.0, 0.0, 0.0, 1.0]])
+    old = prior_halo_shape(prior, to_pixel, 7.5, kernel, radius=30, inner=3.0)
+    new = prior_halo_shape(prior, to_pixel, 7.5, kernel, radius=30, inner=3.0, field_radial=True)
+    half = new.radius
+    o = np.arange(-half, half + 1.0)
+    rho = np.hypot(o[None, :], o[:, None])
+    ring = np.rint(rho).astype(int)
+    # the analytic light per unit flux at the detector offsets (prior pixels: 4 rho), its
+    # ring means, and each pixel's light over the nodes' mean ring mean
+    lights, means = [], []
+    for s in scales:
+        lights.append(np.exp(-4.0 * rho / s) / np.exp(-r / s).sum())
+        means.append(np.bincount(ring.ravel(), lights[-1].ravel()) / np.bincount(ring.ravel()))
+    typical = 0.5 * (means[0] + means[1])
+    band = (rho >= 6) & (rho <= 16)
+    for k in range(2):
+        want = lights[k] / typical[ring]
+        assert np.max(np.abs(new.maps[0, k][band] / want[band] - 1)) < 0.02
+        shape_only = lights[k] / means[k][ring]  # round: the old maps, the shape alone
+        assert np.max(np.abs(old.maps[0, k][band] / shape_only[band] - 1)) < 0.02
+        assert np.max(np.abs(want[band] / shape_only[band] - 1)) > 0.2  # what they miss
+    assert np.all(new.maps[0, :, rho <= 3.0] == 1.0)

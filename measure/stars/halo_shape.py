@@ -25,7 +25,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates, uniform_filter
 from mavispm.measure.stars.psf_reconstruction import PSFRPrior
 from mavispm.measure.stars.stamp_kernel import deposit_radial
 
-__all__ = ["HaloShape", "deposit_shaped", "modulation", "prior_halo_shape"]
+__all__ = ["HaloShape", "deposit_shaped", "modulation", "prior_halo_shape", "ring_means"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,16 @@ class HaloShape:
         return index.astype(np.int64), w
 
 
+def ring_means(image: np.ndarray) -> np.ndarray:
+    """Azimuthal mean of an image (optical axis at its centre) in 1-px annuli, by
+    ``round(r)``: index ``k`` is the mean at radius ``k`` [pixel]."""
+    n = image.shape[0]
+    half = (n - 1) // 2
+    off = np.arange(n) - half
+    ring = np.rint(np.hypot(off[None, :], off[:, None])).astype(int)
+    return np.bincount(ring.ravel(), image.ravel()) / np.bincount(ring.ravel())
+
+
 def modulation(image: np.ndarray, inner: float) -> np.ndarray:
     """An image (optical axis at its centre) over its azimuthal mean in 1-px annuli.
 
@@ -104,6 +114,7 @@ def prior_halo_shape(
     kernel: np.ndarray,
     radius: int,
     inner: float,
+    field_radial: bool = False,
 ) -> HaloShape:
     """The halo's modulation maps from the PSF-R prior (:func:`modulation` per node).
 
@@ -123,6 +134,12 @@ def prior_halo_shape(
         Half-width of the maps [pixel] (at most the prior's half-width).
     inner : float
         Radius [pixel] within which the maps are 1.
+    field_radial : bool
+        Also carry the prior's *radial* variation over the field: each node's map times
+        its azimuthal mean (per unit flux of the node's PSF) over the median of the
+        nodes' means, ring by ring, so the frame's one measured profile becomes each
+        star's own (between ``inner`` and the maps' edge). False: the maps have a unit
+        azimuthal mean (only the shape).
 
     Returns
     -------
@@ -146,6 +163,7 @@ def prior_halo_shape(
     d = np.arange(-radius, radius + 1.0) * ratio / stretch + centre
     rows, cols = np.meshgrid(d, d, indexing="ij")
     maps = np.empty(prior.cube.shape[:2] + (2 * radius + 1,) * 2)
+    means = np.ones(prior.cube.shape[:2] + (int(np.rint(radius * np.sqrt(2))) + 1,))
     for j in range(maps.shape[0]):
         for i in range(maps.shape[1]):
             psf = prior.cube[j, i]
@@ -153,7 +171,18 @@ def prior_halo_shape(
                 psf = gaussian_filter(psf, sigma / stretch)
             # pixel integration (a box of the detector pixel), then bilinear sampling
             psf = uniform_filter(psf, size=box, mode="constant")
-            maps[j, i] = modulation(map_coordinates(psf, [rows, cols], order=1), inner)
+            sampled = map_coordinates(psf, [rows, cols], order=1)
+            maps[j, i] = modulation(sampled, inner)
+            if field_radial:
+                means[j, i] = ring_means(sampled) / max(float(prior.cube[j, i].sum()), 1e-300)
+    if field_radial and maps.shape[0] * maps.shape[1] > 1:
+        typical = np.median(means.reshape(-1, means.shape[-1]), axis=0)
+        ratio = np.where(typical > 0, means / np.where(typical > 0, typical, 1.0), 1.0)
+        off = np.arange(-radius, radius + 1.0)
+        r = np.hypot(off[None, :], off[:, None])
+        ring = np.rint(r).astype(int)
+        outside = (r > inner) & (r <= radius)
+        maps = np.where(outside, maps * ratio[:, :, ring], maps)
     nx, _ = to_pixel(prior.nodes_x, np.full(len(prior.nodes_x), np.median(prior.nodes_y)))
     _, ny = to_pixel(np.full(len(prior.nodes_y), np.median(prior.nodes_x)), prior.nodes_y)
     nx, ny = np.asarray(nx, float), np.asarray(ny, float)

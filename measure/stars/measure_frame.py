@@ -634,7 +634,7 @@ def build_psfr(
         )
     shape = prior_halo_shape(
         prior, frame.to_pixel, frame.pixel_scale * 1000.0, kernels,
-        int(settings.halo_radius), settings.stamp_radius,
+        int(settings.halo_radius), settings.stamp_radius, settings.halo_field_radial,
     )  # fmt: skip
     return FramePSF(psf, len(used), halves, kernels, halo_shape=shape)
 

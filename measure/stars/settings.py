@@ -124,7 +124,9 @@ class MeasureKnobs:
         not converged (1) when the step it would take at the solution exceeds its
         tolerance there (:class:`~mavispm.measure.stars.batched_fit.FitOptions`): on the
         1e5-star frame 2.9 % of the V < 25 stars were called converged after one cut
-        step, 6.7 x their error from the truth (docs/measure.md, "Scale").
+        step, 6.7 x their error from the truth (docs/measure.md, "Scale"). A last step
+        held back by ``max_shift`` counts as cut (since 2026-12-03: 1.05 % of the V < 25
+        stars rested at the clamp called converged; "Scale", thirteenth pass).
     max_shift : float [pix]
         Largest allowed move from the forced position.
     wing_threshold : float
@@ -140,6 +142,11 @@ class MeasureKnobs:
         V < 15 on the MAVIS frames) get
         their own radial correction, the residual's medians in 1-px annuli out to 30
         px after the first pass (docs/measure.md, "Scale", eleventh pass); 0: off.
+    halo_field_radial : bool
+        PSF-R model: the halo's maps also carry the prior's radial variation over the
+        field (each star's own profile, not only its shape;
+        :func:`~mavispm.measure.stars.halo_shape.prior_halo_shape`; docs/measure.md,
+        "Scale", thirteenth pass).
     min_snr : float
         Stars below this flux SNR have positions held fixed and are flagged 32.
     chunk : int
@@ -174,6 +181,7 @@ class MeasureKnobs:
     wing_threshold: float = 3.0
     halo_radius: float = unit_field(60.0, "pix")
     halo_rings: float = 1000.0
+    halo_field_radial: bool = True
     min_snr: float = 3.0
     chunk: int = 512
     photutils_fitter: Literal["levmar", "default"] = "levmar"
