@@ -965,8 +965,7 @@ def fit_stars(
             halo_share[idx] = np.sum(
                 np.maximum(halo_light[flat[idx]], 0.0) * ok_pix, axis=1
             ) / np.maximum(light, 1e-300)
-            # the gain matters where a halo is (the error model scales it by the share):
-            # ~1/3 of the stars at 1e5, ~3 s of CPU for all
+            # the gain matters where a halo is (the error model scales it by the share)
             lit = np.flatnonzero(halo_share[idx] > 0)
         if len(halo_light) and len(lit):
             jac = jacobian(
