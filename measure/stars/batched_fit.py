@@ -237,6 +237,15 @@ class FitResult:
         ``1 + (chi2 - 1) q`` with ``q`` the neighbours' share of the model light on the
         stamp (:func:`_neighbour_misfit`; NaN where no uncertainties were computed;
         None from other engines): the error model's crowding term.
+    correlated_gain : ndarray, shape (N, 2) or None
+        Position variance [pixel^2] per axis per unit excess reduced chi^2 of a residual
+        field at the PSF's scale on the stamp (:func:`_correlated_gain`; NaN where no
+        uncertainties were computed and where no halo light falls on the stamp): the
+        error model's correlated-misfit term.
+    halo_share : ndarray, shape (N,) or None
+        The bright stars' halo light (outside their stamps, with the ring corrections)
+        over all the model light on the stamp (the star's own included), 0-1 (zeros
+        without a halo).
     """
 
     x: np.ndarray
@@ -254,6 +263,50 @@ class FitResult:
     sky_slope: np.ndarray | None = None
     halo_profile: np.ndarray | None = None
     crowding: np.ndarray | None = None
+    correlated_gain: np.ndarray | None = None
+    halo_share: np.ndarray | None = None
+
+
+def residual_correlation(psf: VariableEPSF, nx: int, ny: int, radius: int) -> np.ndarray:
+    """Correlation matrix of a residual field made of PSF-shaped structure, on a stamp.
+
+    Unmodelled light (a bright star's halo misfit, its speckles and ring residuals, a
+    neighbour's ePSF error) is structure at the scale of the PSF: a field of PSF-shaped
+    blobs at random places, whose correlation is the PSF's autocorrelation. Taken from
+    the ePSF at the frame centre, sampled on the pixels, normalised to 1 at zero lag.
+
+    Parameters
+    ----------
+    psf : VariableEPSF
+    nx, ny : int
+        Frame size [pixel].
+    radius : int
+        Fit stamp half-width [pixel].
+
+    Returns
+    -------
+    ndarray, shape (S*S, S*S)
+        ``R[i, j]`` between stamp pixels i and j (row-major), ``S = 2 radius + 1``.
+    """
+    big = 2 * int(radius)
+    cx, cy = (nx - 1) // 2, (ny - 1) // 2
+    geom = StampGeometry(np.array([cx], np.intp), np.array([cy], np.intp), big)
+    p = np.asarray(
+        psf.evaluate(np.array([float(cx)]), np.array([float(cy)]), geom, derivatives=False)
+    )[0]
+    p = np.nan_to_num(p)
+    m = 2 * big + 1
+    pad = np.zeros((2 * m, 2 * m))
+    pad[:m, :m] = p
+    spec = np.fft.rfft2(pad)
+    ac = np.fft.irfft2(spec * np.conj(spec), pad.shape)
+    ac = np.fft.fftshift(ac)  # zero lag at (m, m)
+    ac /= max(ac[m, m], 1e-300)
+    s = 2 * int(radius) + 1
+    off = np.arange(s)
+    row = np.repeat(off, s)
+    col = np.tile(off, s)
+    return ac[m + row[:, None] - row[None, :], m + col[:, None] - col[None, :]]
 
 
 def halo_radii(options: FitOptions) -> np.ndarray:
@@ -784,7 +837,8 @@ def fit_stars(
 
     models_halo = opt.wing_threshold > 0 and opt.halo_radius > r + 1
     halo_pending = models_halo
-    halo_light = np.zeros(len(pixels) if halo_pending and return_model else 0)
+    # kept apart for the returned star-model image and the error model's halo share
+    halo_light = np.zeros(len(pixels) if halo_pending and (return_model or uncertainties) else 0)
     if halo_pending and flux0 is not None:
         add_halo()
         halo_pending = False
@@ -894,9 +948,33 @@ def fit_stars(
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
     next_step = np.zeros(n)  # the position step each star would take at the solution
+    # the position variance [px^2] per unit excess reduced chi^2 of a PSF-correlated
+    # residual field on the stamp (:func:`_correlated_gain`), where a halo is
+    gain = np.full((n, 2), np.nan)
+    # the bright stars' halo light over all the model light on the stamp (a bright
+    # star's own misfit, centro-symmetric, is not the halo's)
+    halo_share = np.zeros(n)
+    corr = residual_correlation(psf, nx, ny, r) if uncertainties and len(all_idx) else None
     for idx in _chunks(all_idx if uncertainties else all_idx[:0], opt.chunk):
-        _, _, _, a, b, w, resid = normal_equations(idx)
+        v, dvx, dvy, a, b, w, resid = normal_equations(idx)
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
+        if len(halo_light):
+            ok_pix = valid[idx]
+            others = model[flat[idx]] - own[idx]
+            light = np.sum((np.maximum(others, 0.0) + np.abs(own[idx])) * ok_pix, axis=1)
+            halo_share[idx] = np.sum(
+                np.maximum(halo_light[flat[idx]], 0.0) * ok_pix, axis=1
+            ) / np.maximum(light, 1e-300)
+            # the gain matters where a halo is (the error model scales it by the share)
+            lit = np.flatnonzero(halo_share[idx] > 0)
+        if len(halo_light) and len(lit):
+            jac = jacobian(
+                flux[idx[lit]],
+                *(q.reshape(len(idx), s, s)[lit] for q in (v, dvx, dvy)),
+                opt.sky_gradient,
+            )
+            jw = jac * (w[lit] * valid[idx[lit]])[:, None, :]
+            gain[idx[lit]] = _correlated_gain(jw, a[lit], corr, npar)
         if opt.check_cut_steps:
             step = _solve(_damped(a, opt.damping), b)
             next_step[idx] = np.hypot(step[:, 0], step[:, 1])
@@ -956,7 +1034,50 @@ def fit_stars(
         sky_slope=np.where(usable[:, None], slope, 0.0),
         halo_profile=measured if models_halo else None,
         crowding=crowding,
+        correlated_gain=gain,
+        halo_share=np.minimum(halo_share, 1.0),
     )
+
+
+def _correlated_gain(jw: np.ndarray, a: np.ndarray, corr: np.ndarray, npar: int) -> np.ndarray:
+    """Position variance [pixel^2] per unit excess reduced chi^2 of a correlated field.
+
+    A residual field on the stamp with covariance ``s^2 R`` (``R``:
+    :func:`residual_correlation`) moves the fit by ``A^-1 J W r``, of covariance
+    ``s^2 A^-1 B A^-1`` with ``B = J W R W J^T``. After the fit the part of the field
+    that the star's parameters (position, flux, sky plane) absorb is gone from the
+    residual, so it adds ``s^2 (sum W - tr(A^-1 B)) / dof`` to the reduced chi^2, not
+    ``s^2 mean(W)``: a field at the PSF's scale is partly absorbed. The ratio of the two,
+    per axis, is returned; times the star's excess chi^2 it is the field's position
+    variance, for a field of any amplitude.
+
+    Parameters
+    ----------
+    jw : ndarray, shape (N, P, M)
+        Jacobian times the pixel weights (zero on unused pixels).
+    a : ndarray, shape (N, P, P)
+        Fisher matrices ``J W J^T`` (all parameters).
+    corr : ndarray, shape (M, M)
+    npar : int
+        Fitted parameters per star.
+
+    Returns
+    -------
+    ndarray, shape (N, 2)
+        NaN where ``a`` is singular.
+    """
+    inv, ok = safe_inverse(a)
+    b = np.matmul(np.matmul(jw, corr), jw.transpose(0, 2, 1))
+    cov = np.matmul(np.matmul(inv, b), inv)
+    # sum W: the weights are in jw's sky row (d m / d sky = 1)
+    sum_w = jw[:, 3, :].sum(axis=1)
+    npix = np.count_nonzero(jw[:, 3, :], axis=1)
+    absorbed = np.einsum("nij,nji->n", inv, b)
+    seen = np.maximum(sum_w - absorbed, 0.1 * sum_w)
+    dof = np.maximum(npix - npar, 1)
+    out = np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1) * (dof / np.maximum(seen, 1e-300))[:, None]
+    out[~ok] = np.nan
+    return out
 
 
 def _neighbour_misfit(

@@ -32,7 +32,7 @@ bound; right for a known PSF).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -216,6 +216,27 @@ class ErrorModel:
     chi2_inflation: np.ndarray
     kind: str = "epsf"
     registration: np.ndarray | None = None
+    correlated: np.ndarray | None = None
+
+    def position_total(self, fisher_err: np.ndarray, axis: int) -> np.ndarray:
+        """Total position error [pixel] of one coordinate: :meth:`total` with the
+        position term, plus the correlated-misfit variance of that axis (if any).
+
+        Parameters
+        ----------
+        fisher_err : ndarray
+            Fisher errors of the coordinate [pixel].
+        axis : int
+            0: x, 1: y.
+
+        Returns
+        -------
+        ndarray
+        """
+        base = self.total(fisher_err, self.position)
+        if self.correlated is None:
+            return base
+        return np.sqrt(base**2 + np.nan_to_num(self.correlated[:, axis]))
 
     @classmethod
     def fisher_only(
@@ -289,6 +310,9 @@ def estimate_error_model(
     floor_fraction: float = 0.0,
     fisher_position: np.ndarray | None = None,
     crowding: np.ndarray | None = None,
+    correlated_gain: np.ndarray | None = None,
+    halo_share: np.ndarray | None = None,
+    chi2_dof: int = 115,
 ) -> ErrorModel:
     """The ePSF error and chi^2 terms of every star.
 
@@ -333,6 +357,23 @@ def estimate_error_model(
         (normalised residuals 2.2-2.8 at V 17-25 on the 1e5-star MAVIS frame; with
         the term 1.15-1.4; docs/measure.md, "Scale"). The star's own excess is in the
         ratio already (the per-star value would count it twice).
+    correlated_gain : ndarray, shape (N, 2), optional
+        :attr:`~mavispm.measure.stars.batched_fit.FitResult.correlated_gain`: the
+        position variance [pixel^2] per axis per unit excess reduced chi^2 of a residual
+        field at the PSF's scale on the stamp (the part the fit absorbs accounted for).
+        The bright stars' mis-modelled light (halo profile, ring corrections, prior
+        shape) is such a field: ``correlated = gain max(chi2 - chi2_typ(F) - s(F), 0) h``
+        is added to the position variances, ``h`` the halo's share (``halo_share``) of
+        the model light on the stamp, ``s(F) = chi2_typ(F) sqrt(2 / dof)`` the noise
+        of a reduced chi^2 (only a significant excess counts). As white noise (the chi^2 ratio alone) the same
+        misfit moved the stars within 60 px of a V < 15 star ~7x more than their
+        errors said on the 1e5-star frame (docs/measure.md, "Scale", fourteenth pass).
+        None: no such term.
+    halo_share : ndarray, shape (N,), optional
+        :attr:`~mavispm.measure.stars.batched_fit.FitResult.halo_share` (needed with
+        ``correlated_gain``; None: no correlated term).
+    chi2_dof : int
+        Degrees of freedom of a stamp's reduced chi^2 (pixels less fitted parameters).
 
     Returns
     -------
@@ -350,6 +391,16 @@ def estimate_error_model(
     f = np.where(np.isfinite(flux) & (flux > 0), flux, np.min(flux[ref]))
     typical = flux_trend(flux[ref], chi2[ref], np.median, min_per_bin, log_values=True)(f)
     ratio = np.where(np.isfinite(chi2), np.maximum(chi2 / typical, 1.0), 1.0)
+    correlated = None
+    if correlated_gain is not None and halo_share is not None:
+        # only an excess beyond the noise of a reduced chi^2 (sqrt(2 / dof) of the
+        # typical): a noise-only excess clipped at 0 has a positive mean (0.4 sigma),
+        # which inflated every faint star a little. The peers' own scatter would hold
+        # the stars near bright ones, the ones to be inflated
+        spread = typical * np.sqrt(2.0 / max(chi2_dof, 1))
+        excess = np.where(np.isfinite(chi2), np.maximum(chi2 - typical - spread, 0.0), 0.0)
+        excess *= np.clip(np.nan_to_num(np.asarray(halo_share, float)), 0.0, 1.0)
+        correlated = np.nan_to_num(np.asarray(correlated_gain, float)) * excess[:, None]
     if relative_chi2:
         inflation = ratio
         if crowding is not None:
@@ -364,8 +415,8 @@ def estimate_error_model(
         floor = np.sqrt(floor_fraction * np.maximum(typical - 1.0, 0.0)) * sig
     if shifts is None:
         if floor_fraction > 0:
-            return ErrorModel(floor, np.zeros(n), ratio, inflation, "chi2")
-        return ErrorModel.fisher_only(n, ratio, inflation)
+            return ErrorModel(floor, np.zeros(n), ratio, inflation, "chi2", correlated=correlated)
+        return replace(ErrorModel.fisher_only(n, ratio, inflation), correlated=correlated)
     delta = np.column_stack([shifts[:, :2], shifts[:, 2] / f])
     cells = np.zeros(n, np.intp) if cells is None else np.asarray(cells)
     for cell in np.unique(cells[ref]):
@@ -374,4 +425,4 @@ def estimate_error_model(
     position = flux_trend(flux[ref], delta[ref, :2], _half_rms, min_per_bin)(f)
     position = np.hypot(position, floor)
     relative = flux_trend(flux[ref], delta[ref, 2], _half_rms, min_per_bin)(f)
-    return ErrorModel(position, relative * f, ratio, inflation)
+    return ErrorModel(position, relative * f, ratio, inflation, correlated=correlated)

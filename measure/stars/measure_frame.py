@@ -775,6 +775,9 @@ def error_terms(
             settings.chunk,
             sky_gradient=settings.sky_gradient and settings.engine == "fast",
         )
+    gain = fit.correlated_gain if settings.correlated_misfit else None
+    npar = 6 if settings.sky_gradient and settings.engine == "fast" else 4
+    dof = (2 * settings.stamp_radius + 1) ** 2 - npar
     grid = 1 if settings.psf_variation == "constant" else settings.psf_grid
     ny, nx = frame.shape
     col = np.clip(np.nan_to_num(fit.x) * grid // nx, 0, grid - 1)
@@ -788,8 +791,9 @@ def error_terms(
         # epoch, the error of the earlier convention it was centred on
         centred = frame_psf.centring is not None
         model = estimate_error_model(
-            fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=centred
-        )
+            fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=centred,
+            correlated_gain=gain, halo_share=fit.halo_share, chi2_dof=dof,
+        )  # fmt: skip
         if centred:
             node_err = frame_psf.centring[0].error_at(frame_psf.psf, fit.x, fit.y)
             # the registration to the reference list: the first epoch's own centring,
@@ -812,6 +816,9 @@ def error_terms(
         floor_fraction=settings.psfr_model_error,
         fisher_position=np.hypot(fit.x_err, fit.y_err) / np.sqrt(2.0),
         crowding=fit.crowding,
+        correlated_gain=gain,
+        halo_share=fit.halo_share,
+        chi2_dof=dof,
     )
 
 
@@ -1161,8 +1168,8 @@ def measure_frame(
     stars["y_pix"] = fit.y
     stars["x"] = x_as * u.arcsec
     stars["y"] = y_as * u.arcsec
-    stars["x_err"] = errors.total(fit.x_err, errors.position) * scale * u.arcsec
-    stars["y_err"] = errors.total(fit.y_err, errors.position) * scale * u.arcsec
+    stars["x_err"] = errors.position_total(fit.x_err, 0) * scale * u.arcsec
+    stars["y_err"] = errors.position_total(fit.y_err, 1) * scale * u.arcsec
     stars["flux"] = fit.flux * u.electron
     stars["flux_err"] = errors.total(fit.flux_err, errors.flux) * u.electron
     stars["sky"] = fit.sky * u.electron

@@ -340,6 +340,13 @@ class MeasureSettings:
         with the prior's stretch fitted, the five full NGC 3201 frames of
         docs/measure.md need no floor (0.01 made the tip-tilt scene's V 17-20 errors
         20 % too large).
+    correlated_misfit : bool
+        The position errors also hold the bright stars' mis-modelled light on the stamp as
+        a residual field at the PSF's scale (``gain max(chi2 - chi2_typ(F) - s(F), 0) h``, ``h``
+        the halo's share of the model light on the stamp; fast engine only;
+        :func:`mavispm.measure.stars.error_model.estimate_error_model`). False: the chi^2
+        ratio alone (before 2026-12-03: the stars within 60 px of a V < 15 star on the
+        1e5-star frame had errors ~7x too small; docs/measure.md, "Scale", fourteenth pass).
     progress : bool
         Show progress bars.
     knobs : MeasureKnobs
@@ -373,6 +380,7 @@ class MeasureSettings:
     psf_prior: str = ""
     psfr_width_error: float = 0.03
     psfr_model_error: float = 0.0
+    correlated_misfit: bool = True
     psfr_strehl_error: float = 0.0
     progress: bool = field(default=False)
     knobs: MeasureKnobs = field(default_factory=MeasureKnobs)
