@@ -235,3 +235,35 @@ def normalised_residuals(stars, column="x_err", bins=ERROR_BINS):
         s = ok & (mag >= lo) & (mag < hi)
         out[(lo, hi)] = np.concatenate([dx[s] / err_x[s], dy[s] / err_y[s]])
     return out
+
+
+# --- the halo tests' PSF (tests/test_measure_halo_rings.py, test_measure_halo_errors.py)
+
+#: Gaussian core sigma [pixel] and the halo's share of the light.
+HALO_TEST_CORE, HALO_TEST_FRAC = 1.2, 0.3
+
+
+def halo_light(r, scale):
+    """Halo per unit flux [1/pixel]: exponential of ``scale`` [pixel], HALO_TEST_FRAC of the light."""
+    return HALO_TEST_FRAC * np.exp(-r / scale) / (2 * np.pi * scale**2)
+
+
+def halo_test_core(dx, dy):
+    """Pixel-integrated unit Gaussian core (sigma HALO_TEST_CORE) at offsets ``dx, dy`` [pixel]."""
+    s = HALO_TEST_CORE
+    return (ndtr((dx + 0.5) / s) - ndtr((dx - 0.5) / s)) * (
+        ndtr((dy + 0.5) / s) - ndtr((dy - 0.5) / s)
+    )
+
+
+def halo_test_epsf(oversampling=2, half=12, scale=8.0):
+    """The fitter's ePSF of the halo tests: the core (Gaussian with the pixel's variance)
+    and a halo of ``scale`` tapered to zero between 6 and 12 px; no per-star structure."""
+    from mavispm.measure.stars.variable_psf import constant_epsf
+
+    off = np.arange(-half * oversampling, half * oversampling + 1) / oversampling
+    r = np.hypot(off[None, :], off[:, None])
+    s2 = HALO_TEST_CORE**2 + 1.0 / 12
+    core = (1 - HALO_TEST_FRAC) * np.exp(-0.5 * r**2 / s2) / (2 * np.pi * s2)
+    taper = np.where(r < 6, 1.0, np.cos(0.5 * np.pi * np.clip((r - 6) / 6, 0, 1)) ** 2)
+    return constant_epsf(core + halo_light(r, scale) * taper, oversampling)

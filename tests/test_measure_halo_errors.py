@@ -7,31 +7,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.special import ndtr
+from measure_helpers import HALO_TEST_FRAC as _FRAC
+from measure_helpers import halo_light, halo_test_core, halo_test_epsf
 
-_CORE, _FRAC, _SCALE = 1.2, 0.3, 8.0  # Gaussian core [px], halo fraction, halo scale [px]
+_SCALE = 8.0  # halo scale [px]
 
 
 def _halo_light(r):
-    return _FRAC * np.exp(-r / _SCALE) / (2 * np.pi * _SCALE**2)
-
-
-def _epsf(oversampling=2, half=12):
-    """The rendered PSF (core and halo tapered to zero at 12 px): no speckles."""
-    from mavispm.measure.stars.variable_psf import constant_epsf
-
-    off = np.arange(-half * oversampling, half * oversampling + 1) / oversampling
-    r = np.hypot(off[None, :], off[:, None])
-    s2 = _CORE**2 + 1.0 / 12
-    core = (1 - _FRAC) * np.exp(-0.5 * r**2 / s2) / (2 * np.pi * s2)
-    taper = np.where(r < 6, 1.0, np.cos(0.5 * np.pi * np.clip((r - 6) / 6, 0, 1)) ** 2)
-    return constant_epsf(core + _halo_light(r) * taper, oversampling)
-
-
-def _core(dx, dy):
-    return (ndtr((dx + 0.5) / _CORE) - ndtr((dx - 0.5) / _CORE)) * (
-        ndtr((dy + 0.5) / _CORE) - ndtr((dy - 0.5) / _CORE)
-    )
+    return halo_light(r, _SCALE)
 
 
 def _frame(seed, speckle=0.25):
@@ -68,7 +51,7 @@ def _frame(seed, speckle=0.25):
         cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
         dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
         image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
-            (1 - _FRAC) * _core(dx, dy) + _halo_light(np.hypot(dx, dy))
+            (1 - _FRAC) * halo_test_core(dx, dy) + _halo_light(np.hypot(dx, dy))
         )
     w = 4
     sub = np.arange(-w, w + 1)
@@ -82,7 +65,7 @@ def _frame(seed, speckle=0.25):
         for s in range(200):
             cx, cy = int(round(sx[s])) + m, int(round(sy[s])) + m
             dx, dy = sub[None, :] + cx - m - sx[s], sub[:, None] + cy - m - sy[s]
-            image[cy - w : cy + w + 1, cx - w : cx + w + 1] += amp[s] * _core(dx, dy)
+            image[cy - w : cy + w + 1, cx - w : cx + w + 1] += amp[s] * halo_test_core(dx, dy)
     image = rng.poisson(np.maximum(image[m:-m, m:-m], 0)).astype(float)
     image += rng.normal(0, rn, shape)
     return image, x, y, near, far, sky, rn**2
@@ -96,7 +79,9 @@ def _normalised(seed, correlated):
     image, x, y, near, far, sky, rn2 = _frame(seed)
     opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
                                  iterations=40, relative_tolerance=0.2, halo_rings=5.0)  # fmt: skip
-    fit = batched_fit.fit_stars(image, _epsf(), x, y, read_noise_var=rn2, sky0=sky, options=opt)
+    fit = batched_fit.fit_stars(
+        image, halo_test_epsf(scale=_SCALE), x, y, read_noise_var=rn2, sky0=sky, options=opt
+    )
     usable = (fit.flag & batched_fit.FLAG_FAILED) == 0
     model = estimate_error_model(
         fit.flux, fit.chi2, usable, None, relative_chi2=True, crowding=fit.crowding,

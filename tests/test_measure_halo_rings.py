@@ -5,26 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.special import ndtr
-
-_CORE, _FRAC = 1.2, 0.3  # Gaussian core [px], halo fraction
-
-
-def _halo_light(r, scale):
-    """Halo per unit flux [1/pixel]: exponential of the given scale, 30 % of the light."""
-    return _FRAC * np.exp(-r / scale) / (2 * np.pi * scale**2)
-
-
-def _epsf(oversampling=2, half=12):
-    """The core exact, the halo of the median scale (8 px) tapered to zero at 12 px."""
-    from mavispm.measure.stars.variable_psf import constant_epsf
-
-    off = np.arange(-half * oversampling, half * oversampling + 1) / oversampling
-    r = np.hypot(off[None, :], off[:, None])
-    s2 = _CORE**2 + 1.0 / 12
-    core = (1 - _FRAC) * np.exp(-0.5 * r**2 / s2) / (2 * np.pi * s2)
-    taper = np.where(r < 6, 1.0, np.cos(0.5 * np.pi * np.clip((r - 6) / 6, 0, 1)) ** 2)
-    return constant_epsf(core + _halo_light(r, 8.0) * taper, oversampling)
+from measure_helpers import HALO_TEST_FRAC as _FRAC
+from measure_helpers import halo_light as _halo_light
+from measure_helpers import halo_test_core, halo_test_epsf
 
 
 def _frame(seed, scales=(5.5, 11.0), dist=(8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 23.0, 26.0)):
@@ -59,9 +42,7 @@ def _frame(seed, scales=(5.5, 11.0), dist=(8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20
     for k in range(x.size):
         cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
         dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
-        core = (ndtr((dx + 0.5) / _CORE) - ndtr((dx - 0.5) / _CORE)) * (
-            ndtr((dy + 0.5) / _CORE) - ndtr((dy - 0.5) / _CORE)
-        )
+        core = halo_test_core(dx, dy)
         image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
             (1 - _FRAC) * core + _halo_light(np.hypot(dx, dy), star_scale[k])
         )
@@ -76,7 +57,9 @@ def _bias(rings, seed):
     image, x, y, flux, d, sky, rn2 = _frame(seed)
     opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
                                  iterations=40, relative_tolerance=0.2, halo_rings=rings)  # fmt: skip
-    fit = batched_fit.fit_stars(image, _epsf(), x, y, read_noise_var=rn2, sky0=sky, options=opt)
+    fit = batched_fit.fit_stars(
+        image, halo_test_epsf(), x, y, read_noise_var=rn2, sky0=sky, options=opt
+    )
     ratio = fit.flux / flux
     far = np.median(ratio[np.isinf(d)])
     out = []
