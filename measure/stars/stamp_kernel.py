@@ -163,7 +163,9 @@ def evaluate_stamps(
 
 
 @numba.njit(nogil=True, cache=True)
-def _normal(value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basis, rn2, a, b, w, r):
+def _normal(
+    value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basis, rn2, first, a, b, w, r
+):
     n, m = value.shape
     npar = a.shape[1]
     jac = np.empty(npar)
@@ -194,17 +196,20 @@ def _normal(value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basi
             if npar == 6:
                 jac[4] = basis[0, i]
                 jac[5] = basis[1, i]
-            for p in range(npar):
+            # first = 2: the flux and sky rows only (positions held; their rows stay 0)
+            for p in range(first, npar):
                 jw = jac[p] * wi
                 b[k, p] += jw * res
-                for q in range(p + 1):
+                for q in range(first, p + 1):
                     a[k, p, q] += jw * jac[q]
         for p in range(npar):
             for q in range(p):
                 a[k, q, p] = a[k, p, q]
 
 
-def normal_equations(value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basis, rn2):
+def normal_equations(
+    value, dvx, dvy, data, model_all, own, valid, flux, sky, slope, basis, rn2, positions=True
+):
     """Weights, residuals and the normal equations of N stars on their stamps, fused.
 
     The model of star k's stamp is its own ``flux value`` plus the neighbours'
@@ -231,6 +236,10 @@ def normal_equations(value, dvx, dvy, data, model_all, own, valid, flux, sky, sl
         Pixel offsets of the stamp from its centre [pixel].
     rn2 : float
         Read-noise variance [electron^2].
+    positions : bool
+        False: the flux and sky rows only (``dvx``, ``dvy`` are not read and may be
+        None); the position rows and columns of ``a`` and ``b`` are 0. The others are
+        the same sums in the same order as with positions (bit-identical).
 
     Returns
     -------
@@ -248,8 +257,11 @@ def normal_equations(value, dvx, dvy, data, model_all, own, valid, flux, sky, sl
     w = np.empty((n, m))
     r = np.empty((n, m))
     f64 = np.float64
+    value = np.ascontiguousarray(value, f64)
+    if not positions:
+        dvx = dvy = value  # not read
     _normal(
-        np.ascontiguousarray(value, f64),
+        value,
         np.ascontiguousarray(dvx, f64),
         np.ascontiguousarray(dvy, f64),
         np.ascontiguousarray(data, f64),
@@ -261,6 +273,7 @@ def normal_equations(value, dvx, dvy, data, model_all, own, valid, flux, sky, sl
         np.zeros((n, 2)) if slope is None else np.ascontiguousarray(slope, f64),
         np.ascontiguousarray(basis, f64),
         float(rn2),
+        0 if positions else 2,
         a,
         b,
         w,
