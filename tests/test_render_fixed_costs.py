@@ -358,3 +358,89 @@ def test_cached_halo_kernel_transform_equals_the_fresh_one(tmp_path):
     doubled = halo_field(*args, other, 7.5, 8, cache_dir=tmp_path)
     np.testing.assert_allclose(doubled, 2 * fresh, rtol=1e-12)
     assert len(list(tmp_path.glob("halospec-*.npz"))) == 2
+
+
+def test_stamp_plans_keyed_by_the_cached_cube_only_for_that_read_only_object(tmp_path, monkeypatch):
+    """The tapered cube mapped from its cache file keys the renderer's stamp plans by the
+    file's key (its bytes are not hashed); any other cube (a replaced or flipped one, a
+    view, a writable copy, a read-only array whose memory can be written) is hashed as
+    before, with the same key as a plain array, and renders its own content even where
+    the cached cube's plans are on disk (truth: the same cube rendered without a cache)."""
+    import dataclasses
+
+    from render_helpers import make_optics
+
+    from mavispm.core.array_cache import content_key, provenance_key, set_provenance_key
+    from mavispm.simulate.optics.model import cached_taper
+    from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, read_grid, write_grid
+    from mavispm.simulate.optics.seeing_halo import Halo
+    from mavispm.simulate.render import stamps
+    from mavispm.simulate.render.stamps import StarRenderer
+
+    fake = make_optics("airy", nodes=2, half_field=2.0, n=65, psf_scale=3.75).psf_grid
+    nodes = np.array([-2.0, 2.0])
+    grid = PSFGrid(np.array(fake.cube), nodes, nodes, 3.75, 550.0, np.ones((2, 2)))
+    halo = Halo(np.linspace(0, 400, 50), np.ones(50), 60.0, 110.0, 120.0, 0.1)
+    path = tmp_path / "psfgrid-abc.h5"
+    write_grid(path, GridResult(grid, np.arange(4.0), np.ones(4)), "abc")
+    made = cached_taper(read_grid(path, mapped=True).grid, halo, path)  # tapers, saves
+    mapped = cached_taper(read_grid(path, mapped=True).grid, halo, path)
+    key = provenance_key(mapped.cube)
+    assert provenance_key(made.cube) == key  # the saved cube, keyed like the next process's
+    assert key is not None and not mapped.cube.flags.writeable
+    assert (tmp_path / f"{key}.npy").exists()
+
+    hashed = []
+    real = stamps.content_key
+
+    def spy(*parts):
+        hashed.append(any(isinstance(p, np.ndarray) and p.size >= 4 * 65 * 65 for p in parts))
+        return real(*parts)
+
+    monkeypatch.setattr(stamps, "content_key", spy)
+    xp, yp = np.array([30.3, 61.7, 95.1]), np.array([40.6, 70.2, 88.9])
+    xf, yf = np.array([-1.5, 0.2, 1.7]), np.array([1.1, -0.4, 0.9])
+    cov = np.tile(np.diag([9.0, 12.0]), (3, 1, 1))
+    flux = np.array([1e3, 3e4, 2e5])
+
+    def render(g, cache):
+        r = StarRenderer(g, 7.5, cache_dir=cache)
+        img = np.zeros((128, 128))
+        r.render(img, xp, yp, xf, yf, cov, flux, np.full(3, 48), noise_sigma=5.0)
+        return r, img
+
+    cache = tmp_path / "plans"
+    first, img = render(mapped, cache)
+    assert hashed == [False]  # keyed by the file's key, the cube's bytes not read
+    np.testing.assert_array_equal(img, render(mapped, None)[1])
+    _, again = render(mapped, cache)  # from the plans on disk
+    np.testing.assert_array_equal(again, img)
+
+    plain = np.array(mapped.cube)  # the same values, writable
+    p = first.params
+    legacy = real(
+        stamps.PLAN_CACHE_VERSION,
+        [3.75, 7.5, p.oversampling, p.spectrum_floor, stamps.PLAN_FLOOR_DECADES],
+        plain.reshape(-1, 65, 65),
+    )
+    frozen = np.ascontiguousarray(plain[:, :, ::-1, :])  # other values, read-only flag
+    frozen.flags.writeable = False
+    assert not set_provenance_key(frozen, key)  # its memory can be written again
+    others = {
+        "copy": plain,
+        "frozen copy": frozen,
+        "view": mapped.cube[:],
+        "flipped view": mapped.cube[:, :, ::-1, :],
+        "other cube": np.ascontiguousarray(np.array(fake.cube)[:, :, :, ::-1]),
+    }
+    for name, cube in others.items():
+        hashed.clear()
+        other = dataclasses.replace(mapped, cube=cube)
+        r, img = render(other, cache)
+        assert hashed == [True], name
+        if name in ("copy", "view"):
+            assert r._cache_key == legacy, name
+        else:
+            assert r._cache_key != first._cache_key, name
+        np.testing.assert_array_equal(img, render(other, None)[1], err_msg=name)
+    assert content_key is real

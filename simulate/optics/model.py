@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mavispm.core.array_cache import content_key, load_arrays, save_arrays
+from mavispm.core.array_cache import content_key, load_arrays, save_arrays, set_provenance_key
 from mavispm.core.atomic import atomic_path
 from mavispm.core.config import from_mapping
 from mavispm.core.errors import ConfigError
@@ -520,19 +520,36 @@ def cached_taper(grid: PSFGrid, halo: Halo, grid_path: Path | None) -> PSFGrid:
         np.asarray(taper, dtype=np.float64),
     )
     path = grid_path.parent / f"psftaper-{key}.npy"
-    try:
-        cube = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError):
-        cube = None
-    if cube is not None and cube.shape == np.shape(grid.cube) and cube.dtype == np.float64:
-        return dataclasses.replace(grid, cube=cube)
+    mapped = _mapped_taper(path, np.shape(grid.cube))
+    if mapped is not None:
+        return dataclasses.replace(grid, cube=mapped)
     tapered = taper_grid(grid, halo, in_place=True)  # in place only where writable
     try:
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.save(fh, np.ascontiguousarray(tapered.cube, dtype=np.float64))
     except OSError:  # a folder that cannot be written costs the taper next time
-        pass
+        return tapered
+    # the saved cube, mapped: the same values, keyed like the next process's
+    mapped = _mapped_taper(path, np.shape(grid.cube))
+    if mapped is not None:
+        return dataclasses.replace(grid, cube=mapped)
     return tapered
+
+
+def _mapped_taper(path: Path, shape) -> np.ndarray | None:
+    """The tapered cube of the cache file ``path``, mapped read-only, or None (a miss).
+
+    The array carries the file's key (:func:`~mavispm.core.array_cache.set_provenance_key`):
+    the renderer keys its stamp plans by it instead of hashing the 64 MB.
+    """
+    try:
+        cube = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    if cube.shape != tuple(shape) or cube.dtype != np.float64:
+        return None
+    set_provenance_key(cube, path.stem)
+    return cube
 
 
 def build_optics(
