@@ -376,9 +376,23 @@ def test_flux_batches_cover_stars_in_order_and_keep_accuracy_classes(flux, size,
     idx = np.arange(len(flux)) + 7
     batches = _flux_batches(idx, flux, size, f64)
     assert np.array_equal(np.concatenate(batches), idx)
+    # brute force, star by star: a star joins the open batch while it has room, is below
+    # the batch's faintest x BATCH_FLUX_SPAN and on the same side of the float64 flux
+    expected, open_batch = [], []
+    for i, f in enumerate(flux):
+        if open_batch:
+            lo = max(flux[open_batch[0]], 1e-300)
+            joins = len(open_batch) < size and (
+                f < lo * BATCH_FLUX_SPAN and f < f64 if lo < f64 else f <= lo * BATCH_FLUX_SPAN
+            )
+            if not joins:
+                expected.append(open_batch)
+                open_batch = []
+        open_batch.append(i)
+    expected.append(open_batch)
+    assert [len(b) for b in batches] == [len(e) for e in expected]
     for b in batches:
         f = flux[b - 7]
-        assert 1 <= len(b) <= size
         assert len(b) == 1 or f.max() <= f.min() * BATCH_FLUX_SPAN
         assert (f >= f64).all() or (f < f64).all()
     for b, after in zip(batches[:-1], batches[1:]):
