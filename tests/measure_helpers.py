@@ -267,3 +267,20 @@ def halo_test_epsf(oversampling=2, half=12, scale=8.0):
     core = (1 - HALO_TEST_FRAC) * np.exp(-0.5 * r**2 / s2) / (2 * np.pi * s2)
     taper = np.where(r < 6, 1.0, np.cos(0.5 * np.pi * np.clip((r - 6) / 6, 0, 1)) ** 2)
     return constant_epsf(core + halo_light(r, scale) * taper, oversampling)
+
+
+def halo_test_image(shape, sky, x, y, flux, scale, margin=60):
+    """Noise-free image of stars with the halo tests' PSF, padded by ``margin`` [pixel]
+    on every side (no star is cut): sky plus, per star, ``flux`` x (core + halo of
+    ``scale``, one per star or one for all), over ``2 margin + 1`` pixels."""
+    scale = np.broadcast_to(np.asarray(scale, dtype=float), np.shape(x))
+    m = int(margin)
+    image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)
+    off = np.arange(-m, m + 1)
+    for k in range(len(x)):
+        cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
+        dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
+        image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
+            (1 - HALO_TEST_FRAC) * halo_test_core(dx, dy) + halo_light(np.hypot(dx, dy), scale[k])
+        )
+    return image

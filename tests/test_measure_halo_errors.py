@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import HALO_TEST_FRAC as _FRAC
-from measure_helpers import halo_light, halo_test_core, halo_test_epsf
+from measure_helpers import halo_light, halo_test_core, halo_test_epsf, halo_test_image
 
 _SCALE = 8.0  # halo scale [px]
 
@@ -45,14 +44,7 @@ def _frame(seed, speckle=0.25):
     far[-fx.size :] = True
     flux = np.concatenate([bflux, np.full(x.size - bx.size, 6000.0)])
     m = 60
-    image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)
-    off = np.arange(-m, m + 1)
-    for k in range(x.size):
-        cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
-        dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
-        image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
-            (1 - _FRAC) * halo_test_core(dx, dy) + _halo_light(np.hypot(dx, dy))
-        )
+    image = halo_test_image(shape, sky, x, y, flux, _SCALE, margin=m)
     w = 4
     sub = np.arange(-w, w + 1)
     for k in range(bx.size):  # speckles: PSF-core blobs in the halo, not in the model

@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import HALO_TEST_FRAC as _FRAC
-from measure_helpers import halo_light as _halo_light
-from measure_helpers import halo_test_core, halo_test_epsf
+from measure_helpers import halo_test_epsf, halo_test_image
 
 
 def _frame(seed, scales=(5.5, 11.0), dist=(8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 23.0, 26.0)):
@@ -37,15 +35,7 @@ def _frame(seed, scales=(5.5, 11.0), dist=(8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20
     flux = np.concatenate([bflux, np.full(x.size - bx.size, 4000.0)])
     star_scale = np.concatenate([scale, np.full(x.size - bx.size, 8.0)])
     m = 60
-    image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)
-    off = np.arange(-m, m + 1)
-    for k in range(x.size):
-        cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
-        dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
-        core = halo_test_core(dx, dy)
-        image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
-            (1 - _FRAC) * core + _halo_light(np.hypot(dx, dy), star_scale[k])
-        )
+    image = halo_test_image(shape, sky, x, y, flux, star_scale, margin=m)
     image = rng.poisson(image[m:-m, m:-m]).astype(float) + rng.normal(0, rn, shape)
     return image, x, y, flux, d, sky, rn**2
 
