@@ -734,10 +734,7 @@ def fit_stars(
         a_d = _damped(a[:, 2:, 2:], opt.damping)
         step = _solve(a_d, b[:, 2:])
         if opt.flux_passes > 1:
-            unit = np.zeros_like(step)
-            unit[:, 0] = 1.0
-            variance = _solve(a_d, unit)[:, 0]
-            flux_moved[idx] = np.abs(step[:, 0]) / np.sqrt(np.maximum(variance, 1e-300))
+            flux_moved[idx] = _step_over_error(a_d, step, 0)
         flux[idx] += step[:, 0]
         sky[idx] += step[:, 1]
         if opt.sky_gradient:
@@ -801,10 +798,7 @@ def fit_stars(
             cut[idx] = shrink < 1.0
         elif opt.flux_passes > 1:
             # the flux step over the flux error at fixed positions (flux_passes)
-            unit = np.zeros_like(b)
-            unit[:, 2] = 1.0
-            variance = _solve(a_d, unit)[:, 2]  # the flux's diagonal element of a_d^-1
-            flux_moved[idx] = np.abs(step[:, 2]) / np.sqrt(np.maximum(variance, 1e-300))
+            flux_moved[idx] = _step_over_error(a_d, step, 2)
         dx, dy = step[:, 0], step[:, 1]
         x[idx] += dx
         y[idx] += dy
@@ -1092,6 +1086,15 @@ def fit_stars(
         correlated_gain=gain,
         halo_share=np.minimum(halo_share, 1.0),
     )
+
+
+def _step_over_error(a_d: np.ndarray, step: np.ndarray, k: int) -> np.ndarray:
+    """``|step_k| / sqrt((a_d^-1)_kk)``: each star's step of parameter ``k`` in units of
+    its error (``a_d``: the damped normal matrices, shape (N, P, P); ``step``: (N, P))."""
+    unit = np.zeros_like(step)
+    unit[:, k] = 1.0
+    variance = _solve(a_d, unit)[:, k]  # the diagonal element k of a_d^-1
+    return np.abs(step[:, k]) / np.sqrt(np.maximum(variance, 1e-300))
 
 
 def _correlated_gain(jw: np.ndarray, a: np.ndarray, corr: np.ndarray, npar: int) -> np.ndarray:
