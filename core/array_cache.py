@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import weakref
 import zipfile
 from pathlib import Path
 
@@ -23,10 +22,9 @@ from mavispm.core.atomic import atomic_path
 
 __all__ = [
     "content_key",
+    "is_immutable",
     "load_arrays",
-    "provenance_key",
     "save_arrays",
-    "set_provenance_key",
 ]
 
 
@@ -54,16 +52,14 @@ def content_key(*parts) -> str:
     return digest.hexdigest()[:20]
 
 
-#: id(array) -> (weak reference to it, key): see :func:`set_provenance_key`.
-_PROVENANCE: dict[int, tuple[weakref.ref, str]] = {}
-
-
-def _immutable(array) -> bool:
+def is_immutable(array) -> bool:
     """Whether no array can write ``array``'s memory: it ends in a read-only buffer.
 
     The chain of ``base`` arrays must end in an object whose buffer is read-only (a
     file mapped with ``mmap_mode="r"``); an array owning its memory, or viewing
-    writable memory, can be made writable again and is not immutable.
+    writable memory, can be made writable again and is not immutable. Used to decide
+    whether a key of an array's content, known from where it came from (e.g.
+    :attr:`~mavispm.simulate.optics.psf_grid.PSFGrid.cube_key`), still holds.
     """
     if not isinstance(array, np.ndarray) or array.flags.writeable:
         return False
@@ -76,48 +72,6 @@ def _immutable(array) -> bool:
         return memoryview(base).readonly
     except TypeError:
         return False
-
-
-def set_provenance_key(array: np.ndarray, key: str) -> bool:
-    """Attach a key of ``array``'s content, known from where it came from.
-
-    For an array mapped read-only from a cache file whose name is a key of its
-    content (e.g. the tapered PSF cube, keyed by the grid file and the taper), so that
-    others can key their caches by it instead of hashing the bytes. The key belongs to
-    this array object only (not to copies, views or another array put in its place)
-    and only while its memory cannot be written (see :func:`provenance_key`).
-
-    Parameters
-    ----------
-    array : ndarray
-        The array; nothing is attached unless its memory is read-only.
-    key : str
-        The key of its content (dtype and shape are not part of it).
-
-    Returns
-    -------
-    bool
-        Whether the key was attached.
-    """
-    if not _immutable(array):
-        return False
-    for i, (ref, _) in list(_PROVENANCE.items()):  # forget arrays that are gone
-        if ref() is None:
-            del _PROVENANCE[i]
-    _PROVENANCE[id(array)] = (weakref.ref(array), str(key))
-    return True
-
-
-def provenance_key(array) -> str | None:
-    """The key attached to this very array by :func:`set_provenance_key`, else None.
-
-    None for any other object (a copy, a view, an array in a replaced dataclass) and
-    for an array whose memory can be written; the caller then hashes the bytes.
-    """
-    entry = _PROVENANCE.get(id(array))
-    if entry is None or entry[0]() is not array or not _immutable(array):
-        return None
-    return entry[1]
 
 
 #: Stored members at least this large are memory-mapped by :func:`load_arrays`.

@@ -362,15 +362,16 @@ def test_cached_halo_kernel_transform_equals_the_fresh_one(tmp_path):
 
 def test_stamp_plans_keyed_by_the_cached_cube_only_for_that_read_only_object(tmp_path, monkeypatch):
     """The tapered cube mapped from its cache file keys the renderer's stamp plans by the
-    file's key (its bytes are not hashed); any other cube (a replaced or flipped one, a
-    view, a writable copy, a read-only array whose memory can be written) is hashed as
-    before, with the same key as a plain array, and renders its own content even where
-    the cached cube's plans are on disk (truth: the same cube rendered without a cache)."""
+    file's key (its bytes are not hashed); any other cube (a grid replaced with a flipped
+    cube, a view, a writable copy, a read-only array whose memory can be written) is
+    hashed as before, with the same key as a plain array, and renders its own content
+    even where the cached cube's plans are on disk (truth: the same cube rendered
+    without a cache). A writable cube cannot carry a key at all."""
     import dataclasses
 
     from render_helpers import make_optics
 
-    from mavispm.core.array_cache import content_key, provenance_key, set_provenance_key
+    from mavispm.core.array_cache import content_key
     from mavispm.simulate.optics.model import cached_taper
     from mavispm.simulate.optics.psf_grid import GridResult, PSFGrid, read_grid, write_grid
     from mavispm.simulate.optics.seeing_halo import Halo
@@ -385,8 +386,8 @@ def test_stamp_plans_keyed_by_the_cached_cube_only_for_that_read_only_object(tmp
     write_grid(path, GridResult(grid, np.arange(4.0), np.ones(4)), "abc")
     made = cached_taper(read_grid(path, mapped=True).grid, halo, path)  # tapers, saves
     mapped = cached_taper(read_grid(path, mapped=True).grid, halo, path)
-    key = provenance_key(mapped.cube)
-    assert provenance_key(made.cube) == key  # the saved cube, keyed like the next process's
+    key = mapped.cube_key
+    assert made.cube_key == key  # the saved cube, keyed like the next process's
     assert key is not None and not mapped.cube.flags.writeable
     assert (tmp_path / f"{key}.npy").exists()
 
@@ -425,7 +426,9 @@ def test_stamp_plans_keyed_by_the_cached_cube_only_for_that_read_only_object(tmp
     )
     frozen = np.ascontiguousarray(plain[:, :, ::-1, :])  # other values, read-only flag
     frozen.flags.writeable = False
-    assert not set_provenance_key(frozen, key)  # its memory can be written again
+    # its memory can be written again (a writable copy, a flag turned off): no key
+    for cube in (plain, frozen):
+        assert dataclasses.replace(mapped, cube=cube).with_cube_key(key).cube_key is None
     others = {
         "copy": plain,
         "frozen copy": frozen,

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mavispm.core.array_cache import content_key, load_arrays, save_arrays, set_provenance_key
+from mavispm.core.array_cache import content_key, load_arrays, save_arrays
 from mavispm.core.atomic import atomic_path
 from mavispm.core.config import from_mapping
 from mavispm.core.errors import ConfigError
@@ -522,7 +522,7 @@ def cached_taper(grid: PSFGrid, halo: Halo, grid_path: Path | None) -> PSFGrid:
     path = grid_path.parent / f"psftaper-{key}.npy"
     mapped = _mapped_taper(path, np.shape(grid.cube))
     if mapped is not None:
-        return dataclasses.replace(grid, cube=mapped)
+        return dataclasses.replace(grid, cube=mapped).with_cube_key(path.stem)
     tapered = taper_grid(grid, halo, in_place=True)  # in place only where writable
     try:
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
@@ -532,15 +532,16 @@ def cached_taper(grid: PSFGrid, halo: Halo, grid_path: Path | None) -> PSFGrid:
     # the saved cube, mapped: the same values, keyed like the next process's
     mapped = _mapped_taper(path, np.shape(grid.cube))
     if mapped is not None:
-        return dataclasses.replace(grid, cube=mapped)
+        return dataclasses.replace(grid, cube=mapped).with_cube_key(path.stem)
     return tapered
 
 
 def _mapped_taper(path: Path, shape) -> np.ndarray | None:
     """The tapered cube of the cache file ``path``, mapped read-only, or None (a miss).
 
-    The array carries the file's key (:func:`~mavispm.core.array_cache.set_provenance_key`):
-    the renderer keys its stamp plans by it instead of hashing the 64 MB.
+    The caller attaches the file's key (``path.stem``) to the grid
+    (:meth:`~mavispm.simulate.optics.psf_grid.PSFGrid.with_cube_key`): the renderer keys
+    its stamp plans by it instead of hashing the 64 MB.
     """
     try:
         cube = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -548,7 +549,6 @@ def _mapped_taper(path: Path, shape) -> np.ndarray | None:
         return None
     if cube.shape != tuple(shape) or cube.dtype != np.float64:
         return None
-    set_provenance_key(cube, path.stem)
     return cube
 
 

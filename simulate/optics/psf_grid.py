@@ -17,13 +17,14 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 import astropy.units as u
 import numpy as np
 
+from mavispm.core.array_cache import is_immutable
 from mavispm.core.config import unit_field
 from mavispm.core.errors import ConfigError, InputError
 from mavispm.core.products import open_product, write_product
@@ -163,6 +164,15 @@ class PSFGrid:
         Wavelength (nm).
     strehl : ndarray, shape (ny, nx)
         Strehl ratio of each node PSF (NaN when unknown).
+
+    Attributes
+    ----------
+    cube_key : str or None
+        A key of ``cube``'s content known from where it came from (the name of the
+        keyed cache file it is mapped read-only from; see :meth:`with_cube_key`), so
+        that caches built on the cube can be keyed without hashing its bytes. None
+        unless set; not an ``__init__`` argument, so ``dataclasses.replace`` (e.g.
+        with another cube) drops it.
     """
 
     cube: np.ndarray
@@ -171,6 +181,30 @@ class PSFGrid:
     pixel_scale: float
     wavelength: float
     strehl: np.ndarray
+    cube_key: str | None = field(default=None, init=False, repr=False, compare=False)
+
+    def with_cube_key(self, key: str) -> PSFGrid:
+        """This grid with ``cube_key = key``, where the cube's memory cannot be written.
+
+        Only a cube mapped read-only from a file (whose name ``key`` is a key of its
+        content) can carry a key: for any other cube (one that owns its memory, views
+        writable memory, or could be made writable again) the grid is returned
+        unchanged, without a key, and its users hash the bytes.
+
+        Parameters
+        ----------
+        key : str
+            A key of the cube's content (dtype and shape are not part of it).
+
+        Returns
+        -------
+        PSFGrid
+        """
+        if not is_immutable(self.cube):
+            return self
+        keyed = replace(self)
+        object.__setattr__(keyed, "cube_key", str(key))
+        return keyed
 
     @property
     def is_static(self) -> bool:

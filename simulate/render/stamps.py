@@ -37,7 +37,7 @@ from typing import Literal
 
 import numpy as np
 
-from mavispm.core.array_cache import content_key, load_arrays, provenance_key, save_arrays
+from mavispm.core.array_cache import content_key, is_immutable, load_arrays, save_arrays
 from mavispm.simulate.render.pixel_response import pixel_transfer
 from mavispm.simulate.render.stamp_kernels import (
     add_stamps,
@@ -355,7 +355,9 @@ class StarRenderer:
             p = self.params
             # a cube mapped read-only from a keyed cache file (the tapered cube of
             # ``optics.model.cached_taper``) is keyed by that key, not hashed (~0.05 s)
-            known = provenance_key(psf_grid.cube) if slice_cubes is None else None
+            known = getattr(psf_grid, "cube_key", None) if slice_cubes is None else None
+            if known is not None and not is_immutable(psf_grid.cube):
+                known = None  # a key of the content only while it cannot be written
             content = self._cube
             if known is not None:
                 content = {
