@@ -183,8 +183,11 @@ class FitOptions:
         non-round misfit (:func:`~mavispm.measure.stars.halo.stacked_residual`: the
         median over them of the residual per unit flux by pixel offset, each star's
         ring medians and the map's own ring means taken out), measured with the rings
-        and added, times its flux, around every star with a halo; 0 (or at most
+        and added, times its flux, around the stars of ``halo_stack_stars``; 0 (or at most
         ``radius``): none (docs/measure.md, "Scale", sixteenth pass).
+    halo_stack_stars : float
+        The map goes onto the stars whose halo at 20 px exceeds this many times the
+        sky's pixel noise (0: every star with a halo)
     fixed_full_system : bool
         Reference path (tests): the fixed-position steps solve the full system (the
         position rows frozen) with freshly evaluated stamps and derivatives, instead of
@@ -219,6 +222,7 @@ class FitOptions:
     halo_radius: float = 60.0
     halo_rings: float = 0.0
     halo_stack: float = 0.0
+    halo_stack_stars: float = 0.0
 
 
 @dataclass
@@ -893,15 +897,15 @@ def fit_stars(
         )  # fmt: skip
         reach = int(opt.halo_stack)
         if reach > r and len(big) >= 5:
-            # their common non-round misfit, per unit flux, onto every star with a halo
+            # their common non-round misfit, per unit flux, onto the stars whose halo
+            # at RING_REFERENCE exceeds halo_stack_stars times the sky's pixel noise
             stack = stacked_residual(
                 pixels, (ny, nx), values, model, bad_pix, geom.cx[big], geom.cy[big],
                 flux[big], r, reach,
             )  # fmt: skip
             outs = (model, halo_light) if len(halo_light) else (model,)
-            deposit_stacked(
-                pixels, (ny, nx), geom.cx[bright], geom.cy[bright], flux[bright], stack, outs
-            )
+            onto = bright[flux[bright] * profile[at] > opt.halo_stack_stars * noise]
+            deposit_stacked(pixels, (ny, nx), geom.cx[onto], geom.cy[onto], flux[onto], stack, outs)
         for where, light in adds:  # after all are measured: none sees another's
             for out in (model, halo_light) if len(halo_light) else (model,):
                 out[where] += light

@@ -284,6 +284,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         halo_radius=settings.halo_radius,
         halo_rings=settings.halo_rings,
         halo_stack=settings.halo_stack,
+        halo_stack_stars=settings.halo_stack_stars,
     )
 
 
