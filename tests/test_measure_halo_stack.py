@@ -86,3 +86,50 @@ def test_stacked_residual_takes_the_common_structure(seed):
     f_new, p_new = _errors(30.0, seed, 0.0)
     assert np.all(f_new < f_old + 0.015), (f_new, f_old)
     assert np.all(p_new < p_old + 0.01), (p_new, p_old)
+
+
+def test_stacked_residual_is_the_common_non_round_light():
+    """Stars whose light is ``F (A(dx, dy) + g_k(r))`` (a common pattern ``A`` and a radial
+    profile of their own, constant in each 1-px annulus) on every pixel: the map is ``A`` less its mean in each 1-px
+    annulus, outside the stamp and within the reach (brute force, pixel by pixel), and
+    its deposit puts ``F`` times it around each star."""
+    from mavispm.measure.stars.halo import deposit_stacked, stacked_residual
+
+    rng = np.random.default_rng(3)
+    ny, nx, half, reach = 120, 160, 2, 9
+    off = np.arange(-reach, reach + 1)
+    pattern = rng.normal(0.0, 1.0, (2 * reach + 1,) * 2)
+    cx, cy = np.array([20, 60, 100, 140, 40, 120]), np.array([20, 30, 25, 40, 90, 95])
+    flux = rng.uniform(1.0, 5.0, cx.size)
+    values = np.zeros((ny, nx))
+    for k in range(cx.size):
+        ring = np.rint(np.hypot(off[None, :], off[:, None]))  # radial: one value per annulus
+        own = rng.uniform(0.5, 2.0) * np.exp(-ring / rng.uniform(2.0, 6.0))
+        window = values[cy[k] - reach : cy[k] + reach + 1, cx[k] - reach : cx[k] + reach + 1]
+        window += flux[k] * (pattern + own)
+    pixels = np.arange(ny * nx)
+    bad = np.zeros(ny * nx, bool)
+    got = stacked_residual(
+        pixels, (ny, nx), values.ravel(), np.zeros(ny * nx), bad, cx, cy, flux, half, reach
+    )
+    want = np.zeros_like(pattern)
+    for ring in range(int(np.ceil(reach * np.sqrt(2))) + 1):
+        cells = [
+            (i, j)
+            for i in range(2 * reach + 1)
+            for j in range(2 * reach + 1)
+            if round(np.hypot(i - reach, j - reach)) == ring
+            and np.hypot(i - reach, j - reach) <= reach
+            and max(abs(i - reach), abs(j - reach)) > half
+        ]
+        if cells:
+            mean = np.mean([pattern[c] for c in cells])
+            for c in cells:
+                want[c] = pattern[c] - mean
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    out = np.zeros(ny * nx)
+    deposit_stacked(pixels, (ny, nx), cx[:1], cy[:1], flux[:1], got, (out,))
+    image = out.reshape(ny, nx)
+    box = image[cy[0] - reach : cy[0] + reach + 1, cx[0] - reach : cx[0] + reach + 1]
+    np.testing.assert_allclose(box, flux[0] * want, atol=1e-12)
+    assert np.sum(np.abs(image)) == pytest.approx(np.sum(np.abs(box)))
