@@ -269,18 +269,25 @@ def halo_test_epsf(oversampling=2, half=12, scale=8.0):
     return constant_epsf(core + halo_light(r, scale) * taper, oversampling)
 
 
-def halo_test_image(shape, sky, x, y, flux, scale, margin=60):
+def halo_test_image(shape, sky, x, y, flux, scale, margin=60, lobes=0.0):
     """Noise-free image of stars with the halo tests' PSF, padded by ``margin`` [pixel]
     on every side (no star is cut): sky plus, per star, ``flux`` x (core + halo of
-    ``scale``, one per star or one for all), over ``2 margin + 1`` pixels."""
+    ``scale``, one per star or one for all), over ``2 margin + 1`` pixels. ``lobes``
+    (per star or one for all): the halo times ``1 + lobes cos(4 theta)``, a square
+    pattern the same for every star (as an AO PSF's control-radius structure), absent
+    from :func:`halo_test_epsf`."""
     scale = np.broadcast_to(np.asarray(scale, dtype=float), np.shape(x))
+    lobes = np.broadcast_to(np.asarray(lobes, dtype=float), np.shape(x))
     m = int(margin)
     image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)
     off = np.arange(-m, m + 1)
     for k in range(len(x)):
         cx, cy = int(round(x[k])) + m, int(round(y[k])) + m
         dx, dy = off[None, :] + cx - m - x[k], off[:, None] + cy - m - y[k]
+        halo = halo_light(np.hypot(dx, dy), scale[k])
+        if lobes[k]:
+            halo = halo * (1 + lobes[k] * np.cos(4 * np.arctan2(dy, dx)))
         image[cy - m : cy + m + 1, cx - m : cx + m + 1] += flux[k] * (
-            (1 - HALO_TEST_FRAC) * halo_test_core(dx, dy) + halo_light(np.hypot(dx, dy), scale[k])
+            (1 - HALO_TEST_FRAC) * halo_test_core(dx, dy) + halo
         )
     return image

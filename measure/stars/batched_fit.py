@@ -33,7 +33,12 @@ from tqdm import tqdm
 
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
-from mavispm.measure.stars.halo import RING_REFERENCE, halo_profile
+from mavispm.measure.stars.halo import (
+    RING_REFERENCE,
+    deposit_stacked,
+    halo_profile,
+    stacked_residual,
+)
 from mavispm.measure.stars.halo import ring_corrections as halo_ring_corrections
 from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped
 from mavispm.measure.stars.joint_step import coupled_groups, cross_blocks, solve_groups
@@ -173,6 +178,16 @@ class FitOptions:
         1e5-star MAVIS frame the frame's one profile misses each V < 15 star's own
         radial light by up to 2 faint-star fluxes at 12-20 px (docs/measure.md,
         "Scale", eleventh pass).
+    halo_stack : float
+        With ``halo_rings``: half-width [pixel] of a 2-D map of those stars' common
+        non-round misfit (:func:`~mavispm.measure.stars.halo.stacked_residual`: the
+        median over them of the residual per unit flux by pixel offset, each star's
+        ring medians and the map's own ring means taken out), measured with the rings
+        and added, times its flux, around the stars of ``halo_stack_stars``; 0 (or at most
+        ``radius``): none (docs/measure.md, "Scale", sixteenth pass).
+    halo_stack_stars : float
+        The map goes onto the stars whose halo at 20 px exceeds this many times the
+        sky's pixel noise (0: every star with a halo)
     fixed_full_system : bool
         Reference path (tests): the fixed-position steps solve the full system (the
         position rows frozen) with freshly evaluated stamps and derivatives, instead of
@@ -206,6 +221,8 @@ class FitOptions:
     wing_threshold: float = 0.0
     halo_radius: float = 60.0
     halo_rings: float = 0.0
+    halo_stack: float = 0.0
+    halo_stack_stars: float = 0.0
 
 
 @dataclass
@@ -878,6 +895,17 @@ def fit_stars(
         adds = halo_ring_corrections(
             pixels, (ny, nx), values, model, bad_pix, x[big], y[big], geom.cx[big], geom.cy[big], r, radii
         )  # fmt: skip
+        reach = int(opt.halo_stack)
+        if reach > r and len(big) >= 5:
+            # their common non-round misfit, per unit flux, onto the stars whose halo
+            # at RING_REFERENCE exceeds halo_stack_stars times the sky's pixel noise
+            stack = stacked_residual(
+                pixels, (ny, nx), values, model, bad_pix, geom.cx[big], geom.cy[big],
+                flux[big], r, reach,
+            )  # fmt: skip
+            outs = (model, halo_light) if len(halo_light) else (model,)
+            onto = bright[flux[bright] * profile[at] > opt.halo_stack_stars * noise]
+            deposit_stacked(pixels, (ny, nx), geom.cx[onto], geom.cy[onto], flux[onto], stack, outs)
         for where, light in adds:  # after all are measured: none sees another's
             for out in (model, halo_light) if len(halo_light) else (model,):
                 out[where] += light

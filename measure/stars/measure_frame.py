@@ -283,6 +283,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         wing_threshold=settings.wing_threshold,
         halo_radius=settings.halo_radius,
         halo_rings=settings.halo_rings,
+        halo_stack=settings.halo_stack,
+        halo_stack_stars=settings.halo_stack_stars,
     )
 
 
