@@ -110,6 +110,26 @@ def _mix_nodes(transforms, nodes, weights, re, im):  # pragma: no cover
             im[k] += tj[k].imag * wj
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _mix_four_nodes(transforms, nodes, weights, re, im):  # pragma: no cover
+    """:func:`_mix_nodes` for four nodes (bilinear weights) in one pass over the buffers.
+
+    The same sum in the same order (``((w0 t0 + w1 t1) + w2 t2) + w3 t3``), so the same
+    values; four passes that each read and write ``re`` and ``im`` cost ~1.6x as much.
+    """
+    t0 = transforms[nodes[0]]
+    t1 = transforms[nodes[1]]
+    t2 = transforms[nodes[2]]
+    t3 = transforms[nodes[3]]
+    w0 = weights[0]
+    w1 = weights[1]
+    w2 = weights[2]
+    w3 = weights[3]
+    for k in range(transforms.shape[1]):
+        re[k] = t0[k].real * w0 + t1[k].real * w1 + t2[k].real * w2 + t3[k].real * w3
+        im[k] = t0[k].imag * w0 + t1[k].imag * w1 + t2[k].imag * w2 + t3[k].imag * w3
+
+
 @numba.njit(nogil=True, cache=True)
 def mix_kernel_fold(
     transforms, node, w, coef, u, v, du, step, phx, phy, col, row, target, out
@@ -300,6 +320,7 @@ def mix_kernel_fold_runs(
     n_star = node.shape[0]
     n_samp = transforms.shape[1]
     n_col = fxu.shape[0]
+    n_node = node.shape[1]
     longest = 1
     for r in range(runs.shape[0]):
         longest = max(longest, runs[r, 4])
@@ -308,17 +329,24 @@ def mix_kernel_fold_runs(
     col_re = np.empty(n_col, dtype=w.dtype)
     col_im = np.empty(n_col, dtype=w.dtype)
     gauss = np.empty(longest, dtype=w.dtype)
+    lin = np.empty(longest)  # exp(q0 + i d1) along a run (float64)
+    quad = np.empty(longest)  # exp(i**2 d2), d2 = a du**2: the same for every run of a star
     n_out = out.shape[1] // 2
     acc_re = np.zeros(n_out, dtype=w.dtype)
     acc_im = np.zeros(n_out, dtype=w.dtype)
     for s in range(n_star):
-        _mix_nodes(transforms, node[s], w[s], re, im)
+        if n_node == 4:  # bilinear weights: one pass instead of four over the buffers
+            _mix_four_nodes(transforms, node[s], w[s], re, im)
+        else:
+            _mix_nodes(transforms, node[s], w[s], re, im)
         a = np.float64(coef[s, 0])
         b = np.float64(coef[s, 1])
         c = np.float64(coef[s, 2])
         px = phx[s]
         py = phy[s]
-        kappa = np.exp(2.0 * a * du * du)
+        d2 = a * du * du
+        for i in range(longest):
+            quad[i] = np.exp(d2 * np.float64(i * i))
         for q in range(n_col):
             col_re[q] = px[q].real
             col_im[q] = px[q].imag
@@ -332,20 +360,29 @@ def mix_kernel_fold_runs(
             vr = np.float64(fyv[row])
             qr = py[row].real
             qi = py[row].imag
-            # the Gaussian along the run by the float64 recurrence; its exponent is
-            # concave along the run, smallest at an end: where an end's would underflow,
-            # an exact exp per sample instead (extreme kernels only)
+            # the Gaussian along the run, q(u0 + i du) = q0 + i d1 + i**2 d2:
+            # exp(q0 + i d1) exp(i**2 d2), the first factor from rho = exp(d1) in
+            # independent chains of 8 (rho**j, then times rho**8 every 8 samples), the
+            # second from the star's table. Its exponent is concave along the run,
+            # smallest at an end: where an end's would underflow, or the first factor
+            # could overflow ((n - 1)**2 |d2| >= 600), an exact exp per sample instead
+            # (extreme kernels only)
             u0 = np.float64(fxu[c0])
             u1 = u0 + (n - 1) * du
             q0 = a * u0 * u0 + b * u0 * vr + c * vr * vr
             q1 = a * u1 * u1 + b * u1 * vr + c * vr * vr
-            if min(q0, q1) > -700.0:
-                g = np.exp(q0)
-                ratio = np.exp(a * du * (2.0 * u0 + du) + b * vr * du)
+            if min(q0, q1) > -700.0 and -d2 * (n - 1) * (n - 1) < 600.0:
+                rho = np.exp(du * (2.0 * a * u0 + b * vr))
+                lin[0] = np.exp(q0)
+                for i in range(1, min(n, 8)):
+                    lin[i] = lin[i - 1] * rho
+                rho2 = rho * rho
+                rho4 = rho2 * rho2
+                rho8 = rho4 * rho4
+                for i in range(8, n):  # dependence distance 8: vectorised
+                    lin[i] = lin[i - 8] * rho8
                 for i in range(n):
-                    gauss[i] = g
-                    g *= ratio
-                    ratio *= kappa
+                    gauss[i] = lin[i] * quad[i]
             else:
                 for i in range(n):
                     uk = u0 + i * du
