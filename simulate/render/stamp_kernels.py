@@ -286,14 +286,23 @@ def mix_kernel_fold_runs(
 ):  # pragma: no cover
     """:func:`mix_kernel_fold` over runs of samples: one row, consecutive columns.
 
-    The same sum: the Gaussian follows each run by the float64 recurrence of
-    :func:`mix_kernel_fold` (in its own sequential loop; an exact ``exp`` per sample
-    where the run's exponent falls below -700), then one loop over the run multiplies the mixed transform,
-    the phase ramps and the Gaussian and adds into the folded spectrum (accumulated
-    per star in split real / imaginary buffers). That loop reads every array at
-    consecutive addresses through slices (non-negative indices, no wrap-around
-    checks), so LLVM vectorises it: ~1.5x faster than :func:`mix_kernel_fold`
-    (measured, 128-pixel stamps, float32).
+    The same sum. Per star the nodes are mixed into split real / imaginary buffers (four
+    nodes, the bilinear case, in one pass). Along a run, with ``q(u0 + i du) = q0 + i d1
+    + i**2 d2``, the Gaussian is ``exp(q0 + i d1) * exp(i**2 d2)``: the first factor from
+    ``rho = exp(d1)`` in 8 independent float64 chains (``rho**j`` for ``j < 8``, then
+    times ``rho**8`` every 8 samples: a loop LLVM vectorises), the second from a per-star
+    table (``d2 = a du**2`` is the same for every run). Relative error of a sample's
+    Gaussian ~ ``(8 + n / 8) * 1e-16`` plus that of ``rho`` amplified ``i`` times (below
+    ~1e-13 for the runs of a 512-pixel stamp); the previous one-step recurrence
+    (``g_k = g_{k-1} r_k``, ``r_k = r_{k-1} exp(2 a du**2)``) was a chain of dependent
+    multiplications, latency-bound at ~40 % of the pass. Where a run's exponent falls
+    below -700 at an end, or ``exp(q0 + i d1)`` could overflow (``(n - 1)**2 |d2| >=
+    600``; extreme kernels only), an exact ``exp`` per sample instead. One loop over the
+    run then multiplies the mixed transform, the phase ramps and the Gaussian and adds
+    into ``out`` (its (real, imaginary) pairs directly). The loops read every array at
+    consecutive addresses through slices (non-negative indices, no wrap-around checks),
+    so LLVM vectorises them. At 10,000 stars (one thread) the pass takes 0.212-0.213 s of CPU
+    against 0.256-0.259 s before, with the same frame bit for bit (measured, load ~2.4).
 
     Parameters
     ----------
@@ -331,9 +340,6 @@ def mix_kernel_fold_runs(
     gauss = np.empty(longest, dtype=w.dtype)
     lin = np.empty(longest)  # exp(q0 + i d1) along a run (float64)
     quad = np.empty(longest)  # exp(i**2 d2), d2 = a du**2: the same for every run of a star
-    n_out = out.shape[1] // 2
-    acc_re = np.zeros(n_out, dtype=w.dtype)
-    acc_im = np.zeros(n_out, dtype=w.dtype)
     for s in range(n_star):
         if n_node == 4:  # bilinear weights: one pass instead of four over the buffers
             _mix_four_nodes(transforms, node[s], w[s], re, im)
@@ -390,21 +396,15 @@ def mix_kernel_fold_runs(
             # slices: unit-stride loops over non-negative indices (LLVM vectorises them)
             cre = col_re[c0 : c0 + n]
             cim = col_im[c0 : c0 + n]
-            ore = acc_re[g0 : g0 + n]
-            oim = acc_im[g0 : g0 + n]
+            oo = o[2 * g0 : 2 * (g0 + n)]
             rek = re[k0 : k0 + n]
             imk = im[k0 : k0 + n]
             for i in range(n):
                 # phase ramps x Gaussian, times the mixed transform
                 fr = (cre[i] * qr - cim[i] * qi) * gauss[i]
                 fi = (cre[i] * qi + cim[i] * qr) * gauss[i]
-                ore[i] += rek[i] * fr - imk[i] * fi
-                oim[i] += rek[i] * fi + imk[i] * fr
-        for t in range(n_out):
-            o[2 * t] += acc_re[t]
-            o[2 * t + 1] += acc_im[t]
-            acc_re[t] = 0
-            acc_im[t] = 0
+                oo[2 * i] += rek[i] * fr - imk[i] * fi
+                oo[2 * i + 1] += rek[i] * fi + imk[i] * fr
 
 
 def fold_runs(col, row, target, fx) -> np.ndarray:
