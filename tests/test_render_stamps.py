@@ -628,3 +628,24 @@ def test_stamp_holds_the_blurred_wing_and_no_more():
     outside = image.copy()
     outside[c - m // 2 : c + m // 2, c - m // 2 : c + m // 2] = 0
     assert 0 < outside.max() < r.params.stamp_threshold * noise
+
+
+@pytest.mark.parametrize("cplx", [np.complex64, np.complex128])
+@pytest.mark.parametrize("m", [112, 120])
+def test_inverse_rfft2_into_matches_numpy_irfft2(cplx, m):
+    """The stamps' inverse transform (scipy's pocketfft module loaded on its own) against
+    numpy's ``irfft2`` of the same folded spectra: the same values, bit for bit; the fast
+    path is the one taken here (scipy is installed; the warm frames program imports no
+    ``scipy.fft``: ``test_startup.py``)."""
+    from mavispm.simulate.render import stamp_kernels
+    from mavispm.simulate.render.stamp_kernels import inverse_rfft2_into
+
+    rng = np.random.default_rng(m)
+    mh = m // 2 + 1
+    spec = (rng.normal(size=(5, m, mh)) + 1j * rng.normal(size=(5, m, mh))).astype(cplx)
+    want = np.fft.irfft2(spec, s=(m, m), axes=(1, 2)).astype(spec.real.dtype)
+    work = spec.copy()
+    got = np.empty((5, m, m), dtype=spec.real.dtype)
+    inverse_rfft2_into(work, got, m)
+    assert np.array_equal(got, want)
+    assert stamp_kernels._pocketfft_module  # loaded and checked
