@@ -27,6 +27,8 @@ from the folded spectra.
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 
@@ -493,6 +495,7 @@ _FFT_OUT = int(np.__version__.split(".")[0]) >= 2
 
 _POCKETFFT_NAME = "scipy.fft._pocketfft.pypocketfft"
 _pocketfft_module = None  # None: not looked up yet; False: not usable
+_pocketfft_lock = threading.Lock()  # the renderer's threads: one lookup
 
 
 def _load_pocketfft():
@@ -565,7 +568,9 @@ def inverse_rfft2_into(spec, out, m: int) -> None:
     """
     global _pocketfft_module
     if _pocketfft_module is None:
-        _pocketfft_module = _load_pocketfft() or False
+        with _pocketfft_lock:
+            if _pocketfft_module is None:
+                _pocketfft_module = _load_pocketfft() or False
     if _pocketfft_module:
         _pocketfft_passes(_pocketfft_module, spec, out, m)
     elif _FFT_OUT:
