@@ -487,6 +487,11 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     for key in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env[key] = "1"
     env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p and p != str(ROOT / "tests"))
+    # bytecode, as installed: pip compiles a package's modules (MAVISIM's environment has
+    # them); with PYTHONDONTWRITEBYTECODE set, a source checkout would compile its ~50
+    # modules on the frames path in every process (~0.1 s of CPU, measured), so the
+    # warm-up run writes them (into the checkout's __pycache__ folders)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
     here = Path(__file__).resolve().parent
     print(f"\n3. MAVISIM {MAVISIM_VERSION} (pip package, {py}) against `mavispm simulate frames`")
     print("   same star list, same 11 x 11 PSF database (256 px at 3.75 mas, MAVISIM FITS),")

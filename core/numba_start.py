@@ -14,17 +14,25 @@ used as loaded, on a miss (or any error) numba's own ``load_overload`` runs (ref
 then cache) and the compilation that follows refreshes as usual. A kernel loaded either
 way is the same machine code: results are identical.
 
-Only the ``mavispm`` program calls it (``workflows/cli.py``: ``main()`` reading
+:func:`defer_numba_yaml` keeps ``numba.core.config`` from importing PyYAML (~0.01 s of
+CPU) when it runs without a ``.numba_config.yaml`` to read: numba only parses that file,
+which it looks for in the working directory, with PyYAML. The module then gets PyYAML on
+first use (a later config reload that finds the file), so numba behaves as before.
+
+Only the ``mavispm`` program calls them (``workflows/cli.py``: ``main()`` reading
 ``sys.argv``); library callers are not affected.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
+import os
 import sys
 
 from mavispm.core.import_hook import wrap_on_import
 
-__all__ = ["load_cached_kernels_first"]
+__all__ = ["defer_numba_yaml", "load_cached_kernels_first"]
 
 _PATCHED = "_mavispm_cached_first"
 _REFRESHED = "_mavispm_refreshed"
@@ -78,3 +86,46 @@ def load_cached_kernels_first() -> bool:
         _patch(caching)
         return True
     return wrap_on_import("numba.core.caching", _exec_and_patch)
+
+
+_NUMBA_CONFIG_FILE = ".numba_config.yaml"  # numba.core.config._config_fname
+
+
+class _YamlOnFirstUse:
+    """Stands in for the ``yaml`` module: imports it at the first attribute looked up."""
+
+    def __getattr__(self, name):
+        return getattr(importlib.import_module("yaml"), name)
+
+
+def _exec_without_yaml(exec_module, module) -> None:
+    hide = "yaml" not in sys.modules and not os.path.isfile(_NUMBA_CONFIG_FILE)
+    if not hide:
+        exec_module(module)
+        return
+    have_yaml = importlib.util.find_spec("yaml") is not None
+    sys.modules["yaml"] = None  # `import yaml` raises ImportError while the module runs
+    try:
+        exec_module(module)
+    finally:
+        if "yaml" in sys.modules and sys.modules["yaml"] is None:
+            del sys.modules["yaml"]
+    if have_yaml:  # as if imported: a config file found later is read as before
+        module.yaml = _YamlOnFirstUse()
+        module._HAVE_YAML = True
+
+
+def defer_numba_yaml() -> bool:
+    """Have ``numba.core.config`` import PyYAML only when it has a config file to read.
+
+    Set up for the first import of ``numba.core.config`` (nothing when it is imported
+    already); see the module docstring.
+
+    Returns
+    -------
+    bool
+        Whether it was set up here.
+    """
+    if "numba.core.config" in sys.modules:
+        return False
+    return wrap_on_import("numba.core.config", _exec_without_yaml)

@@ -208,12 +208,15 @@ def test_compiled_kernel_matches_numpy_reference(real, cplx):
 
 
 @pytest.mark.parametrize("real,cplx", [(np.float32, np.complex64), (np.float64, np.complex128)])
-@pytest.mark.parametrize("n_j", [1, 4])
-def test_run_kernel_matches_numpy_reference(real, cplx, n_j):
+@pytest.mark.parametrize("n_j", [1, 3, 4])
+@pytest.mark.parametrize("wide", [False, True])
+def test_run_kernel_matches_numpy_reference(real, cplx, n_j, wide):
     """The run-wise pass (the renderer's) against an exp per sample and sparse products:
     a stamp plan's layout (rows of a disc, the fold's two column blocks, several samples
     folding onto one frequency), narrow to extreme anisotropic kernels (the last one's
-    exponent falls below -700 at the runs' ends: the exact-exp path)."""
+    exponent falls below -700 at the runs' ends, and the factor exp(q0 + i d1) of the
+    factorised Gaussian would overflow along others: the exact-exp path); any number of
+    nodes (four: the one-pass mixing). ``wide``: kernels of sigma 60-200 mas."""
     from mavispm.simulate.render.stamp_kernels import (
         fold_runs,
         mix_kernel_fold_numpy,
@@ -232,6 +235,8 @@ def test_run_kernel_matches_numpy_reference(real, cplx, n_j):
     assert len(np.unique(target)) < len(target)  # aliases fold onto shared frequencies
     rng = np.random.default_rng(7)
     cov = KERNEL_COVARIANCES
+    if wide:
+        cov = np.asarray([[[v, 0.3 * v], [0.3 * v, 0.8 * v]] for v in (4e3, 1e4, 2e4, 4e4)])
     s, nodes, n = len(cov), 6, len(u)
     transforms = (rng.normal(size=(nodes, n)) + 1j * rng.normal(size=(nodes, n))).astype(cplx)
     node = rng.integers(0, nodes, (s, n_j))
@@ -623,3 +628,24 @@ def test_stamp_holds_the_blurred_wing_and_no_more():
     outside = image.copy()
     outside[c - m // 2 : c + m // 2, c - m // 2 : c + m // 2] = 0
     assert 0 < outside.max() < r.params.stamp_threshold * noise
+
+
+@pytest.mark.parametrize("cplx", [np.complex64, np.complex128])
+@pytest.mark.parametrize("m", [112, 120])
+def test_inverse_rfft2_into_matches_numpy_irfft2(cplx, m):
+    """The stamps' inverse transform (scipy's pocketfft module loaded on its own) against
+    numpy's ``irfft2`` of the same folded spectra: the same values, bit for bit; the fast
+    path is the one taken here (scipy is installed; the warm frames program imports no
+    ``scipy.fft``: ``test_startup.py``)."""
+    from mavispm.simulate.render import stamp_kernels
+    from mavispm.simulate.render.stamp_kernels import inverse_rfft2_into
+
+    rng = np.random.default_rng(m)
+    mh = m // 2 + 1
+    spec = (rng.normal(size=(5, m, mh)) + 1j * rng.normal(size=(5, m, mh))).astype(cplx)
+    want = np.fft.irfft2(spec, s=(m, m), axes=(1, 2)).astype(spec.real.dtype)
+    work = spec.copy()
+    got = np.empty((5, m, m), dtype=spec.real.dtype)
+    inverse_rfft2_into(work, got, m)
+    assert np.array_equal(got, want)
+    assert stamp_kernels._pocketfft_module  # loaded and checked

@@ -119,6 +119,31 @@ def test_cached_kernels_load_before_numba_registries(tmp_path):
     assert warm[2] == "False False"
 
 
+def test_numba_config_imports_yaml_only_for_a_config_file(tmp_path, monkeypatch):
+    """Without a ``.numba_config.yaml`` in the working directory numba's config runs
+    without importing PyYAML, and still parses YAML on first use; with one, numba reads
+    it as before (its setting takes effect)."""
+    code = """
+        import sys
+        from mavispm.core.numba_start import defer_numba_yaml
+        print(defer_numba_yaml(), defer_numba_yaml())
+        import numba
+        import numba.core.config as config
+        print("yaml" in sys.modules, config._HAVE_YAML, config.DEBUG_CACHE)
+        print(config.yaml.safe_load("a: [1, 2]"), "yaml" in sys.modules)
+        """
+    bare, with_file = tmp_path / "bare", tmp_path / "with_file"
+    bare.mkdir()
+    with_file.mkdir()
+    (with_file / ".numba_config.yaml").write_text("debug_cache: 1\n")
+    env = dict(os.environ)
+    env.pop("NUMBA_DEBUG_CACHE", None)
+    monkeypatch.chdir(bare)
+    assert _run(code, env=env) == ["True False", "False True 0", "{'a': [1, 2]} True"]
+    monkeypatch.chdir(with_file)
+    assert _run(code, env=env) == ["True False", "True True 1", "{'a': [1, 2]} True"]
+
+
 def _tiny_frames_inputs(tmp_path):
     from render_helpers import epoch_table
     from test_render_fast_paths import _write_psf_database
@@ -145,13 +170,14 @@ def _datasets(path):
 
 def test_warm_frames_program_defers_connectors_and_registries(tmp_path):
     """A warm ``mavispm simulate frames`` process imports neither astropy's ascii / fits /
-    votable connectors nor numba's compiler registries, and writes the same frame, bit for
+    votable connectors nor numba's compiler registries nor PyYAML nor ``scipy.fft`` (the
+    stamps' inverse FFTs load its pocketfft extension module alone), and writes the same frame, bit for
     bit, as ``main(argv)`` called from Python (which changes no import)."""
     _tiny_frames_inputs(tmp_path)
     script = """
         import atexit, json, sys, runpy
         watch = ("astropy.io.ascii", "astropy.io.votable", "astropy.io.misc", "numba.typed.",
-                 "numba.np.polynomial", "cffi")
+                 "numba.np.polynomial", "cffi", "yaml", "scipy.fft")
         atexit.register(lambda: print("LOADED", json.dumps(
             sorted(m for m in sys.modules if m.startswith(watch)))))
         if sys.argv[1] == "program":

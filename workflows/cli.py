@@ -213,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         ``scipy.linalg``, :mod:`mavispm.core.blas_preload`; imports ``astropy.table``
         without its file-format connectors until ``Table.read`` / ``write`` needs them,
         :mod:`mavispm.core.table_preload`; loads numba's cached kernels before its
-        compiler registries, :mod:`mavispm.core.numba_start`; for the commands of
+        compiler registries and lets numba's config import PyYAML only for a config file,
+        :mod:`mavispm.core.numba_start`; for the commands of
         :data:`KEEP_FREED_MEMORY`, keeps the memory it frees for its next arrays,
         :mod:`mavispm.core.malloc_policy`).
 
@@ -228,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         gc.disable()  # while importing: see _freeze_imports
         from mavispm.core.blas_preload import load_cython_blas_alone
         from mavispm.core.malloc_policy import keep_freed_memory
-        from mavispm.core.numba_start import load_cached_kernels_first
+        from mavispm.core.numba_start import defer_numba_yaml, load_cached_kernels_first
         from mavispm.core.table_preload import import_table_without_connectors
 
         if command_key(None) in KEEP_FREED_MEMORY:
@@ -236,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         load_cython_blas_alone()
         import_table_without_connectors()
         load_cached_kernels_first()
+        defer_numba_yaml()
     try:
         parser = build_parser(argv, everything=False)
         args = parser.parse_args(argv)

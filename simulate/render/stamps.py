@@ -43,6 +43,7 @@ from mavispm.simulate.render.stamp_kernels import (
     add_stamps,
     binned_max,
     fold_runs,
+    inverse_rfft2_into,
     mix_kernel_fold_runs,
     phase_ramps_into,
     wrap_2d_into,
@@ -1028,10 +1029,6 @@ class StarRenderer:
         return min(floor, allowed), dtype
 
 
-#: ``numpy.fft`` functions take ``out`` (numpy >= 2.0).
-_FFT_OUT = int(np.__version__.split(".")[0]) >= 2
-
-
 class _WorkBuffers:
     """Work memory of one thread: folded spectra and stamps of a chunk, grown as needed.
 
@@ -1265,11 +1262,7 @@ def _render_chunks(batch: _Batch, lo: int, hi: int, folded, stamps, image=None) 
         )  # fmt: skip
         spec = out.reshape(b - a, m, mh)
         dest = stamps[: b - a] if image is not None else stamps[a - lo : b - lo]
-        if _FFT_OUT:  # irfft2's two passes into reused memory (the same values)
-            np.fft.ifft(spec, axis=1, out=spec)
-            np.fft.irfft(spec, n=m, axis=2, out=dest)
-        else:
-            dest[...] = np.fft.irfft2(spec, s=(m, m), axes=(1, 2))
+        inverse_rfft2_into(spec, dest, m)  # irfft2's two passes into reused memory
         if image is not None:
             add_stamps(image, dest, batch.x0[a:b], batch.y0[a:b])
 
