@@ -522,6 +522,37 @@ def test_bands_of_one_parity_touch_disjoint_image_rows(height, ny, data):
             assert not rows[k] & rows[j], (k, j)
 
 
+@settings(max_examples=150, deadline=None)
+@given(counts=st.lists(st.integers(0, 30), min_size=1, max_size=8), parts=st.integers(1, 4))
+def test_band_groups_split_one_parity_at_band_boundaries_into_balanced_runs(counts, parts):
+    """A parity's bands are handed to the threads as at most one run of consecutive bands
+    per thread: the runs cover its stars in order, each is non-empty and cut at a band
+    boundary (so runs touch disjoint rows), and the largest holds at most one band more
+    than the best cut into ``parts`` runs (truth: every way of cutting, brute force)."""
+    from itertools import combinations
+
+    from mavispm.simulate.render.stamps import _band_groups
+
+    if sum(counts) == 0:
+        return
+    start = 7  # the parity's stars start after the other parity's
+    edges = start + np.concatenate([[0], np.cumsum(counts)])
+    runs = np.stack([edges[:-1], edges[1:]], axis=1)
+    groups = _band_groups(runs, parts)
+    assert 1 <= len(groups) <= parts
+    assert groups[0][0] == start and groups[-1][1] == edges[-1]
+    for (_, hi), (lo2, _) in zip(groups[:-1], groups[1:]):
+        assert hi == lo2
+    assert all(hi > lo and lo in set(edges) for lo, hi in groups)
+    inner = sorted(set(edges[1:-1]))
+    best = min(
+        max(np.diff([start, *cut, edges[-1]]))
+        for k in range(min(parts - 1, len(inner)) + 1)
+        for cut in combinations(inner, k)
+    )
+    assert max(hi - lo for lo, hi in groups) <= best + max(counts)
+
+
 def test_banded_render_equals_the_sum_of_single_stamps_on_any_thread_count(airy_optics):
     """Many bands (a tall image, stamps of three sides), stars on and beyond every edge,
     batches of a few stars and of more than SPLIT_BANDS_STARS (bands on several threads):

@@ -17,6 +17,9 @@ import textwrap
 
 import h5py
 import numpy as np
+import pytest
+
+from mavispm.core.blas_threads import BLAS_THREAD_VARIABLES
 
 
 def _run(code: str, *args: str, env: dict | None = None) -> list[str]:
@@ -298,3 +301,40 @@ def test_program_keeps_freed_memory_for_its_next_arrays():
     assert max(program[1:]) < 0.02 * pages  # then reused, in the main thread and a worker
     for counts in (library, other):  # glibc's defaults: unmapped, faulted in again
         assert min(counts[1:]) >= 0.9 * pages
+
+
+@pytest.mark.skipif(
+    (os.cpu_count() or 1) < 2 or not os.path.isdir("/proc/self/task"),
+    reason="OpenBLAS starts worker threads only on several cores; counted in /proc",
+)
+def test_frames_program_loads_openblas_without_worker_threads():
+    """The ``simulate frames`` program (``main()`` reading ``sys.argv``) loads numpy's and
+    scipy's OpenBLAS (numba's BLAS module) with one thread, so no idle worker busy-waits on
+    the other cores (``core/blas_threads.py``): the process then has one thread (the
+    kernel's count, ``/proc/self/task``). A count set in the environment, ``main(argv)``
+    called from Python, and other commands keep OpenBLAS's own workers (more threads)."""
+    code = """
+        import os, sys
+        from mavispm.workflows import cli
+        words = {words}
+        sys.argv = ["mavispm"] + words
+        try:
+            cli.main({call})
+        except SystemExit:
+            pass
+        import numpy as np
+        import numba.np.arraymath  # scipy's OpenBLAS (scipy.linalg.cython_blas)
+        np.ones((300, 300)) @ np.ones((300, 300))  # a product numpy's OpenBLAS may split
+        print(len(os.listdir("/proc/self/task")))
+        """
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARIABLES}
+    frames = '["simulate", "frames", "--help"]'
+    measure = '["measure", "stars", "--help"]'
+    program = int(_run(code.format(words=frames, call=""), env=env)[-1])
+    library = int(_run(code.format(words=frames, call="words"), env=env)[-1])
+    other = int(_run(code.format(words=measure, call=""), env=env)[-1])
+    chosen = int(
+        _run(code.format(words=frames, call=""), env={**env, "OPENBLAS_NUM_THREADS": "2"})[-1]
+    )
+    assert program == 1
+    assert min(library, other, chosen) > 1

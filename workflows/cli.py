@@ -22,6 +22,7 @@ __all__ = [
     "COMMANDS",
     "COMMAND_MODULES",
     "KEEP_FREED_MEMORY",
+    "ONE_BLAS_THREAD",
     "OneLineParser",
     "build_parser",
     "command_key",
@@ -90,6 +91,11 @@ class OneLineParser(argparse.ArgumentParser):
 #: Commands whose program keeps the memory it frees for its next arrays
 #: (:mod:`mavispm.core.malloc_policy`; measured on them: fewer fresh pages, less system time).
 KEEP_FREED_MEMORY: set[tuple[str | None, str]] = {("simulate", "frames")}
+
+#: Commands whose program loads OpenBLAS with one thread unless the environment sets a
+#: count (:mod:`mavispm.core.blas_threads`; no large products: the idle workers'
+#: busy-waiting cost ~0.26 s of CPU of a 10,000-star frame on 2 cores).
+ONE_BLAS_THREAD: set[tuple[str | None, str]] = {("simulate", "frames")}
 
 
 def command_key(argv: list[str] | None) -> tuple[str | None, str] | None:
@@ -210,7 +216,9 @@ def main(argv: list[str] | None = None) -> int:
         Command-line words (None: ``sys.argv[1:]``, the program, which also: keeps the
         cyclic garbage collector off while the command's modules are imported and then
         freezes their objects out of it, ``gc.freeze``; loads numba's BLAS module without
-        ``scipy.linalg``, :mod:`mavispm.core.blas_preload`; imports ``astropy.table``
+        ``scipy.linalg``, :mod:`mavispm.core.blas_preload`; for the commands of
+        :data:`ONE_BLAS_THREAD`, loads OpenBLAS with one thread unless the environment sets
+        a count, :mod:`mavispm.core.blas_threads`; imports ``astropy.table``
         without its file-format connectors until ``Table.read`` / ``write`` needs them,
         :mod:`mavispm.core.table_preload`; loads numba's cached kernels before its
         compiler registries and lets numba's config import PyYAML only for a config file,
@@ -228,11 +236,15 @@ def main(argv: list[str] | None = None) -> int:
 
         gc.disable()  # while importing: see _freeze_imports
         from mavispm.core.blas_preload import load_cython_blas_alone
+        from mavispm.core.blas_threads import one_blas_thread
         from mavispm.core.malloc_policy import keep_freed_memory
         from mavispm.core.numba_start import defer_numba_yaml, load_cached_kernels_first
         from mavispm.core.table_preload import import_table_without_connectors
 
-        if command_key(None) in KEEP_FREED_MEMORY:
+        key = command_key(None)
+        if key in ONE_BLAS_THREAD:
+            one_blas_thread()  # before numpy and scipy load their OpenBLAS
+        if key in KEEP_FREED_MEMORY:
             keep_freed_memory()
         load_cython_blas_alone()
         import_table_without_connectors()

@@ -917,11 +917,15 @@ class StarRenderer:
                     flux[sel], floor, dtype, spectrum,
                 )  # fmt: skip
                 for parity in (0, 1):
-                    items = [(prep, int(lo), int(hi)) for lo, hi in bounds[parity::2] if hi > lo]
-                    if threads > 1 and len(sel) >= SPLIT_BANDS_STARS and len(items) > 1:
+                    runs = bounds[parity::2]
+                    if len(runs) == 0 or runs[-1, 1] <= runs[0, 0]:
+                        continue
+                    parts = 1 if len(sel) < SPLIT_BANDS_STARS else threads
+                    items = [(prep, lo, hi) for lo, hi in _band_groups(runs, parts)]
+                    if len(items) > 1:
                         list(pool.map(add_band, items))
-                    elif items:  # one thread: the parity's bands in turn, as one run of stars
-                        add_band((prep, items[0][1], items[-1][2]))
+                    else:  # one thread: the parity's bands in turn, as one run of stars
+                        add_band(items[0])
                 if bar is not None:
                     bar.update(len(sel))
         buffers = None  # freed before the outer convolution's own memory peak
@@ -1302,6 +1306,37 @@ def _band_order(cx, cy, height: int, n_bands: int):
     bounds[ranked, 0] = ends - counts
     bounds[ranked, 1] = ends
     return order, bounds
+
+
+def _band_groups(runs, parts: int) -> list[tuple[int, int]]:
+    """Consecutive bands of one parity in ``parts`` runs of about equal star counts.
+
+    ``runs`` (n, 2) are the bands' ``[lo, hi)`` star ranges, consecutive (``runs[k, 1] ==
+    runs[k + 1, 0]``; see :func:`_band_order`). Each group is cut at a band boundary (so two
+    groups touch disjoint image rows) and holds at least one star; at most ``parts`` groups,
+    fewer when there are fewer non-empty bands.
+
+    Returns
+    -------
+    list of (lo, hi)
+        Star ranges covering ``runs[0, 0]:runs[-1, 1]`` in order.
+    """
+    start, end = int(runs[0, 0]), int(runs[-1, 1])
+    cuts = np.asarray(runs[:-1, 1], dtype=np.int64)  # band boundaries inside the run
+    groups, lo = [], start
+    for k in range(1, max(int(parts), 1)):
+        target = start + (end - start) * k / parts
+        # the band boundary nearest the equal share, past the previous cut
+        cand = cuts[cuts > lo]
+        if cand.size == 0:
+            break
+        cut = int(cand[np.argmin(np.abs(cand - target))])
+        if cut >= end:
+            break
+        groups.append((lo, cut))
+        lo = cut
+    groups.append((lo, end))
+    return groups
 
 
 def _is_subset(values, sorted_set) -> bool:
