@@ -260,8 +260,9 @@ def render_stack(
     progress : bool
         Show progress bars.
     noiseless : bool
-        Keep the noise-free stack (False: ``RenderedStack.noiseless`` is None, and the
-        pass over the frame that scales it to the stack is left out).
+        Keep the noise-free stack (False: ``RenderedStack.noiseless`` is None, the
+        pass over the frame that scales it to the stack is left out, and the noise is
+        drawn over the image itself: no second full-frame array).
 
     Returns
     -------
