@@ -244,6 +244,9 @@ def write_product(
         Provenance; see :func:`provenance_attrs`.
     compression : str, optional
         h5py compression filter for arrays (for example "gzip").
+        Without one, a boolean array with no True value (the saturation mask of most
+        frames) is created without data: HDF5 reads its fill value, False, so it reads
+        back the same, and 16 MB less is written for a 4000 x 4000 mask.
 
     Returns
     -------
@@ -262,7 +265,10 @@ def write_product(
                 data, unit = np.asarray(arr.value), str(arr.unit)
             else:
                 data, unit = np.asarray(arr), ""
-            ds = f.create_dataset(name, data=data, compression=compression)
+            if compression is None and data.dtype == np.bool_ and not data.any():
+                ds = f.create_dataset(name, shape=data.shape, dtype=data.dtype, fillvalue=False)
+            else:
+                ds = f.create_dataset(name, data=data, compression=compression)
             ds.attrs["unit"] = unit
     return path
 

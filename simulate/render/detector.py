@@ -116,6 +116,7 @@ def expose_stack(
     skew_limit: float = 0.0,
     threads: int = 1,
     poisson_skew_limit: float | None = None,
+    out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read out a stack of ``nexp`` sub-exposures of a static scene.
 
@@ -141,11 +142,16 @@ def expose_stack(
         (:func:`skewed_normal`: exact mean and variance, skewness ``g`` to
         ``O(g**3)``). Default: ``skew_limit`` (no skew-corrected tier). Ignored when
         ``skew_limit`` is 0 (exact everywhere).
+    out : ndarray (ny, nx) float32, optional
+        Write the stack here (and return it) instead of into a new array. It may be
+        ``mean_electrons`` itself (C-contiguous float32), which is then overwritten
+        chunk by chunk once each chunk's means are read: the frames program's 64 MB of
+        fresh memory for a 4000 x 4000 stack saved; the same values either way.
 
     Returns
     -------
     image_adu : ndarray (ny, nx) float32
-        The summed stack in adu.
+        The summed stack in adu (``out`` when given).
     saturated : ndarray (ny, nx) bool
         Pixels saturated in at least one sub-exposure.
     """
@@ -153,13 +159,18 @@ def expose_stack(
         raise ValueError(f"nexp must be >= 1, got {nexp}")
     full = settings.saturation_electrons
     rn = settings.read_noise
+    mean = np.asarray(mean_electrons)
+    in_place = _check_out(out, mean)
     if not noise:
-        mu = np.array(mean_electrons, dtype=np.float32, copy=True)
+        if out is None:
+            mu = np.array(mean, dtype=np.float32, copy=True)
+        else:
+            mu = out
+            np.copyto(mu, mean)  # nothing to copy when out is mean itself
         np.clip(mu, 0.0, np.float32(full), out=mu)
         saturated = mu >= full
         mu *= np.float32(nexp / settings.gain)
         return mu, saturated
-    mean = np.asarray(mean_electrons)
     if mean.dtype not in (np.float32, np.float64):
         mean = mean.astype(np.float64)
     flat_mu = mean.reshape(-1)
@@ -167,7 +178,7 @@ def expose_stack(
     # in chunks on `threads` threads, one generator per chunk so the result does not
     # depend on the thread count: a Gaussian with the exact mean and variance of the
     # sum (float32), skew-corrected or exact where its skewness matters
-    total = np.empty(flat_mu.size, dtype=np.float32)
+    total = np.empty(flat_mu.size, dtype=np.float32) if out is None else out.reshape(-1)
     starts = range(0, flat_mu.size, NOISE_CHUNK)
     chunk_rngs = rng.spawn(len(starts))
     # skew_limit = 0 means exact draws everywhere, whatever poisson_skew_limit says
@@ -182,36 +193,71 @@ def expose_stack(
         start, crng = args
         sl = slice(start, start + NOISE_CHUNK)
         mu_chunk = flat_mu[sl]
-        out = total[sl]
-        # one compiled pass: the chunk's standard normals (numpy's float32 sampler, run
-        # compiled: the same stream), then Gaussian, skew-corrected where skewness >=
-        # skew_limit
-        z = _draw_chunk(mu_chunk, crng, nexp, var_rn, skew_limit if corrected else np.inf, out)
-        # exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum reaches
-        # the limit: the window [lo, hi] of lam where it does (see _skewed_window)
+        # what the chunk's means decide, read before an in-place draw overwrites them:
+        # the exact Poisson + Gaussian where the skewness lam / var**1.5 of the sum
+        # reaches the limit, the window [lo, hi] of lam where it does (see
+        # _skewed_window), and the pixels that may saturate
+        exact = None
         if lo <= hi:
             lam = np.maximum(mu_chunk, 0.0) * float(nexp)
             exact = np.flatnonzero((lam >= lo) & (lam <= hi))
-            if exact.size:
-                counts = crng.poisson(lam[exact])
-                out[exact] = counts + np.sqrt(var_rn) * z[exact].astype(np.float64)
-        return np.flatnonzero(mu_chunk >= risky_floor) + start
+            lam_exact = lam[exact]
+        risky = np.flatnonzero(mu_chunk >= risky_floor)
+        mu_risky = mu_chunk[risky]
+        # in place: the chunk is drawn into a scratch array (cache-sized) and copied
+        # over its means (a compiled loop reading and writing one array through two
+        # arguments is not vectorised: ~2x the CPU of the draw)
+        out_chunk = np.empty(mu_chunk.size, np.float32) if in_place else total[sl]
+        # one compiled pass: the chunk's standard normals (numpy's float32 sampler, run
+        # compiled: the same stream), then Gaussian, skew-corrected where skewness >=
+        # skew_limit
+        z = _draw_chunk(
+            mu_chunk, crng, nexp, var_rn, skew_limit if corrected else np.inf, out_chunk
+        )
+        if exact is not None and exact.size:
+            counts = crng.poisson(lam_exact)
+            out_chunk[exact] = counts + np.sqrt(var_rn) * z[exact].astype(np.float64)
+        if in_place:
+            total[sl] = out_chunk
+        return risky + start, mu_risky
 
     results = _map_threads(chunk, zip(starts, chunk_rngs), threads)
-    risky_c = np.concatenate(results) if results else np.zeros(0, int)
+    risky_c = np.concatenate([r[0] for r in results]) if results else np.zeros(0, int)
+    mu_c = np.concatenate([r[1] for r in results]).astype(np.float64) if results else None
     # pixels that can saturate in a sub-exposure: drawn and clipped one by one
     saturated = np.zeros(flat_mu.shape, dtype=bool)
-    mu_c = flat_mu[risky_c].astype(np.float64)
-    risky = risky_c[mu_c + SATURATION_SAFETY_SIGMA * np.sqrt(mu_c + rn**2) >= full]
+    if mu_c is None:
+        mu_c = np.zeros(0)
+    can = mu_c + SATURATION_SAFETY_SIGMA * np.sqrt(mu_c + rn**2) >= full
+    risky = risky_c[can]
     if risky.size:
-        mu_r = flat_mu[risky].astype(np.float64)
+        mu_r = mu_c[can]
         subs = rng.poisson(np.broadcast_to(mu_r, (nexp, mu_r.size))).astype(np.float64)
         subs += rng.normal(0.0, rn, subs.shape)
         saturated[risky] = np.any(subs >= full, axis=0)
         total[risky] = np.minimum(subs, full).sum(axis=0)
     if settings.gain != 1.0:  # a pass over the frame for nothing at unit gain
         total *= np.float32(1.0 / settings.gain)
-    return total.reshape(mean.shape), saturated.reshape(mean.shape)
+    stack = total.reshape(mean.shape) if out is None else out
+    return stack, saturated.reshape(mean.shape)
+
+
+def _check_out(out: np.ndarray | None, mean: np.ndarray) -> bool:
+    """Check :func:`expose_stack`'s ``out``; True when it is ``mean`` itself (in place)."""
+    if out is None:
+        return False
+    if out.dtype != np.float32 or out.shape != mean.shape or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {mean.shape}")
+    if not np.may_share_memory(out, mean):
+        return False
+    same = (
+        mean.dtype == np.float32
+        and mean.flags.c_contiguous
+        and out.__array_interface__["data"][0] == mean.__array_interface__["data"][0]
+    )
+    if not same:
+        raise ValueError("out overlaps mean_electrons without being that array")
+    return True
 
 
 def skewed_normal(lam: np.ndarray, var_rn: float, z: np.ndarray, skew_limit: float) -> np.ndarray:

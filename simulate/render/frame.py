@@ -260,8 +260,9 @@ def render_stack(
     progress : bool
         Show progress bars.
     noiseless : bool
-        Keep the noise-free stack (False: ``RenderedStack.noiseless`` is None, and the
-        pass over the frame that scales it to the stack is left out).
+        Keep the noise-free stack (False: ``RenderedStack.noiseless`` is None, the
+        pass over the frame that scales it to the stack is left out, and the noise is
+        drawn over the image itself: no second full-frame array).
 
     Returns
     -------
@@ -373,6 +374,9 @@ def render_stack(
         skew_limit=par.gaussian_skew_limit,
         threads=par.threads,
         poisson_skew_limit=par.poisson_skew_limit,
+        # without the noise-free stack, the noise is drawn over the image itself: no
+        # fresh 64 MB for a 4000 x 4000 stack (the same values)
+        out=None if noiseless else image,
     )
     if noiseless:
         image *= scene.nexp  # in place: the noise-free stack (electron)

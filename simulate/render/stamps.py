@@ -766,12 +766,23 @@ class StarRenderer:
         elif not _is_subset(sel, entry[1]):
             self._keep_columns(plan, cplx, np.union1d(entry[1], sel))
         _, cols, typed = self._typed[key]
+        if len(sel) == len(cols):  # all of them (sel is a subset of cols): no copy
+            return typed
         return np.take(typed, np.searchsorted(cols, sel), axis=1)  # C order (a[:, i] is not)
 
     def _keep_columns(self, plan: StampPlan, cplx, cols) -> None:
-        """Keep ``plan.transforms[:, cols]`` in ``cplx`` for :meth:`_typed_columns`."""
+        """Keep ``plan.transforms[:, cols]`` in ``cplx`` for :meth:`_typed_columns`.
+
+        Cast a few rows at a time: no complex128 copy of all the columns on the way to
+        complex64 (twice the kept array's fresh memory); a cast commutes with taking
+        columns, so the values are the same.
+        """
         cols = np.asarray(cols, dtype=np.int64)
-        typed = np.require(plan.transforms[:, cols], dtype=cplx, requirements=["C", "A"])
+        src = plan.transforms
+        typed = np.empty((src.shape[0], len(cols)), dtype=cplx)
+        step = max(1, KEEP_COLUMNS_BYTES // max(1, len(cols) * src.dtype.itemsize))
+        for i in range(0, src.shape[0], step):
+            typed[i : i + step] = src[i : i + step, cols]
         self._typed[(plan.m, np.dtype(cplx).str)] = (plan, cols, typed)
 
     def _mixed_transforms(self, transforms, u, v, spectrum):
@@ -1031,6 +1042,11 @@ class StarRenderer:
         if flux_max > self._float64_flux(noise_sigma):
             dtype = "float64"
         return min(floor, allowed), dtype
+
+
+#: Bytes of plan columns taken at a time by :meth:`StarRenderer._keep_columns` before the
+#: cast (fits in the core's cache).
+KEEP_COLUMNS_BYTES = 1 << 20
 
 
 class _WorkBuffers:
