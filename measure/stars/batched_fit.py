@@ -36,8 +36,11 @@ from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
 from mavispm.measure.stars.halo import (
     RING_REFERENCE,
     deposit_stacked,
+    deposit_tail,
     halo_profile,
+    halo_tail,
     stacked_residual,
+    tail_ramp,
 )
 from mavispm.measure.stars.halo import ring_corrections as halo_ring_corrections
 from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped
@@ -188,6 +191,13 @@ class FitOptions:
     halo_stack_stars : float
         The map goes onto the stars whose halo at 20 px exceeds this many times the
         sky's pixel noise (0: every star with a halo)
+    halo_tail : float
+        Beyond ``halo_radius`` the halo goes on to this radius [pixel] as a seeing halo,
+        ``A r^(-11/3)`` fitted to the profile's last 12 px (the profile inside raised by
+        the light it was measured against; :func:`~mavispm.measure.stars.halo.halo_tail`),
+        added around the same stars at once by FFT
+        (:func:`~mavispm.measure.stars.halo.deposit_tail`); 0 (or at most
+        ``halo_radius``): none (docs/measure.md, "Scale", seventeenth pass).
     fixed_full_system : bool
         Reference path (tests): the fixed-position steps solve the full system (the
         position rows frozen) with freshly evaluated stamps and derivatives, instead of
@@ -223,6 +233,7 @@ class FitOptions:
     halo_rings: float = 0.0
     halo_stack: float = 0.0
     halo_stack_stars: float = 0.0
+    halo_tail: float = 0.0
 
 
 @dataclass
@@ -774,7 +785,7 @@ def fit_stars(
             snr = flux[idx] / np.sqrt(np.abs(cov[:, 2, 2]))
             misfit = (
                 _neighbour_misfit(
-                    w * resid**2, model[flat[idx]] - own[idx], own[idx], valid[idx], npar
+                    w * resid**2, others_on(flat[idx], own[idx]), own[idx], valid[idx], npar
                 )
                 if opt.chi2_tolerance
                 else None
@@ -876,10 +887,28 @@ def fit_stars(
         # 2.3 s at 1e5 stars, instead of one into each; the same to round-off)
         out = halo_light if len(halo_light) else model
         args = (pixels, (ny, nx), x[bright], y[bright], geom.cx[bright], geom.cy[bright], r)
+        inner = profile
+        if opt.halo_tail > opt.halo_radius:
+            # the halo past halo_radius as a seeing halo; the profile inside raised by
+            # the light it was measured against (the selections keep the frame's profile)
+            full = halo_tail(profile, radii[0], opt.halo_tail)
+            if len(full) > len(profile):  # else no tail (its amplitude not positive)
+                # each star's own deposit fades out over the profile's last TAIL_SEAM px,
+                # where the FFT's (smooth: the bilinear flux split blurs a step) fades in
+                seam = tail_ramp(radii[0] + np.arange(len(full)), radii[-1])
+                inner = full[: len(profile)] * (1.0 - seam[: len(profile)])
+                # into the model, kept apart (tail_light): the returned star-model image,
+                # the neighbours' light of the crowding measures and the halo share that
+                # sizes the correlated-misfit error term (halo_light) leave it out
+                deposit_tail(
+                    pixels, (ny, nx), x[bright], y[bright], flux[bright], full * seam, radii[0],
+                    (tail_light,),
+                )  # fmt: skip
+                model[:] += tail_light
         if halo_shape is None:
-            deposit_radial(*args, flux[bright], profile, radii[0], out=out)
+            deposit_radial(*args, flux[bright], inner, radii[0], out=out)
         else:
-            deposit_shaped(*args, flux[bright], profile, radii[0], halo_shape, out)
+            deposit_shaped(*args, flux[bright], inner, radii[0], halo_shape, out)
         if len(halo_light):
             model[:] += halo_light
         if opt.halo_rings > 0:
@@ -914,6 +943,17 @@ def fit_stars(
     halo_pending = models_halo
     # kept apart for the returned star-model image and the error model's halo share
     halo_light = np.zeros(len(pixels) if halo_pending and (return_model or uncertainties) else 0)
+    # kept apart always: a smooth light, absorbed by the sky planes, is no neighbour's
+    # light in the crowding measures (others_on)
+    tail_light = np.zeros(len(pixels) if halo_pending and opt.halo_tail > opt.halo_radius else 0)
+
+    def others_on(where, mine):
+        """The neighbours' model light (stars and halos, not the halos' smooth tail) on
+        the pixels ``where`` of stamps whose own model is ``mine`` [e-]."""
+        if len(tail_light):
+            return model[where] - tail_light[where] - mine
+        return model[where] - mine
+
     if halo_pending and flux0 is not None:
         add_halo()
         halo_pending = False
@@ -928,7 +968,7 @@ def fit_stars(
         ).ravel()
         for idx in _chunks(np.flatnonzero(usable), opt.chunk):
             mine = own[idx][:, ~inner]
-            others = np.maximum(model[flat[idx][:, ~inner]] - mine, 0.0)
+            others = np.maximum(others_on(flat[idx][:, ~inner], mine), 0.0)
             outer = valid[idx][:, ~inner]
             ratio = np.sum(np.abs(mine) * outer, 1) / np.maximum(np.sum(others * outer, 1), 1e-300)
             narrow = (ratio < opt.crowded_ratio) & (np.sum(valid[idx][:, inner], 1) > 2 * npar)
@@ -1037,7 +1077,7 @@ def fit_stars(
         fisher[idx], weight[idx] = _marginalise_slopes(a), w
         if len(halo_light):
             ok_pix = valid[idx]
-            others = model[flat[idx]] - own[idx]
+            others = others_on(flat[idx], own[idx])
             light = np.sum((np.maximum(others, 0.0) + np.abs(own[idx])) * ok_pix, axis=1)
             halo_share[idx] = np.sum(
                 np.maximum(halo_light[flat[idx]], 0.0) * ok_pix, axis=1
@@ -1058,7 +1098,7 @@ def fit_stars(
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
         crowding[idx] = _neighbour_misfit(
-            w * resid**2, model[flat[idx]] - own[idx], own[idx], valid[idx], npar
+            w * resid**2, others_on(flat[idx], own[idx]), own[idx], valid[idx], npar
         )
     if uncertainties:
         separation = np.hypot(x[pairs[:, 0]] - x[pairs[:, 1]], y[pairs[:, 0]] - y[pairs[:, 1]])
@@ -1105,7 +1145,9 @@ def fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
-        model_image=_frame_image(model - halo_light if len(halo_light) else model, pixels, (ny, nx))
+        model_image=_frame_image(model - halo_light - tail_light, pixels, (ny, nx))
+        if return_model and len(tail_light)
+        else _frame_image(model - halo_light if len(halo_light) else model, pixels, (ny, nx))
         if return_model
         else None,
         sky_slope=np.where(usable[:, None], slope, 0.0),

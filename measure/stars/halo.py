@@ -27,7 +27,10 @@ __all__ = [
     "grouped_median",
     "halo_excess",
     "halo_profile",
+    "halo_tail",
     "deposit_stacked",
+    "deposit_tail",
+    "tail_ramp",
     "ring_corrections",
     "stacked_residual",
 ]
@@ -130,6 +133,136 @@ def halo_profile(
         median = np.nan_to_num(np.nanmedian(rows[:n_median], axis=0))
     slope = _flux_scaled(rows * flux[cand][:, None], flux[cand], min_stars, significance)
     return np.where(slope > 0, np.maximum(np.minimum(median, slope), 0.0), 0.0)
+
+
+#: Logarithmic slope of the seeing halo past the AO control radius: the light there is the
+#: uncorrected turbulence's, whose phase spectrum (Kolmogorov, von Karman well inside the
+#: outer scale) falls as ``f^(-11/3)``, and so does the halo at angles ``lambda f``
+#: (the MAVISIM paper, sections 2-3). On the 1e5-star MAVIS frame the light at 60-100 px,
+#: measured against the 100-110 px annulus, follows ``r^(-11/3)`` fitted at 48-60 px
+#: (6.9 / 1.5e-6 predicted at 70 / 90 px, 7.3 / 1.4e-6 measured; ``r^-3``: 8.8 / 2.2e-6;
+#: docs/measure.md, "Scale", seventeenth pass).
+TAIL_SLOPE = 11.0 / 3.0
+#: Radii [pix] at the profile's end to which the tail's amplitude is fitted.
+TAIL_FIT = 12.0
+
+
+def halo_tail(profile, r_in, outer, width=10.0):
+    """The halo continued past the profile's edge as a seeing halo, ``A r^(-11/3)``.
+
+    :func:`halo_profile` is zero at its last radius by construction (its background is
+    the annulus ``[R, R + width)`` just beyond its last radius ``R``), while the halo goes
+    on falling past the AO control radius (on the 1e5-star MAVIS frame by ~1e-6 of the
+    star's flux per px at 60-70 px). The profile's last ``TAIL_FIT`` px are fitted (least
+    squares, amplitude only) by ``A (r^-s - rho^-s)``, ``s = TAIL_SLOPE`` and ``rho`` the
+    radius that splits that annulus' area in two (its median for a falling halo); then
+    the profile is raised by the light it was measured against, ``A rho^-s``, and
+    continued by ``A r^-s`` out to ``outer``, faded to zero by a raised cosine over the
+    tail's outer half (no step at its edge); across the last ``TAIL_SEAM`` px of the
+    profile the raised profile blends into the power law (:func:`tail_ramp`), so the
+    two deposits of :func:`deposit_tail` join smoothly.
+
+    Parameters
+    ----------
+    profile : ndarray (L,)
+        The frame's profile at ``r_in + 0 .. L - 1`` [1/pixel].
+    r_in : float
+        Its first radius [pixel].
+    outer : float
+        Outer radius of the tail [pixel].
+    width : float
+        Width of the profile's background annulus [pixel].
+
+    Returns
+    -------
+    ndarray
+        The profile at ``r_in + 0, 1, ...`` below ``outer``; the given one where the
+        tail does not reach past it or its fitted amplitude is not positive.
+    """
+    profile = np.asarray(profile, float)
+    n = len(profile)
+    radii = np.arange(r_in, outer, 1.0)
+    if len(radii) <= n or n < 2:
+        return profile
+    last = radii[n - 1]
+    edge = last + 0.5
+    rho = np.sqrt(0.5 * (edge**2 + (edge + width) ** 2))
+    fit = radii[:n] > last - TAIL_FIT
+    g = radii[:n][fit] ** -TAIL_SLOPE - rho**-TAIL_SLOPE
+    amp = float(np.sum(g * profile[fit]) / np.sum(g * g))
+    if not amp > 0:
+        return profile
+    law = amp * radii**-TAIL_SLOPE
+    mid = 0.5 * (last + outer)
+    fade = 0.5 + 0.5 * np.cos(np.pi * np.clip((radii - mid) / (outer - mid), 0.0, 1.0))
+    w = tail_ramp(radii, last)
+    raised = np.concatenate(
+        [np.where(profile > 0, profile + amp * rho**-TAIL_SLOPE, 0.0), np.zeros(len(radii) - n)]
+    )
+    return ((1 - w) * raised + w * law) * fade
+
+
+#: Width [pix] of the raised-cosine seam between a star's own halo deposit and the tail's
+#: FFT deposit (:func:`tail_ramp`): the flux image's bilinear split blurs a sharp seam
+#: (3.7 % rms error on a test frame), not a smooth one.
+TAIL_SEAM = 10.0
+
+
+def tail_ramp(r, start):
+    """The tail's share of the halo at radius ``r`` [pix]: 0 below ``start - TAIL_SEAM``,
+    1 from ``start`` on, a raised cosine between; the star's own deposit takes the rest."""
+    t = np.clip((np.asarray(r, float) - (start - TAIL_SEAM)) / TAIL_SEAM, 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * t)
+
+
+#: Rows of the frame per FFT of :func:`deposit_tail`: one FFT of the whole frame
+#: (``oaconvolve``) took the 1e5-star stage's peak memory from 1.33 to 2.63 GB; strips of
+#: 512 / 1024 / 2048 rows took 2.6 / 1.4 / 1.7 s CPU on a 4000 x 4000 frame with a 150 px
+#: tail (each strip is padded by the tail's reach).
+TAIL_STRIP = 1024
+
+
+def deposit_tail(pixels, shape, x, y, flux, profile, r_in, outs):
+    """Add every star's ``flux * profile(r)`` (linear in ``r``, samples 1 px apart from
+    ``r_in``, zero outside ``[r_in, r_in + len(profile) - 1]``) to the pixels ``pixels``,
+    at once: a flux image (each flux split bilinearly over the 4 pixels around its star)
+    convolved by FFT with the round kernel, in strips of ``TAIL_STRIP`` rows (cost nearly
+    independent of the radius; the split blurs the kernel by a pixel, so it should be
+    smooth: :func:`tail_ramp`); into each array of ``outs`` (shape (P,), in place)."""
+    from scipy.signal import fftconvolve
+
+    ny, nx = shape
+    reach = int(np.floor(r_in + len(profile) - 1))
+    if len(x) == 0 or len(profile) < 2 or len(pixels) == 0:
+        return
+    off = np.arange(-reach, reach + 1)
+    r = np.hypot(off[None, :], off[:, None])
+    kernel = np.interp(r, r_in + np.arange(len(profile)), profile, left=0.0, right=0.0)
+    x, y, flux = np.asarray(x, float), np.asarray(y, float), np.asarray(flux, float)
+    ix, iy = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - ix, y - iy
+    # the four corners of every star: row, column, share of its flux
+    rows = np.concatenate([iy, iy, iy + 1, iy + 1])
+    cols = np.concatenate([ix, ix + 1, ix, ix + 1])
+    share = np.concatenate([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]) * np.tile(
+        flux, 4
+    )
+    keep = (cols >= -reach) & (cols < nx + reach) & (share != 0)
+    rows, cols, share = rows[keep], cols[keep], share[keep]
+    first = np.searchsorted(pixels, np.arange(0, ny + TAIL_STRIP, TAIL_STRIP) * nx)
+    for s, a in enumerate(range(0, ny, TAIL_STRIP)):
+        lo, hi = first[s], first[s + 1]
+        if lo == hi:
+            continue
+        b = min(a + TAIL_STRIP, ny)
+        near = (rows >= a - reach) & (rows < b + reach)
+        grid = np.zeros((b - a + 2 * reach, nx + 2 * reach))
+        np.add.at(grid, (rows[near] - a + reach, cols[near] + reach), share[near])
+        light = fftconvolve(grid, kernel, mode="valid")  # (b - a, nx)
+        pix = pixels[lo:hi]
+        add = light[pix // nx - a, pix % nx]
+        for out in outs:
+            out[lo:hi] += add
 
 
 def halo_excess(image, bad, x, y, radii, width=10.0):

@@ -285,6 +285,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         halo_rings=settings.halo_rings,
         halo_stack=settings.halo_stack,
         halo_stack_stars=settings.halo_stack_stars,
+        halo_tail=settings.halo_tail,
     )
 
 
