@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from render_helpers import brute_force_stamp, make_optics
 
@@ -533,13 +533,14 @@ def test_band_groups_split_one_parity_at_band_boundaries_into_balanced_runs(coun
 
     from mavispm.simulate.render.stamps import _band_groups
 
-    if sum(counts) == 0:
-        return
+    assume(sum(counts) > 0)
     start = 7  # the parity's stars start after the other parity's
     edges = start + np.concatenate([[0], np.cumsum(counts)])
     runs = np.stack([edges[:-1], edges[1:]], axis=1)
     groups = _band_groups(runs, parts)
-    assert 1 <= len(groups) <= parts
+    assert len(groups) <= parts
+    # the parity is split between threads exactly when it can be: > 1 part, > 1 non-empty band
+    assert (len(groups) > 1) == (parts > 1 and np.count_nonzero(counts) > 1)
     assert groups[0][0] == start and groups[-1][1] == edges[-1]
     for (_, hi), (lo2, _) in zip(groups[:-1], groups[1:]):
         assert hi == lo2
