@@ -291,3 +291,34 @@ def halo_test_image(shape, sky, x, y, flux, scale, margin=60, lobes=0.0):
             (1 - HALO_TEST_FRAC) * halo_test_core(dx, dy) + halo
         )
     return image
+
+
+def jittered_grid(rng, nodes, jitter=3.0):
+    """Star positions on the square grid ``nodes`` x ``nodes`` [pix], each moved by up to
+    ``jitter`` px (uniform) in x and y; x's jitters drawn first, then y's."""
+    gx, gy = np.meshgrid(nodes, nodes)
+    return tuple(a.ravel() + rng.uniform(-jitter, jitter, a.size) for a in (gx, gy))
+
+
+def ring_scene(rng, bx, by, dist, field_nodes):
+    """Faint stars around bright ones, and field stars far from them (the halo tests' scene).
+
+    Around each bright star ``(bx, by)`` one faint star at each distance of ``dist`` [pix],
+    at equally spaced angles turned by a random angle per bright star (drawn first); then
+    field stars on the grid ``field_nodes`` (:func:`jittered_grid`, drawn after).
+
+    Returns
+    -------
+    x, y : ndarray
+        The bright stars, the ring stars (bright star by bright star), the field stars [pix].
+    d : ndarray
+        NaN for the bright stars, the ring stars' distance, inf for the field stars [pix].
+    """
+    dist = np.asarray(dist, float)
+    angle = np.arange(len(dist)) * 2 * np.pi / len(dist)
+    turns = [angle + rng.uniform(0, 2 * np.pi) for _ in range(len(bx))]
+    fx, fy = jittered_grid(rng, field_nodes)
+    x = np.concatenate([bx, *(b + dist * np.cos(a) for b, a in zip(bx, turns)), fx])
+    y = np.concatenate([by, *(b + dist * np.sin(a) for b, a in zip(by, turns)), fy])
+    d = np.concatenate([np.full(len(bx), np.nan), np.tile(dist, len(bx)), np.full(len(fx), np.inf)])
+    return x, y, d

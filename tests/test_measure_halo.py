@@ -205,28 +205,18 @@ def _halo_frame(seed, saturate=False):
     core, faint stars 7-33 px from them and others far from any. With ``saturate``
     every other bright star is 5x brighter, its core 15 % wider than the ePSF's (a star
     of another colour) and saturated above 3e5 electron (also returns the mask)."""
+    from measure_helpers import jittered_grid, ring_scene
     from scipy.special import ndtr
 
     rng = np.random.default_rng(seed)
     shape, sky, rn = (600, 600), 50.0, 5.0
     grid = np.arange(75.0, 600.0, 150.0)
-    bx, by = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(grid, grid))
+    bx, by = jittered_grid(rng, grid)
     bflux = 10 ** rng.uniform(6.0, 6.7, bx.size)
     wide = (np.arange(bx.size) % 2 == 1) & saturate
     bflux[wide] *= 5
     dist = np.array([7.0, 9.0, 11.0, 13.0, 15.0, 18.0, 22.0, 27.0, 33.0])
-    angle = np.arange(len(dist)) * 2 * np.pi / len(dist)
-    near_x, near_y, near_d = [], [], []
-    for k in range(bx.size):
-        a = angle + rng.uniform(0, 2 * np.pi)
-        near_x.append(bx[k] + dist * np.cos(a))
-        near_y.append(by[k] + dist * np.sin(a))
-        near_d.append(dist)
-    mid = np.arange(150.0, 500.0, 150.0)
-    fx, fy = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(mid, mid))
-    x = np.concatenate([bx, *near_x, fx])
-    y = np.concatenate([by, *near_y, fy])
-    d = np.concatenate([np.full(bx.size, np.nan), *near_d, np.full(fx.size, np.inf)])
+    x, y, d = ring_scene(rng, bx, by, dist, np.arange(150.0, 500.0, 150.0))
     flux = np.concatenate([bflux, np.full(x.size - bx.size, 4000.0)])
     m = 45
     image = np.full((shape[0] + 2 * m, shape[1] + 2 * m), sky)  # padded: no star is cut

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import halo_test_epsf, halo_test_image
+from measure_helpers import halo_test_epsf, halo_test_image, jittered_grid, ring_scene
 
 _BINS = ((11.0, 15.0), (15.0, 21.0))
 
@@ -21,20 +21,10 @@ def _frame(seed, lobes):
     rng = np.random.default_rng(seed)
     shape, sky, rn = (600, 600), 50.0, 5.0
     grid = np.arange(75.0, 600.0, 150.0)
-    bx, by = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(grid, grid))
+    bx, by = jittered_grid(rng, grid)
     bflux = 10 ** rng.uniform(6.3, 6.7, bx.size)
     dist = np.array([8.0, 9.5, 11.0, 12.5, 14.0, 16.0, 18.0, 20.0, 23.0, 26.0])
-    near_x, near_y, near_d = [], [], []
-    for k in range(bx.size):
-        a = np.arange(len(dist)) * 2 * np.pi / len(dist) + rng.uniform(0, 2 * np.pi)
-        near_x.append(bx[k] + dist * np.cos(a))
-        near_y.append(by[k] + dist * np.sin(a))
-        near_d.append(dist)
-    mid = np.arange(150.0, 500.0, 150.0)
-    fx, fy = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(mid, mid))
-    x = np.concatenate([bx, *near_x, fx])
-    y = np.concatenate([by, *near_y, fy])
-    d = np.concatenate([np.full(bx.size, np.nan), *near_d, np.full(fx.size, np.inf)])
+    x, y, d = ring_scene(rng, bx, by, dist, np.arange(150.0, 500.0, 150.0))
     flux = np.concatenate([bflux, np.full(x.size - bx.size, 4000.0)])
     m = 60
     image = halo_test_image(

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import halo_test_epsf, halo_test_image
+from measure_helpers import halo_test_epsf, halo_test_image, jittered_grid, ring_scene
 
 _BINS = ((32.0, 44.0), (44.0, 58.0))
 _SEEING, _CORE_RADIUS = 0.2, 15.0
@@ -27,20 +27,10 @@ def _frame(seed):
     rng = np.random.default_rng(seed)
     shape, sky, rn = (600, 600), 50.0, 5.0
     grid = np.arange(100.0, 600.0, 200.0)
-    bx, by = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(grid, grid))
+    bx, by = jittered_grid(rng, grid)
     bflux = 10 ** rng.uniform(7.5, 7.8, bx.size)
     dist = np.arange(32.0, 57.0, 3.0)
-    near_x, near_y, near_d = [], [], []
-    for k in range(bx.size):
-        a = np.arange(len(dist)) * 2 * np.pi / len(dist) + rng.uniform(0, 2 * np.pi)
-        near_x.append(bx[k] + dist * np.cos(a))
-        near_y.append(by[k] + dist * np.sin(a))
-        near_d.append(dist)
-    mid = np.arange(200.0, 500.0, 200.0)
-    fx, fy = (a.ravel() + rng.uniform(-3, 3, a.size) for a in np.meshgrid(mid, mid))
-    x = np.concatenate([bx, *near_x, fx])
-    y = np.concatenate([by, *near_y, fy])
-    d = np.concatenate([np.full(bx.size, np.nan), *near_d, np.full(fx.size, np.inf)])
+    x, y, d = ring_scene(rng, bx, by, dist, np.arange(200.0, 500.0, 200.0))
     flux = np.concatenate([bflux, np.full(x.size - bx.size, 2000.0)])
     m = 60
     image = halo_test_image(shape, 0.0, x, y, flux * (1 - _SEEING), 8.0, margin=m)
