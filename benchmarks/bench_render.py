@@ -463,8 +463,9 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     packages alternate so that both see the same load. Star counts above
     ``mavisim_max`` are not run through MAVISIM: its time there is extrapolated
     linearly from its two largest measured counts (marked "extrap.").
-    ``threads`` is mavispm's ``render.threads`` (0: all cores, its default; 1: one
-    thread, as MAVISIM's einsum runs with one BLAS thread here).
+    ``threads`` is mavispm's ``render.threads`` (0: automatic, its default: one thread
+    below 20,000 stars, all cores from there; 1: one thread, as MAVISIM's einsum runs
+    with one BLAS thread here; 2: two threads at every count).
     """
     import json
     import os
@@ -500,7 +501,11 @@ def mavisim_comparison(quick: bool, counts=None, repeats: int = 2, mavisim_max: 
     print(f"   distortion, halo, sky, photon + read noise, 120 x 30 s); warm caches; best of "
           f"{repeats} alternating runs")  # fmt: skip
     print("   one BLAS thread (OPENBLAS_NUM_THREADS=1: MAVISIM's cheapest setting); mavispm")
-    ours_threads = "all cores" if not threads else f"render.threads = {threads}"
+    ours_threads = (
+        "the default thread count (one thread below 20,000 stars, all cores from there)"
+        if not threads
+        else f"render.threads = {threads}"
+    )
     print(f"   renders on {ours_threads}; CPU = user + sys of the process, all threads")
     print(f"   load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     rows = []
@@ -604,7 +609,7 @@ def main(argv=None):
         "--threads",
         type=int,
         default=0,
-        help="mavispm's render.threads in the MAVISIM comparison (default 0: all cores)",
+        help="mavispm's render.threads in the MAVISIM comparison (default 0: automatic)",
     )
     ap.add_argument(
         "--mavisim-max",

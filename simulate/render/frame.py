@@ -24,6 +24,7 @@ from mavispm.simulate.render.pixel_response import flat_field_residual
 from mavispm.simulate.render.scene import SceneSettings
 from mavispm.simulate.render.stamps import StarRenderer
 from mavispm.simulate.render.symmetric2x2 import eigvals_2x2
+from mavispm.simulate.render.thread_count import frame_threads
 from mavispm.simulate.render.zero_point import (
     photometric_zero_point,
     sky_electrons_per_pixel,
@@ -326,6 +327,7 @@ def render_stack(
     if spectra is not None:
         sigma_max = sigma_max + extent / 4  # the slices' shifts widen the wing
     noise = noise_sigma_per_subexposure(scene)
+    threads = frame_threads(par.threads, len(x))  # 0: one thread for small frames
     sizes = renderer.stamp_sizes(flux_sub * core_fraction, noise, sigma_max, x, y)
     sky = sky_electrons_per_pixel(phot, s * u.mas, sub_exposure).value
     # the sky fills the frame in one sequential pass (touching a fresh 128 MB array
@@ -341,7 +343,7 @@ def render_stack(
             halo,
             s,
             b,
-            par.threads,
+            threads,
             out=np.empty((det.ny, det.nx), dtype=FRAME_DTYPE),
             fill=sky,
             cache_dir=getattr(renderer, "cache_dir", None),
@@ -361,6 +363,7 @@ def render_stack(
         progress=progress,
         colour=colour,
         spectra=spectra,
+        threads=threads,
     )
     flat = flat_field_residual(image.shape, det.flat_residual, det.flat_seed)
     if flat is not None:
@@ -372,7 +375,7 @@ def render_stack(
         rng,
         noise=scene.noise,
         skew_limit=par.gaussian_skew_limit,
-        threads=par.threads,
+        threads=threads,
         poisson_skew_limit=par.poisson_skew_limit,
         # without the noise-free stack, the noise is drawn over the image itself: no
         # fresh 64 MB for a 4000 x 4000 stack (the same values)

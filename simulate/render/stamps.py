@@ -49,6 +49,7 @@ from mavispm.simulate.render.stamp_kernels import (
     wrap_2d_into,
 )
 from mavispm.simulate.render.symmetric2x2 import eigvals_2x2
+from mavispm.simulate.render.thread_count import frame_threads
 
 __all__ = [
     "FLOAT32_ROUNDOFF",
@@ -135,8 +136,9 @@ class RenderParams:
         narrowest tip-tilt/blur kernel of the batch, is below this fraction of the
         total are dropped (the OTF vanishes beyond D/lambda; default 1e-5).
     threads : int
-        Threads for stamp batches, the noise draw and the halo FFT (0: all cores).
-        Results do not depend on it.
+        Threads for stamp batches and the noise draw (0: automatic, one thread for
+        frames of fewer than 20,000 stars and all cores from there:
+        :mod:`~mavispm.simulate.render.thread_count`). Results do not depend on it.
     gaussian_skew_limit : float
         Photon + read noise of the stack is drawn as a Gaussian with the exact mean
         and variance where its skewness is below this value, and exactly
@@ -197,7 +199,7 @@ class RenderParams:
         if self.poisson_skew_limit < 0:
             raise ValueError("render.poisson_skew_limit must be >= 0")
         if self.threads < 0:
-            raise ValueError("render.threads must be >= 0 (0: all cores)")
+            raise ValueError("render.threads must be >= 0 (0: automatic)")
         if self.batch_size < 1:
             raise ValueError("render.batch_size must be >= 1")
         if self.outer_convolution not in ("auto", "on", "off"):
@@ -817,6 +819,7 @@ class StarRenderer:
         progress=False,
         colour=None,
         spectra=None,
+        threads=None,
     ):
         """Add stars to ``image`` in place (noise-free), batched by stamp size.
 
@@ -840,6 +843,10 @@ class StarRenderer:
         spectra : list of tuple, optional
             Broadband kernel ``(weights, shifts)`` of each colour bin (see
             :meth:`render_stamps`); needed with ``slice_cubes``.
+        threads : int, optional
+            Threads (the image does not depend on it). Default: ``params.threads``,
+            0 resolved by :func:`~mavispm.simulate.render.thread_count.frame_threads`
+            from the stars drawn.
 
         Returns
         -------
@@ -887,7 +894,8 @@ class StarRenderer:
                     for sel in _flux_batches(idx, flux[idx], batch, f64):
                         # similar fluxes: one spectrum floor and precision per batch
                         jobs.append((int(m), sel, renderer))
-        threads = self.params.threads or os.cpu_count() or 1
+        if threads is None:
+            threads = frame_threads(self.params.threads, int(todo.sum()))
         for renderer in parts.values():  # build plans once, before the threads share them
             renderer.plans({m for m, _, r in jobs if r is renderer})
         if spectra is None:  # and the columns of their transforms that the batches take
