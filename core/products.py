@@ -256,8 +256,9 @@ def write_product(
         host reclaims free memory, fresh pages cost ~2 ms per MB of system time). Their
         contents are undefined (zeros) afterwards, in every array sharing their memory.
         Only a writeable C-contiguous array owning its memory (or a view of one) is
-        released (``core.malloc_policy.owns_memory``), and only without compression;
-        others are written as usual. The file is the same either way.
+        released (``core.malloc_policy.owns_memory``), sharing no memory with the
+        product's other arrays, and only without compression; others are written as
+        usual. The file is the same either way.
 
     Returns
     -------
@@ -278,13 +279,29 @@ def write_product(
                 data, unit = np.asarray(arr), ""
             if compression is None and data.dtype == np.bool_ and not data.any():
                 ds = f.create_dataset(name, shape=data.shape, dtype=data.dtype, fillvalue=False)
-            elif name in release and compression is None and owns_memory(data):
+            elif name in release and compression is None and _releasable(name, data, arrays):
                 ds = f.create_dataset(name, shape=data.shape, dtype=data.dtype)
                 _write_releasing(ds, data)
             else:
                 ds = f.create_dataset(name, data=data, compression=compression)
             ds.attrs["unit"] = unit
     return path
+
+
+def _releasable(name: str, data: np.ndarray, arrays: Mapping[str, Any]) -> bool:
+    """Whether ``arrays[name]`` (as ``data``) may be released behind its write.
+
+    Its own memory (``core.malloc_policy.owns_memory``), shared with no other array of
+    the product (which would read zeros when written after it).
+    """
+    if not owns_memory(data):
+        return False
+    for other_name, other in arrays.items():
+        if other_name != name:
+            other = other.value if isinstance(other, u.Quantity) else other
+            if isinstance(other, np.ndarray) and np.may_share_memory(data, other):
+                return False
+    return True
 
 
 #: Bytes of an array written per step by :func:`_write_releasing`.

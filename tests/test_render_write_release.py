@@ -109,6 +109,17 @@ def test_memory_that_is_not_ours_is_written_and_left_intact(tmp_path):
     got = read_product(out, "frames").arrays
     assert np.array_equal(got["a"], data) and np.array_equal(shared, data)
     assert np.array_equal(got["b"], data[:, ::2]) and np.array_equal(strided, data[:, ::2])
+    # an array sharing memory with another of the product: written, not released
+    owner = data.copy()
+    out = write_product(
+        tmp_path / "y.h5",
+        "frames",
+        arrays={"a": owner, "b": owner[10:20], "c": u.Quantity(owner, u.adu, copy=False)},
+        release=("a",),
+    )
+    got = read_product(out, "frames").arrays
+    assert np.array_equal(got["a"], data) and np.array_equal(got["b"], data[10:20])
+    assert np.array_equal(got["c"].value, data) and np.array_equal(owner, data)
 
 
 @linux_only
