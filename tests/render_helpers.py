@@ -269,3 +269,24 @@ def epoch_table(x, y, mag, epoch=0.0):
     )
     t.meta["epoch"] = epoch * u.yr
     return t
+
+
+def tiptilt_halo_optics():
+    """The small test optics with every frame term the renderer adds around the PSF grid.
+
+    A constant elliptical tip-tilt kernel (16 / 9 / 2 mas^2) and a ring halo holding 20 %
+    of the light (core 100 mas, extent 600 mas), on :func:`make_optics`'s Airy grid.
+    """
+    return make_optics(
+        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
+        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
+    )
+
+
+def random_epoch(n, half_x, half_y=None, seed=3, mags=(15.0, 23.0)):
+    """``n`` stars uniform in +-``half_x`` x +-``half_y`` arcsec, V uniform in ``mags``."""
+    r = np.random.default_rng(seed)
+    half_y = half_x if half_y is None else half_y
+    return epoch_table(
+        r.uniform(-half_x, half_x, n), r.uniform(-half_y, half_y, n), r.uniform(*mags, n)
+    )

@@ -143,7 +143,7 @@ def test_plain_header_left_to_astropy_when_yaml_would_quote():
 
 
 def test_stack_and_frame_write_the_same_product(tmp_path):
-    from render_helpers import ConstantTipTilt, RingHalo, epoch_table, make_optics
+    from render_helpers import random_epoch, tiptilt_halo_optics
 
     from mavispm.core.catalogue import Catalogue
     from mavispm.core.products import read_product
@@ -151,13 +151,9 @@ def test_stack_and_frame_write_the_same_product(tmp_path):
     from mavispm.simulate.render.frame import render_frame, render_stack
     from mavispm.simulate.render.scene import scene_from_mapping
 
-    optics = make_optics(
-        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
-        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
-    )
+    optics = tiptilt_halo_optics()
     scene = scene_from_mapping({"detector": {"nx": 72, "ny": 64, "gain": 1.7}, "nexp": 4})
-    r = np.random.default_rng(3)
-    t = epoch_table(r.uniform(-0.25, 0.25, 12), r.uniform(-0.2, 0.2, 12), r.uniform(15, 23, 12))
+    t = random_epoch(12, 0.25, 0.2)
     cat = Catalogue(epochs={"e0": t}, attrs={})
     args = (t, 0.0 * u.yr, scene, optics)
     frame = render_frame(*args, cli.epoch_rng(5, "e0"))

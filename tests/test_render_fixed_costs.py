@@ -215,19 +215,15 @@ def test_stack_noise_equals_the_draw_made_with_numpys_sampler():
 
 def test_stack_without_noiseless_has_the_same_image_and_truth():
     import astropy.units as u
-    from render_helpers import ConstantTipTilt, RingHalo, epoch_table, make_optics
+    from render_helpers import random_epoch, tiptilt_halo_optics
 
     from mavispm.simulate.render import cli
     from mavispm.simulate.render.frame import render_stack
     from mavispm.simulate.render.scene import scene_from_mapping
 
-    optics = make_optics(
-        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
-        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
-    )
+    optics = tiptilt_halo_optics()
     scene = scene_from_mapping({"detector": {"nx": 72, "ny": 64}, "nexp": 4})
-    r = np.random.default_rng(3)
-    t = epoch_table(r.uniform(-0.25, 0.25, 12), r.uniform(-0.2, 0.2, 12), r.uniform(15, 23, 12))
+    t = random_epoch(12, 0.25, 0.2)
     args = (t, 0.0 * u.yr, scene, optics)
     full = render_stack(*args, cli.epoch_rng(5, "e0"))
     lean = render_stack(*args, cli.epoch_rng(5, "e0"), noiseless=False)

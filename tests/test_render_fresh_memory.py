@@ -94,21 +94,17 @@ def test_out_overlapping_the_means_otherwise_is_refused():
 
 def test_stack_without_noiseless_draws_the_noise_over_the_image(monkeypatch):
     import astropy.units as u
-    from render_helpers import ConstantTipTilt, RingHalo, epoch_table, make_optics
+    from render_helpers import random_epoch, tiptilt_halo_optics
 
     from mavispm.simulate.render import cli, frame
     from mavispm.simulate.render.scene import scene_from_mapping
 
-    optics = make_optics(
-        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
-        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
-    )
+    optics = tiptilt_halo_optics()
     ny = nx = 1024  # 4 MB float32 frame, 4 noise chunks
     scene = scene_from_mapping(
         {"detector": {"nx": nx, "ny": ny}, "nexp": 4, "render": {"threads": 1}}
     )
-    r = np.random.default_rng(3)
-    t = epoch_table(r.uniform(-2.5, 2.5, 12), r.uniform(-2.5, 2.5, 12), r.uniform(15, 23, 12))
+    t = random_epoch(12, 2.5)
     args = (t, 0.0 * u.yr, scene, optics)
     grown = []
     plain = frame.expose_stack

@@ -34,7 +34,7 @@ def test_rule(monkeypatch):
 
 
 def test_render_stack_threads_follow_the_star_count(monkeypatch):
-    from render_helpers import ConstantTipTilt, RingHalo, epoch_table, make_optics
+    from render_helpers import random_epoch, tiptilt_halo_optics
 
     from mavispm.simulate.render import cli, frame
     from mavispm.simulate.render.scene import scene_from_mapping
@@ -55,15 +55,11 @@ def test_render_stack_threads_follow_the_star_count(monkeypatch):
 
     monkeypatch.setattr(stamps, "ThreadPoolExecutor", Pool)
     monkeypatch.setattr(frame, "expose_stack", expose)
-    optics = make_optics(
-        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
-        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
-    )
+    optics = tiptilt_halo_optics()
     scene = scene_from_mapping({"detector": {"nx": 256, "ny": 256}, "nexp": 4})
     assert scene.render.threads == 0  # the default: automatic
-    r = np.random.default_rng(3)
     n = 80
-    t = epoch_table(r.uniform(-0.9, 0.9, n), r.uniform(-0.9, 0.9, n), r.uniform(15, 23, n))
+    t = random_epoch(n, 0.9)
     args = (t, 0.0 * u.yr, scene, optics)
     small = frame.render_stack(*args, cli.epoch_rng(5, "e0"), noiseless=False)
     assert pools and set(pools) == {1} and draws == [1]

@@ -124,7 +124,7 @@ def test_memory_that_is_not_ours_is_written_and_left_intact(tmp_path):
 
 @linux_only
 def test_run_stage_and_write_frame_release_only_their_own_image(tmp_path, monkeypatch):
-    from render_helpers import ConstantTipTilt, RingHalo, epoch_table, make_optics
+    from render_helpers import random_epoch, tiptilt_halo_optics
 
     from mavispm.core.catalogue import Catalogue
     from mavispm.simulate.render import cli
@@ -132,13 +132,9 @@ def test_run_stage_and_write_frame_release_only_their_own_image(tmp_path, monkey
     from mavispm.simulate.render.scene import scene_from_mapping
 
     monkeypatch.setattr(products, "RELEASE_BLOCK", 2 * mmap.PAGESIZE)  # several blocks
-    optics = make_optics(
-        tiptilt=ConstantTipTilt(sxx=16.0, syy=9.0, sxy=2.0),
-        halo=RingHalo(fraction=0.2, r_c=100.0, extent=600.0),
-    )
+    optics = tiptilt_halo_optics()
     scene = scene_from_mapping({"detector": {"nx": 160, "ny": 150, "gain": 1.7}, "nexp": 4})
-    r = np.random.default_rng(3)
-    t = epoch_table(r.uniform(-0.5, 0.5, 20), r.uniform(-0.5, 0.5, 20), r.uniform(15, 23, 20))
+    t = random_epoch(20, 0.5)
     cat = Catalogue(epochs={"e0": t}, attrs={})
     args = (t, 0.0 * u.yr, scene, optics)
     want = render_stack(*args, cli.epoch_rng(5, "e0")).adu.copy()
