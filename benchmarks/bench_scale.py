@@ -68,6 +68,14 @@ def robust_sigma(a):
     return 1.4826 * np.median(np.abs(a - np.median(a))) if len(a) else np.nan
 
 
+def psfr_grid(attrs) -> str:
+    """The PSF-R correction grid of a measurement's attributes ("" without one)."""
+    if not attrs.get("psfr"):
+        return ""
+    model = json.loads(attrs["psfr"])
+    return f", PSF-R grid {model.get('grid', 3)} x {model.get('grid', 3)}"
+
+
 def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
     frame = read_frame(path)
     cfg = validate_settings({"psf_prior": str(prior), **(extra or {})})
@@ -85,7 +93,8 @@ def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
     print(
         f"{path.name}: {len(tx)} stars ({inside.sum()} inside), stage {wall:.1f} s "
         f"(PSF {attrs['time_epsf'].value:.1f}, fit {attrs['time_fit'].value:.1f}, errors "
-        f"{attrs['time_errors'].value:.1f}), peak RSS {peak:.2f} GB; V < 25 inside: "
+        f"{attrs['time_errors'].value:.1f}), peak RSS {peak:.2f} GB; PSF stars "
+        f"{int(attrs['n_psf_stars'])}{psfr_grid(attrs)}; V < 25 inside: "
         f"failed {np.mean(flag[sel] & 32 > 0):.2%}, not converged {np.mean(flag[sel] & 1 > 0):.2%}"
     )
     failed, unconverged = flag & 32 > 0, flag & 1 > 0

@@ -126,12 +126,19 @@ def write_frames(
     epoch=0.0,
     with_mask=True,
     truth=True,
+    background=None,
 ):
-    """Render and write a frames product; returns the truth table."""
+    """Render and write a frames product; returns the truth table.
+
+    ``background``: extra noiseless light [electron / pixel] (e.g. an unresolved crowd's),
+    added before the noise; the frame's ``sky`` attribute stays ``det.sky``."""
     rng = np.random.default_rng(seed)
     x, y, mag = (np.asarray(a, float) for a in (x, y, mag))
     flux = mag_to_flux(mag)
-    image, saturated = noisy_frame(render_image(shape, x, y, flux, psf), det, rng)
+    noiseless = render_image(shape, x, y, flux, psf)
+    if background is not None:
+        noiseless = noiseless + background
+    image, saturated = noisy_frame(noiseless, det, rng)
     ny, nx = shape
     scale = det.pixel_scale / 1000.0
     t = QTable()
@@ -322,3 +329,28 @@ def ring_scene(rng, bx, by, dist, field_nodes):
     y = np.concatenate([by, *(b + dist * np.sin(a) for b, a in zip(by, turns)), fy])
     d = np.concatenate([np.full(len(bx), np.nan), np.tile(dist, len(bx)), np.full(len(fx), np.inf)])
     return x, y, d
+
+
+PRIOR_SUB = 7.36 / 4  # sampling [mas] of the Gaussian PSF-R priors (a quarter Detector pixel)
+
+
+def gaussian_cube(sigma_mas: float, n: int = 101) -> np.ndarray:
+    """A round Gaussian PSF sampled every PRIOR_SUB mas, centred, summing to 1."""
+    r = (np.arange(n) - (n - 1) / 2) * PRIOR_SUB
+    g = np.exp(-0.5 * (r / sigma_mas) ** 2)
+    psf = g[:, None] * g[None, :]
+    return psf / psf.sum()
+
+
+def write_prior(path, sigma_mas: float, nodes=(-2.0, 0.0, 2.0), **extra) -> None:
+    """A ``psfgrid`` product (PSF-R prior) with the same Gaussian at every node [arcsec]."""
+    cube = np.broadcast_to(gaussian_cube(sigma_mas), (len(nodes), len(nodes), 101, 101))
+    arrays = {
+        "cube": np.array(cube),
+        "nodes_x": np.array(nodes) * u.arcsec,
+        "nodes_y": np.array(nodes) * u.arcsec,
+    }
+    arrays.update(extra)
+    write_product(
+        path, "psfgrid", arrays=arrays, attrs={"pixel_scale": PRIOR_SUB * u.mas, "static": False}
+    )

@@ -13,7 +13,14 @@ import astropy.units as u
 import numpy as np
 import pytest
 from astropy.table import QTable
-from measure_helpers import Detector, SynthPSF, grid_positions, write_frames
+from measure_helpers import (
+    Detector,
+    SynthPSF,
+    gaussian_cube,
+    grid_positions,
+    write_frames,
+    write_prior,
+)
 from scipy.special import ndtr
 
 from mavispm.core.errors import InputError
@@ -30,28 +37,6 @@ from mavispm.measure.stars.psf_reconstruction import (
 
 SCALE = 7.36  # detector pixel [mas] (measure_helpers.Detector)
 SUB = SCALE / 4  # prior sampling [mas]
-
-
-def gaussian_cube(sigma_mas: float, n: int = 101) -> np.ndarray:
-    """A round Gaussian PSF sampled every SUB mas, centred, summing to 1."""
-    r = (np.arange(n) - (n - 1) / 2) * SUB
-    g = np.exp(-0.5 * (r / sigma_mas) ** 2)
-    psf = g[:, None] * g[None, :]
-    return psf / psf.sum()
-
-
-def write_prior(path, sigma_mas: float, nodes=(-2.0, 0.0, 2.0), **extra) -> None:
-    """A ``psfgrid`` product with the same Gaussian at every node (nodes in arcsec)."""
-    cube = np.broadcast_to(gaussian_cube(sigma_mas), (len(nodes), len(nodes), 101, 101))
-    arrays = {
-        "cube": np.array(cube),
-        "nodes_x": np.array(nodes) * u.arcsec,
-        "nodes_y": np.array(nodes) * u.arcsec,
-    }
-    arrays.update(extra)
-    write_product(
-        path, "psfgrid", arrays=arrays, attrs={"pixel_scale": SUB * u.mas, "static": False}
-    )
 
 
 def test_model_epsf_is_the_pixel_integrated_convolution():
@@ -220,9 +205,12 @@ def test_psfr_model_reaches_the_bound_with_honest_errors(synthetic):
     # the fitted model's widths against the analytic ones: the (stretched) prior's
     # variance plus the kernel's, sigma_true^2 (a Gaussian prior and a round kernel are
     # degenerate; the stretch's prior settles the split)
-    fitted = np.array(json.loads(prod.attrs["psfr"])["kernels"]).reshape(3, 3, 4)
-    for j, yn in enumerate((49.5, 149.5, 249.5)):  # the 3 x 3 nodes (cell centres) [pixel]
-        for i, xn in enumerate((49.5, 149.5, 249.5)):
+    model = json.loads(prod.attrs["psfr"])
+    grid = model["grid"]
+    fitted = np.array(model["kernels"]).reshape(grid, grid, 4)
+    centres = (np.arange(grid) + 0.5) * SHAPE[0] / grid - 0.5  # the nodes (cell centres) [pixel]
+    for j, yn in enumerate(centres):
+        for i, xn in enumerate(centres):
             sx, sy = PSF.widths(xn, yn, SHAPE)
             cxx, cyy, cxy, stretch = fitted[j, i]
             prior_var = (1.03 * stretch * PRIOR_SIGMA) ** 2

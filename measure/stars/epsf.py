@@ -46,6 +46,7 @@ __all__ = [
     "neighbours_subtracted",
     "node_positions",
     "node_psf_stars",
+    "psf_star_pool",
     "resolve_oversampling",
     "select_psf_stars",
 ]
@@ -775,9 +776,50 @@ def choose_node_stars(
         Usable PSF stars before the per-node cap.
     """
     shape = image.shape
+    n_nodes = 1 if options.variation == "constant" else options.grid**2
+    chosen = psf_star_pool(
+        image, x, y, flux, bad, noise_floor, options, neighbours_subtracted, neighbour_flux,
+        n_nodes,
+    )  # fmt: skip
+    if options.variation == "constant":
+        gx, gy = np.array([(shape[1] - 1) / 2.0]), np.array([(shape[0] - 1) / 2.0])
+    else:
+        gx, gy = node_positions(shape, options.grid)
+    nodes = np.array([(xi, yi) for yi in gy for xi in gx])
+    members = node_psf_stars(x, y, chosen, nodes, options.stars_per_node)
+    return members, gx, gy, nodes, len(chosen)
+
+
+def psf_star_pool(
+    image: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    flux: np.ndarray,
+    bad: np.ndarray,
+    noise_floor: float,
+    options: EPSFOptions,
+    neighbours_subtracted: bool = False,
+    neighbour_flux: np.ndarray | None = None,
+    n_nodes: int = 1,
+) -> np.ndarray:
+    """All usable PSF stars, brightest first (the selection of :func:`choose_node_stars`).
+
+    Parameters
+    ----------
+    image, x, y, flux, bad, noise_floor, options, neighbours_subtracted, neighbour_flux
+        As :func:`choose_node_stars`.
+    n_nodes : int
+        Nodes to fill (with ``neighbours_subtracted``: the relaxed ratio is used where
+        the clean selection leaves fewer than ``min(stars_per_node, 50)`` per node).
+
+    Returns
+    -------
+    ndarray of int
+        Indices of the PSF stars.
+    """
+    shape = image.shape
     # flux SNR of a star in a ~ 10-pixel footprint over the background
     min_flux = options.min_snr**2 / 2 * (1 + np.sqrt(1 + 4 * 10 * noise_floor / options.min_snr**2))
-    n_nodes = 1 if options.variation == "constant" else options.grid**2
     ratio = options.isolation_ratio
     if neighbours_subtracted:
         ratio = min(options.clean_neighbour_ratio, options.neighbour_ratio)
@@ -801,13 +843,7 @@ def choose_node_stars(
         raise InputError(
             "no usable PSF stars (bright, unsaturated, isolated, inside the frame) found"
         )
-    if options.variation == "constant":
-        gx, gy = np.array([(shape[1] - 1) / 2.0]), np.array([(shape[0] - 1) / 2.0])
-    else:
-        gx, gy = node_positions(shape, options.grid)
-    nodes = np.array([(xi, yi) for yi in gy for xi in gx])
-    members = node_psf_stars(x, y, chosen, nodes, options.stars_per_node)
-    return members, gx, gy, nodes, len(chosen)
+    return chosen
 
 
 def node_psf_stars(

@@ -22,6 +22,7 @@ from pathlib import Path
 import astropy.units as u
 import numpy as np
 from astropy.table import QTable
+from scipy import ndimage
 
 from mavispm.core.errors import InputError
 from mavispm.core.frame import Frame
@@ -42,7 +43,9 @@ from mavispm.measure.stars.detection import completeness, detect_sources, detect
 from mavispm.measure.stars.epsf import (
     EPSFOptions,
     build_field_epsf,
-    choose_node_stars,
+    node_positions,
+    node_psf_stars,
+    psf_star_pool,
 )
 from mavispm.measure.stars.epsf_anchor import EarlierAnchor
 from mavispm.measure.stars.error_model import (
@@ -58,7 +61,7 @@ from mavispm.measure.stars.node_centring import (
     reference_list_id,
 )
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
-from mavispm.measure.stars.psf_reconstruction import build_psfr_epsf, read_prior
+from mavispm.measure.stars.psf_reconstruction import build_psfr_epsf, model_transforms, read_prior
 from mavispm.measure.stars.settings import MeasureSettings
 from mavispm.measure.stars.start_list import EarlierEpoch, start_from_earlier
 from mavispm.measure.stars.truth_match import match_to_truth
@@ -71,6 +74,9 @@ __all__ = [
     "box_flux",
     "build_psf",
     "measure_frame",
+    "mesh_sky",
+    "neighbour_rating",
+    "psfr_grid_for",
     "read_frame",
 ]
 
@@ -156,6 +162,51 @@ def _check_usable_image(image: np.ndarray, saturated: np.ndarray, attrs, path) -
 LOCAL_SKY_RING = (6, 8)
 
 
+def mesh_sky(frame: Frame, x: np.ndarray, y: np.ndarray, mesh: int) -> np.ndarray:
+    """The frame's background [electron / pixel] at the stars, from a mesh of block medians.
+
+    The frame is cut into ``mesh x mesh`` pixel blocks; each block's median (usable
+    pixels only; the frame's sky where a block has none) is smoothed by the median of
+    its 3 x 3 block neighbourhood (a block dominated by one bright star does not
+    count) and interpolated bilinearly between block centres at ``x, y``. The
+    background an unresolved crowd of faint stars lays on the frame is in it (at
+    1e5 stars over 30" it is several times a V 25 star's flux per 5 x 5 box above
+    the frame's sky), while one bright star raises a block's median by little.
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    x, y : ndarray
+        Positions [pixel].
+    mesh : int
+        Block side [pixel].
+
+    Returns
+    -------
+    ndarray
+        Background per pixel [electron], one per position.
+    """
+    ny, nx = frame.shape
+    nby, nbx = -(-ny // mesh), -(-nx // mesh)
+    blocks = np.empty((nby, nbx))
+    for j in range(nby):  # a row of blocks at a time: no full-frame copy
+        rows = frame.image[j * mesh : (j + 1) * mesh].astype(np.float32)
+        rows[frame.bad[j * mesh : (j + 1) * mesh]] = np.nan
+        pad = nbx * mesh - nx
+        if pad:
+            rows = np.pad(rows, ((0, 0), (0, pad)), constant_values=np.nan)
+        cells = rows.reshape(len(rows), nbx, mesh).transpose(1, 0, 2).reshape(nbx, -1)
+        with warnings.catch_warnings():  # a block without usable pixels: NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            blocks[j] = np.nanmedian(cells, axis=1)
+    blocks = np.where(np.isfinite(blocks), blocks, frame.sky)
+    smooth = ndimage.median_filter(blocks, size=3, mode="nearest")
+    by = (np.nan_to_num(np.asarray(y, float)) + 0.5) / mesh - 0.5
+    bx = (np.nan_to_num(np.asarray(x, float)) + 0.5) / mesh - 0.5
+    return ndimage.map_coordinates(smooth, [by, bx], order=1, mode="nearest")
+
+
 def box_flux(
     frame: Frame,
     x: np.ndarray,
@@ -163,12 +214,13 @@ def box_flux(
     half: int = 2,
     ring: tuple[int, int] | None = LOCAL_SKY_RING,
     chunk: int = 4096,
+    sky: np.ndarray | None = None,
 ) -> np.ndarray:
     """Rough flux [electron] in a (2 half + 1)^2 box, minus the star's local background.
 
     The background of each star is the median of the pixels at Chebyshev
     distance ``ring[0]..ring[1]`` from it (the frame's sky where none is usable;
-    ``ring = None``: the frame's sky).
+    ``ring = None``: the frame's sky; ``sky``: given per star, e.g. :func:`mesh_sky`).
     With the frame's global sky instead, the seeing halo and the wings of the
     bright stars in a cluster centre (there ~7 % of the sky, plus the wing
     plateau of every bright star) made faint stars look bright: on the NGC 3201
@@ -188,6 +240,8 @@ def box_flux(
         Inner and outer Chebyshev distance of the local-background ring [pixel].
     chunk : int
         Stars processed at once (memory bound only).
+    sky : ndarray, optional
+        Background per pixel of each star [electron] (``ring`` is then not used).
 
     Returns
     -------
@@ -198,6 +252,8 @@ def box_flux(
     x = np.rint(np.nan_to_num(np.asarray(x, float))).astype(int)
     y = np.rint(np.nan_to_num(np.asarray(y, float))).astype(int)
     out = np.zeros(len(x))
+    if sky is not None:
+        ring = None
     reach = half if ring is None else max(half, ring[1])
     off = np.arange(-reach, reach + 1)
     cheb = np.maximum(np.abs(off)[:, None], np.abs(off)[None, :])
@@ -210,7 +266,7 @@ def box_flux(
         rows, cols = np.clip(cy, 0, ny - 1)[:, :, None], np.clip(cx, 0, nx - 1)[:, None, :]
         cut = frame.image[rows, cols]
         good = inside & ~frame.bad[rows, cols] & np.isfinite(cut)
-        local = np.full(len(cut), frame.sky)
+        local = np.full(len(cut), frame.sky) if sky is None else np.asarray(sky, float)[sl]
         if in_ring is not None:
             with warnings.catch_warnings():  # a ring without usable pixels: the frame's sky
                 warnings.simplefilter("ignore", RuntimeWarning)
@@ -460,9 +516,7 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None, halo
     data = frame.image - frame.sky
     noise = frame.sky + frame.read_noise_var
     flux = box_flux(frame, x0, y0)
-    # as neighbours in the isolation test: not below the flux over the global sky
-    # (a faint star's local background is raised by the bright candidate next to it)
-    upper = np.maximum(flux, box_flux(frame, x0, y0, ring=None))
+    upper = neighbour_rating(frame, x0, y0, flux, settings)
     if settings.uses_psfr:
         return replace(build_psfr(frame, x0, y0, settings, flux, upper, data, noise), halo=halo)
     build = dict(image=data, x=x0, y=y0, flux=flux, bad=frame.bad, noise_floor=noise)
@@ -499,6 +553,85 @@ def build_psf(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None, halo
         except InputError:  # a half too poor for an ePSF: chi^2 terms only
             halves = None
     return FramePSF(psf, len(used), halves, halo=halo)
+
+
+def neighbour_rating(frame: Frame, x0, y0, flux: np.ndarray, settings: MeasureSettings):
+    """The stars' fluxes as neighbours in the PSF stars' isolation test [electron].
+
+    Not below the flux over the frame's background from a mesh of block medians
+    (``psf_star_sky_mesh``; :func:`mesh_sky`): a faint star's own local background (its
+    6-8 px ring, ``flux``) is raised by the bright candidate next to it, which would
+    then pass as isolated. With ``psf_star_sky_mesh = 0``, not below the flux over the
+    frame's global sky (before 2026-12-03: on the 1e5-star frame that flux holds the
+    unresolved crowd's light, ~7.5 x a V 24-26 star's own, and the isolation test
+    emptied the PSF-star pool; docs/measure.md, "Scale", twentieth pass).
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame [electron].
+    x0, y0 : ndarray
+        Star positions [pixel].
+    flux : ndarray
+        Their box fluxes over the local background (:func:`box_flux`) [electron].
+    settings : MeasureSettings
+        ``psf_star_sky_mesh``.
+
+    Returns
+    -------
+    ndarray
+        The neighbour fluxes [electron].
+    """
+    mesh = int(round(settings.psf_star_sky_mesh))
+    sky = mesh_sky(frame, x0, y0, mesh) if mesh > 0 else None
+    return np.maximum(flux, box_flux(frame, x0, y0, ring=None, sky=sky))
+
+
+#: Finest PSF-R correction grid of ``psfr_grid = "auto"`` and the one it falls back to.
+PSFR_AUTO_GRIDS = (5, 3)
+
+
+def psfr_grid_for(
+    setting, x: np.ndarray, y: np.ndarray, pool: np.ndarray, shape, per_node: int
+) -> tuple[int, list[np.ndarray], np.ndarray, np.ndarray]:
+    """The PSF-R correction grid and each node's PSF stars (``psfr_grid``).
+
+    A grid of ``g x g`` nodes (cell centres) gives each node its
+    ``ceil(per_node x (3 / g)^2)`` nearest stars of ``pool`` (the 3 x 3 grid's total).
+    "auto": the finest of :data:`PSFR_AUTO_GRIDS` on which every node's stars lie
+    within half a node spacing of it (the kernel then describes the PSF at its node,
+    not an average over the field; the last one whatever the pool).
+
+    Parameters
+    ----------
+    setting : int or "auto"
+        ``psfr_grid``.
+    x, y : ndarray
+        All stars [pixel].
+    pool : ndarray of int
+        The usable PSF stars (:func:`~mavispm.measure.stars.epsf.psf_star_pool`).
+    shape : (ny, nx)
+    per_node : int
+        ``psf_stars_per_node`` (at 3 x 3).
+
+    Returns
+    -------
+    grid : int
+    members : list of ndarray of int
+        PSF stars of each node (row-major).
+    gx, gy : ndarray
+        Node columns / rows [pixel].
+    """
+    grids = PSFR_AUTO_GRIDS if setting == "auto" else (int(setting),)
+    for grid in grids:
+        gx, gy = node_positions(shape, grid)
+        nodes = np.array([(xi, yi) for yi in gy for xi in gx])
+        k = max(int(np.ceil(per_node * 9 / grid**2)), 1)
+        members = node_psf_stars(x, y, pool, nodes, k)
+        reach = max(np.hypot(x[m] - xn, y[m] - yn).max() for m, (xn, yn) in zip(members, nodes))
+        if reach <= 0.5 * min(shape[1] / grid, shape[0] / grid):
+            break
+    return grid, members, gx, gy
 
 
 def half_epsf(
@@ -575,7 +708,8 @@ def build_psfr(
     """
     if not settings.psf_prior:
         raise InputError("psf_model = 'psfr' needs psf_prior (a psfgrid product)", path=frame.path)
-    opts = epsf_options(settings)
+    # the kernel and position fits of its PSF stars see their stamps only
+    opts = replace(epsf_options(settings), isolation=settings.psfr_star_isolation)
     ny, nx = frame.shape
     ax, ay = frame.to_arcsec(np.array([0.0, nx - 1.0]), np.array([0.0, ny - 1.0]))
     prior = read_prior(
@@ -585,8 +719,9 @@ def build_psfr(
         settings.psfr_width_error,
         settings.psfr_strehl_error,
     )
-    members, gx, gy, _, _ = choose_node_stars(
-        data, x0, y0, flux, frame.bad, noise, opts, False, upper
+    pool = psf_star_pool(data, x0, y0, flux, frame.bad, noise, opts, False, upper)
+    _, members, gx, gy = psfr_grid_for(
+        settings.psfr_grid, x0, y0, pool, frame.shape, settings.psf_stars_per_node
     )
     os_ = PSFR_OVERSAMPLING if settings.oversampling == "auto" else int(settings.oversampling)
     fit_opt = psf_star_fit_options(settings)
@@ -625,6 +760,8 @@ def build_psfr(
         oversampling=os_,
         radius=settings.stamp_radius,
     )
+    # the prior's transforms at the model nodes, once for the build and its half sets
+    common["transforms"] = model_transforms(prior, gx, gy, frame.to_arcsec, frame.to_pixel)
     psf, kernels = build_psfr_epsf(members=members, **common)
     used = np.unique(np.concatenate(members))
     halves = None
@@ -643,7 +780,7 @@ def build_psfr(
 
 
 def psfr_summary(frame_psf: FramePSF, settings: MeasureSettings) -> str | None:
-    """JSON of the PSF-R model (width error, kernels [mas^2] and stretches).
+    """JSON of the PSF-R model (width error, correction grid, kernels [mas^2] and stretches).
 
     The prior's file is the ``psf_prior`` of the product's ``config`` attribute, a
     path like the product's other path attributes; this attribute holds no path, so
@@ -654,6 +791,7 @@ def psfr_summary(frame_psf: FramePSF, settings: MeasureSettings) -> str | None:
         {
             "width_error": settings.psfr_width_error,
             "strehl_error": settings.psfr_strehl_error,
+            "grid": round(np.sqrt(len(frame_psf.psfr_kernels))),
             "kernels": np.round(frame_psf.psfr_kernels, 5).tolist(),
             "kernel_columns": ["cxx", "cyy", "cxy", "stretch"],
         }

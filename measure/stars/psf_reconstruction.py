@@ -50,6 +50,7 @@ __all__ = [
     "check_prior",
     "fit_kernel",
     "model_epsf",
+    "model_transforms",
     "read_prior",
     "stretch_psf",
 ]
@@ -500,6 +501,32 @@ def model_nodes(
     return np.asarray(gx, float), np.asarray(gy, float)
 
 
+def model_transforms(
+    prior: PSFRPrior, correction_x: np.ndarray, correction_y: np.ndarray, to_arcsec, to_pixel
+) -> list[NodeTransform]:
+    """The prior's transforms at the model nodes (:func:`model_nodes`), row-major.
+
+    Parameters
+    ----------
+    prior : PSFRPrior
+    correction_x, correction_y : ndarray
+        Correction node columns / rows [pixel].
+    to_arcsec, to_pixel : callable
+        Pixel <-> field position [arcsec].
+
+    Returns
+    -------
+    list of NodeTransform
+    """
+    gx, gy = model_nodes(prior, correction_x, correction_y, to_pixel)
+    mx, my = np.meshgrid(gx, gy)
+    ax, ay = to_arcsec(mx.ravel(), my.ravel())
+    return [
+        NodeTransform.of(prior.psf_at(float(a), float(b)), prior.pixel_scale)
+        for a, b in zip(ax, ay)
+    ]
+
+
 def interpolate_kernels(
     kernels: np.ndarray, cx: np.ndarray, cy: np.ndarray, x: np.ndarray, y: np.ndarray
 ) -> np.ndarray:
@@ -549,6 +576,7 @@ def build_psfr_epsf(
     radius: int,
     rounds: int = 2,
     start: np.ndarray | None = None,
+    transforms: list[NodeTransform] | None = None,
 ) -> tuple[VariableEPSF, np.ndarray]:
     """The PSF-R model with its fitted correction kernels, as a gridded ePSF.
 
@@ -579,6 +607,9 @@ def build_psfr_epsf(
         Kernel fit / position refit rounds.
     start : ndarray (K, 4), optional
         Starting kernels [mas^2] (e.g. the full set's, for the half sets).
+    transforms : list of NodeTransform, optional
+        The prior's transforms at the model nodes (:func:`model_transforms`; computed
+        when not given: a build and its half sets share them).
 
     Returns
     -------
@@ -591,11 +622,8 @@ def build_psfr_epsf(
     gx, gy = model_nodes(prior, correction_x, correction_y, to_pixel)
     mx, my = np.meshgrid(gx, gy)
     mx, my = mx.ravel(), my.ravel()
-    ax, ay = to_arcsec(mx, my)
-    transforms = [
-        NodeTransform.of(prior.psf_at(float(a), float(b)), prior.pixel_scale)
-        for a, b in zip(ax, ay)
-    ]
+    if transforms is None:
+        transforms = model_transforms(prior, correction_x, correction_y, to_arcsec, to_pixel)
     k0 = [(detector_scale / 3) ** 2, (detector_scale / 3) ** 2, 0.0, 1.0]
     kernels = np.tile(k0, (len(members), 1)) if start is None else np.array(start, float)
     px, py = x_all.copy(), y_all.copy()

@@ -61,6 +61,21 @@ class MeasureKnobs:
         Cap on the PSF stars per ePSF grid node (the brightest of its cell).
     psf_star_isolation : float [pix]
         Isolation radius of PSF stars.
+    psf_star_sky_mesh : float [pix]
+        In the isolation test a neighbour is rated by its 5 x 5 box flux over the larger
+        of two backgrounds: its own local one (the ring 6-8 px around it) and the frame's
+        background from a mesh of this block size
+        (:func:`~mavispm.measure.stars.measure_frame.mesh_sky`): the ring alone can be
+        raised by the bright candidate next to it. 0: the frame's global sky instead of
+        the mesh (before 2026-12-03: on the 1e5-star frame the unresolved crowd's light
+        made a V 24-26 neighbour read ~7.5 x its flux and the 12-px isolation left 1,132
+        PSF stars; docs/measure.md, "Scale", twentieth pass).
+    psfr_star_isolation : float [pix]
+        Isolation radius of the PSF-R model's PSF stars (``psf_star_isolation`` stays the
+        frame-built ePSF's, whose cut-outs are ``epsf_size`` wide): the kernel and position
+        fits of the PSF-R build see only the stars' fit stamps (``stamp_radius``). 8 px (12
+        before 2026-12-03): on the 1e5-star frame 5,752 PSF stars instead of 1,964, enough
+        for the 5 x 5 correction grid (docs/measure.md, "Scale", twentieth pass).
     psf_star_min_snr : float
         Minimum flux SNR of PSF stars.
     psf_star_max_gradient : float
@@ -80,6 +95,13 @@ class MeasureKnobs:
         50)`` per node, neighbours up to as bright as the star are allowed
         (:data:`mavispm.measure.stars.epsf.MIN_CLEAN_PER_NODE`; docs/measure.md, "Error
         model of the frame-built ePSF").
+    psfr_grid : int or "auto"
+        Nodes per axis of the PSF-R model's correction kernels (``psf_grid`` stays the
+        frame-built ePSF's grid and the error model's cells). Each node's kernel is fitted
+        to its ``psf_stars_per_node x (3 / psfr_grid)^2`` nearest PSF stars (the 3 x 3
+        grid's total). "auto" (default): 5 when every node's stars lie within half a
+        node spacing of it, else 3 (:func:`~mavispm.measure.stars.measure_frame.psfr_grid_for`;
+        docs/measure.md, "Scale", twentieth pass).
     stamp_radius : int
         Fit stamp half-width [pixel].
     iterations : int
@@ -185,10 +207,13 @@ class MeasureKnobs:
     epsf_builder: Literal["fast", "photutils"] = "fast"
     psf_stars_per_node: int = 150
     psf_star_isolation: float = unit_field(12.0, "pix")
+    psf_star_sky_mesh: float = unit_field(32.0, "pix")
+    psfr_star_isolation: float = unit_field(8.0, "pix")
     psf_star_min_snr: float = 100.0
     psf_star_max_gradient: float = 0.01
     neighbour_passes: int = 1
     psf_star_neighbour_ratio: float = 0.1
+    psfr_grid: int | Literal["auto"] = "auto"
     stamp_radius: int = 5
     iterations: int = 40
     tolerance: float = unit_field(1e-4, "pix")
@@ -215,6 +240,7 @@ class MeasureKnobs:
     def __post_init__(self):
         positive_ints = {
             "oversampling": 1 if self.oversampling == "auto" else self.oversampling,
+            "psfr_grid": 1 if self.psfr_grid == "auto" else self.psfr_grid,
             "epsf_iterations": self.epsf_iterations,
             "psf_stars_per_node": self.psf_stars_per_node,
             "stamp_radius": self.stamp_radius,
@@ -243,6 +269,7 @@ class MeasureKnobs:
         for key in (
             "min_snr",
             "psf_star_max_gradient",
+            "psf_star_sky_mesh",
             "wing_threshold",
             "halo_radius",
             "halo_rings",
