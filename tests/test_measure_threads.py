@@ -211,3 +211,24 @@ def test_psfr_stage_is_the_same_bit_for_bit_on_1_2_3_threads(tmp_path):
     dx = np.asarray(stars["x_pix"])[b] - x[b]
     crlb_pix = np.median(stars["crlb_x"].value[b]) / frame.pixel_scale
     assert b.sum() > 50 and robust_sigma(dx) < 1.5 * crlb_pix
+
+
+def test_error_model_shifts_are_the_same_bit_for_bit_on_1_2_3_threads():
+    """``epsf_difference_shifts`` in chunks on the pool: identical rows, and the known
+    shift (ePSF b is ePSF a moved by +0.02 px in x) recovered."""
+    from test_measure_error_model import _gaussian_epsf
+
+    from mavispm.measure.stars.error_model import epsf_difference_shifts
+    from mavispm.measure.stars.variable_psf import constant_epsf
+
+    psf_a = constant_epsf(_gaussian_epsf(0.0), 4)
+    psf_b = constant_epsf(_gaussian_epsf(0.02), 4)
+    rng = np.random.default_rng(2)
+    n = 150
+    x, y = rng.uniform(10, 190, n), rng.uniform(10, 190, n)
+    flux = 10 ** rng.uniform(4, 6, n)
+    args = (psf_a, psf_a, psf_b, x, y, flux, np.full(n, 50.0), 36.0, 5, 16)
+    out = {t: epsf_difference_shifts(*args, threads=t) for t in (1, 2, 3)}
+    assert _same(out[1], out[2]) and _same(out[1], out[3])
+    np.testing.assert_allclose(out[1][:, 0], 0.02, rtol=0.05)
+    np.testing.assert_allclose(out[1][:, 1], 0.0, atol=1e-4)
