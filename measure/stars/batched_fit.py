@@ -1099,10 +1099,12 @@ def _fit_stars(
     all_idx = order  # the usable stars in bands of rows (cache reuse; see the colours)
     if uncertainties or return_model:  # exact (not linearised) models at the solution
         work = list(_chunks(all_idx, opt.chunk))
-        exact = pool.map(lambda idx: evaluate(idx, derivatives=False).reshape(len(idx), -1), work)
-        for idx, v in zip(work, exact):
-            deposit(idx, flux[idx, None] * v)
-        del exact
+        batch = 4 * pool.threads  # chunks evaluated at once (not all N stamps held)
+        for lo in range(0, len(work), batch):
+            part = work[lo : lo + batch]
+            exact = pool.map(lambda i: evaluate(i, derivatives=False).reshape(len(i), -1), part)
+            for idx, v in zip(part, exact):
+                deposit(idx, flux[idx, None] * v)
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
     next_step = np.zeros(n)  # the position step each star would take at the solution
