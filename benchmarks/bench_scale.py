@@ -13,7 +13,8 @@ by confusion class (docs/measure.md, "Scale", tenth pass): the stars with a comp
 neighbour (at most 1 mag fainter) within 1.5 FWHM of the frame's PSF model, and the
 isolated ones per magnitude bin; and the normalised residuals of the isolated stars
 within 60 px of a V < 15 star (fourteenth pass). ``--set key=json ...`` changes measure
-settings (e.g. ``--set correlated_misfit=false``). Run each N in its own process (``/usr/bin/time -v``)
+settings (e.g. ``--set correlated_misfit=false``, ``--set threads=1``). The stage's CPU
+time (``time.process_time``, all threads) is printed beside its wall time. Run each N in its own process (``/usr/bin/time -v``)
 for a clean peak memory.
 """
 
@@ -79,9 +80,9 @@ def psfr_grid(attrs) -> str:
 def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
     frame = read_frame(path)
     cfg = validate_settings({"psf_prior": str(prior), **(extra or {})})
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     stars, attrs, psf = measure_frame(frame, cfg, 0)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     ny, nx = frame.shape
     tx = np.asarray(frame.truth["x_pix"], float)
     ty = np.asarray(frame.truth["y_pix"], float)
@@ -93,7 +94,8 @@ def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
     print(
         f"{path.name}: {len(tx)} stars ({inside.sum()} inside), stage {wall:.1f} s "
         f"(PSF {attrs['time_epsf'].value:.1f}, fit {attrs['time_fit'].value:.1f}, errors "
-        f"{attrs['time_errors'].value:.1f}), peak RSS {peak:.2f} GB; PSF stars "
+        f"{attrs['time_errors'].value:.1f}), stage CPU {cpu:.1f} s (all threads), "
+        f"peak RSS {peak:.2f} GB; PSF stars "
         f"{int(attrs['n_psf_stars'])}{psfr_grid(attrs)}; V < 25 inside: "
         f"failed {np.mean(flag[sel] & 32 > 0):.2%}, not converged {np.mean(flag[sel] & 1 > 0):.2%}"
     )

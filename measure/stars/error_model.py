@@ -36,6 +36,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mavispm.measure.stars.chunk_pool import ChunkPool, resolve_threads
 from mavispm.measure.stars.crlb import fisher_matrix, jacobian, safe_inverse
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 
@@ -62,6 +63,7 @@ def epsf_difference_shifts(
     radius: int,
     chunk: int = 512,
     sky_gradient: bool = False,
+    threads: int = 1,
 ) -> np.ndarray:
     """Linearised change of each star's fit between two ePSFs.
 
@@ -89,6 +91,9 @@ def epsf_difference_shifts(
         Stars evaluated at once.
     sky_gradient : bool
         The fit has a sky plane (its slopes take part in the step, as in the fit).
+    threads : int
+        Threads of the chunks (0: every core; :mod:`~mavispm.measure.stars.chunk_pool`);
+        each chunk's rows are its own, the same on any number.
 
     Returns
     -------
@@ -102,7 +107,8 @@ def epsf_difference_shifts(
         np.isfinite(x) & np.isfinite(y) & np.isfinite(flux) & np.isfinite(sky) & (flux > 0)
     )
     s = 2 * int(radius) + 1
-    for start in range(0, len(good), chunk):
+
+    def shifts(start):
         idx = good[start : start + chunk]
         geom = StampGeometry(
             np.rint(x[idx]).astype(np.intp), np.rint(y[idx]).astype(np.intp), int(radius)
@@ -121,6 +127,9 @@ def epsf_difference_shifts(
         step = np.einsum("nkl,nl->nk", np.nan_to_num(cov), b)
         step[~ok] = np.nan
         out[idx] = step[:, :4]
+
+    with ChunkPool(resolve_threads(threads)) as pool:
+        pool.map(shifts, range(0, len(good), chunk))
     return out
 
 

@@ -334,6 +334,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         max_shift=settings.max_shift,
         min_snr=settings.min_snr,
         chunk=settings.chunk,
+        threads=settings.threads,
         progress=settings.progress,
         sky_gradient=settings.sky_gradient,
         wing_threshold=settings.wing_threshold,
@@ -365,6 +366,7 @@ def psf_star_fit_options(settings: MeasureSettings) -> FitOptions:
         max_shift=1.0,
         min_snr=0.0,
         sky_gradient=settings.sky_gradient,
+        threads=settings.threads,
     )
 
 
@@ -759,6 +761,7 @@ def build_psfr(
         size=opts.size,
         oversampling=os_,
         radius=settings.stamp_radius,
+        threads=settings.threads,
     )
     # the prior's transforms at the model nodes, once for the build and its half sets
     common["transforms"] = model_transforms(prior, gx, gy, frame.to_arcsec, frame.to_pixel)
@@ -915,6 +918,7 @@ def error_terms(
             settings.stamp_radius,
             settings.chunk,
             sky_gradient=settings.sky_gradient and settings.engine == "fast",
+            threads=settings.threads,
         )
     gain = fit.correlated_gain if settings.correlated_misfit else None
     npar = 6 if settings.sky_gradient and settings.engine == "fast" else 4

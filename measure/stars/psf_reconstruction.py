@@ -38,6 +38,7 @@ from threadpoolctl import threadpool_limits
 
 from mavispm.core.errors import InputError
 from mavispm.core.products import open_product
+from mavispm.measure.stars.chunk_pool import ChunkPool, resolve_threads
 from mavispm.measure.stars.variable_psf import (
     StampGeometry,
     VariableEPSF,
@@ -577,6 +578,7 @@ def build_psfr_epsf(
     rounds: int = 2,
     start: np.ndarray | None = None,
     transforms: list[NodeTransform] | None = None,
+    threads: int = 1,
 ) -> tuple[VariableEPSF, np.ndarray]:
     """The PSF-R model with its fitted correction kernels, as a gridded ePSF.
 
@@ -610,6 +612,10 @@ def build_psfr_epsf(
     transforms : list of NodeTransform, optional
         The prior's transforms at the model nodes (:func:`model_transforms`; computed
         when not given: a build and its half sets share them).
+    threads : int
+        Threads of the model nodes' ePSFs and the correction nodes' kernel fits, each
+        node on its own (0: every core; :mod:`~mavispm.measure.stars.chunk_pool`): the
+        same results on any number.
 
     Returns
     -------
@@ -628,13 +634,15 @@ def build_psfr_epsf(
     kernels = np.tile(k0, (len(members), 1)) if start is None else np.array(start, float)
     px, py = x_all.copy(), y_all.copy()
 
+    pool = ChunkPool(resolve_threads(threads))
+
     def assemble():
         at_nodes = interpolate_kernels(kernels, correction_x, correction_y, mx, my)
         epsfs = np.array(
-            [
-                model_epsf(t, k, detector_scale, size, oversampling)
-                for t, k in zip(transforms, at_nodes)
-            ]
+            pool.map(
+                lambda tk: model_epsf(tk[0], tk[1], detector_scale, size, oversampling),
+                list(zip(transforms, at_nodes)),
+            )
         )
         if len(epsfs) == 1:
             return constant_epsf(epsfs[0], oversampling)
@@ -648,22 +656,28 @@ def build_psfr_epsf(
     for m in members:
         a, b = to_arcsec(np.array([np.mean(x_all[m])]), np.array([np.mean(y_all[m])]))
         local.append(NodeTransform.of(prior.psf_at(float(a[0]), float(b[0])), prior.pixel_scale))
-    with threadpool_limits(limits=1, user_api="blas"):  # small products: threads cost 50x
+
+    def node_kernel(k):
+        m = members[k]
+        return fit_kernel(
+            [local[k]],
+            np.zeros(len(m), int),
+            image,
+            px[m],
+            py[m],
+            bad,
+            noise_floor,
+            detector_scale,
+            oversampling,
+            radius,
+            start=kernels[k],
+        )[0]
+
+    # small products: BLAS threads cost 50x (the limit is the process's, all threads')
+    with threadpool_limits(limits=1, user_api="blas"), pool:
         for _ in range(int(rounds)):
             fx, fy = fit_positions(assemble(), used)
             px[used], py[used] = fx, fy
-            for k, m in enumerate(members):
-                kernels[k], _ = fit_kernel(
-                    [local[k]],
-                    np.zeros(len(m), int),
-                    image,
-                    px[m],
-                    py[m],
-                    bad,
-                    noise_floor,
-                    detector_scale,
-                    oversampling,
-                    radius,
-                    start=kernels[k],
-                )
+            # each node's kernel from its own stars and start: independent
+            kernels[:] = pool.map(node_kernel, range(len(members)))
         return assemble(), kernels

@@ -195,6 +195,11 @@ class MeasureKnobs:
         Stars below this flux SNR have positions held fixed and are flagged 32.
     chunk : int
         Stars evaluated at once by the fast engine (memory knob).
+    threads : int
+        Threads of the fast engine's chunks (each colour's, the uncertainties', the
+        neighbour marginalisation's) and of the ePSF error model's; 0 (default): every
+        core this process may use. The results are the same bit for bit on any number
+        (:mod:`mavispm.measure.stars.chunk_pool`).
     photutils_fitter : {"levmar", "default"}
         Fitter of the photutils engine.
     group_separation : float [pix]
@@ -234,6 +239,7 @@ class MeasureKnobs:
     halo_tail: float = unit_field(150.0, "pix")
     min_snr: float = 3.0
     chunk: int = 512
+    threads: int = 0
     photutils_fitter: Literal["levmar", "default"] = "levmar"
     group_separation: float = unit_field(8.0, "pix")
 
@@ -254,6 +260,10 @@ class MeasureKnobs:
         if self.epsf_size < 5 or self.epsf_size % 2 == 0:
             raise ConfigError(
                 f"must be an odd integer >= 5, got {self.epsf_size}", key="knobs.epsf_size"
+            )
+        if self.threads < 0:
+            raise ConfigError(
+                f"must be >= 0 (0: every core), got {self.threads}", key="knobs.threads"
             )
         if self.neighbour_passes < 0:
             raise ConfigError("must be >= 0", key="knobs.neighbour_passes")
