@@ -363,16 +363,33 @@ def _standard_normals_f32(rng: np.random.Generator, n: int) -> np.ndarray:
     return z
 
 
+@numba.njit(nogil=True, cache=True)
+def _normal_stack_chunk(mu, state, z, nexp, var_rn, skew_limit, out):  # pragma: no cover
+    """:func:`standard_normals_f32_pcg64` into ``z``, then :func:`normal_stack_draws`.
+
+    One compiled call (one cached kernel to load per process instead of two).
+    """
+    standard_normals_f32_pcg64(state, z)
+    normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out)
+
+
 def _draw_chunk(mu, rng, nexp, var_rn, skew_limit, out) -> np.ndarray:
-    """The chunk's standard normals (:func:`_standard_normals_f32`) and its Gaussian draws.
+    """The chunk's standard normals (those of :func:`_standard_normals_f32`) and its
+    Gaussian draws.
 
     Returns
     -------
     ndarray of float32
         The standard normals drawn.
     """
-    z = _standard_normals_f32(rng, mu.size)
-    normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out)
+    z = np.empty(mu.size, dtype=np.float32)
+    state = pcg64_take(rng) if _COMPILED_NORMALS else None
+    if state is None:
+        rng.standard_normal(mu.size, dtype=np.float32, out=z)
+        normal_stack_draws(mu, z, nexp, var_rn, skew_limit, out)
+        return z
+    _normal_stack_chunk(mu, state, z, nexp, var_rn, skew_limit, out)
+    pcg64_put(rng, state)
     return z
 
 

@@ -131,7 +131,14 @@ def standard_normals_f32_pcg64(state, z) -> None:  # pragma: no cover - compiled
 def pcg64_take(rng: np.random.Generator) -> np.ndarray | None:
     """The state of ``rng``'s bit generator as six uint64 (None unless it is a PCG64).
 
-    ``[state >> 64, state & mask, inc >> 64, inc & mask, has_uint32, uinteger]``.
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray of uint64, (6,) or None
+        ``[state >> 64, state & mask, inc >> 64, inc & mask, has_uint32, uinteger]``.
     """
     bit_generator = rng.bit_generator
     if type(bit_generator) is not np.random.PCG64:
@@ -145,7 +152,15 @@ def pcg64_take(rng: np.random.Generator) -> np.ndarray | None:
 
 
 def pcg64_put(rng: np.random.Generator, state: np.ndarray) -> None:
-    """Set ``rng``'s PCG64 to ``state`` (as :func:`pcg64_take` gives it)."""
+    """Set ``rng``'s PCG64 to ``state``.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        A generator whose bit generator is a PCG64.
+    state : ndarray of uint64, (6,)
+        As :func:`pcg64_take` gives it.
+    """
     hi, lo, inc_hi, inc_lo, has, upper = (int(v) for v in state)
     rng.bit_generator.state = {
         "bit_generator": "PCG64",
