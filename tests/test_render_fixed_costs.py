@@ -105,12 +105,14 @@ def test_bilinear_pass_equals_per_pixel_interpolation(b):
     add_bilinear(out, coarse, ylo, yfrac, xlo, xfrac)
     np.testing.assert_array_equal(out, 0.5 + ref)  # same operations: the same bits
     filled = np.full((ny, nx), np.nan)
-    _bilinear_into(filled, coarse, ylo, yfrac, xlo, xfrac, 0.5, False)
+    _bilinear_into(filled, coarse, ylo, yfrac, xlo, xfrac, 0.5, False, np.empty((2, nx)))
     np.testing.assert_array_equal(filled, 0.5 + ref)
     # rows in any order (the shared coarse rows are recomputed when the row changes)
     perm = rng.permutation(ny)
     shuffled = np.zeros((ny, nx))
-    _bilinear_into(shuffled, coarse, ylo[perm], yfrac[perm], xlo, xfrac, 0.0, True)
+    _bilinear_into(
+        shuffled, coarse, ylo[perm], yfrac[perm], xlo, xfrac, 0.0, True, np.empty((2, nx))
+    )
     np.testing.assert_array_equal(shuffled, ref[perm])
 
 
