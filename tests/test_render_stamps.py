@@ -221,6 +221,7 @@ def test_run_kernel_matches_numpy_reference(real, cplx, n_j, wide):
         fold_runs,
         mix_kernel_fold_numpy,
         mix_kernel_fold_runs,
+        mix_scratch,
     )
     from mavispm.simulate.render.stamps import _folding_frequencies
 
@@ -249,7 +250,7 @@ def test_run_kernel_matches_numpy_reference(real, cplx, n_j, wide):
     b = np.zeros((s, m * (m // 2 + 1)), dtype=np.complex128)
     b[:, 3] = 1.0
     args = (fx * df, fy * df, df, phx, phy, runs, a.view(real))
-    mix_kernel_fold_runs(transforms, node, w, coef, *args)
+    mix_kernel_fold_runs(transforms, node, w, coef, *args, mix_scratch(transforms, fx, runs, real))
     step = np.zeros(n, dtype=bool)
     ref = (u, v, df, step, phx, phy, cols, rows, target, b)
     mix_kernel_fold_numpy(transforms, node, w, coef.astype(np.float64), *ref)

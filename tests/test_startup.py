@@ -174,13 +174,15 @@ def _datasets(path):
 def test_warm_frames_program_defers_connectors_and_registries(tmp_path):
     """A warm ``mavispm simulate frames`` process imports neither astropy's ascii / fits /
     votable connectors nor numba's compiler registries nor PyYAML nor ``scipy.fft`` (the
-    stamps' inverse FFTs load its pocketfft extension module alone), and writes the same frame, bit for
-    bit, as ``main(argv)`` called from Python (which changes no import)."""
+    stamps' inverse FFTs load its pocketfft extension module alone) nor ``numba.np.arrayobj``
+    (no cached kernel of the frames path calls ``np.empty``, whose environment names it),
+    and writes the same frame, bit for bit, as ``main(argv)`` called from Python (which
+    changes no import)."""
     _tiny_frames_inputs(tmp_path)
     script = """
         import atexit, json, sys, runpy
         watch = ("astropy.io.ascii", "astropy.io.votable", "astropy.io.misc", "numba.typed.",
-                 "numba.np.polynomial", "cffi", "yaml", "scipy.fft")
+                 "numba.np.polynomial", "cffi", "yaml", "scipy.fft", "numba.np.arrayobj")
         atexit.register(lambda: print("LOADED", json.dumps(
             sorted(m for m in sys.modules if m.startswith(watch)))))
         if sys.argv[1] == "program":

@@ -286,7 +286,7 @@ def binned_max(values, bins, n_bins, out) -> None:  # pragma: no cover
 
 @numba.njit(nogil=True, cache=True)
 def mix_kernel_fold_runs(
-    transforms, node, w, coef, fxu, fyv, du, phx, phy, runs, out
+    transforms, node, w, coef, fxu, fyv, du, phx, phy, runs, out, scratch
 ):  # pragma: no cover
     """:func:`mix_kernel_fold` over runs of samples: one row, consecutive columns.
 
@@ -329,21 +329,20 @@ def mix_kernel_fold_runs(
     out : ndarray, shape (S, 2 n_out), real
         Folded spectra as (real, imaginary) pairs (``complex_array.view(real)``),
         added into in place.
+    scratch : tuple of 7 ndarrays
+        The pass's work memory, :func:`mix_scratch`: the kernel allocates nothing (a
+        cached kernel calling ``np.empty`` makes numba import ``numba.np.arrayobj``,
+        ~0.02-0.03 s of a process, when it loads).
     """
     n_star = node.shape[0]
-    n_samp = transforms.shape[1]
     n_col = fxu.shape[0]
     n_node = node.shape[1]
     longest = 1
     for r in range(runs.shape[0]):
         longest = max(longest, runs[r, 4])
-    re = np.empty(n_samp, dtype=w.dtype)
-    im = np.empty(n_samp, dtype=w.dtype)
-    col_re = np.empty(n_col, dtype=w.dtype)
-    col_im = np.empty(n_col, dtype=w.dtype)
-    gauss = np.empty(longest, dtype=w.dtype)
-    lin = np.empty(longest)  # exp(q0 + i d1) along a run (float64)
-    quad = np.empty(longest)  # exp(i**2 d2), d2 = a du**2: the same for every run of a star
+    # lin: exp(q0 + i d1) along a run (float64); quad: exp(i**2 d2), d2 = a du**2, the
+    # same for every run of a star (float64)
+    re, im, col_re, col_im, gauss, lin, quad = scratch
     for s in range(n_star):
         if n_node == 4:  # bilinear weights: one pass instead of four over the buffers
             _mix_four_nodes(transforms, node[s], w[s], re, im)
@@ -411,6 +410,38 @@ def mix_kernel_fold_runs(
                 oo[2 * i + 1] += rek[i] * fi + imk[i] * fr
 
 
+def mix_scratch(transforms, fxu, runs, dtype) -> tuple:
+    """The work memory of :func:`mix_kernel_fold_runs` for one layout of samples.
+
+    Parameters
+    ----------
+    transforms : ndarray, shape (n_nodes, K)
+        The node transforms (K samples).
+    fxu : ndarray, shape (n_col,)
+        The phase-ramp columns' frequencies.
+    runs : ndarray of int, shape (R, 5)
+        The runs (their longest length).
+    dtype : numpy dtype
+        The real precision of the weights ``w``.
+
+    Returns
+    -------
+    tuple of 7 ndarrays
+        ``(re, im, col_re, col_im, gauss, lin, quad)``.
+    """
+    longest = max(1, int(runs[:, 4].max())) if len(runs) else 1
+    n_samp, n_col = transforms.shape[1], fxu.shape[0]
+    return (
+        np.empty(n_samp, dtype=dtype),
+        np.empty(n_samp, dtype=dtype),
+        np.empty(n_col, dtype=dtype),
+        np.empty(n_col, dtype=dtype),
+        np.empty(longest, dtype=dtype),
+        np.empty(longest),
+        np.empty(longest),
+    )
+
+
 def fold_runs(col, row, target, fx) -> np.ndarray:
     """Runs of samples for :func:`mix_kernel_fold_runs` (samples already in run order).
 
@@ -447,7 +478,7 @@ def fold_runs(col, row, target, fx) -> np.ndarray:
 
 
 @numba.njit(nogil=True, cache=True)
-def phase_ramps_into(shift, freq, df, out) -> None:  # pragma: no cover
+def phase_ramps_into(shift, freq, df, out, powers) -> None:  # pragma: no cover
     """``out[s, i] = exp(-2 pi i df shift[s] freq[i])`` for integer frequencies ``freq``.
 
     Per star one ``cos`` / ``sin`` pair, then the powers ``z**f`` of
@@ -465,12 +496,14 @@ def phase_ramps_into(shift, freq, df, out) -> None:  # pragma: no cover
         Frequency step [cycles/mas].
     out : ndarray (S, F), complex
         Receives the phase ramps.
+    powers : ndarray (2, >= max |freq| + 1) float64
+        Work memory (the kernel allocates nothing; see :func:`mix_kernel_fold_runs`).
     """
     top = 0
     for i in range(freq.shape[0]):
         top = max(top, abs(freq[i]))
-    pw_re = np.empty(top + 1)
-    pw_im = np.empty(top + 1)
+    pw_re = powers[0]
+    pw_im = powers[1]
     for s in range(shift.shape[0]):
         angle = -2.0 * np.pi * df * shift[s]
         zr = np.cos(angle)

@@ -45,6 +45,7 @@ from mavispm.simulate.render.stamp_kernels import (
     fold_runs,
     inverse_rfft2_into,
     mix_kernel_fold_runs,
+    mix_scratch,
     phase_ramps_into,
     wrap_2d_into,
 )
@@ -1218,7 +1219,9 @@ def _phase_ramps(shift, freq, df: float, cplx) -> np.ndarray:
     """
     out = np.empty((len(shift), len(freq)), dtype=cplx)
     whole = np.rint(np.asarray(freq, dtype=np.float64)).astype(np.int64)
-    phase_ramps_into(np.asarray(shift, dtype=np.float64), whole, float(df), out)
+    top = int(np.abs(whole).max()) if whole.size else 0
+    powers = np.empty((2, top + 1))  # the kernel's work memory: it allocates nothing
+    phase_ramps_into(np.asarray(shift, dtype=np.float64), whole, float(df), out, powers)
     return out
 
 
@@ -1279,6 +1282,7 @@ def _render_chunks(batch: _Batch, lo: int, hi: int, folded, stamps, image=None) 
         return
     phx = _phase_ramps(batch.dx[lo:hi], batch.fx, batch.df, batch.cplx)
     phy = _phase_ramps(batch.dy[lo:hi], batch.fy, batch.df, batch.cplx)
+    scratch = mix_scratch(batch.transforms, batch.fxu, batch.runs, batch.w.dtype)
     for a in range(lo, hi, batch.chunk):
         b = min(a + batch.chunk, hi)
         out = folded[: b - a]
@@ -1286,7 +1290,7 @@ def _render_chunks(batch: _Batch, lo: int, hi: int, folded, stamps, image=None) 
         mix_kernel_fold_runs(
             batch.transforms, batch.node[a:b], batch.w[a:b], batch.coef[a:b], batch.fxu,
             batch.fyv, batch.df, phx[a - lo : b - lo], phy[a - lo : b - lo], batch.runs,
-            out.view(real),
+            out.view(real), scratch,
         )  # fmt: skip
         spec = out.reshape(b - a, m, mh)
         dest = stamps[: b - a] if image is not None else stamps[a - lo : b - lo]
