@@ -57,3 +57,27 @@ def test_joint_steps_converge_coupled_stars_at_the_bound():
     assert result[4.0][0] <= 0.5 * result[0.0][0], result
     assert result[4.0][0] <= 0.03, result
     assert result[4.0][1] <= 1.12, result
+
+
+def test_joint_steps_with_chunks_holding_no_coupled_pair():
+    """Small chunks of a crowded frame: some hold no pair within ``joint_radius`` (their
+    stars step on their own; this crashed with an empty reshape before 2026-12-03); the
+    fit ends as near the truth as single steps do."""
+    from measure_helpers import true_epsf
+    from test_measure_threads import DET, PSF, RN2, SHAPE, _crowded
+
+    from mavispm.measure.stars.batched_fit import fit_stars
+
+    image, sat, x, y, mag = _crowded()
+    rng = np.random.default_rng(11)
+    x0, y0 = x + rng.normal(0, 0.1, len(x)), y + rng.normal(0, 0.1, len(x))
+    err = {}
+    for radius in (0.0, 1.5):
+        options = FitOptions(iterations=15, relative_tolerance=0.2, chunk=8, flux_passes=3,
+                             joint_radius=radius)  # fmt: skip
+        res = fit_stars(image, true_epsf(PSF, SHAPE), x0, y0, read_noise_var=RN2,
+                        sky0=DET.sky, saturated=sat, options=options)  # fmt: skip
+        bright = (mag < 23) & np.isfinite(res.x)
+        err[radius] = np.median(np.hypot(res.x - x, res.y - y)[bright])
+    assert err[1.5] <= 1.1 * err[0.0] + 1e-3, err
+    assert err[1.5] < 0.05, err

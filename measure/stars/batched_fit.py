@@ -842,8 +842,8 @@ def _fit_stars(
         b = b.copy()
         b[frozen, :2] = 0.0
         step = None
-        if together is not None:
-            rows, cols = _group_pairs(together)
+        rows, cols = _group_pairs(together) if together is not None else ((), ())
+        if len(rows):  # a chunk without a pair within joint_radius steps on its own
             geom_i = StampGeometry(geom.cx[idx[rows]], geom.cy[idx[rows]], r)
             j = idx[cols]
             other = psf.evaluate(x[j], y[j], geom_i, mix=(mix[0][j], mix[1][j]))
