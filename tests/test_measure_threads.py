@@ -24,6 +24,7 @@ from measure_helpers import (
     true_epsf,
     write_frames,
 )
+from test_measure_crowded_convergence import DET, PSF, RN2, SHAPE  # the crowded scene's frame
 
 from mavispm.core.errors import ConfigError
 from mavispm.measure.stars import chunk_pool
@@ -31,11 +32,6 @@ from mavispm.measure.stars.batched_fit import FLAG_FAILED, FitOptions, fit_stars
 from mavispm.measure.stars.cli import validate_settings
 from mavispm.measure.stars.crlb import crlb
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
-
-SHAPE = (160, 160)
-PSF = SynthPSF(1.0)
-DET = Detector(saturation=1e9)
-RN2 = DET.read_noise**2 * DET.nexp
 
 
 def _crowded(seed=4, n=200):
