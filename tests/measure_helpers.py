@@ -354,3 +354,36 @@ def write_prior(path, sigma_mas: float, nodes=(-2.0, 0.0, 2.0), **extra) -> None
     write_product(
         path, "psfgrid", arrays=arrays, attrs={"pixel_scale": PRIOR_SUB * u.mas, "static": False}
     )
+
+
+#: The fast fitter's options of the halo tests, beside the halo knobs each test sets.
+HALO_FIT = dict(wing_threshold=3.0, sky_gradient=True, iterations=40, relative_tolerance=0.2)
+
+
+def binned_halo_errors(fit, x, y, flux, d, bins):
+    """The faint stars' errors against the truth by distance from their bright star.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fast fitter's result.
+    x, y, flux : ndarray
+        True positions [pix] and fluxes.
+    d : ndarray
+        Distance to the bright star [pix] (:func:`ring_scene`: inf for field stars).
+    bins : sequence of (lo, hi)
+        Distance bins [pix].
+
+    Returns
+    -------
+    far : float
+        The field stars' median fitted / true flux.
+    flux_off, pos_off : ndarray
+        Per bin the median ``|fitted / true flux / far - 1|`` and median position error [pix].
+    """
+    ratio = fit.flux / flux
+    far = np.median(ratio[np.isinf(d)])
+    miss = np.hypot(fit.x - x, fit.y - y)
+    inside = [(d >= lo) & (d < hi) for lo, hi in bins]
+    flux_off = np.array([np.median(np.abs(ratio[b] / far - 1)) for b in inside])
+    return far, flux_off, np.array([np.median(miss[b]) for b in inside])

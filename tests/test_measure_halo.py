@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from measure_helpers import HALO_FIT
 
 from mavispm.measure.stars.halo import halo_profile
 from mavispm.measure.stars.stamp_kernel import deposit_radial
@@ -256,8 +257,7 @@ def test_faint_fluxes_near_a_bright_star_with_a_broad_halo_are_unbiased(seed, sa
     from mavispm.measure.stars import batched_fit
 
     image, x, y, flux, d, sky, rn2, saturated = _halo_frame(seed, saturate)
-    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
-                                 iterations=40, relative_tolerance=0.2)  # fmt: skip
+    opt = batched_fit.FitOptions(**HALO_FIT, halo_radius=40.0)
     fit = batched_fit.fit_stars(image, _short_winged_epsf(), x, y, read_noise_var=rn2, sky0=sky,
                                 saturated=saturated, options=opt)  # fmt: skip
     if saturate:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import halo_light, halo_test_core, halo_test_epsf, halo_test_image
+from measure_helpers import HALO_FIT, halo_light, halo_test_core, halo_test_epsf, halo_test_image
 
 _SCALE = 8.0  # halo scale [px]
 
@@ -69,8 +69,7 @@ def _normalised(seed, correlated):
     from mavispm.measure.stars.error_model import estimate_error_model
 
     image, x, y, near, far, sky, rn2 = _frame(seed)
-    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
-                                 iterations=40, relative_tolerance=0.2, halo_rings=5.0)  # fmt: skip
+    opt = batched_fit.FitOptions(**HALO_FIT, halo_radius=40.0, halo_rings=5.0)
     fit = batched_fit.fit_stars(
         image, halo_test_epsf(scale=_SCALE), x, y, read_noise_var=rn2, sky0=sky, options=opt
     )

@@ -5,7 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import halo_test_epsf, halo_test_image, jittered_grid, ring_scene
+from measure_helpers import (
+    HALO_FIT,
+    binned_halo_errors,
+    halo_test_epsf,
+    halo_test_image,
+    jittered_grid,
+    ring_scene,
+)
 
 
 def _frame(seed, scales=(5.5, 11.0), dist=(8.0, 10.0, 12.0, 14.0, 16.0, 18.0, 20.0, 23.0, 26.0)):
@@ -35,18 +42,12 @@ def _bias(rings, seed):
     from mavispm.measure.stars import batched_fit
 
     image, x, y, flux, d, sky, rn2 = _frame(seed)
-    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
-                                 iterations=40, relative_tolerance=0.2, halo_rings=rings)  # fmt: skip
+    opt = batched_fit.FitOptions(**HALO_FIT, halo_radius=40.0, halo_rings=rings)
     fit = batched_fit.fit_stars(
         image, halo_test_epsf(), x, y, read_noise_var=rn2, sky0=sky, options=opt
     )
-    ratio = fit.flux / flux
-    far = np.median(ratio[np.isinf(d)])
-    out = []
-    for lo, hi in ((11, 15), (15, 19), (19, 27)):
-        b = (d >= lo) & (d < hi)
-        out.append(np.median(np.abs(ratio[b] / far - 1)))
-    return np.array(out), far
+    far, off, _ = binned_halo_errors(fit, x, y, flux, d, ((11, 15), (15, 19), (19, 27)))
+    return off, far
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from measure_helpers import HALO_FIT
 
 from mavispm.measure.stars.halo_shape import HaloShape, deposit_shaped, modulation
 
@@ -142,8 +143,7 @@ def test_faint_fluxes_in_a_non_round_halo_are_unbiased_with_its_shape(seed):
     off = np.arange(-40, 41.0)
     shape = HaloShape(modulation(_wing(off[None, :], off[:, None], angle), inner=5.0)[None, None],
                       np.array([300.0]), np.array([300.0]))  # fmt: skip
-    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
-                                 iterations=40, relative_tolerance=0.2)  # fmt: skip
+    opt = batched_fit.FitOptions(**HALO_FIT, halo_radius=40.0)
     worst = {}
     for name, hs in (("round", None), ("shaped", shape)):
         fit = batched_fit.fit_stars(image, _epsf(), x, y, read_noise_var=rn2, sky0=sky,

@@ -6,7 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import halo_test_epsf, halo_test_image, jittered_grid, ring_scene
+from measure_helpers import (
+    HALO_FIT,
+    binned_halo_errors,
+    halo_test_epsf,
+    halo_test_image,
+    jittered_grid,
+    ring_scene,
+)
 
 _BINS = ((11.0, 15.0), (15.0, 21.0))
 
@@ -40,22 +47,14 @@ def _errors(stack, seed, lobes):
     from mavispm.measure.stars import batched_fit
 
     image, x, y, flux, d, sky, rn2 = _frame(seed, lobes)
-    opt = batched_fit.FitOptions(wing_threshold=3.0, halo_radius=40.0, sky_gradient=True,
-                                 iterations=40, relative_tolerance=0.2, halo_rings=5.0,
+    opt = batched_fit.FitOptions(**HALO_FIT, halo_radius=40.0, halo_rings=5.0,
                                  halo_stack=stack)  # fmt: skip
     fit = batched_fit.fit_stars(
         image, halo_test_epsf(), x, y, read_noise_var=rn2, sky0=sky, options=opt
     )
-    ratio = fit.flux / flux
-    far = np.median(ratio[np.isinf(d)])
+    far, flux_off, pos_off = binned_halo_errors(fit, x, y, flux, d, _BINS)
     assert 0.95 < far < 1.05
-    miss = np.hypot(fit.x - x, fit.y - y)
-    flux_off, pos_off = [], []
-    for lo, hi in _BINS:
-        b = (d >= lo) & (d < hi)
-        flux_off.append(np.median(np.abs(ratio[b] / far - 1)))
-        pos_off.append(np.median(miss[b]))
-    return np.array(flux_off), np.array(pos_off)
+    return flux_off, pos_off
 
 
 @pytest.mark.parametrize("seed", [0, 1])
