@@ -1193,9 +1193,7 @@ def _fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
-        model_image=_frame_image(model - halo_light - tail_light, pixels, (ny, nx))
-        if return_model and len(tail_light)
-        else _frame_image(model - halo_light if len(halo_light) else model, pixels, (ny, nx))
+        model_image=_frame_image(_less(model, halo_light, tail_light), pixels, (ny, nx))
         if return_model
         else None,
         sky_slope=np.where(usable[:, None], slope, 0.0),
@@ -1427,6 +1425,15 @@ def _limit_group_steps(step, single, a, label, limit):
     ratio = np.sqrt(length(step) / np.maximum(length(single), 1e-300))
     factor = np.minimum(1.0, limit / np.maximum(ratio, 1e-300))
     return step * factor[label - label.min()][:, None]
+
+
+def _less(model: np.ndarray, *parts: np.ndarray) -> np.ndarray:
+    """``model`` less each of ``parts`` that is kept (not empty), in order: the stars' light
+    without the light kept apart (the halos, the halo's smooth tail)."""
+    for part in parts:
+        if len(part):
+            model = model - part
+    return model
 
 
 def _group_pairs(label: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
