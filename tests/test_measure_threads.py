@@ -26,6 +26,7 @@ from measure_helpers import (
 )
 from test_measure_crowded_convergence import DET, PSF, RN2, SHAPE  # the crowded scene's frame
 
+from mavispm.core import cores
 from mavispm.core.errors import ConfigError
 from mavispm.measure.stars import chunk_pool
 from mavispm.measure.stars.batched_fit import FLAG_FAILED, FitOptions, fit_stars
@@ -163,7 +164,7 @@ def test_more_than_one_thread_is_used(monkeypatch):
     assert len(_SpyPool.idents) == 2 and threading.get_ident() not in _SpyPool.idents
     # 0: every core this process may use
     _SpyPool.made.clear()
-    monkeypatch.setattr(chunk_pool.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
     _fit(0, image, sat, x, y)
     assert set(_SpyPool.made) == {3}
 

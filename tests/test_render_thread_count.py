@@ -4,7 +4,7 @@
   and every core from there; a negative count is refused;
 * ``render_stack`` with the default settings renders a small frame's stamps and draws
   its noise on one thread, a frame at the threshold on every core (the spied thread
-  pools and the noise draw's argument, with ``os.cpu_count`` set to 4), and the two
+  pools and the noise draw's argument, with four usable cores), and the two
   frames are the same bit for bit.
 """
 
@@ -16,18 +16,19 @@ import astropy.units as u
 import numpy as np
 import pytest
 
+from mavispm.core import cores
 from mavispm.simulate.render import stamps, thread_count
 from mavispm.simulate.render.thread_count import AUTO_MIN_STARS, frame_threads
 
 
 def test_rule(monkeypatch):
-    monkeypatch.setattr(thread_count.os, "cpu_count", lambda: 6)
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
     assert frame_threads(3, 10) == 3
     assert frame_threads(1, 10 * AUTO_MIN_STARS) == 1
     assert frame_threads(0, 0) == 1
     assert frame_threads(0, AUTO_MIN_STARS - 1) == 1
     assert frame_threads(0, AUTO_MIN_STARS) == 6
-    monkeypatch.setattr(thread_count.os, "cpu_count", lambda: None)
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: {0}, raising=False)
     assert frame_threads(0, AUTO_MIN_STARS) == 1
     with pytest.raises(ValueError, match="render.threads"):
         frame_threads(-1, 10)
@@ -39,7 +40,7 @@ def test_render_stack_threads_follow_the_star_count(monkeypatch):
     from mavispm.simulate.render import cli, frame
     from mavispm.simulate.render.scene import scene_from_mapping
 
-    monkeypatch.setattr(thread_count.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda pid: set(range(4)), raising=False)
     pools, draws = [], []
 
     class Pool(concurrent.futures.ThreadPoolExecutor):

@@ -22,10 +22,10 @@ from __future__ import annotations
 import abc
 import concurrent.futures as cf
 import multiprocessing
-import os
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING
 
+from mavispm.core.cores import usable_cores
 from mavispm.core.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -250,11 +250,8 @@ class DaskExecutor(Executor):
 
 
 def default_workers() -> int:
-    """Number of CPUs available to this process."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    """Number of CPUs available to this process (:func:`~mavispm.core.cores.usable_cores`)."""
+    return usable_cores()
 
 
 def make_executor(

@@ -14,10 +14,11 @@ normal equations, the batched inverses, the gathers).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
+
+from mavispm.core.cores import usable_cores
 
 __all__ = ["ChunkPool", "resolve_threads"]
 
@@ -32,7 +33,7 @@ def resolve_threads(requested: int) -> int:
     ----------
     requested : int
         The ``threads`` knob: a count (>= 1) as it is; 0: automatic, the cores this
-        process may run on (``os.sched_getaffinity``, else ``os.cpu_count()``).
+        process may run on (:func:`~mavispm.core.cores.usable_cores`).
 
     Returns
     -------
@@ -44,10 +45,7 @@ def resolve_threads(requested: int) -> int:
         raise ValueError(f"threads must be >= 0 (0: automatic), got {requested}")
     if requested:
         return requested
-    try:
-        return max(len(os.sched_getaffinity(0)), 1)
-    except (AttributeError, OSError):  # not on every platform
-        return os.cpu_count() or 1
+    return usable_cores()
 
 
 class ChunkPool:

@@ -15,7 +15,6 @@ sub-exposure and clipped individually, so saturation acts per sub-exposure exact
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -23,6 +22,7 @@ import numba
 import numpy as np
 
 from mavispm.core.config import unit_field
+from mavispm.core.cores import usable_cores
 
 __all__ = [
     "DetectorSettings",
@@ -438,7 +438,7 @@ def _bisect(f, a: float, b: float, xtol: float, rtol: float) -> float:
 def _map_threads(fn, items, threads: int) -> list:
     """``list(map(fn, items))`` on up to ``threads`` threads (0: all cores), in order."""
     items = list(items)
-    n = threads or os.cpu_count() or 1
+    n = threads or usable_cores()
     if n <= 1 or len(items) <= 1:
         return [fn(it) for it in items]
     with ThreadPoolExecutor(max_workers=n) as pool:

@@ -29,7 +29,6 @@ edge is below ``stamp_threshold`` times the per-pixel noise.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -38,6 +37,7 @@ from typing import Literal
 import numpy as np
 
 from mavispm.core.array_cache import content_key, is_immutable, load_arrays, save_arrays
+from mavispm.core.cores import usable_cores
 from mavispm.simulate.render.pixel_response import pixel_transfer
 from mavispm.simulate.render.stamp_kernels import (
     add_stamps,
@@ -573,7 +573,7 @@ class StarRenderer:
                 yield self._plan_from(m, fy, fx, _node_transforms_dft(self._cube, step, fy, fx))
         for group in periodic.values():
             requests = [(p, fy, fx) for _, p, fy, fx in group]
-            workers = self.params.threads or os.cpu_count() or 1
+            workers = self.params.threads or usable_cores()
             full = _node_transforms_fft(self._cube, requests, workers=workers)
             for (m, _, fy, fx), transforms in zip(group, full):
                 yield self._plan_from(m, fy, fx, transforms)

@@ -27,7 +27,7 @@ is the better use of the cores too.
 
 from __future__ import annotations
 
-import os
+from mavispm.core.cores import usable_cores
 
 __all__ = ["AUTO_MIN_STARS", "frame_threads"]
 
@@ -49,7 +49,8 @@ def frame_threads(requested: int, n_stars: int) -> int:
     -------
     int
         ``requested`` if >= 1; else 1 below :data:`AUTO_MIN_STARS` stars and the
-        number of cores (``os.cpu_count()``) from there.
+        number of cores this process may use
+        (:func:`~mavispm.core.cores.usable_cores`) from there.
     """
     if requested < 0:
         raise ValueError(f"render.threads must be >= 0 (0: automatic), got {requested}")
@@ -57,4 +58,4 @@ def frame_threads(requested: int, n_stars: int) -> int:
         return int(requested)
     if n_stars < AUTO_MIN_STARS:
         return 1
-    return os.cpu_count() or 1
+    return usable_cores()
