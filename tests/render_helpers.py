@@ -290,3 +290,17 @@ def random_epoch(n, half_x, half_y=None, seed=3, mags=(15.0, 23.0)):
     return epoch_table(
         r.uniform(-half_x, half_x, n), r.uniform(-half_y, half_y, n), r.uniform(*mags, n)
     )
+
+
+def chunk_normals(rng, n):
+    """The standard normals the detector's noise draw takes from ``rng`` for ``n`` pixels.
+
+    Drawn through the production path (``detector._draw_chunk``) at zero mean and unit
+    read-noise variance, where the Gaussian draw is the normal itself (checked).
+    """
+    from mavispm.simulate.render import detector
+
+    out = np.empty(n, np.float32)
+    z = detector._draw_chunk(np.zeros(n, np.float32), rng, 1, 1.0, np.inf, out)
+    np.testing.assert_array_equal(out, z)
+    return z

@@ -17,6 +17,7 @@ import zlib
 
 import numpy as np
 import pytest
+from render_helpers import chunk_normals
 
 from mavispm.simulate.render import detector
 from mavispm.simulate.render.halo_convolution import (
@@ -179,7 +180,7 @@ _FRAMES_E0_CHUNK0 = np.random.SeedSequence([0, zlib.crc32(b"e0")]).spawn(1)[0]
 def test_compiled_float32_normals_are_numpys(seed):
     # ~2e6 draws pass through the ziggurat's wedge and tail tests many times
     ours, numpys = np.random.default_rng(seed), np.random.default_rng(seed)
-    got = detector._standard_normals_f32(ours, 2_000_000)
+    got = chunk_normals(ours, 2_000_000)
     ref = numpys.standard_normal(2_000_000, dtype=np.float32)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, ref)

@@ -7,8 +7,9 @@ import zlib
 import numba
 import numpy as np
 import pytest
+from render_helpers import chunk_normals
 
-from mavispm.simulate.render import detector, pcg64
+from mavispm.simulate.render import pcg64
 
 #: The first noise chunk of epoch "e0", seed 0, as the frames command spawns it.
 _FRAMES_E0_CHUNK0 = np.random.SeedSequence([0, zlib.crc32(b"e0")]).spawn(1)[0]
@@ -65,7 +66,7 @@ def test_a_buffered_half_is_drawn_first():
     assert numpys.bit_generator.state["has_uint32"] == 1
     ours = np.random.Generator(np.random.PCG64())
     ours.bit_generator.state = numpys.bit_generator.state
-    got = detector._standard_normals_f32(ours, 100_000)
+    got = chunk_normals(ours, 100_000)
     np.testing.assert_array_equal(got, numpys.standard_normal(100_000, dtype=np.float32))
     assert ours.bit_generator.state == numpys.bit_generator.state
 
@@ -74,6 +75,6 @@ def test_a_buffered_half_is_drawn_first():
 def test_other_bit_generators_draw_numpys_normals(bit_generator):
     assert pcg64.pcg64_take(np.random.Generator(bit_generator(0))) is None
     ours, numpys = np.random.Generator(bit_generator(4)), np.random.Generator(bit_generator(4))
-    got = detector._standard_normals_f32(ours, 10_001)
+    got = chunk_normals(ours, 10_001)
     np.testing.assert_array_equal(got, numpys.standard_normal(10_001, dtype=np.float32))
     assert ours.random() == numpys.random()

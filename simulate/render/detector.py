@@ -345,24 +345,6 @@ else:
     _COMPILED_NORMALS = True
 
 
-def _standard_normals_f32(rng: np.random.Generator, n: int) -> np.ndarray:
-    """``rng.standard_normal(n, dtype=np.float32)``: the same numbers, and ``rng`` continues
-    after them as it would after numpy's call.
-
-    A PCG64 generator (numpy's default, and every generator the frames command spawns)
-    is stepped inside the compiled sampler (:mod:`mavispm.simulate.render.pcg64`, ~0.04
-    s per 16e6 draws against ~0.11 s through numba's bit-generator function pointer);
-    any other goes through numpy.
-    """
-    z = np.empty(n, dtype=np.float32)
-    state = pcg64_take(rng) if _COMPILED_NORMALS else None
-    if state is None:
-        return rng.standard_normal(n, dtype=np.float32, out=z)
-    standard_normals_f32_pcg64(state, z)
-    pcg64_put(rng, state)
-    return z
-
-
 @numba.njit(nogil=True, cache=True)
 def _normal_stack_chunk(mu, state, z, nexp, var_rn, skew_limit, out):  # pragma: no cover
     """:func:`standard_normals_f32_pcg64` into ``z``, then :func:`normal_stack_draws`.
@@ -374,8 +356,14 @@ def _normal_stack_chunk(mu, state, z, nexp, var_rn, skew_limit, out):  # pragma:
 
 
 def _draw_chunk(mu, rng, nexp, var_rn, skew_limit, out) -> np.ndarray:
-    """The chunk's standard normals (those of :func:`_standard_normals_f32`) and its
-    Gaussian draws.
+    """The chunk's standard normals and its Gaussian draws.
+
+    The normals are ``rng.standard_normal(mu.size, dtype=np.float32)``: the same
+    numbers, and ``rng`` continues after them as it would after numpy's call. A PCG64
+    generator (numpy's default, and every generator the frames command spawns) is
+    stepped inside the compiled sampler (:mod:`mavispm.simulate.render.pcg64`, ~0.04 s
+    per 16e6 draws against ~0.11 s through numba's bit-generator function pointer); any
+    other goes through numpy.
 
     Returns
     -------
