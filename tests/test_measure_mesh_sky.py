@@ -16,7 +16,7 @@ from measure_helpers import SynthPSF, render_image
 from photutils.background import Background2D, MedianBackground
 
 from mavispm.core.frame import Frame
-from mavispm.measure.stars.measure_frame import mesh_sky, sky_mesh
+from mavispm.measure.stars.sky_mesh import mesh_sky, sky_mesh
 
 SHAPE = (400, 464)  # 12.5 x 14.5 blocks of 32: narrower edge blocks on two sides
 MESH = 32

@@ -20,7 +20,8 @@ from measure_helpers import Detector, SynthPSF, write_frames, write_prior
 
 from mavispm.core.products import read_product
 from mavispm.measure.stars.cli import run_stage
-from mavispm.measure.stars.measure_frame import mesh_sky, psfr_grid_for, read_frame
+from mavispm.measure.stars.measure_frame import psfr_grid_for, read_frame
+from mavispm.measure.stars.sky_mesh import mesh_sky
 
 SHAPE = (360, 360)
 PSF = SynthPSF(1.2, gradient=0.25)  # sigma 0.9-1.5 px in x: the kernel varies over the field

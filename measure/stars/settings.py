@@ -65,7 +65,7 @@ class MeasureKnobs:
         In the isolation test a neighbour is rated by its 5 x 5 box flux over the larger
         of two backgrounds: its own local one (the ring 6-8 px around it) and the frame's
         background from a mesh of this block size
-        (:func:`~mavispm.measure.stars.measure_frame.mesh_sky`): the ring alone can be
+        (:func:`~mavispm.measure.stars.sky_mesh.mesh_sky`): the ring alone can be
         raised by the bright candidate next to it. 0: the frame's global sky instead of
         the mesh (before 2026-12-03: on the 1e5-star frame the unresolved crowd's light
         made a V 24-26 neighbour read ~7.5 x its flux and the 12-px isolation left 1,132
