@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
 import astropy.units as u
@@ -690,6 +691,8 @@ def _handler(args) -> int:
                 source=args.config,
             ) from None
     settings = validate_settings(settings, source=args.config)
+    if settings.progress and not sys.stderr.isatty():  # bars on a terminal only
+        settings = dataclasses.replace(settings, progress=False)
     if args.fast:
         settings = settings.fast()
     if args.no_evidence:

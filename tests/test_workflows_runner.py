@@ -196,3 +196,20 @@ def test_fingerprint_ignores_only_time_stamps_and_timings(tmp_path):
     reference = product_fingerprint(make("a.h5", 1.0, 2.0))
     assert product_fingerprint(make("b.h5", 9.5, 2.0)) == reference  # only the timing differs
     assert product_fingerprint(make("c.h5", 1.0, 2.0 + 1e-12)) != reference  # one bit of data
+
+
+def test_dynamics_stage_draws_no_sampler_bars_unless_asked(monkeypatch, tmp_path):
+    # the runner draws one bar per stage; the sampler's own bars would cut through them
+    from mavispm.workflows import stages
+
+    seen = []
+
+    def spy(propermotions, settings, output, seed, **kw):
+        seen.append(settings.get("progress"))
+        return output
+
+    monkeypatch.setattr(stages, "_stage", lambda name: spy)
+    inputs = {"propermotions": tmp_path / "pm.h5"}
+    stages.run_dynamics(inputs, {"walkers": 8}, {"plots": False}, 1, tmp_path)
+    stages.run_dynamics(inputs, {"progress": True}, {"plots": False}, 1, tmp_path)
+    assert seen == [False, True]

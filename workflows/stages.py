@@ -583,7 +583,8 @@ def run_dynamics(
     plots = outdir / "plots" if params.get("plots", True) else None
     out = _stage("dynamics")(
         inputs["propermotions"],
-        dict(settings),
+        # the runner draws its own bars; the sampler's only when the workflow asks
+        {"progress": False, **dict(settings)},
         outdir / "dynamics.h5",
         seed,
         plots_dir=plots,
