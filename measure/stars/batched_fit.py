@@ -311,6 +311,63 @@ class FitResult:
     crowding: np.ndarray | None = None
     correlated_gain: np.ndarray | None = None
     halo_share: np.ndarray | None = None
+    chi2_odd: np.ndarray | None = None
+
+
+def odd_chi2(e: np.ndarray, valid: np.ndarray, dx: np.ndarray, dy: np.ndarray, n_odd: int):
+    """Reduced chi^2 of the part of each stamp's residual that is odd about the star.
+
+    The normalised residual ``e = sqrt(w) (data - model)`` is reflected through the
+    point ``c`` of the half-pixel lattice nearest to the fitted centre (``c = round(2
+    x) / 2`` per axis: a point reflection about it maps pixels onto pixels, so no
+    interpolation mixes the noise; ``c`` is within 0.25 px of the centre). The odd part
+    ``(e - R e) / 2`` of white noise holds, per pair of mirror pixels ``(p, Rp)``, one
+    unit-variance degree of freedom ``(e_p - e_Rp) / sqrt(2)``; its sum of squares over
+    the pairs with both pixels valid, divided by the pairs less the odd parameters the
+    fit absorbs (the position, and the sky slopes), is 1 for pure noise. A misfit even
+    about the star (a width or halo error of a centred model) cancels in it; one that
+    moves the star (a neighbour's light on one side, an asymmetric core) does not.
+
+    Parameters
+    ----------
+    e : ndarray, shape (N, S, S)
+        Normalised residuals on the stamps (rows, columns).
+    valid : ndarray of bool, shape (N, S, S)
+    dx, dy : ndarray, shape (N,)
+        Fitted centre less the stamp's central pixel [pixel].
+    n_odd : int
+        Odd parameters of the fit (2: x, y; 4 with the sky slopes).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        NaN where fewer than ``n_odd + 1`` pairs are valid or the centre is not finite.
+    """
+    n, size, _ = e.shape
+    out = np.full(n, np.nan)
+    fine = np.isfinite(dx) & np.isfinite(dy)
+    # the reflection index i' = k + 2 r - i with k = round(2 d)
+    kx = np.where(fine, np.rint(2 * np.nan_to_num(dx)), 0).astype(np.intp)
+    ky = np.where(fine, np.rint(2 * np.nan_to_num(dy)), 0).astype(np.intp)
+    ok = fine & (np.abs(kx) < size) & (np.abs(ky) < size)
+    e = np.where(valid, e, np.nan)
+    flipped = e[:, ::-1, ::-1]
+    pad = np.full((n, 3 * size, 3 * size), np.nan)
+    pad[:, size : 2 * size, size : 2 * size] = flipped
+    keys = np.unique(np.stack([kx[ok], ky[ok]], axis=1), axis=0)
+    for a, b in keys:
+        sel = np.flatnonzero(ok & (kx == a) & (ky == b))
+        # mirror[j, i] = flipped[j - b, i - a]
+        mirror = pad[sel, size - b : 2 * size - b, size - a : 2 * size - a]
+        d = (e[sel] - mirror).reshape(len(sel), -1)
+        both = np.isfinite(d)
+        # each unordered pair appears twice (p and Rp); a self-paired pixel (its d = 0)
+        # once, which the floor drops
+        pairs = both.sum(axis=1) // 2
+        total = np.sum(np.where(both, d, 0.0) ** 2, axis=1) / 4.0
+        dof = pairs - n_odd
+        out[sel] = np.where(dof > 0, total / np.maximum(dof, 1), np.nan)
+    return out
 
 
 def residual_correlation(psf: VariableEPSF, nx: int, ny: int, radius: int) -> np.ndarray:
@@ -1095,6 +1152,7 @@ def _fit_stars(
     f_err = np.full(n, np.nan)
     s_err = np.full(n, np.nan)
     chi2 = np.full(n, np.nan)
+    chi2_odd = np.full(n, np.nan)
     crowding = np.full(n, np.nan)
     all_idx = order  # the usable stars in bands of rows (cache reuse; see the colours)
     if uncertainties or return_model:  # exact (not linearised) models at the solution
@@ -1143,6 +1201,14 @@ def _fit_stars(
             next_step[idx] = np.hypot(step[:, 0], step[:, 1])
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
+        # odd parameters: the position (and the sky slopes); flux and sky are even
+        chi2_odd[idx] = odd_chi2(
+            (np.sqrt(w) * resid).reshape(len(idx), s, s),
+            valid[idx].reshape(len(idx), s, s),
+            x[idx] - geom.cx[idx],
+            y[idx] - geom.cy[idx],
+            npar - 2,
+        )
         crowding[idx] = _neighbour_misfit(
             w * resid**2, others_on(flat[idx], own[idx]), own[idx], valid[idx], npar
         )
@@ -1193,6 +1259,7 @@ def _fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
+        chi2_odd=chi2_odd,
         model_image=_frame_image(_less(model, halo_light, tail_light), pixels, (ny, nx))
         if return_model
         else None,
