@@ -317,16 +317,18 @@ class FitResult:
 def odd_chi2(e: np.ndarray, valid: np.ndarray, dx: np.ndarray, dy: np.ndarray, n_odd: int):
     """Reduced chi^2 of the part of each stamp's residual that is odd about the star.
 
-    The normalised residual ``e = sqrt(w) (data - model)`` is reflected through the
-    point ``c`` of the half-pixel lattice nearest to the fitted centre (``c = round(2
-    x) / 2`` per axis: a point reflection about it maps pixels onto pixels, so no
-    interpolation mixes the noise; ``c`` is within 0.25 px of the centre). The odd part
-    ``(e - R e) / 2`` of white noise holds, per pair of mirror pixels ``(p, Rp)``, one
-    unit-variance degree of freedom ``(e_p - e_Rp) / sqrt(2)``; its sum of squares over
-    the pairs with both pixels valid, divided by the pairs less the odd parameters the
-    fit absorbs (the position, and the sky slopes), is 1 for pure noise. A misfit even
-    about the star (a width or halo error of a centred model) cancels in it; one that
-    moves the star (a neighbour's light on one side, an asymmetric core) does not.
+    The normalised residual ``e = sqrt(w) (data - model)`` at each pixel ``p`` is
+    compared with its mirror image through the fitted centre, ``e(2 c - p)``, read by
+    bilinear interpolation between the four pixels around the mirror point (the
+    centre's sub-pixel phase: a reflection through the nearest pixel or half-pixel
+    point, up to 0.25 px off, leaks an even misfit into the odd part in proportion to
+    that offset over the PSF's width). For white noise ``sum (e_p - e(2 c - p))^2`` has
+    the expectation ``sum (1 + sum_k w_k^2 - 2 w_self)`` (``w_k`` the interpolation
+    weights, ``w_self`` that of the pixel itself): the statistic is divided by it and by
+    the share of pairs the odd parameters (the position, and the sky slopes) absorb, so
+    that pure noise gives 1. A misfit even about the star (a width or halo error of a
+    centred model) cancels in it; one that moves the star (a neighbour's light on one
+    side) does not.
 
     Parameters
     ----------
@@ -341,32 +343,47 @@ def odd_chi2(e: np.ndarray, valid: np.ndarray, dx: np.ndarray, dy: np.ndarray, n
     Returns
     -------
     ndarray, shape (N,)
-        NaN where fewer than ``n_odd + 1`` pairs are valid or the centre is not finite.
+        NaN where at most ``n_odd`` pairs are valid or the centre is not finite.
     """
     n, size, _ = e.shape
     out = np.full(n, np.nan)
     fine = np.isfinite(dx) & np.isfinite(dy)
-    # the reflection index i' = k + 2 r - i with k = round(2 d)
-    kx = np.where(fine, np.rint(2 * np.nan_to_num(dx)), 0).astype(np.intp)
-    ky = np.where(fine, np.rint(2 * np.nan_to_num(dy)), 0).astype(np.intp)
-    ok = fine & (np.abs(kx) < size) & (np.abs(ky) < size)
+    # the mirror of pixel index i is 2 d + 2 r - i = (k + 2 r - i) + f, k = floor(2 d)
+    tx = np.where(fine, 2 * np.nan_to_num(dx), 0.0)
+    ty = np.where(fine, 2 * np.nan_to_num(dy), 0.0)
+    kx, ky = np.floor(tx).astype(np.intp), np.floor(ty).astype(np.intp)
+    fx, fy = tx - kx, ty - ky
+    ok = fine & (np.abs(kx) < size - 1) & (np.abs(ky) < size - 1)
     e = np.where(valid, e, np.nan)
-    flipped = e[:, ::-1, ::-1]
     pad = np.full((n, 3 * size, 3 * size), np.nan)
-    pad[:, size : 2 * size, size : 2 * size] = flipped
-    keys = np.unique(np.stack([kx[ok], ky[ok]], axis=1), axis=0)
-    for a, b in keys:
+    pad[:, size : 2 * size, size : 2 * size] = e[:, ::-1, ::-1]
+    jj, ii = np.mgrid[:size, :size]
+    for a, b in np.unique(np.stack([kx[ok], ky[ok]], axis=1), axis=0):
         sel = np.flatnonzero(ok & (kx == a) & (ky == b))
-        # mirror[j, i] = flipped[j - b, i - a]
-        mirror = pad[sel, size - b : 2 * size - b, size - a : 2 * size - a]
+        ax, ay = fx[sel, None, None], fy[sel, None, None]
+        mirror = np.zeros((len(sel), size, size))
+        wsq = np.zeros_like(mirror)
+        wself = np.zeros_like(mirror)
+        for sx, sy, w in (
+            (0, 0, (1 - ax) * (1 - ay)),
+            (1, 0, ax * (1 - ay)),
+            (0, 1, (1 - ax) * ay),
+            (1, 1, ax * ay),
+        ):
+            # e[k + s + 2 r - j, ...] = flipped[j - k - s, ...]; NaN off the stamp or
+            # on an invalid pixel wherever its weight is not zero
+            src = pad[sel, size - b - sy : 2 * size - b - sy, size - a - sx : 2 * size - a - sx]
+            mirror += np.where(w > 0, w * src, 0.0)
+            wsq += w * w
+            here = (2 * jj == b + sy + size - 1) & (2 * ii == a + sx + size - 1)
+            wself += np.where(here[None], w, 0.0)
         d = (e[sel] - mirror).reshape(len(sel), -1)
         both = np.isfinite(d)
-        # each unordered pair appears twice (p and Rp); a self-paired pixel (its d = 0)
-        # once, which the floor drops
-        pairs = both.sum(axis=1) // 2
-        total = np.sum(np.where(both, d, 0.0) ** 2, axis=1) / 4.0
-        dof = pairs - n_odd
-        out[sel] = np.where(dof > 0, total / np.maximum(dof, 1), np.nan)
+        expect = np.sum(np.where(both, 1.0 + (wsq - 2.0 * wself).reshape(len(sel), -1), 0.0), 1)
+        total = np.sum(np.where(both, d, 0.0) ** 2, axis=1)
+        pairs = both.sum(axis=1) / 2.0  # each pair of mirror pixels is counted twice
+        absorbed = np.maximum(1.0 - n_odd / np.maximum(pairs, 1.0), 1e-3)
+        out[sel] = np.where(pairs > n_odd, total / np.maximum(expect * absorbed, 1e-300), np.nan)
     return out
 
 
