@@ -27,6 +27,15 @@ The error model (``error_model = "epsf"``), per star and coordinate::
 The flux error is treated in the same way with the relative flux change. With
 ``error_model = "fisher"`` the errors are the Fisher errors alone (the Cramér-Rao
 bound; right for a known PSF).
+
+With the PSF-R model (``relative_chi2``) the position terms take the ratio of the
+residual's part *odd* about the star (``chi2_odd``,
+:func:`~mavispm.measure.stars.batched_fit.odd_chi2`) against its peers' instead of the
+whole chi^2's: a misfit even about the star (a width or wing error of a centred
+model) raises the chi^2 without moving the star, and with the 5 x 5 PSF-R grid the
+whole ratio made the V 17-20 position errors 1.2-1.3 x too large on the 1e4-star
+frame (normalised residuals 0.85 / 0.76; docs/measure.md, "Scale", twenty-fifth
+pass). The flux keeps the whole chi^2 (an even misfit biases the flux).
 """
 
 from __future__ import annotations
@@ -210,6 +219,10 @@ class ErrorModel:
         ``max(chi2 / chi2_typ(F), 1)``: the star's fit against its peers'.
     chi2_inflation : ndarray
         ``max(chi2, 1)``, applied to the Fisher variances.
+    position_ratio, position_inflation : ndarray, optional
+        The same two terms for the positions where they differ from the flux's (the
+        residual's odd part, ``chi2_odd`` of :func:`estimate_error_model`); None: the
+        flux's.
     kind : {"epsf", "chi2", "fisher"}
         What the terms hold: the ePSF model error and the chi^2 terms, the
         chi^2 terms only, or nothing beyond the Fisher errors.
@@ -238,7 +251,9 @@ class ErrorModel:
 
     def position_total(self, fisher_err: np.ndarray, axis: int) -> np.ndarray:
         """Total position error [pixel] of one coordinate: :meth:`total` with the
-        position term, plus the correlated-misfit variance of that axis (if any).
+        position term and the position's chi^2 terms (``position_ratio``,
+        ``position_inflation`` where set), plus the correlated-misfit variance of that
+        axis (if any).
 
         Parameters
         ----------
