@@ -345,45 +345,66 @@ def odd_chi2(e: np.ndarray, valid: np.ndarray, dx: np.ndarray, dy: np.ndarray, n
     ndarray, shape (N,)
         NaN where at most ``n_odd`` pairs are valid or the centre is not finite.
     """
-    n, size, _ = e.shape
+    e = np.ascontiguousarray(e, dtype=np.float64)
+    valid = np.ascontiguousarray(valid, dtype=np.bool_)
+    dx = np.ascontiguousarray(dx, dtype=np.float64)
+    dy = np.ascontiguousarray(dy, dtype=np.float64)
+    return _odd_chi2(e, valid, dx, dy, int(n_odd))
+
+
+@numba.njit(nogil=True, cache=True)
+def _odd_chi2(e, valid, dx, dy, n_odd):
+    """:func:`odd_chi2`, compiled (star by star, pixel by pixel)."""
+    n, size = e.shape[0], e.shape[1]
     out = np.full(n, np.nan)
-    fine = np.isfinite(dx) & np.isfinite(dy)
-    # the mirror of pixel index i is 2 d + 2 r - i = (k + 2 r - i) + f, k = floor(2 d)
-    tx = np.where(fine, 2 * np.nan_to_num(dx), 0.0)
-    ty = np.where(fine, 2 * np.nan_to_num(dy), 0.0)
-    kx, ky = np.floor(tx).astype(np.intp), np.floor(ty).astype(np.intp)
-    fx, fy = tx - kx, ty - ky
-    ok = fine & (np.abs(kx) < size - 1) & (np.abs(ky) < size - 1)
-    e = np.where(valid, e, np.nan)
-    pad = np.full((n, 3 * size, 3 * size), np.nan)
-    pad[:, size : 2 * size, size : 2 * size] = e[:, ::-1, ::-1]
-    jj, ii = np.mgrid[:size, :size]
-    for a, b in np.unique(np.stack([kx[ok], ky[ok]], axis=1), axis=0):
-        sel = np.flatnonzero(ok & (kx == a) & (ky == b))
-        ax, ay = fx[sel, None, None], fy[sel, None, None]
-        mirror = np.zeros((len(sel), size, size))
-        wsq = np.zeros_like(mirror)
-        wself = np.zeros_like(mirror)
-        for sx, sy, w in (
-            (0, 0, (1 - ax) * (1 - ay)),
-            (1, 0, ax * (1 - ay)),
-            (0, 1, (1 - ax) * ay),
-            (1, 1, ax * ay),
-        ):
-            # e[k + s + 2 r - j, ...] = flipped[j - k - s, ...]; NaN off the stamp or
-            # on an invalid pixel wherever its weight is not zero
-            src = pad[sel, size - b - sy : 2 * size - b - sy, size - a - sx : 2 * size - a - sx]
-            mirror += np.where(w > 0, w * src, 0.0)
-            wsq += w * w
-            here = (2 * jj == b + sy + size - 1) & (2 * ii == a + sx + size - 1)
-            wself += np.where(here[None], w, 0.0)
-        d = (e[sel] - mirror).reshape(len(sel), -1)
-        both = np.isfinite(d)
-        expect = np.sum(np.where(both, 1.0 + (wsq - 2.0 * wself).reshape(len(sel), -1), 0.0), 1)
-        total = np.sum(np.where(both, d, 0.0) ** 2, axis=1)
-        pairs = both.sum(axis=1) / 2.0  # each pair of mirror pixels is counted twice
-        absorbed = np.maximum(1.0 - n_odd / np.maximum(pairs, 1.0), 1e-3)
-        out[sel] = np.where(pairs > n_odd, total / np.maximum(expect * absorbed, 1e-300), np.nan)
+    for k in range(n):
+        if not (np.isfinite(dx[k]) and np.isfinite(dy[k])):
+            continue
+        # the mirror of pixel index i is 2 d + 2 r - i = (q + 2 r - i) + f, q = floor(2 d)
+        qx, qy = np.floor(2.0 * dx[k]), np.floor(2.0 * dy[k])
+        fx, fy = 2.0 * dx[k] - qx, 2.0 * dy[k] - qy
+        if abs(qx) >= size - 1 or abs(qy) >= size - 1:
+            continue
+        kx, ky = int(qx), int(qy)
+        wx = (1.0 - fx, fx)
+        wy = (1.0 - fy, fy)
+        total = 0.0
+        expect = 0.0
+        count = 0
+        for j in range(size):
+            for i in range(size):
+                if not valid[k, j, i] or not np.isfinite(e[k, j, i]):
+                    continue
+                mirror = 0.0
+                wsq = 0.0
+                wself = 0.0
+                ok = True
+                for sy in range(2):
+                    for sx in range(2):
+                        w = wy[sy] * wx[sx]
+                        if w <= 0.0:
+                            continue
+                        jj = ky + sy + size - 1 - j
+                        ii = kx + sx + size - 1 - i
+                        if jj < 0 or jj >= size or ii < 0 or ii >= size:
+                            ok = False
+                        elif not valid[k, jj, ii] or not np.isfinite(e[k, jj, ii]):
+                            ok = False
+                        else:
+                            mirror += w * e[k, jj, ii]
+                            wsq += w * w
+                            if jj == j and ii == i:
+                                wself += w
+                if not ok:
+                    continue
+                d = e[k, j, i] - mirror
+                total += d * d
+                expect += 1.0 + wsq - 2.0 * wself
+                count += 1
+        pairs = count / 2.0  # each pair of mirror pixels is counted twice
+        if pairs > n_odd:
+            absorbed = max(1.0 - n_odd / pairs, 1e-3)
+            out[k] = total / max(expect * absorbed, 1e-300)
     return out
 
 
