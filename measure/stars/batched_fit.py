@@ -311,6 +311,101 @@ class FitResult:
     crowding: np.ndarray | None = None
     correlated_gain: np.ndarray | None = None
     halo_share: np.ndarray | None = None
+    chi2_odd: np.ndarray | None = None
+
+
+def odd_chi2(e: np.ndarray, valid: np.ndarray, dx: np.ndarray, dy: np.ndarray, n_odd: int):
+    """Reduced chi^2 of the part of each stamp's residual that is odd about the star.
+
+    The normalised residual ``e = sqrt(w) (data - model)`` at each pixel ``p`` is
+    compared with its mirror image through the fitted centre, ``e(2 c - p)``, read by
+    bilinear interpolation between the four pixels around the mirror point (the
+    centre's sub-pixel phase: a reflection through the nearest pixel or half-pixel
+    point, up to 0.25 px off, leaks an even misfit into the odd part in proportion to
+    that offset over the PSF's width). For white noise ``sum (e_p - e(2 c - p))^2`` has
+    the expectation ``sum (1 + sum_k w_k^2 - 2 w_self)`` (``w_k`` the interpolation
+    weights, ``w_self`` that of the pixel itself): the statistic is divided by it and by
+    the share of pairs the odd parameters (the position, and the sky slopes) absorb, so
+    that pure noise gives 1. A misfit even about the star (a width or halo error of a
+    centred model) cancels in it; one that moves the star (a neighbour's light on one
+    side) does not.
+
+    Parameters
+    ----------
+    e : ndarray, shape (N, S, S)
+        Normalised residuals on the stamps (rows, columns).
+    valid : ndarray of bool, shape (N, S, S)
+    dx, dy : ndarray, shape (N,)
+        Fitted centre less the stamp's central pixel [pixel].
+    n_odd : int
+        Odd parameters of the fit (2: x, y; 4 with the sky slopes).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+        NaN where at most ``n_odd`` pairs are valid or the centre is not finite.
+    """
+    e = np.ascontiguousarray(e, dtype=np.float64)
+    valid = np.ascontiguousarray(valid, dtype=np.bool_)
+    dx = np.ascontiguousarray(dx, dtype=np.float64)
+    dy = np.ascontiguousarray(dy, dtype=np.float64)
+    return _odd_chi2(e, valid, dx, dy, int(n_odd))
+
+
+@numba.njit(nogil=True, cache=True)
+def _odd_chi2(e, valid, dx, dy, n_odd):
+    """:func:`odd_chi2`, compiled (star by star, pixel by pixel)."""
+    n, size = e.shape[0], e.shape[1]
+    out = np.full(n, np.nan)
+    for k in range(n):
+        if not (np.isfinite(dx[k]) and np.isfinite(dy[k])):
+            continue
+        # the mirror of pixel index i is 2 d + 2 r - i = (q + 2 r - i) + f, q = floor(2 d)
+        qx, qy = np.floor(2.0 * dx[k]), np.floor(2.0 * dy[k])
+        fx, fy = 2.0 * dx[k] - qx, 2.0 * dy[k] - qy
+        if abs(qx) >= size - 1 or abs(qy) >= size - 1:
+            continue
+        kx, ky = int(qx), int(qy)
+        wx = (1.0 - fx, fx)
+        wy = (1.0 - fy, fy)
+        total = 0.0
+        expect = 0.0
+        count = 0
+        for j in range(size):
+            for i in range(size):
+                if not valid[k, j, i] or not np.isfinite(e[k, j, i]):
+                    continue
+                mirror = 0.0
+                wsq = 0.0
+                wself = 0.0
+                ok = True
+                for sy in range(2):
+                    for sx in range(2):
+                        w = wy[sy] * wx[sx]
+                        if w <= 0.0:
+                            continue
+                        jj = ky + sy + size - 1 - j
+                        ii = kx + sx + size - 1 - i
+                        if jj < 0 or jj >= size or ii < 0 or ii >= size:
+                            ok = False
+                        elif not valid[k, jj, ii] or not np.isfinite(e[k, jj, ii]):
+                            ok = False
+                        else:
+                            mirror += w * e[k, jj, ii]
+                            wsq += w * w
+                            if jj == j and ii == i:
+                                wself += w
+                if not ok:
+                    continue
+                d = e[k, j, i] - mirror
+                total += d * d
+                expect += 1.0 + wsq - 2.0 * wself
+                count += 1
+        pairs = count / 2.0  # each pair of mirror pixels is counted twice
+        if pairs > n_odd:
+            absorbed = max(1.0 - n_odd / pairs, 1e-3)
+            out[k] = total / max(expect * absorbed, 1e-300)
+    return out
 
 
 def residual_correlation(psf: VariableEPSF, nx: int, ny: int, radius: int) -> np.ndarray:
@@ -1095,6 +1190,7 @@ def _fit_stars(
     f_err = np.full(n, np.nan)
     s_err = np.full(n, np.nan)
     chi2 = np.full(n, np.nan)
+    chi2_odd = np.full(n, np.nan)
     crowding = np.full(n, np.nan)
     all_idx = order  # the usable stars in bands of rows (cache reuse; see the colours)
     if uncertainties or return_model:  # exact (not linearised) models at the solution
@@ -1143,6 +1239,14 @@ def _fit_stars(
             next_step[idx] = np.hypot(step[:, 0], step[:, 1])
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
+        # odd parameters: the position (and the sky slopes); flux and sky are even
+        chi2_odd[idx] = odd_chi2(
+            (np.sqrt(w) * resid).reshape(len(idx), s, s),
+            valid[idx].reshape(len(idx), s, s),
+            x[idx] - geom.cx[idx],
+            y[idx] - geom.cy[idx],
+            npar - 2,
+        )
         crowding[idx] = _neighbour_misfit(
             w * resid**2, others_on(flat[idx], own[idx]), own[idx], valid[idx], npar
         )
@@ -1193,6 +1297,7 @@ def _fit_stars(
         chi2=chi2,
         flag=flag,
         iterations=done,
+        chi2_odd=chi2_odd,
         model_image=_frame_image(_less(model, halo_light, tail_light), pixels, (ny, nx))
         if return_model
         else None,

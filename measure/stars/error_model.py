@@ -27,6 +27,15 @@ The error model (``error_model = "epsf"``), per star and coordinate::
 The flux error is treated in the same way with the relative flux change. With
 ``error_model = "fisher"`` the errors are the Fisher errors alone (the Cramér-Rao
 bound; right for a known PSF).
+
+With the PSF-R model (``relative_chi2``) the position terms take the ratio of the
+residual's part *odd* about the star (``chi2_odd``,
+:func:`~mavispm.measure.stars.batched_fit.odd_chi2`) against its peers' instead of the
+whole chi^2's: a misfit even about the star (a width or wing error of a centred
+model) raises the chi^2 without moving the star, and with the 5 x 5 PSF-R grid the
+whole ratio made the V 17-20 position errors 1.2-1.3 x too large on the 1e4-star
+frame (normalised residuals 0.85 / 0.76; docs/measure.md, "Scale", twenty-fifth
+pass). The flux keeps the whole chi^2 (an even misfit biases the flux).
 """
 
 from __future__ import annotations
@@ -210,6 +219,10 @@ class ErrorModel:
         ``max(chi2 / chi2_typ(F), 1)``: the star's fit against its peers'.
     chi2_inflation : ndarray
         ``max(chi2, 1)``, applied to the Fisher variances.
+    position_ratio, position_inflation : ndarray, optional
+        The same two terms for the positions where they differ from the flux's (the
+        residual's odd part, ``chi2_odd`` of :func:`estimate_error_model`); None: the
+        flux's.
     kind : {"epsf", "chi2", "fisher"}
         What the terms hold: the ePSF model error and the chi^2 terms, the
         chi^2 terms only, or nothing beyond the Fisher errors.
@@ -226,10 +239,21 @@ class ErrorModel:
     kind: str = "epsf"
     registration: np.ndarray | None = None
     correlated: np.ndarray | None = None
+    position_ratio: np.ndarray | None = None
+    position_inflation: np.ndarray | None = None
+
+    def _position_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        """The (ratio, inflation) pair of the position terms: ``position_ratio`` and
+        ``position_inflation`` where set (the odd part's), else the flux's."""
+        ratio = self.chi2_ratio if self.position_ratio is None else self.position_ratio
+        infl = self.chi2_inflation if self.position_inflation is None else self.position_inflation
+        return ratio, infl
 
     def position_total(self, fisher_err: np.ndarray, axis: int) -> np.ndarray:
         """Total position error [pixel] of one coordinate: :meth:`total` with the
-        position term, plus the correlated-misfit variance of that axis (if any).
+        position term and the position's chi^2 terms (``position_ratio``,
+        ``position_inflation`` where set), plus the correlated-misfit variance of that
+        axis (if any).
 
         Parameters
         ----------
@@ -242,7 +266,8 @@ class ErrorModel:
         -------
         ndarray
         """
-        base = self.total(fisher_err, self.position)
+        ratio, infl = self._position_terms()
+        base = np.sqrt(fisher_err**2 * infl + self.position**2 * ratio)
         if self.correlated is None:
             return base
         return np.sqrt(base**2 + np.nan_to_num(self.correlated[:, axis]))
@@ -305,7 +330,7 @@ class ErrorModel:
         """
         if self.registration is None:
             return np.zeros(len(self.position))
-        return self.registration * np.sqrt(self.chi2_ratio)
+        return self.registration * np.sqrt(self._position_terms()[0])
 
 
 def estimate_error_model(
@@ -322,6 +347,7 @@ def estimate_error_model(
     correlated_gain: np.ndarray | None = None,
     halo_share: np.ndarray | None = None,
     chi2_dof: int = 115,
+    chi2_odd: np.ndarray | None = None,
 ) -> ErrorModel:
     """The ePSF error and chi^2 terms of every star.
 
@@ -383,6 +409,13 @@ def estimate_error_model(
         ``correlated_gain``; None: no correlated term).
     chi2_dof : int
         Degrees of freedom of a stamp's reduced chi^2 (pixels less fitted parameters).
+    chi2_odd : ndarray, shape (N,), optional
+        With ``relative_chi2``: the reduced chi^2 of the stamp residual's part odd about
+        the star (:func:`~mavispm.measure.stars.batched_fit.odd_chi2`). The position
+        terms then take ``max(chi2_odd / chi2_odd_typ(F), 1)`` (its peers' median at the
+        star's flux) in place of the ratio of the whole chi^2, which stays the flux's: a
+        misfit even about the star (a wrong width or wing of a centred model) raises the
+        whole chi^2 without moving it. None: the whole chi^2 for both.
 
     Returns
     -------
@@ -418,14 +451,27 @@ def estimate_error_model(
             if peers.sum() >= 2:
                 typical_crowd = flux_trend(flux[peers], crowding[peers], np.median, min_per_bin)
                 inflation = ratio * np.maximum(typical_crowd(f), 1.0)
+    pos_ratio = pos_inflation = None
+    if relative_chi2 and chi2_odd is not None:
+        odd = np.asarray(chi2_odd, float)
+        peers = ref & np.isfinite(odd) & (odd > 0)
+        if peers.sum() >= 2:
+            typical_odd = flux_trend(
+                flux[peers], odd[peers], np.median, min_per_bin, log_values=True
+            )
+            pos_ratio = np.where(np.isfinite(odd), np.maximum(odd / typical_odd(f), 1.0), 1.0)
+            # the crowd's typical misfit (c_typ) as for the whole chi^2
+            pos_inflation = pos_ratio * inflation / ratio
     floor = np.zeros(n)
     if floor_fraction > 0 and fisher_position is not None:
         sig = np.nan_to_num(np.asarray(fisher_position, float))
         floor = np.sqrt(floor_fraction * np.maximum(typical - 1.0, 0.0)) * sig
     if shifts is None:
         if floor_fraction > 0:
-            return ErrorModel(floor, np.zeros(n), ratio, inflation, "chi2", correlated=correlated)
-        return replace(ErrorModel.fisher_only(n, ratio, inflation), correlated=correlated)
+            model = ErrorModel(floor, np.zeros(n), ratio, inflation, "chi2", correlated=correlated)
+        else:
+            model = replace(ErrorModel.fisher_only(n, ratio, inflation), correlated=correlated)
+        return replace(model, position_ratio=pos_ratio, position_inflation=pos_inflation)
     delta = np.column_stack([shifts[:, :2], shifts[:, 2] / f])
     cells = np.zeros(n, np.intp) if cells is None else np.asarray(cells)
     for cell in np.unique(cells[ref]):
@@ -434,4 +480,12 @@ def estimate_error_model(
     position = flux_trend(flux[ref], delta[ref, :2], _half_rms, min_per_bin)(f)
     position = np.hypot(position, floor)
     relative = flux_trend(flux[ref], delta[ref, 2], _half_rms, min_per_bin)(f)
-    return ErrorModel(position, relative * f, ratio, inflation, correlated=correlated)
+    return ErrorModel(
+        position,
+        relative * f,
+        ratio,
+        inflation,
+        correlated=correlated,
+        position_ratio=pos_ratio,
+        position_inflation=pos_inflation,
+    )

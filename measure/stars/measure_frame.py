@@ -918,6 +918,7 @@ def error_terms(
         correlated_gain=gain,
         halo_share=fit.halo_share,
         chi2_dof=dof,
+        chi2_odd=fit.chi2_odd,
     )
 
 
