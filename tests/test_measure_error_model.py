@@ -292,7 +292,7 @@ def test_frame_built_epsf_bright_stars_accurate_and_honest_against_the_truth(tmp
 def test_odd_chi2_is_one_for_noise_and_blind_to_an_even_misfit():
     """The odd part's reduced chi^2: 1 for white noise (its expectation, analytic), 0 for
     a field even about the star at any sub-pixel phase, large for one on one side."""
-    from mavispm.measure.stars.batched_fit import odd_chi2
+    from mavispm.measure.stars.odd_residual import odd_chi2
 
     rng = np.random.default_rng(2)
     n, size = 3000, 11

@@ -30,7 +30,7 @@ bound; right for a known PSF).
 
 With the PSF-R model (``relative_chi2``) the position terms take the ratio of the
 residual's part *odd* about the star (``chi2_odd``,
-:func:`~mavispm.measure.stars.batched_fit.odd_chi2`) against its peers' instead of the
+:func:`~mavispm.measure.stars.odd_residual.odd_chi2`) against its peers' instead of the
 whole chi^2's: a misfit even about the star (a width or wing error of a centred
 model) raises the chi^2 without moving the star, and with the 5 x 5 PSF-R grid the
 whole ratio made the V 17-20 position errors 1.2-1.3 x too large on the 1e4-star
@@ -411,7 +411,7 @@ def estimate_error_model(
         Degrees of freedom of a stamp's reduced chi^2 (pixels less fitted parameters).
     chi2_odd : ndarray, shape (N,), optional
         With ``relative_chi2``: the reduced chi^2 of the stamp residual's part odd about
-        the star (:func:`~mavispm.measure.stars.batched_fit.odd_chi2`). The position
+        the star (:func:`~mavispm.measure.stars.odd_residual.odd_chi2`). The position
         terms then take ``max(chi2_odd / chi2_odd_typ(F), 1)`` (its peers' median at the
         star's flux) in place of the ratio of the whole chi^2, which stays the flux's: a
         misfit even about the star (a wrong width or wing of a centred model) raises the
