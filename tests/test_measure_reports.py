@@ -127,3 +127,36 @@ def test_dynamics_reader_drops_flagged_rows_before_validating(tmp_path):
     # with use_flagged the NaN radius of the flagged row is refused, naming the column
     with pytest.raises(InputError, match="'R'"):
         load_stars(path, DynamicsSettings(field_radius=20.0, use_flagged=True))
+
+
+def test_recovered_fraction_counts_the_stars_the_detector_shows(tmp_path):
+    # a rendered frame whose input list also holds stars centred off the detector (their
+    # light spills in, as the frames command renders a margin): the report's input counts
+    # are the stars with true centres on the detector, counted here from the truth, and
+    # isolated bright stars are all recovered
+    from astropy.table import Table
+    from measure_helpers import SynthPSF, write_frames
+
+    from mavispm.measure.stars.cli import run_stage
+
+    rng = np.random.default_rng(11)
+    shape = (160, 160)
+    gx, gy = np.meshgrid(np.arange(14, 150, 17.0), np.arange(14, 150, 17.0))
+    inside_x, inside_y = gx.ravel() + rng.uniform(-1, 1, gx.size), gy.ravel()
+    out_x = np.r_[rng.uniform(-6, -1.5, 12), rng.uniform(161, 166, 12)]
+    out_y = rng.uniform(10, 150, 24)
+    x, y = np.r_[inside_x, out_x], np.r_[inside_y, out_y]
+    mag = rng.uniform(17.0, 21.5, len(x))
+    frame = tmp_path / "frame.h5"
+    write_frames(frame, shape, x, y, mag, SynthPSF(1.3), seed=2)
+    settings = {"psf_variation": "constant", "psf_stars_per_node": 20, "psf_star_min_snr": 30.0}
+    measured = run_stage(frame, settings, tmp_path / "measured.h5", seed=1)
+    write_report([measured], tmp_path / "report")
+    table = Table.read(tmp_path / "report" / "accuracy.ecsv")
+    shown = (x > -0.5) & (x < shape[1] - 0.5) & (y > -0.5) & (y < shape[0] - 0.5)
+    assert shown.sum() == gx.size and (~shown).sum() == 24
+    for row in table:
+        inbin = (mag >= row["mag_lo"]) & (mag < row["mag_hi"])
+        assert row["n_input"] == int(np.count_nonzero(inbin & shown))
+        if row["n_input"]:
+            assert row["n_recovered"] == row["n_input"]  # isolated, V < 21.5: every one

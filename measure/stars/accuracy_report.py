@@ -169,7 +169,10 @@ def frame_offset(stars: QTable) -> tuple[float, float, int]:
 
 
 def accuracy_table(
-    stars: QTable, n_input: Sequence[int] | None = None, offset: tuple[float, float] = (0.0, 0.0)
+    stars: QTable,
+    n_input: Sequence[int] | None = None,
+    offset: tuple[float, float] = (0.0, 0.0),
+    detector_shape: Sequence[int] | None = None,
 ) -> QTable:
     """Per-magnitude-bin astrometric accuracy of one frame's measured ``stars`` table.
 
@@ -183,6 +186,11 @@ def accuracy_table(
     offset : tuple of float
         The frame's common offset [uas] (:func:`frame_offset`), removed from the
         residuals before the dispersion and bias are computed.
+    detector_shape : sequence of int, optional
+        ``(ny, nx)`` of the frame: a star counts as recovered only with its measured
+        centre on the detector (``n_input`` then counts the input stars with their true
+        centres there; the measured product's ``truth_bin_counts`` does). None: every
+        usable star counts.
 
     Returns
     -------
@@ -192,6 +200,10 @@ def accuracy_table(
         frame offset), crlb_x, err_x (medians) [uas].
     """
     mag, dx, dy, good = _residuals(stars)
+    if detector_shape is not None and "x_pix" in stars.colnames:
+        ny, nx = (int(v) for v in detector_shape)
+        px, py = np.asarray(stars["x_pix"], float), np.asarray(stars["y_pix"], float)
+        good = good & (px > -0.5) & (px < nx - 0.5) & (py > -0.5) & (py < ny - 0.5)
     dx = dx - offset[0]
     dy = dy - offset[1]
     crlb_x = (
@@ -363,7 +375,8 @@ def write_report(measured_paths: Sequence, outdir: str | os.PathLike) -> list[Pa
         per_bin = prod.attrs.get("truth_bin_counts")
         counts = per_bin if per_bin is not None else truth_bin_counts(stars["mag"].to_value(u.mag))
         offset = frame_offset(stars)
-        table = accuracy_table(stars, counts, offset[:2])
+        shape = prod.attrs.get("detector_shape") if per_bin is not None else None
+        table = accuracy_table(stars, counts, offset[:2], shape)
         epoch = prod.attrs.get("epoch")
         epoch = float(u.Quantity(epoch, u.yr).value) if epoch is not None else np.nan
         name = f"{Path(path).parent.name}/{Path(path).name}"

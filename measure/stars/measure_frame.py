@@ -1243,7 +1243,11 @@ def measure_frame(
         mag = np.where(known, truth["mag"].to_value(u.mag)[sel], np.nan)
         flux_true = np.where(known, truth["flux"].to_value(u.electron)[sel], np.nan)
         dist = np.where(known & np.isfinite(dist), dist, np.nan)
-        extra["truth_bin_counts"] = truth_bin_counts(truth["mag"].to_value(u.mag))
+        # the input stars the frame can show: true centres on the detector (the rest are
+        # rendered for the light they spill in, and fail by design)
+        ny, nx = frame.shape
+        shown = (tx > -0.5) & (tx < nx - 0.5) & (ty > -0.5) & (ty < ny - 0.5)
+        extra["truth_bin_counts"] = truth_bin_counts(truth["mag"].to_value(u.mag)[shown])
         sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
         fraction = epsf_flux_fraction(fit, flux_true, known & ok)
         extra["epsf_flux_fraction"] = fraction
@@ -1316,6 +1320,7 @@ def measure_frame(
         "psf_model": "psfr" if frame_psf.psfr_kernels is not None else "epsf",
         "psfr": psfr_summary(frame_psf, settings),
         "truth_bin_counts": extra.pop("truth_bin_counts", None),
+        "detector_shape": list(frame.shape),
         "epsf_flux_fraction": extra.pop("epsf_flux_fraction", None),
         **{f"detect_{k}": v for k, v in extra.items()},
     }
