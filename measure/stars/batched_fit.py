@@ -200,6 +200,16 @@ class FitOptions:
         added around the same stars at once by FFT
         (:func:`~mavispm.measure.stars.halo.deposit_tail`); 0 (or at most
         ``halo_radius``): none (docs/measure.md, "Scale", seventeenth pass).
+    halo_background : float
+        The profile is measured out to this radius [pixel] (:func:`halo_radii`), its
+        zero point the median of the annulus ``[halo_background, halo_background + 10)``;
+        each star's own deposit uses it out to ``halo_radius``, the tail's fit all of it;
+        at most ``halo_radius`` (0): the annulus just past ``halo_radius``; with a tail,
+        below ``halo_tail``. Where fewer than 5 stars have that annulus in the frame, the
+        annulus just past ``halo_radius`` (docs/measure.md, "Scale", twenty-sixth pass).
+    halo_saturated : bool
+        The profile is also measured around saturated stars (their saturated pixels
+        left out); False: around unsaturated ones only.
     fixed_full_system : bool
         Reference path (tests): the fixed-position steps solve the full system (the
         position rows frozen) with freshly evaluated stamps and derivatives, instead of
@@ -245,6 +255,8 @@ class FitOptions:
     halo_stack: float = 0.0
     halo_stack_stars: float = 0.0
     halo_tail: float = 0.0
+    halo_background: float = 0.0
+    halo_saturated: bool = False
     threads: int = 1
 
 
@@ -358,19 +370,21 @@ def residual_correlation(psf: VariableEPSF, nx: int, ny: int, radius: int) -> np
 
 
 def halo_radii(options: FitOptions) -> np.ndarray:
-    """Centres [pixel] of the 1-px annuli of the light outside the fit stamps.
+    """Centres [pixel] of the 1-px annuli of the frame's measured halo profile.
 
     Parameters
     ----------
     options : FitOptions
-        ``radius`` and ``halo_radius``.
+        ``radius``, ``halo_radius`` and ``halo_background``.
 
     Returns
     -------
     ndarray
-        ``radius + 0.5, radius + 1.5, ...`` below ``halo_radius + 0.5``.
+        ``radius + 0.5, radius + 1.5, ...`` below ``max(halo_radius, halo_background) +
+        0.5`` (each star's own deposit uses those below ``halo_radius + 0.5``).
     """
-    return np.arange(int(options.radius) + 0.5, options.halo_radius + 0.5)
+    outer = max(options.halo_radius, options.halo_background)
+    return np.arange(int(options.radius) + 0.5, outer + 0.5)
 
 
 def colour_stars(x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
@@ -898,13 +912,24 @@ def _fit_stars(
             + dvy.reshape(len(idx), -1) * dy[:, None]
         )
 
-    radii = halo_radii(opt)
+    if (
+        opt.halo_radius < opt.halo_background
+        and opt.halo_radius < opt.halo_tail <= opt.halo_background
+    ):
+        raise InputError(
+            f"halo_background ({opt.halo_background}) must lie inside halo_tail ({opt.halo_tail}):"
+            " the tail is fitted to the profile's last 12 px"
+        )
+    measure_radii = halo_radii(opt)
+    # each star's own deposit: the annuli below halo_radius
+    radii = measure_radii[measure_radii < opt.halo_radius + 0.5]
     if halo is not None:
         halo = np.asarray(halo, dtype=float)
-        if halo.shape != radii.shape:
+        if halo.shape != measure_radii.shape:
             raise InputError(
-                f"halo profile has shape {halo.shape}; expected ({len(radii)},), one value "
-                f"per 1-px annulus from radius + 0.5 = {radii[0]} to halo_radius"
+                f"halo profile has shape {halo.shape}; expected ({len(measure_radii)},), one "
+                f"value per 1-px annulus from radius + 0.5 = {measure_radii[0]} to "
+                "max(halo_radius, halo_background)"
             )
     measured = halo
 
@@ -913,16 +938,21 @@ def _fit_stars(
         nonlocal measured
         if measured is None:
             mask = bad if saturated is None else (saturated if bad is None else bad | saturated)
-            measured = halo_profile(
-                image, mask, x[usable], y[usable], flux[usable], radii,
-                eligible=(flag[usable] & FLAG_SATURATED) == 0,
-            )  # fmt: skip
+            args = (image, mask, x[usable], y[usable], flux[usable])
+            eligible = None if opt.halo_saturated else (flag[usable] & FLAG_SATURATED) == 0
+            measured = halo_profile(*args, measure_radii, eligible=eligible)
+            if len(measure_radii) > len(radii) and not np.any(measured):
+                # too few stars hold the far background annulus in the frame: the
+                # annulus just past halo_radius, the profile continued beyond as the tail
+                near = halo_profile(*args, radii, eligible=eligible)
+                measured = halo_tail(near, radii[0], 2.0 * measure_radii[-1])
+                measured = np.pad(measured, (0, len(measure_radii)))[: len(measure_radii)]
         # the frame's light at every radius, also inside the ePSF's footprint: the ePSF
         # beyond its fitting stamp is barely constrained (on the 1e5-star MAVIS frame its
         # azimuthal mean was 10-25 % below the rendered light at 8-12 px, and splicing it
         # to the measured profile left a step at the footprint's edge that drove faint
         # neighbours' fluxes negative; docs/measure.md, "Scale")
-        profile = measured
+        profile = measured[: len(radii)]
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
         # into the model (kept apart too for the returned star-model image): deposited
@@ -934,8 +964,8 @@ def _fit_stars(
         if opt.halo_tail > opt.halo_radius:
             # the halo past halo_radius as a seeing halo; the profile inside raised by
             # the light it was measured against (the selections keep the frame's profile)
-            full = halo_tail(profile, radii[0], opt.halo_tail)
-            if len(full) > len(profile):  # else no tail (its amplitude not positive)
+            full = halo_tail(measured, radii[0], opt.halo_tail)
+            if len(full) > len(measured):  # else no tail (its amplitude not positive)
                 # each star's own deposit fades out over the profile's last TAIL_SEAM px,
                 # where the FFT's (smooth: the bilinear flux split blurs a step) fades in
                 seam = tail_ramp(radii[0] + np.arange(len(full)), radii[-1])

@@ -297,6 +297,8 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         halo_stack=settings.halo_stack,
         halo_stack_stars=settings.halo_stack_stars,
         halo_tail=settings.halo_tail,
+        halo_background=settings.halo_background,
+        halo_saturated=settings.halo_saturated,
     )
 
 

@@ -191,6 +191,22 @@ class MeasureKnobs:
         curves by about the sky's pixel noise across a stamp; at 1e5 failed or not
         converged at V < 25 3.66 % against 4.06 % without (fit alone), 150 and 250 px the
         same within 0.01 point (docs/measure.md, "Scale", seventeenth pass).
+    halo_background : float [pix]
+        The frame's halo profile is measured out to this radius, against the median of
+        the annulus ``[halo_background, halo_background + 10)`` (its zero point), and kept
+        out to ``halo_radius`` for each star's own deposit, the rest for the tail's fit;
+        at most ``halo_radius`` (0, the default): the background annulus just past
+        ``halo_radius``. On the 1e5-star MAVIS frame a V < 15 star's light at 60-70 px is
+        still ~80 % of that at 59 px, and the default profile (with its tail) is 76-89 % of
+        the rendered light at 15-40 px and 34-46 % at 50-60 px; with 120 px and
+        ``halo_saturated`` it is 95-100 % at 8-70 px, but the failed / not-converged
+        fractions move by < 0.1 point (docs/measure.md, "Scale", twenty-sixth pass: not
+        the default). Must lie inside ``halo_tail``.
+    halo_saturated : bool
+        The halo profile is also measured around saturated stars (their pixels left
+        out; their fitted fluxes scale it), the stars whose halo it models; False (the
+        default): the unsaturated ones only (on the 1e5-star MAVIS frame V 15-16.7, too
+        faint to show their halo beyond ~40 px above the crowd).
     min_snr : float
         Stars below this flux SNR have positions held fixed and are flagged 32.
     chunk : int
@@ -237,6 +253,8 @@ class MeasureKnobs:
     halo_stack: float = unit_field(45.0, "pix")
     halo_stack_stars: float = 20.0
     halo_tail: float = unit_field(150.0, "pix")
+    halo_background: float = unit_field(0.0, "pix")
+    halo_saturated: bool = False
     min_snr: float = 3.0
     chunk: int = 512
     threads: int = 0
@@ -286,6 +304,7 @@ class MeasureKnobs:
             "halo_stack",
             "halo_stack_stars",
             "halo_tail",
+            "halo_background",
             "crowded_window",
             "crowded_ratio",
         ):
