@@ -104,6 +104,11 @@ def test_quickstart_end_to_end(tmp_path):
     assert np.isfinite(fit["ln_bayes_factor"])
     report = (result.rundir / "report.md").read_text()
     assert "Proper-motion accuracy" in report and "IMBH model comparison" in report
+    # the injected IMBH mass, read from the rendered truth catalogue, stands beside the fit
+    injected = u.Quantity(cat.attrs["imbh_mass"], u.solMass).to_value(u.solMass)
+    assert injected > 0
+    row = next(r for r in report.splitlines() if r.startswith("| imbh_mass_injected (truth) |"))
+    assert float(row.split("|")[2]) == pytest.approx(injected, rel=1e-3)
 
     again = run_workflow(wf, workdir=tmp_path, progress=False)
     assert again.ran == []
