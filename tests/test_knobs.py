@@ -164,10 +164,10 @@ def test_where_a_knob_is_written_changes_no_cache_key(tmp_path):
         "pupil_sampling = 64\n",
         "epsf_iterations = 4\n",
         "grid_size = 24\n",
-        "nlive = 30\n",
+        "nlive = 60\n",
     )
     nested += (
-        "\n[dynamics.knobs]\ngrid_size = 24\nnlive = 30\n"
+        "\n[dynamics.knobs]\ngrid_size = 24\nnlive = 60\n"
         "\n[cluster.knobs]\nn_rows = 64\n"
         "\n[scene.optics.knobs]\nn_nodes = 3\npupil_sampling = 64\n"
         "\n[measure.knobs]\nepsf_iterations = 4\n"

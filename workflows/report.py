@@ -24,7 +24,8 @@ Recipes
     measured and true, for every study on one plot (paper fig:imbhresults).
 ``model_comparison``
     The dynamics stage's model-comparison numbers (ln B, Delta ln L, AIC,
-    BIC, M_BH) per study and sweep point.
+    BIC, M_BH) per study and sweep point, with the injected IMBH mass of a
+    simulated cluster (its catalogue's ``imbh_mass``) beside the fitted one.
 ``colour_shifts``
     Scenes rendered with atmospheric refraction: median signed position error per
     epoch and PM error per effective-temperature bin, measured next to the true DAR
@@ -681,6 +682,31 @@ KEY_DYNAMICS_METRICS = (
 )
 
 
+def _injected_imbh_mass(summary: Mapping, node: Mapping) -> float | None:
+    """The ``imbh_mass`` of the cluster catalogue upstream of a dynamics node (None: unknown).
+
+    The cluster node of the same study (id prefix, ``<prefix>dynamics/...`` ->
+    ``<prefix>cluster``), else the one cluster node with the same study and point
+    labels, else the run's only cluster node.
+    """
+    clusters = [n for n in summary["nodes"] if n["stage"] == "cluster"]
+    prefix = node["id"].split("dynamics/")[0] if "dynamics/" in node["id"] else None
+    match = [n for n in clusters if prefix is not None and n["id"] == prefix + "cluster"]
+    if not match:
+        lab = node.get("labels", {})
+        match = [
+            n
+            for n in clusters
+            if all(n.get("labels", {}).get(k, "") == lab.get(k, "") for k in ("study", "point"))
+        ]
+    if len(match) != 1 and len(clusters) == 1:
+        match = clusters
+    if len(match) != 1:
+        return None
+    value = match[0].get("metrics", {}).get("imbh_mass")
+    return float(value) if isinstance(value, (int, float)) else None
+
+
 def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
     """Recipe: the dynamics stage's model-comparison numbers per study and sweep point.
 
@@ -718,11 +744,16 @@ def model_comparison(summary: Mapping, rundir: Path, outdir: Path) -> str:
         return f"{value:.4g}" if isinstance(value, (int, float)) else "-"
 
     rows = [[name] + [cell(n, name) for n in nodes] for name in key]
-    csv_path = _write_csv(
-        outdir / "model_comparison.csv",
-        ["result", *columns],
-        [[name] + [n.get("metrics", {}).get(name, "") for n in nodes] for name in names],
-    )
+    # a simulation's injected IMBH mass (its cluster catalogue's ``imbh_mass``) beside the
+    # fitted one, so a biased or unconverged fit cannot pass for the truth
+    injected = [_injected_imbh_mass(summary, n) for n in nodes]
+    csv_rows = [[name] + [n.get("metrics", {}).get(name, "") for n in nodes] for name in names]
+    if any(m is not None for m in injected):
+        label = "imbh_mass_injected (truth)"
+        at = next((i + 1 for i, r in enumerate(rows) if r[0] == "bh_mass_upper95"), len(rows))
+        rows.insert(at, [label] + ["-" if m is None else f"{m:.4g}" for m in injected])
+        csv_rows.append([label] + ["" if m is None else m for m in injected])
+    csv_path = _write_csv(outdir / "model_comparison.csv", ["result", *columns], csv_rows)
     pngs = [v for n in nodes for k, v in n["products"].items() if k.startswith("plot_")]
     text = _md_table(["result", *columns], rows)
     text += f"\nAll results: [{csv_path.name}]({_rel(csv_path, rundir)})\n"
