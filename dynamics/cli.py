@@ -627,9 +627,11 @@ def run_stage(
     for fit in fits:
         n = fit.name
         attrs[f"converged_{n}"] = bool(fit.chain.converged)
-        attrs[f"steps_{n}"] = int(fit.chain.steps)
-        attrs[f"tau_max_{n}"] = float(np.max(fit.chain.tau))
-        attrs[f"acceptance_{n}"] = float(fit.chain.acceptance)
+        if fit.chain.steps > 0:  # an emcee chain (the nested posterior has no steps nor tau)
+            attrs[f"steps_{n}"] = int(fit.chain.steps)
+            attrs[f"tau_max_{n}"] = float(np.max(fit.chain.tau))
+            attrs[f"acceptance_{n}"] = float(fit.chain.acceptance)
+        attrs[f"posterior_samples_{n}"] = int(len(fit.chain.samples))
         attrs[f"aic_{n}"] = float(fit.criteria["aic"])
         attrs[f"bic_{n}"] = float(fit.criteria["bic"])
         attrs[f"max_log_like_{n}"] = float(fit.criteria["max_log_like"])

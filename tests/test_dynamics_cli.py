@@ -251,6 +251,9 @@ def test_nested_posterior_reports_results_with_kinematic_evidence(pm_file, tmp_p
     assert a["best_model_without_imbh"] == "none" and a["best_model_with_imbh"] == "imbh"
     assert 0 < a["bh_mass_lo68"].value < a["bh_mass_median"].value < a["bh_mass_hi68"].value
     assert len(prod.tables["bh_mass_marginal"]) > 50
+    # no emcee chain: no steps, tau or acceptance to report (they read 0 / NaN before)
+    assert not any(k.startswith(("steps_", "tau_max_", "acceptance_")) for k in a)
+    assert a["posterior_samples_imbh"] == len(prod.tables["posterior_imbh"]) > 50
     with pytest.raises(ConfigError, match="nested"):
         validate_settings({"posterior": "nested", "evidence": False})
 
