@@ -311,15 +311,17 @@ def test_odd_chi2_is_one_for_noise_and_blind_to_an_even_misfit():
         assert odd_chi2(side, ones, *at, 0)[0] > 0.5 * full
 
 
-def test_position_errors_ignore_an_even_misfit_and_keep_an_odd_one():
+@pytest.mark.parametrize("model", ["psfr", "centred_epsf"])
+def test_position_errors_ignore_an_even_misfit_and_keep_an_odd_one(model):
     """Rendered frame, the truth as reference: one model PSF (Gaussian, sigma 1.6 px, well
     sampled) for three kinds of star. Half are rendered with it; a quarter 10 % narrower
     (a misfit even about the star: it raises the chi^2 ~17 x and leaves the positions at
     their Fisher scatter); a quarter with an unlisted companion 4 px away, 3 % of its
-    flux (odd: it pulls the star). The PSF-R error rule (``error_terms`` with PSF-R
-    kernels: chi^2 against the peers') with the whole chi^2 made the narrower stars'
-    position errors 3 x too large (normalised residuals 0.31 / 0.32); from the odd part
-    of the residual they are right, and the companions' stars keep an inflation."""
+    flux (odd: it pulls the star). The error rules that take the chi^2 against the
+    peers' (``error_terms`` with PSF-R kernels, and the frame-built ePSF with its nodes
+    centred on all stars, the stage's default) with the whole chi^2 made the narrower
+    stars' position errors 3 x too large (normalised residuals 0.31 / 0.32); from the odd
+    part of the residual they are right, and the companions' stars keep an inflation."""
     import types
 
     from mavispm.measure.stars.measure_frame import FramePSF, error_terms
@@ -352,7 +354,12 @@ def test_position_errors_ignore_an_even_misfit_and_keep_an_odd_one():
     options = FitOptions(radius=settings.stamp_radius, sky_gradient=settings.sky_gradient)
     fit = fit_stars(image, epsf, x, y, read_noise_var=rn2, sky0=sky, options=options)
     frame = types.SimpleNamespace(shape=shape, read_noise_var=rn2, sky=sky)
-    errors = error_terms(frame, FramePSF(epsf, 0, psfr_kernels=np.zeros((1, 4))), fit, settings)
+    if model == "psfr":
+        frame_psf = FramePSF(epsf, 0, psfr_kernels=np.zeros((1, 4)))
+    else:  # the nodes centred on all stars, their own (here: no) centring error
+        centring = types.SimpleNamespace(error_at=lambda psf, x, y: np.zeros(len(x)))
+        frame_psf = FramePSF(epsf, 0, centring=(centring,))
+    errors = error_terms(frame, frame_psf, fit, settings)
     ok = (fit.flag & 32) == 0
     assert ok.mean() > 0.99
     d = np.r_[fit.x - x, fit.y - y]

@@ -28,7 +28,8 @@ The flux error is treated in the same way with the relative flux change. With
 ``error_model = "fisher"`` the errors are the Fisher errors alone (the Cramér-Rao
 bound; right for a known PSF).
 
-With the PSF-R model (``relative_chi2``) the position terms take the ratio of the
+With the chi^2 taken against the star's peers (``relative_chi2``: the PSF-R model,
+and the frame-built ePSF with its nodes centred on all stars) the position terms take the ratio of the
 residual's part *odd* about the star (``chi2_odd``,
 :func:`~mavispm.measure.stars.odd_residual.odd_chi2`) against its peers' instead of the
 whole chi^2's: a misfit even about the star (a width or wing error of a centred

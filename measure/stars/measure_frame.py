@@ -894,6 +894,7 @@ def error_terms(
         model = estimate_error_model(
             fit.flux, fit.chi2, usable, shifts, cells, relative_chi2=centred,
             correlated_gain=gain, halo_share=fit.halo_share, chi2_dof=dof,
+            chi2_odd=fit.chi2_odd,
         )  # fmt: skip
         if centred:
             node_err = frame_psf.centring[0].error_at(frame_psf.psf, fit.x, fit.y)
