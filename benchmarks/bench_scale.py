@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mavispm.core.frame import on_detector
 from mavispm.measure.stars.cli import validate_settings
 from mavispm.measure.stars.confusion import effective_fwhm, nearest_comparable
 from mavispm.measure.stars.measure_frame import measure_frame, read_frame
@@ -88,7 +89,7 @@ def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
     ty = np.asarray(frame.truth["y_pix"], float)
     mag = frame.truth["mag"].value
     flag = np.asarray(stars["flag"])
-    inside = (tx > -0.5) & (tx < nx - 0.5) & (ty > -0.5) & (ty < ny - 0.5)
+    inside = on_detector(tx, ty, (ny, nx))
     sel = inside & (mag < 25)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     print(

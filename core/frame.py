@@ -39,7 +39,7 @@ from mavispm.core.products import TableSpec, validate_table
 if TYPE_CHECKING:
     from astropy.nddata import NDData
 
-__all__ = ["Frame", "FRAME_ATTRS", "TRUTH_SPEC", "frame_wcs"]
+__all__ = ["Frame", "FRAME_ATTRS", "TRUTH_SPEC", "frame_wcs", "on_detector"]
 
 #: Root attributes every frame carries, with their units.
 FRAME_ATTRS = {
@@ -110,6 +110,17 @@ def validate_truth(truth: QTable, path=None) -> QTable:
         A missing column or a column of the wrong unit.
     """
     return validate_table(_plain_pixels(truth), TRUTH_SPEC, path=path, table_name="truth")
+
+
+def on_detector(x: ArrayLike, y: ArrayLike, shape: tuple[int, int]) -> np.ndarray:
+    """Whether positions [pixel] lie on a detector of ``shape`` ``(ny, nx)``.
+
+    Pixel ``i`` spans ``i - 0.5 .. i + 0.5``, so the detector spans ``-0.5 .. n - 0.5``
+    on each axis (edges excluded); a NaN position is not on it.
+    """
+    ny, nx = shape
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    return (x > -0.5) & (x < nx - 0.5) & (y > -0.5) & (y < ny - 0.5)
 
 
 def frame_wcs(attrs: Mapping, shape: tuple[int, int]):

@@ -25,6 +25,7 @@ from astropy.table import QTable, vstack  # noqa: E402
 
 from mavispm.core.atomic import atomic_path  # noqa: E402
 from mavispm.core.errors import InputError  # noqa: E402
+from mavispm.core.frame import on_detector  # noqa: E402
 from mavispm.core.products import read_product  # noqa: E402
 from mavispm.measure.stars.measured_table import MEASURED_SPEC  # noqa: E402
 
@@ -201,9 +202,8 @@ def accuracy_table(
     """
     mag, dx, dy, good = _residuals(stars)
     if detector_shape is not None and "x_pix" in stars.colnames:
-        ny, nx = (int(v) for v in detector_shape)
-        px, py = np.asarray(stars["x_pix"], float), np.asarray(stars["y_pix"], float)
-        good = good & (px > -0.5) & (px < nx - 0.5) & (py > -0.5) & (py < ny - 0.5)
+        shape = tuple(int(v) for v in detector_shape)
+        good = good & on_detector(stars["x_pix"], stars["y_pix"], shape)
     dx = dx - offset[0]
     dy = dy - offset[1]
     crlb_x = (

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from mavispm.core.errors import InputError
+from mavispm.core.frame import on_detector
 from mavispm.measure.stars.chunk_pool import ChunkPool, resolve_threads
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
 from mavispm.measure.stars.halo import (
@@ -687,8 +688,7 @@ def _fit_stars(
                 f"{name} mask shape {np.shape(m)} differs from image shape {image.shape}"
             )
     flag = np.zeros(n, dtype=np.int64)
-    usable = np.isfinite(x0) & np.isfinite(y0)
-    usable &= (x0 > -0.5) & (x0 < nx - 0.5) & (y0 > -0.5) & (y0 < ny - 0.5)
+    usable = on_detector(x0, y0, (ny, nx))
     flag[~usable] |= FLAG_FAILED | FLAG_EDGE
     on_frame = usable.copy()  # the others are parked at (0, 0) and have no neighbours
     x = np.where(usable, x0, 0.0)

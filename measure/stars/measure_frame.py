@@ -24,7 +24,7 @@ import numpy as np
 from astropy.table import QTable
 
 from mavispm.core.errors import InputError
-from mavispm.core.frame import Frame
+from mavispm.core.frame import Frame, on_detector
 from mavispm.core.products import read_product
 from mavispm.measure.stars.accuracy_report import truth_bin_counts
 from mavispm.measure.stars.batched_fit import (
@@ -1248,8 +1248,7 @@ def measure_frame(
         dist = np.where(known & np.isfinite(dist), dist, np.nan)
         # the input stars the frame can show: true centres on the detector (the rest are
         # rendered for the light they spill in, and fail by design)
-        ny, nx = frame.shape
-        shown = (tx > -0.5) & (tx < nx - 0.5) & (ty > -0.5) & (ty < ny - 0.5)
+        shown = on_detector(tx, ty, frame.shape)
         extra["truth_bin_counts"] = truth_bin_counts(truth["mag"].to_value(u.mag)[shown])
         sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
         fraction = epsf_flux_fraction(fit, flux_true, known & ok)

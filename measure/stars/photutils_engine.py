@@ -23,6 +23,7 @@ from photutils.background import LocalBackground, MMMBackground
 from photutils.psf import GriddedPSFModel, ImagePSF, PSFPhotometry, SourceGrouper
 
 from mavispm.core.errors import InputError
+from mavispm.core.frame import on_detector
 from mavispm.measure.stars.batched_fit import (
     FLAG_EDGE,
     FLAG_FAILED,
@@ -157,8 +158,7 @@ def fit_stars_photutils(
     )
     data = np.where(mask, 0.0, image)
     err = np.sqrt(np.maximum(data, sky0) + read_noise_var)
-    usable = np.isfinite(x0) & np.isfinite(y0) & (x0 > -0.5) & (x0 < nx - 0.5)
-    usable &= (y0 > -0.5) & (y0 < ny - 0.5)
+    usable = on_detector(x0, y0, (ny, nx))
     init = QTable({"id": np.arange(1, n + 1)[usable], "x": x0[usable], "y": y0[usable]})
     if flux0 is not None:
         init["flux"] = np.maximum(np.nan_to_num(np.asarray(flux0, float)[usable]), 1.0)

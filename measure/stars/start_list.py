@@ -32,6 +32,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from mavispm.core.errors import InputError
+from mavispm.core.frame import on_detector
 from mavispm.core.products import TableSpec, read_product
 from mavispm.measure.stars.epsf_anchor import epsf_from_product
 from mavispm.measure.stars.node_centring import NodeCentring, centring_from_summary
@@ -509,6 +510,6 @@ def start_from_earlier(
         position.update(zip(ep.ids.tolist(), zip(xs.tolist(), ys.tolist())))
     ids = np.fromiter(position.keys(), np.int64, len(position))
     xy = np.array(list(position.values()), float).reshape(-1, 2)
-    inside = (xy[:, 0] > -0.5) & (xy[:, 0] < nx - 0.5) & (xy[:, 1] > -0.5) & (xy[:, 1] < ny - 0.5)
+    inside = on_detector(xy[:, 0], xy[:, 1], (ny, nx))
     order = np.argsort(ids[inside], kind="stable")
     return ids[inside][order], xy[inside, 0][order], xy[inside, 1][order], transforms
