@@ -102,7 +102,7 @@ def fit_limepy_sample(tmp_path, name, seed, **overrides):
 def test_no_false_imbh_on_mass_segregated_limepy_cluster(tmp_path, name):
     """NGC 3201-like multi-mass limepy models without a point mass (delta = 0.5; white
     dwarfs, neutron stars and a 5 Msun dark bin segregated into the centre; in
-    ``bh_subsystem`` 570 Msun of the 5 Msun bin inside 15", 3.4x the mass-follows-light
+    ``bh_subsystem`` 566 Msun of the 5 Msun bin inside r = 15", 3.4x the mass-follows-light
     mass there), ~1,750 luminous stars in the 30" field with 10-20 microarcsec/yr
     errors, fitted with the shipped NGC 3201 workflow's dynamics table (literature
     priors, not the models' parameters): the verdict is not ``imbh``."""
