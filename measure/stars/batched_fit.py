@@ -41,6 +41,7 @@ from mavispm.measure.stars.halo import (
     deposit_tail,
     halo_profile,
     halo_tail,
+    residual_maps,
     stacked_residual,
     tail_ramp,
 )
@@ -211,6 +212,21 @@ class FitOptions:
     halo_saturated : bool
         The profile is also measured around saturated stars (their saturated pixels
         left out); False: around unsaturated ones only.
+    halo_map : float
+        With ``halo_rings``: radius [pixel] of each ring star's own 2-D misfit map
+        (:func:`~mavispm.measure.stars.halo.residual_maps`: block medians of its
+        residual after the rings and the stacked map, interpolated), added to the model
+        once with them; 0 (or at most ``radius``): none (docs/measure.md, "Scale",
+        twenty-seventh pass).
+    halo_map_block : int
+        Side [pixel] of the median blocks of ``halo_map`` (odd); with ``halo_map_arc``
+        the polar bins' radial length.
+    halo_map_arc : float
+        If > 0: ``halo_map`` on polar bins this many px wide in azimuth (its 1-px
+        annuli's medians and, of the rest, the bins' medians) instead of square blocks.
+    halo_map_core : int
+        If > 0: the ``(2 halo_map_core + 1)^2`` px around every star's stamp centre are
+        left out of the residual the maps are measured on.
     fixed_full_system : bool
         Reference path (tests): the fixed-position steps solve the full system (the
         position rows frozen) with freshly evaluated stamps and derivatives, instead of
@@ -258,6 +274,10 @@ class FitOptions:
     halo_tail: float = 0.0
     halo_background: float = 0.0
     halo_saturated: bool = False
+    halo_map: float = 0.0
+    halo_map_block: int = 5
+    halo_map_arc: float = 0.0
+    halo_map_core: int = 0
     threads: int = 1
 
 
@@ -1011,6 +1031,26 @@ def _fit_stars(
         for where, light in adds:  # after all are measured: none sees another's
             for out in (model, halo_light) if len(halo_light) else (model,):
                 out[where] += light
+        if int(opt.halo_map) > r and len(big):
+            # each one's own 2-D misfit left after its rings and the common map
+            skip = bad_pix
+            if opt.halo_map_core > 0:  # the stars' cores left out of that residual
+                skip = bad_pix.copy()
+                core = np.arange(-opt.halo_map_core, opt.halo_map_core + 1)
+                cxs = np.clip(geom.cx[usable][:, None, None] + core[None, None, :], 0, nx - 1)
+                cys = np.clip(geom.cy[usable][:, None, None] + core[None, :, None], 0, ny - 1)
+                keys = (cys * nx + cxs).ravel().astype(pixels.dtype)
+                at = np.searchsorted(pixels, keys)
+                hit = at < len(pixels)
+                hit[hit] = pixels[at[hit]] == keys[hit]
+                skip[at[hit]] = True
+            maps = residual_maps(
+                pixels, (ny, nx), values, model, skip, geom.cx[big], geom.cy[big], r,
+                int(opt.halo_map), int(opt.halo_map_block), opt.halo_map_arc,
+            )  # fmt: skip
+            for where, light in maps:
+                for out in (model, halo_light) if len(halo_light) else (model,):
+                    out[where] += light
 
     models_halo = opt.wing_threshold > 0 and opt.halo_radius > r + 1
     halo_pending = models_halo

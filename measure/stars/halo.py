@@ -32,6 +32,7 @@ __all__ = [
     "deposit_tail",
     "tail_ramp",
     "ring_corrections",
+    "residual_maps",
     "stacked_residual",
 ]
 
@@ -46,6 +47,8 @@ RING_REFERENCE = 20.0
 RING_OUTER = 34.0
 RING_BACKGROUND = 28.0
 RING_TAPER = (22.0, 30.0)
+#: :func:`residual_maps`: width [pix] of the raised-cosine fade at the map's edge.
+MAP_TAPER = 10.0
 
 
 def halo_profile(
@@ -444,6 +447,93 @@ def ring_corrections(pixels, shape, values, model, bad, x, y, cx, cy, half, radi
         fix = np.nan_to_num(med - np.nanmedian(med[outer_rings])) * taper
         adds.append((sel_pix, np.interp(d[sel], rr, fix, left=0.0, right=0.0)))
     return adds
+
+
+def residual_maps(pixels, shape, values, model, bad, cx, cy, half, reach, block, arc=0.0):
+    """Each given star's own 2-D misfit: block medians of its residual, interpolated.
+
+    For every star: the residual (``values - model``) on the touched pixels within
+    ``reach`` of its stamp centre (Euclidean), outside its own stamp, less its median
+    beyond ``reach / 2`` (the sky and the crowd's diffuse light); its
+    medians in ``block`` x ``block`` px blocks centred on the stamp centre (blocks with
+    fewer than half their pixels usable count as zero), interpolated bilinearly between
+    the blocks' centres, faded out by a raised cosine over the last ``MAP_TAPER`` px of
+    ``reach``. The block median keeps light structured on the scale of a few blocks
+    (the fitting stamp's) and drops a faint star's own residual (its core is a few px
+    across). Each star's map is measured on the same residual (none sees another's).
+
+    Parameters
+    ----------
+    pixels, shape, values, model, bad, cx, cy, half
+        As :func:`stacked_residual`.
+    reach : int
+        Radius of the maps [pix].
+    block : int
+        Side of the median blocks [pix], odd.
+    arc : float
+        If > 0: polar bins instead of square blocks: the residual's median in 1-px
+        annuli (its radial misfit) plus, of the rest, the median in bins ``block`` px
+        long in radius and ``arc`` px wide in azimuth (light structured radially, as an
+        AO PSF's chromatic speckle spokes, kept; a faint star, a few px across, dropped);
+        no interpolation.
+
+    Returns
+    -------
+    list of (ndarray, ndarray)
+        Per star: the positions in ``pixels`` and the light to add there [e-].
+    """
+    from scipy.ndimage import map_coordinates
+
+    ny, nx = shape
+    nb = 2 * ((reach + block // 2) // block) + 1  # blocks per side, one centred
+    cb = nb // 2
+    adds = []
+    for k in range(len(cx)):
+        cxk, cyk = int(cx[k]), int(cy[k])
+        at = _box_pixels(pixels, nx, ny, cxk, cyk, reach)
+        pix = pixels[at]
+        ox, oy = pix % nx - cxk, pix // nx - cyk
+        d = np.hypot(ox, oy)
+        v = values[at] - model[at]
+        outside = ((np.abs(ox) > half) | (np.abs(oy) > half)) & (d <= reach)
+        keep = outside & np.isfinite(v) & ~bad[at]
+        back = keep & (d > 0.5 * reach)
+        if np.count_nonzero(back) < 20:
+            continue
+        v = v - np.median(v[back])
+        if arc > 0:
+            adds.append((at[outside], _polar_map(ox, oy, d, v, keep, outside, reach, block, arc)))
+            continue
+        bx = np.floor((ox + block // 2) / block).astype(np.int64) + cb
+        by = np.floor((oy + block // 2) / block).astype(np.int64) + cb
+        med = grouped_median(by[keep] * nb + bx[keep], v[keep], nb * nb, (block * block + 1) // 2)
+        grid = np.nan_to_num(med.reshape(nb, nb))
+        where = [oy[outside] / block + cb, ox[outside] / block + cb]  # block centres: integers
+        light = map_coordinates(grid, where, order=1, mode="nearest")
+        fade = np.clip((reach - d[outside]) / MAP_TAPER, 0.0, 1.0)
+        adds.append((at[outside], light * (0.5 - 0.5 * np.cos(np.pi * fade))))
+    return adds
+
+
+def _polar_map(ox, oy, d, v, keep, outside, reach, block, arc):
+    """:func:`residual_maps` on polar bins: the light to add on the pixels ``outside``."""
+    nring = int(reach) + 2
+    d = np.minimum(d, reach + 1.0)  # the box's corners (outside the map) kept in range
+    ring = np.floor(d).astype(np.int64)
+    radial = grouped_median(ring[keep], v[keep], nring, min_count=5)
+    radial = np.nan_to_num(radial)
+    rest = v - radial[ring]
+    rbin = np.floor(d / block).astype(np.int64)
+    nr = int(reach // block) + 2
+    nth = np.maximum(np.round(2 * np.pi * (rbin + 0.5) * block / arc), 1).astype(np.int64)
+    theta = (np.arctan2(oy, ox) + np.pi) / (2 * np.pi)
+    tbin = np.minimum((theta * nth).astype(np.int64), nth - 1)
+    width = int(nth.max()) if len(nth) else 1
+    label = rbin * width + tbin
+    med = np.nan_to_num(grouped_median(label[keep], rest[keep], nr * width, min_count=3))
+    fade = np.clip((reach - d[outside]) / MAP_TAPER, 0.0, 1.0)
+    light = radial[ring[outside]] + med[label[outside]]
+    return light * (0.5 - 0.5 * np.cos(np.pi * fade))
 
 
 def _box_pixels(pixels, nx, ny, cxk, cyk, reach):

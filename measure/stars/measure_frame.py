@@ -299,6 +299,10 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         halo_tail=settings.halo_tail,
         halo_background=settings.halo_background,
         halo_saturated=settings.halo_saturated,
+        halo_map=settings.halo_map,
+        halo_map_block=settings.halo_map_block,
+        halo_map_arc=settings.halo_map_arc,
+        halo_map_core=settings.halo_map_core,
     )
 
 

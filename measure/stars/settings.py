@@ -207,6 +207,18 @@ class MeasureKnobs:
         out; their fitted fluxes scale it), the stars whose halo it models; False (the
         default): the unsaturated ones only (on the 1e5-star MAVIS frame V 15-16.7, too
         faint to show their halo beyond ~40 px above the crowd).
+    halo_map : float [pix]
+        With ``halo_rings``: each ring star's own 2-D misfit out to this radius (block
+        medians of its residual after the first pass, interpolated) added to its halo;
+        0 (the default): none (docs/measure.md, "Scale", twenty-seventh pass).
+    halo_map_block : int [pix]
+        Side of those median blocks (odd); with ``halo_map_arc`` the polar bins' radial
+        length.
+    halo_map_arc : float [pix]
+        If > 0: polar bins this wide in azimuth instead of square blocks.
+    halo_map_core : int [pix]
+        If > 0: the ``(2 halo_map_core + 1)^2`` px around every star are left out of the
+        residual the maps are measured on.
     min_snr : float
         Stars below this flux SNR have positions held fixed and are flagged 32.
     chunk : int
@@ -255,6 +267,10 @@ class MeasureKnobs:
     halo_tail: float = unit_field(150.0, "pix")
     halo_background: float = unit_field(0.0, "pix")
     halo_saturated: bool = False
+    halo_map: float = unit_field(0.0, "pix")
+    halo_map_block: int = 5
+    halo_map_arc: float = unit_field(0.0, "pix")
+    halo_map_core: int = 0
     min_snr: float = 3.0
     chunk: int = 512
     threads: int = 0
@@ -283,6 +299,13 @@ class MeasureKnobs:
             raise ConfigError(
                 f"must be >= 0 (0: every core), got {self.threads}", key="knobs.threads"
             )
+        if self.halo_map_block < 1 or self.halo_map_block % 2 == 0:
+            raise ConfigError(
+                f"must be an odd integer >= 1, got {self.halo_map_block}",
+                key="knobs.halo_map_block",
+            )
+        if self.halo_map_core < 0:
+            raise ConfigError("must be >= 0", key="knobs.halo_map_core")
         if self.neighbour_passes < 0:
             raise ConfigError("must be >= 0", key="knobs.neighbour_passes")
         for key in (
@@ -305,6 +328,8 @@ class MeasureKnobs:
             "halo_stack_stars",
             "halo_tail",
             "halo_background",
+            "halo_map",
+            "halo_map_arc",
             "crowded_window",
             "crowded_ratio",
         ):
