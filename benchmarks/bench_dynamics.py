@@ -189,6 +189,7 @@ def bench_comparison(quick, n_stars=(1000, 3500), **knobs):
 
     base = {
         "progress": False,
+        "posterior": "emcee",  # this benchmark times emcee + dynesty (the default is nested)
         "walkers": 32,
         "max_steps": 3000,
         "tau_factor": 20.0,

@@ -697,8 +697,20 @@ def _handler(args) -> int:
         settings = dataclasses.replace(settings, progress=False)
     if args.fast:
         settings = settings.fast()
+    if args.posterior is not None:
+        settings = dataclasses.replace(settings, posterior=args.posterior)
     if args.no_evidence:
-        settings = dataclasses.replace(settings, evidence=False)
+        if args.posterior == "nested":
+            raise InputError(
+                "--no-evidence skips the nested sampling that --posterior nested needs"
+            )
+        if settings.posterior == "nested":
+            print(
+                "mavispm dynamics: --no-evidence: posterior from emcee (the nested posterior "
+                "needs the nested-sampling run); its chains may not converge on the full model",
+                file=sys.stderr,
+            )
+        settings = dataclasses.replace(settings, evidence=False, posterior="emcee")
     if args.fast_stars and settings.fast_stars is None:
         from mavispm.dynamics.fast_stars import FastStarSettings
 
@@ -724,6 +736,8 @@ def _handler(args) -> int:
     from mavispm.core.products import read_product as _read
 
     a = _read(out, "dynamics", load_arrays=False).attrs
+    if a.get("verdict") == "not_converged":  # the product withholds the numbers: say why
+        print(f"mavispm dynamics: {a.get('verdict_text')}", file=sys.stderr)
     print(
         json.dumps(
             {
@@ -756,8 +770,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "dynamics",
         help="fit Jeans mass models (no dark centre, IMBH, extended dark, both) to proper motions",
-        description="Dispersion profile, emcee fits of the Jeans mass models, dynesty "
-        "evidences (full and kinematics-only), model comparison and plots.",
+        description="Dispersion profile, fits of the Jeans mass models (posterior and "
+        "evidences, full and kinematics-only, from dynesty; emcee with posterior = "
+        '"emcee"), model comparison and plots.',
     )
     p.add_argument("propermotions", nargs="?", default=None, help="propermotions product (HDF5)")
     p.add_argument(
@@ -793,7 +808,18 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="TOML file with a [dynamics] table")
     p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
-    p.add_argument("--no-evidence", action="store_true", help="skip nested sampling")
+    p.add_argument(
+        "--posterior",
+        choices=("nested", "emcee"),
+        default=None,
+        help="posterior from the nested-sampling run (the default) or from emcee "
+        "(overrides the settings' posterior)",
+    )
+    p.add_argument(
+        "--no-evidence",
+        action="store_true",
+        help="skip nested sampling: no ln B, the posterior from emcee",
+    )
     p.add_argument(
         "--fast-stars",
         action="store_true",

@@ -674,8 +674,9 @@ def _verdict(c: Comparison, unconverged, thr: float):
     """One word and one sentence for the product."""
     if unconverged:
         return "not_converged", (
-            f"chains of model(s) {', '.join(unconverged)} did not converge: no result is "
-            "reported; raise max_steps or simplify the model"
+            f"emcee chains of model(s) {', '.join(unconverged)} did not converge: no result "
+            'is reported; set posterior = "nested" (the default; the posterior the '
+            "simulation-based calibration covers), or raise max_steps or simplify the model"
         )
     lnb = c.ln_bayes_factor
     if not np.isfinite(lnb):

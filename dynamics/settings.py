@@ -64,8 +64,9 @@ class DynamicsKnobs:
         emcee walkers, step limit and steps between convergence checks.
     tau_factor : float
         Required emcee chain length [autocorrelation times].
-    posterior : {"emcee", "nested"}
-        Posterior from emcee, or from the nested-sampling run (no emcee).
+    posterior : {"nested", "emcee"}
+        Posterior from the nested-sampling run (default; no emcee), or from emcee (whose
+        chains on the default four-model fit with free nuisances do not converge).
     nlive : int
         dynesty live points.
     dlogz : float
@@ -87,7 +88,7 @@ class DynamicsKnobs:
     max_steps: int = 20000
     tau_factor: float = 50.0
     check_every: int = 500
-    posterior: str = "emcee"
+    posterior: str = "nested"
     nlive: int = 250
     dlogz: float = 0.1
     workers: int = 1
@@ -128,8 +129,8 @@ class DynamicsSettings:
     ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("line_of_sight": each star's
     motion is the mixture over its depth of Gaussian 3-D velocities; "gaussian": a
     Gaussian with the projected dispersions). Profile: ``bin_size``, ``n_bootstrap``. emcee:
-    ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("emcee", or
-    "nested": the posterior from the nested-sampling run, no emcee). Evidence:
+    ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("nested", the
+    default: the posterior from the nested-sampling run, no emcee; or "emcee"). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
     fitted in parallel processes (1: in this process; the result does not depend on it).
     Fast-star test: ``fast_stars`` (a ``[dynamics.fast_stars]`` table,
@@ -208,7 +209,10 @@ class DynamicsSettings:
         if self.posterior not in ("emcee", "nested"):
             raise ValueError(f"posterior must be 'emcee' or 'nested', got {self.posterior!r}")
         if self.posterior == "nested" and not self.evidence:
-            raise ValueError("posterior = 'nested' needs evidence = true")
+            raise ValueError(
+                "posterior = 'nested' (the default) needs evidence = true; set "
+                "posterior = 'emcee' for a fit without nested sampling (no ln B)"
+            )
         if self.velocity_law not in VELOCITY_LAWS:
             raise ValueError(
                 f"velocity_law must be one of {VELOCITY_LAWS}, got {self.velocity_law!r}"

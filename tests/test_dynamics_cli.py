@@ -20,6 +20,7 @@ TINY = {
     "max_steps": 60,
     "check_every": 30,
     "evidence": False,
+    "posterior": "emcee",  # the emcee path (the default posterior is nested)
     "n_bootstrap": 5,
     "progress": False,
     "bin_size": 200,
@@ -89,6 +90,16 @@ def test_cli_command(pm_file, tmp_path, capsys):
     assert rc == 0 and "bh_mass_upper95" in captured.out
     # progress bars only on a terminal (stderr is captured here, not a terminal)
     assert "it/s" not in captured.err and "%|" not in captured.err
+    # --no-evidence leaves emcee as the posterior, and says so; 30 steps cannot converge,
+    # and the user is told in one line what to do (the JSON line only said not_converged)
+    assert '"verdict": "not_converged"' in captured.out
+    told = [line for line in captured.err.splitlines() if "did not converge" in line]
+    assert len(told) == 1 and 'set posterior = "nested"' in told[0], captured.err
+    assert "--no-evidence: posterior from emcee" in captured.err
+    # the nested posterior needs the nested sampling that --no-evidence skips
+    bad = ["dynamics", str(pm_file), "-o", str(tmp_path / "h.h5"), "--no-evidence"]
+    assert main([*bad, "--posterior", "nested"]) == 2
+    assert not (tmp_path / "h.h5").exists()
     rc = main(["dynamics", str(tmp_path / "missing.h5"), "-o", str(tmp_path / "g.h5")])
     assert rc == 2
 
@@ -256,6 +267,10 @@ def test_nested_posterior_reports_results_with_kinematic_evidence(pm_file, tmp_p
     assert a["posterior_samples_imbh"] == len(prod.tables["posterior_imbh"]) > 50
     with pytest.raises(ConfigError, match="nested"):
         validate_settings({"posterior": "nested", "evidence": False})
+    # the default posterior is the nested one: evidence = false alone says what to set
+    with pytest.raises(ConfigError, match="posterior = 'emcee'"):
+        validate_settings({"evidence": False})
+    assert validate_settings({"evidence": False, "posterior": "emcee"}).evidence is False
 
 
 def test_fit_models_in_worker_processes_equals_serial():

@@ -191,6 +191,7 @@ def test_stage_measures_completeness_from_the_artificial_star_catalogue(tmp_path
         "max_steps": 60,
         "check_every": 30,
         "evidence": False,
+        "posterior": "emcee",
         "n_bootstrap": 5,
         "progress": False,
         "field_radius": "15 arcsec",

@@ -120,6 +120,7 @@ def test_stage_takes_its_scale_radius_prior_from_the_profile(tmp_path):
         "max_steps": 60,
         "check_every": 30,
         "evidence": False,
+        "posterior": "emcee",
         "n_bootstrap": 5,
         "progress": False,
         "field_radius": "15 arcsec",

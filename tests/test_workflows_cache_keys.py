@@ -90,6 +90,7 @@ def test_dynamics_products_do_not_depend_on_progress_bars(tmp_path):
         "bin_size": 60,
         "n_bootstrap": 3,
         "evidence": False,
+        "posterior": "emcee",
     }
     outs = [
         dynamics_cli.run_stage(pm, {**settings, "progress": flag}, tmp_path / f"d{flag}.h5", 1)
