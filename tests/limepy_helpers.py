@@ -52,13 +52,19 @@ PC_PER_ARCSEC_KPC = 1e3 * np.pi / 648000.0
 
 
 def import_limepy():
-    """The ``limepy`` module (skips the test when ``astro-limepy`` is missing), made
-    to run on the installed scipy."""
-    import pytest
-
-    limepy = pytest.importorskip("limepy")
+    """The ``limepy`` module of ``astro-limepy`` (a ``[test]`` dependency: a missing or
+    wrong package fails the test with one line), made to run on the installed scipy."""
+    try:
+        import limepy
+    except ImportError as exc:
+        raise ImportError(
+            "astro-limepy is missing: install the test extras (pip install -e '.[test]')"
+        ) from exc
     if not hasattr(limepy, "sample"):
-        pytest.skip("the installed 'limepy' is not astro-limepy (Gieles & Zocchi)")
+        raise ImportError(
+            "the installed 'limepy' is not astro-limepy (Gieles & Zocchi): "
+            "pip uninstall limepy && pip install astro-limepy"
+        )
     from scipy.integrate import ode
 
     module = sys.modules["limepy.limepy"]

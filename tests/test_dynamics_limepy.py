@@ -1,5 +1,5 @@
 """The Jeans stage against LIMEPY (Gieles & Zocchi 2015): an independent model and
-distribution-function sampler (``astro-limepy``; skipped when it is missing).
+distribution-function sampler (``astro-limepy``, a ``[test]`` dependency).
 
 * fast: for an isotropic single-mass lowered isothermal model, our Jeans projector
   fed with limepy's own density and enclosed mass gives limepy's projected surface
