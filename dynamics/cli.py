@@ -26,7 +26,12 @@ from mavispm.core.products import TableSpec, read_product, validate_table, write
 from mavispm.dynamics.fit import compare, fit_models, marginal_bh_samples
 from mavispm.dynamics.likelihood import StarSample
 from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
-from mavispm.dynamics.settings import DYNAMICS_KNOB_HOMES, DynamicsKnobs, DynamicsSettings
+from mavispm.dynamics.settings import (
+    DYNAMICS_KNOB_HOMES,
+    POSTERIORS,
+    DynamicsKnobs,
+    DynamicsSettings,
+)
 
 __all__ = [
     "DynamicsResult",
@@ -810,7 +815,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--fast", action="store_true", help="cheap sampler settings")
     p.add_argument(
         "--posterior",
-        choices=("nested", "emcee"),
+        choices=POSTERIORS,
         default=None,
         help="posterior from the nested-sampling run (the default) or from emcee "
         "(overrides the settings' posterior)",

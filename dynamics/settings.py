@@ -19,6 +19,7 @@ __all__ = [
     "DynamicsKnobs",
     "DynamicsSettings",
     "MODELS",
+    "POSTERIORS",
 ]
 
 #: Mass models of the comparison: which dark central components each one has.
@@ -29,6 +30,8 @@ MODELS = {
     "imbh_dark": {"bh": True, "dark": True},
 }
 ANISOTROPY = ("constant", "osipkov-merritt", "general")
+#: Where the posterior comes from: the nested-sampling run (default) or emcee.
+POSTERIORS = ("nested", "emcee")
 #: Where the star-count term's completeness comes from.
 COMPLETENESS_SOURCES = ("table", "artificial_stars")
 
@@ -206,7 +209,7 @@ class DynamicsSettings:
             )
         if self.tracer not in TRACERS:
             raise ValueError(f"tracer must be one of {sorted(TRACERS)}, got {self.tracer!r}")
-        if self.posterior not in ("emcee", "nested"):
+        if self.posterior not in POSTERIORS:
             raise ValueError(f"posterior must be 'emcee' or 'nested', got {self.posterior!r}")
         if self.posterior == "nested" and not self.evidence:
             raise ValueError(

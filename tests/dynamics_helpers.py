@@ -212,40 +212,26 @@ def _trial_row(seed, bh_mass, ln_b_and_err, bh_samples) -> dict:
     }
 
 
-def propermotions_from_catalogue(catalogue, path, seed, err_lo=0.020, err_hi=0.100, radius=17.0):
-    """A ``propermotions`` product from a truth catalogue plus Gaussian PM errors.
-
-    Luminous stars of the first epoch inside ``radius`` [arcsec] get per-star
-    errors uniform in [err_lo, err_hi] mas/yr added to ``pm_x``, ``pm_y``.
-    """
+def write_noisy_propermotions(path, ids, x, y, true, mag, distance, seed, err_lo, err_hi):
+    """A two-epoch ``propermotions`` product of stars at ``x, y`` [arcsec] whose true
+    motions ``true`` (shape (2, N) [mas/yr]) get per-star Gaussian errors uniform in
+    [err_lo, err_hi] mas/yr; ``mag`` [mag] and ``distance`` [kpc] as given."""
     import astropy.units as u
     from astropy.table import QTable
 
-    from mavispm.core.catalogue import read_catalogue
     from mavispm.core.products import write_product
 
-    cat = read_catalogue(catalogue)
-    t = next(iter(cat.epochs.values()))
-    keep = np.asarray(t["luminous"], bool) if "luminous" in t.colnames else np.ones(len(t), bool)
-    x, y = t["x"].to_value(u.arcsec), t["y"].to_value(u.arcsec)
-    keep &= np.hypot(x, y) <= radius
     rng = np.random.default_rng(seed)
-    n = int(keep.sum())
+    n = len(x)
     err = rng.uniform(err_lo, err_hi, (2, n))
-    true = np.stack(
-        [t["pm_x"].to_value(u.mas / u.yr)[keep], t["pm_y"].to_value(u.mas / u.yr)[keep]]
-    )
     pm = true + err * rng.standard_normal((2, n))
-    xa, ya = x[keep], y[keep]
-    R = np.hypot(xa, ya)
-    cx, sy = (
-        np.where(R > 0, xa / np.maximum(R, 1e-300), 1.0),
-        np.where(R > 0, ya / np.maximum(R, 1e-300), 0.0),
-    )
-    out = QTable()
-    out["id"] = np.asarray(t["id"])[keep]
-    out["x"], out["y"], out["R"] = xa * u.arcsec, ya * u.arcsec, R * u.arcsec
+    R = np.hypot(x, y)
+    cx = np.where(R > 0, x / np.maximum(R, 1e-300), 1.0)
+    sy = np.where(R > 0, y / np.maximum(R, 1e-300), 0.0)
     mas = u.mas / u.yr
+    out = QTable()
+    out["id"] = ids
+    out["x"], out["y"], out["R"] = x * u.arcsec, y * u.arcsec, R * u.arcsec
     out["pm_x"], out["pm_y"] = pm[0] * mas, pm[1] * mas
     out["pm_x_err"], out["pm_y_err"] = err[0] * mas, err[1] * mas
     out["pm_xy_corr"] = np.zeros(n)
@@ -255,14 +241,14 @@ def propermotions_from_catalogue(catalogue, path, seed, err_lo=0.020, err_hi=0.1
     out["pm_t_err"] = np.sqrt((err[0] * sy) ** 2 + (err[1] * cx) ** 2) * mas
     out["n_epochs"] = np.full(n, 2, dtype=np.int64)
     out["flag"] = np.zeros(n, dtype=np.int64)
-    out["mag"] = t["mag"][keep]
+    out["mag"] = mag
     out["pm_x_true"], out["pm_y_true"] = true[0] * mas, true[1] * mas
     return write_product(
         path,
         "propermotions",
         tables={"stars": out},
         attrs={
-            "distance": u.Quantity(cat.attrs["distance"], u.kpc),
+            "distance": distance,
             "epochs": np.array([0.0, 10.0]),
             "reference_epoch": 0.0 * u.yr,
         },

@@ -159,44 +159,20 @@ def write_propermotions(path, stars, seed, err_lo=0.010, err_hi=0.020):
     Gaussian PM errors uniform in [err_lo, err_hi] mas/yr (the measured products'
     bright-star errors); the distance attribute is NGC 3201's literature distance."""
     import astropy.units as u
-    from astropy.table import QTable
+    from dynamics_helpers import write_noisy_propermotions
 
-    from mavispm.core.products import write_product
-
-    rng = np.random.default_rng(seed)
     n = stars["x"].size
-    err = rng.uniform(err_lo, err_hi, (2, n))
-    true = np.stack([stars["pm_x"], stars["pm_y"]])
-    pm = true + err * rng.standard_normal((2, n))
-    xa, ya = stars["x"], stars["y"]
-    R = np.hypot(xa, ya)
-    cx = np.where(R > 0, xa / np.maximum(R, 1e-300), 1.0)
-    sy = np.where(R > 0, ya / np.maximum(R, 1e-300), 0.0)
-    mas = u.mas / u.yr
-    t = QTable()
-    t["id"] = np.arange(n, dtype=np.int64)
-    t["x"], t["y"], t["R"] = xa * u.arcsec, ya * u.arcsec, R * u.arcsec
-    t["pm_x"], t["pm_y"] = pm[0] * mas, pm[1] * mas
-    t["pm_x_err"], t["pm_y_err"] = err[0] * mas, err[1] * mas
-    t["pm_xy_corr"] = np.zeros(n)
-    t["pm_r"] = (pm[0] * cx + pm[1] * sy) * mas
-    t["pm_t"] = (-pm[0] * sy + pm[1] * cx) * mas
-    t["pm_r_err"] = np.sqrt((err[0] * cx) ** 2 + (err[1] * sy) ** 2) * mas
-    t["pm_t_err"] = np.sqrt((err[0] * sy) ** 2 + (err[1] * cx) ** 2) * mas
-    t["n_epochs"] = np.full(n, 2, dtype=np.int64)
-    t["flag"] = np.zeros(n, dtype=np.int64)
-    t["mag"] = (20.0 - 5.0 * np.log10(stars["mass"] / 0.8)) * u.mag
-    t["pm_x_true"], t["pm_y_true"] = true[0] * mas, true[1] * mas
-    return write_product(
+    return write_noisy_propermotions(
         path,
-        "propermotions",
-        tables={"stars": t},
-        attrs={
-            "distance": NGC3201["distance"] * u.kpc,
-            "epochs": np.array([0.0, 10.0]),
-            "reference_epoch": 0.0 * u.yr,
-        },
-        seed=seed,
+        np.arange(n, dtype=np.int64),
+        stars["x"],
+        stars["y"],
+        np.stack([stars["pm_x"], stars["pm_y"]]),
+        (20.0 - 5.0 * np.log10(stars["mass"] / 0.8)) * u.mag,
+        NGC3201["distance"] * u.kpc,
+        seed,
+        err_lo,
+        err_hi,
     )
 
 

@@ -87,3 +87,17 @@ def test_each_bright_stars_own_map_takes_its_non_round_halo(seed, arc):
     assert np.all(old[:2] > 0.1), old
     assert new[0] < 0.6 * old[0], (new, old)
     assert new[1] < 0.7 * old[1], (new, old)
+
+
+def test_core_pixels_match_a_brute_force_box_search():
+    """The pixels ``halo_map_core`` leaves out: every touched pixel within the box of
+    half-width ``core`` around a star, and no other (a search over all pixels)."""
+    from mavispm.measure.stars.halo import core_pixels
+
+    rng = np.random.default_rng(1)
+    ny, nx, core = 50, 60, 2
+    pixels = np.sort(rng.choice(ny * nx, 1500, replace=False)).astype(np.int64)
+    cx, cy = rng.integers(0, nx, 20), rng.integers(0, ny, 20)
+    px, py = pixels % nx, pixels // nx
+    near = (np.abs(px[:, None] - cx) <= core) & (np.abs(py[:, None] - cy) <= core)
+    assert np.array_equal(core_pixels(pixels, (ny, nx), cx, cy, core), near.any(axis=1))

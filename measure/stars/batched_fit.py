@@ -37,6 +37,7 @@ from mavispm.measure.stars.chunk_pool import ChunkPool, resolve_threads
 from mavispm.measure.stars.crlb import jacobian, safe_inverse, sky_plane_basis
 from mavispm.measure.stars.halo import (
     RING_REFERENCE,
+    core_pixels,
     deposit_stacked,
     deposit_tail,
     halo_profile,
@@ -1018,6 +1019,7 @@ def _fit_stars(
             pixels, (ny, nx), values, model, bad_pix, x[big], y[big], geom.cx[big], geom.cy[big], r, radii
         )  # fmt: skip
         reach = int(opt.halo_stack)
+        outs = (model, halo_light) if len(halo_light) else (model,)
         if reach > r and len(big) >= 5:
             # their common non-round misfit, per unit flux, onto the stars whose halo
             # at RING_REFERENCE exceeds halo_stack_stars times the sky's pixel noise
@@ -1025,31 +1027,24 @@ def _fit_stars(
                 pixels, (ny, nx), values, model, bad_pix, geom.cx[big], geom.cy[big],
                 flux[big], r, reach,
             )  # fmt: skip
-            outs = (model, halo_light) if len(halo_light) else (model,)
             onto = bright[flux[bright] * profile[at] > opt.halo_stack_stars * noise]
             deposit_stacked(pixels, (ny, nx), geom.cx[onto], geom.cy[onto], flux[onto], stack, outs)
         for where, light in adds:  # after all are measured: none sees another's
-            for out in (model, halo_light) if len(halo_light) else (model,):
+            for out in outs:
                 out[where] += light
         if int(opt.halo_map) > r and len(big):
             # each one's own 2-D misfit left after its rings and the common map
             skip = bad_pix
             if opt.halo_map_core > 0:  # the stars' cores left out of that residual
-                skip = bad_pix.copy()
-                core = np.arange(-opt.halo_map_core, opt.halo_map_core + 1)
-                cxs = np.clip(geom.cx[usable][:, None, None] + core[None, None, :], 0, nx - 1)
-                cys = np.clip(geom.cy[usable][:, None, None] + core[None, :, None], 0, ny - 1)
-                keys = (cys * nx + cxs).ravel().astype(pixels.dtype)
-                at = np.searchsorted(pixels, keys)
-                hit = at < len(pixels)
-                hit[hit] = pixels[at[hit]] == keys[hit]
-                skip[at[hit]] = True
+                skip = bad_pix | core_pixels(
+                    pixels, (ny, nx), geom.cx[usable], geom.cy[usable], opt.halo_map_core
+                )
             maps = residual_maps(
                 pixels, (ny, nx), values, model, skip, geom.cx[big], geom.cy[big], r,
                 int(opt.halo_map), int(opt.halo_map_block), opt.halo_map_arc,
             )  # fmt: skip
             for where, light in maps:
-                for out in (model, halo_light) if len(halo_light) else (model,):
+                for out in outs:
                     out[where] += light
 
     models_halo = opt.wing_threshold > 0 and opt.halo_radius > r + 1

@@ -32,6 +32,7 @@ __all__ = [
     "deposit_tail",
     "tail_ramp",
     "ring_corrections",
+    "core_pixels",
     "residual_maps",
     "stacked_residual",
 ]
@@ -447,6 +448,37 @@ def ring_corrections(pixels, shape, values, model, bad, x, y, cx, cy, half, radi
         fix = np.nan_to_num(med - np.nanmedian(med[outer_rings])) * taper
         adds.append((sel_pix, np.interp(d[sel], rr, fix, left=0.0, right=0.0)))
     return adds
+
+
+def core_pixels(pixels, shape, cx, cy, core):
+    """Which touched pixels lie in the ``(2 core + 1)^2`` px box around any star.
+
+    Parameters
+    ----------
+    pixels : ndarray of int
+        Sorted flat indices of the touched pixels.
+    shape : tuple of int
+        Frame shape ``(ny, nx)``.
+    cx, cy : ndarray of int
+        The stars' stamp-centre pixels.
+    core : int
+        Half-width of each box [pix].
+
+    Returns
+    -------
+    ndarray of bool, shape like ``pixels``
+    """
+    ny, nx = shape
+    offsets = np.arange(-core, core + 1)
+    cxs = np.clip(np.asarray(cx)[:, None, None] + offsets[None, None, :], 0, nx - 1)
+    cys = np.clip(np.asarray(cy)[:, None, None] + offsets[None, :, None], 0, ny - 1)
+    keys = (cys * nx + cxs).ravel().astype(pixels.dtype)
+    at = np.searchsorted(pixels, keys)
+    hit = at < len(pixels)
+    hit[hit] = pixels[at[hit]] == keys[hit]
+    inside = np.zeros(len(pixels), dtype=bool)
+    inside[at[hit]] = True
+    return inside
 
 
 def residual_maps(pixels, shape, values, model, bad, cx, cy, half, reach, block, arc=0.0):
