@@ -70,6 +70,8 @@ class RescueOptions:
         light is too mis-modelled for the group's Fisher errors to hold (on the 1e5-star
         frame the stars rescued in windows with chi^2 > 10 landed a median 0.5 px from
         the truth).
+    inflate : bool
+        The rescued stars' Fisher errors times ``sqrt(max(chi2_red, 1))`` of the window.
     """
 
     radius: float = 6.0
@@ -82,6 +84,7 @@ class RescueOptions:
     tolerance: float = 2e-3
     margin: int = 0
     max_misfit: float = 3.0
+    inflate: bool = True
 
 
 @dataclass
@@ -316,6 +319,9 @@ def _rescue_chunk(image, light, psf, fit, x0, y0, read_noise_var, sky0, bad, sat
     keep = ok[rows_c, best] & np.isfinite(chi2[:, 0]) & (gain >= opt.min_gain)
     keep &= misfit[rows_c, best] <= opt.max_misfit
     sel = np.flatnonzero(keep)
+    # the group's Fisher errors times the window's misfit (the rest of the light's
+    # mis-modelling is noise to the group)
+    inflate = np.sqrt(misfit[sel, best[sel]]) if opt.inflate else np.ones(len(sel))
     b = best[sel]
     flat_p = sel * n_start + b
     star = cand[sel]
@@ -329,10 +335,10 @@ def _rescue_chunk(image, light, psf, fit, x0, y0, read_noise_var, sky0, bad, sat
         y=out_y,
         flux=sf[sel, b],
         sky=sol["sky"][flat_p, 0],
-        x_err=ex[sel, b],
-        y_err=ey[sel, b],
-        flux_err=ef[sel, b],
-        sky_err=sol["sky_err"][flat_p],
+        x_err=ex[sel, b] * inflate,
+        y_err=ey[sel, b] * inflate,
+        flux_err=ef[sel, b] * inflate,
+        sky_err=sol["sky_err"][flat_p] * inflate,
         chi2=stamp[0],
         chi2_odd=stamp[1],
         crowding=stamp[2],
