@@ -327,6 +327,14 @@ class FitResult:
         The bright stars' halo light (outside their stamps, with the ring corrections)
         over all the model light on the stamp (the star's own included), 0-1 (zeros
         without a halo).
+    chi2_odd : ndarray or None
+        Reduced chi^2 of the stamp residual's part odd about the star.
+    light_image : ndarray or None
+        All the modelled light the stars see at the solution (every star's stamp model,
+        the halos and their tail; no sky) [electron], frame shaped, NaN off the stamps
+        (where the fit modelled nothing)
+        (None unless ``return_light``): the post-fit rescue
+        (:mod:`~mavispm.measure.stars.rescue`) subtracts it.
     """
 
     x: np.ndarray
@@ -347,6 +355,7 @@ class FitResult:
     correlated_gain: np.ndarray | None = None
     halo_share: np.ndarray | None = None
     chi2_odd: np.ndarray | None = None
+    light_image: np.ndarray | None = None
 
 
 def residual_correlation(psf: VariableEPSF, nx: int, ny: int, radius: int) -> np.ndarray:
@@ -637,6 +646,7 @@ def fit_stars(
     uncertainties: bool = True,
     halo: np.ndarray | None = None,
     halo_shape: HaloShape | None = None,
+    return_light: bool = False,
 ) -> FitResult:
     """Fit positions, fluxes and local skies of all stars simultaneously.
 
@@ -676,6 +686,8 @@ def fit_stars(
         The non-round shape of the halo (:mod:`~mavispm.measure.stars.halo_shape`, from
         the PSF-R prior): each bright star's light outside its stamp is the radial
         profile times this modulation. None (default): round.
+    return_light : bool
+        Also return :attr:`FitResult.light_image` (the model with the halos).
 
     Returns
     -------
@@ -685,13 +697,13 @@ def fit_stars(
     with ChunkPool(resolve_threads(opt.threads)) as pool:
         return _fit_stars(
             image, psf, x0, y0, read_noise_var, sky0, flux0, bad, saturated, opt,
-            return_model, uncertainties, halo, halo_shape, pool,
+            return_model, uncertainties, halo, halo_shape, pool, return_light,
         )  # fmt: skip
 
 
 def _fit_stars(
     image, psf, x0, y0, read_noise_var, sky0, flux0, bad, saturated, opt, return_model,
-    uncertainties, halo, halo_shape, pool,
+    uncertainties, halo, halo_shape, pool, return_light=False,
 ):  # fmt: skip
     """:func:`fit_stars` with its options resolved, the chunks on ``pool``."""
     image = np.asarray(image)
@@ -1165,7 +1177,7 @@ def _fit_stars(
     chi2_odd = np.full(n, np.nan)
     crowding = np.full(n, np.nan)
     all_idx = order  # the usable stars in bands of rows (cache reuse; see the colours)
-    if uncertainties or return_model:  # exact (not linearised) models at the solution
+    if uncertainties or return_model or return_light:  # exact models at the solution
         work = list(_chunks(all_idx, opt.chunk))
         batch = 4 * pool.threads  # chunks evaluated at once (not all N stamps held)
         for lo in range(0, len(work), batch):
@@ -1278,6 +1290,9 @@ def _fit_stars(
         crowding=crowding,
         correlated_gain=gain,
         halo_share=np.minimum(halo_share, 1.0),
+        light_image=_frame_image(model, pixels, (ny, nx), np.float64, np.nan)
+        if return_light
+        else None,
     )
 
 
@@ -1378,9 +1393,16 @@ def _marginalise_slopes(a: np.ndarray) -> np.ndarray:
     return out
 
 
-def _frame_image(values: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Frame-shaped float32 image with ``values`` at the flat ``pixels``, zero elsewhere."""
-    out = np.zeros(shape[0] * shape[1], dtype=np.float32)
+def _frame_image(
+    values: np.ndarray,
+    pixels: np.ndarray,
+    shape: tuple[int, int],
+    dtype=np.float32,
+    fill: float = 0.0,
+) -> np.ndarray:
+    """Frame-shaped image (float32 by default) with ``values`` at the flat ``pixels``,
+    ``fill`` elsewhere."""
+    out = np.full(shape[0] * shape[1], fill, dtype=dtype)
     out[pixels] = values
     return out.reshape(shape)
 

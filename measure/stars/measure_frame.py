@@ -31,6 +31,7 @@ from mavispm.measure.stars.batched_fit import (
     FLAG_CROWDED,
     FLAG_FAILED,
     FLAG_NO_MATCH,
+    FLAG_NOT_CONVERGED,
     UNRESOLVED_SEPARATION,
     FitOptions,
     FitResult,
@@ -61,6 +62,7 @@ from mavispm.measure.stars.node_centring import (
 )
 from mavispm.measure.stars.photutils_engine import PhotutilsOptions, fit_stars_photutils
 from mavispm.measure.stars.psf_reconstruction import build_psfr_epsf, model_transforms, read_prior
+from mavispm.measure.stars.rescue import Rescued, RescueOptions, rescue_stars
 from mavispm.measure.stars.settings import MeasureSettings
 from mavispm.measure.stars.sky_mesh import mesh_sky
 from mavispm.measure.stars.start_list import EarlierEpoch, start_from_earlier
@@ -340,6 +342,7 @@ def run_engine(
     return_model: bool = True,
     halo: np.ndarray | None = None,
     halo_shape: HaloShape | None = None,
+    return_light: bool = False,
 ) -> FitResult:
     """Fit all stars with the selected engine.
 
@@ -363,6 +366,9 @@ def run_engine(
         (:attr:`FitResult.halo_profile`); None: the fast engine measures it.
     halo_shape : HaloShape, optional
         The halo's non-round shape (:attr:`FramePSF.halo_shape`); None: round.
+    return_light : bool
+        The fast engine also returns all its modelled light
+        (:attr:`FitResult.light_image`, for the rescue pass).
 
     Returns
     -------
@@ -391,6 +397,7 @@ def run_engine(
             return_model=return_model,
             halo=halo,
             halo_shape=halo_shape,
+            return_light=return_light,
             **common,
         )
     if engine == "photutils":
@@ -929,6 +936,49 @@ def error_terms(
     )
 
 
+def rescue_options(settings: MeasureSettings) -> RescueOptions:
+    """The rescue pass's options from the stage settings (``rescue_radius``, the
+    fitter's stamp, ``min_snr`` and ``max_shift``)."""
+    return RescueOptions(
+        radius=settings.rescue_radius,
+        stamp_radius=settings.stamp_radius,
+        min_snr=settings.min_snr,
+        max_shift=settings.max_shift,
+    )
+
+
+def with_rescued(fit: FitResult, rescued: Rescued) -> FitResult:
+    """``fit`` with the rescued stars' rows replaced and their flags 1 and 32 cleared."""
+    i = rescued.index
+    out = {}
+    for name in ("x", "y", "flux", "sky", "x_err", "y_err", "flux_err", "sky_err", "chi2"):
+        arr = np.array(getattr(fit, name), float)
+        arr[i] = getattr(rescued, name)
+        out[name] = arr
+    for name in ("chi2_odd", "crowding"):
+        if getattr(fit, name) is not None:
+            arr = np.array(getattr(fit, name), float)
+            arr[i] = getattr(rescued, name)
+            out[name] = arr
+    flag = np.array(fit.flag)
+    flag[i] &= ~(FLAG_NOT_CONVERGED | FLAG_FAILED)
+    return replace(fit, flag=flag, **out)
+
+
+def merge_rows(base: ErrorModel, other: ErrorModel, rows: np.ndarray) -> ErrorModel:
+    """``base`` with the per-star rows ``rows`` of every array term taken from ``other``."""
+    out = {}
+    for name in ("position", "flux", "chi2_ratio", "chi2_inflation", "registration",
+                 "correlated", "position_ratio", "position_inflation"):  # fmt: skip
+        a, b = getattr(base, name), getattr(other, name)
+        if a is None or b is None or np.ndim(a) == 0:
+            continue
+        a = np.array(a, copy=True)
+        a[rows] = b[rows]
+        out[name] = a
+    return replace(base, **out)
+
+
 def refined_start(frame: Frame, x0, y0, settings: MeasureSettings, anchor=None):
     """Start positions [pixel] refined by one quick measurement (fast fit); failed
     stars keep their start; and the frame's halo profile that fit measured.
@@ -1180,6 +1230,7 @@ def measure_frame(
     fit = run_engine(
         frame, psf, x0, y0, settings, return_model=False, halo=frame_psf.halo,
         halo_shape=frame_psf.halo_shape,
+        return_light=settings.rescue_radius > 0 and settings.engine == "fast",
     )  # fmt: skip
     centring = None
     inherited = None
@@ -1206,13 +1257,32 @@ def measure_frame(
         if refined and centring:
             inherited = anchor.centring_error(fit.x, fit.y)
             registration_reference = getattr(anchor.centring, "reference_id", None)
+    rescued = None
+    if fit.light_image is not None:  # refit the failed blends (rescue_radius)
+        rescued = rescue_stars(
+            frame.image, fit.light_image, psf, fit, x0, y0, frame.read_noise_var, frame.sky,
+            frame.bad, frame.saturated, rescue_options(settings),
+        )  # fmt: skip
+        fit = replace(fit, light_image=None)
     t_fit = time.perf_counter()
     errors = error_terms(frame, frame_psf, fit, settings, inherited)
+    fit_before = fit  # every star not rescued keeps what it had
+    if rescued is not None and len(rescued.index):
+        fit = with_rescued(fit, rescued)
+        # the rescued stars' error terms, with them among their peers
+        errors = merge_rows(errors, error_terms(frame, frame_psf, fit, settings, inherited),
+                            rescued.index)  # fmt: skip
     t_err = time.perf_counter()
     flag = fit.flag.copy()
-    flag[
-        crowding_flags(fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio)
-    ] |= FLAG_CROWDED
+    crowded = crowding_flags(
+        fit_before.x, fit_before.y, fit_before.flux, settings.crowding_radius,
+        settings.crowding_ratio,
+    )  # fmt: skip
+    if rescued is not None and len(rescued.index):
+        crowded[rescued.index] = crowding_flags(
+            fit.x, fit.y, fit.flux, settings.crowding_radius, settings.crowding_ratio
+        )[rescued.index]
+    flag[crowded] |= FLAG_CROWDED
     # stars that start at (nearly) one position cannot be told apart by the fit either
     flag[crowding_flags(x0, y0, np.ones(len(x0)), UNRESOLVED_SEPARATION, np.inf)] |= FLAG_CROWDED
     n = len(x0)
@@ -1255,7 +1325,7 @@ def measure_frame(
         shown = on_detector(tx, ty, frame.shape)
         extra["truth_bin_counts"] = truth_bin_counts(truth["mag"].to_value(u.mag)[shown])
         sky = np.where(np.isfinite(fit.sky), fit.sky, frame.sky)
-        fraction = epsf_flux_fraction(fit, flux_true, known & ok)
+        fraction = epsf_flux_fraction(fit_before, flux_true, known & ok)
         extra["epsf_flux_fraction"] = fraction
         bound = crlb(
             psf,
@@ -1308,6 +1378,8 @@ def measure_frame(
         "time_fit": (t_fit - t_psf) * u.s,
         "time_errors": (t_err - t_fit) * u.s,
         "fit_iterations": int(fit.iterations),
+        "rescue_tried": rescued.tried if rescued is not None else 0,
+        "rescued": len(rescued.index) if rescued is not None else 0,
         "error_model": errors.kind,
         "epsf_position_error": float(np.nanmedian(errors.position) * scale * 1000.0) * u.mas,
         "blind": bool(settings.blind),

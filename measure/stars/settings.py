@@ -221,6 +221,12 @@ class MeasureKnobs:
         residual the maps are measured on.
     min_snr : float
         Stars below this flux SNR have positions held fixed and are flagged 32.
+    rescue_radius : float [pix]
+        If > 0: after the fit, each star flagged 1 or 32 with a neighbour within this
+        distance is refitted with those neighbours (positions, fluxes, a sky plane)
+        from several starts, and keeps the result only when it converges, reaches
+        ``min_snr`` and lowers the stamp's chi^2 by at least 9 against the group
+        without it (:mod:`~mavispm.measure.stars.rescue`); 0 (default): off.
     chunk : int
         Stars evaluated at once by the fast engine (memory knob).
     threads : int
@@ -272,6 +278,7 @@ class MeasureKnobs:
     halo_map_arc: float = unit_field(0.0, "pix")
     halo_map_core: int = 0
     min_snr: float = 3.0
+    rescue_radius: float = unit_field(0.0, "pix")
     chunk: int = 512
     threads: int = 0
     photutils_fitter: Literal["levmar", "default"] = "levmar"
@@ -319,6 +326,7 @@ class MeasureKnobs:
                 raise ConfigError(f"must be > 0, got {getattr(self, key)}", key=f"knobs.{key}")
         for key in (
             "min_snr",
+            "rescue_radius",
             "psf_star_max_gradient",
             "psf_star_sky_mesh",
             "wing_threshold",
