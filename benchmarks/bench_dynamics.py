@@ -298,7 +298,8 @@ def bench_target_comparison(**knobs):
 
 def bench_velocity_laws():
     """One model's nested evidence at 3,500 stars with the Gaussian law, the line-of-sight
-    law run directly and the Gaussian run reweighted to it (same stars, settings, seed)."""
+    law run directly, the Gaussian run reweighted to it and the free-kurtosis law (same
+    stars, settings, seed)."""
     import dataclasses
 
     from dynamics_helpers import validation_settings
@@ -312,6 +313,7 @@ def bench_velocity_laws():
         ("gaussian", {"velocity_law": "gaussian"}),
         ("reweighted", {"reweight": True}),
         ("line_of_sight", {}),
+        ("free_kurtosis", {"velocity_law": "free_kurtosis"}),
     ):
         c0, t0 = time.process_time(), time.perf_counter()
         f = fit_model(s, dataclasses.replace(base, **knobs), dist, "imbh", 200)

@@ -613,8 +613,13 @@ def run_stage(
         "tracer": settings.tracer,
         "models": ",".join(f.name for f in fits),
         "evidence_computed": bool(settings.evidence),
+        "velocity_law": settings.velocity_law,
         **source,
     }
+    if settings.velocity_law == "free_kurtosis" and fits:
+        # where kappa_inner / kappa_outer of the summary table hold (radial profile)
+        lo, hi = np.exp(fits[0].likelihood.kappa_anchors)
+        attrs["kappa_anchor_radii"] = np.array([lo, hi]) * u.arcsec
     bh = marginal_bh_samples(fits, seed)
     if bh.size:
         q = np.percentile(bh, [2.5, 16, 50, 84, 97.5, 95])

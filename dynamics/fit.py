@@ -58,6 +58,9 @@ LABELS = {
     "y0": r"$y_0/''$",
     "pm_x0": r"$\mu_{x,0}$",
     "pm_y0": r"$\mu_{y,0}$",
+    "kappa": r"$\kappa$",
+    "kappa_inner": r"$\kappa_{\rm in}$",
+    "kappa_outer": r"$\kappa_{\rm out}$",
 }
 
 
@@ -119,6 +122,10 @@ def parameter_space(
             params.append(Parameter("beta_inf", lo=lo, hi=hi))
         lo, hi = s.log_anisotropy_radius_range
         params.append(Parameter("log_anisotropy_radius", lo=lo, hi=hi))
+    if s.velocity_law == "free_kurtosis":
+        lo, hi = s.kappa_range
+        names = ("kappa",) if s.kappa_profile == "constant" else ("kappa_inner", "kappa_outer")
+        params.extend(Parameter(name, lo=lo, hi=hi) for name in names)
     sd = s.distance_sd(distance)
     if sd > 0:
         params.append(Parameter("distance", prior="gaussian", mean=distance, sd=sd))

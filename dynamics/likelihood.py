@@ -12,7 +12,10 @@ with ``p`` the mixture over the star's depth on the line of sight of Gaussian 3-
 velocities convolved with the errors (``velocity_law = "line_of_sight"``, the default;
 :mod:`mavispm.dynamics.line_of_sight`), or the Gaussian with the projected dispersions
 ``N(v_R | 0, sigma_R(R)^2 + e_R^2) N(v_T | 0, sigma_T(R)^2 + e_T^2)``
-(``velocity_law = "gaussian"``).
+(``velocity_law = "gaussian"``), or that Gaussian's variances with a fitted excess
+kurtosis ``kappa`` (``velocity_law = "free_kurtosis"``, :mod:`mavispm.dynamics.shape_law`;
+parameter ``kappa``, or ``kappa_inner`` and ``kappa_outer`` linear in ``ln R`` between the
+10th and 90th percentiles of the stars' radii about the field centre).
 
 ``N_field = int_field Sigma c dA`` is the tracer number inside the circular
 field of radius ``R_field`` about the *field* centre (exact for a model centre
@@ -47,6 +50,7 @@ from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
 from mavispm.dynamics.line_of_sight import mixture_star_sums, mixture_star_sums_about
+from mavispm.dynamics.shape_law import KAPPA_LIMITS, shape_star_sums, shape_star_sums_about
 from mavispm.dynamics.star_sums import star_sums, star_sums_about, stars_about
 from mavispm.dynamics.tracers import make_tracer
 
@@ -62,7 +66,7 @@ PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 _LN_2PI = np.log(2.0 * np.pi)
 _GL16 = np.polynomial.legendre.leggauss(16)
 #: Proper-motion distributions of a star at a projected radius (see DiscreteLikelihood).
-VELOCITY_LAWS = ("line_of_sight", "gaussian")
+VELOCITY_LAWS = ("line_of_sight", "gaussian", "free_kurtosis")
 
 
 @dataclass(frozen=True)
@@ -140,11 +144,13 @@ class DiscreteLikelihood:
     completeness : (radii, values), optional
         Completeness of the sample against projected radius [arcsec] (linear
         interpolation, constant beyond the ends); used by the star-count term.
-    velocity_law : {"line_of_sight", "gaussian"}
+    velocity_law : {"line_of_sight", "gaussian", "free_kurtosis"}
         Each star's proper-motion distribution: the mixture over its depth on the line
-        of sight of Gaussian 3-D velocities (:mod:`mavispm.dynamics.line_of_sight`), or
-        a Gaussian with the projected dispersions (faster, calibrated only for data
-        drawn from that Gaussian).
+        of sight of Gaussian 3-D velocities (:mod:`mavispm.dynamics.line_of_sight`), a
+        Gaussian with the projected dispersions (faster, calibrated only for data
+        drawn from that Gaussian), or the projected dispersions with a fitted excess
+        kurtosis (:mod:`mavispm.dynamics.shape_law`; parameters ``kappa`` or
+        ``kappa_inner`` and ``kappa_outer``; without them kappa = 0, the Gaussian law).
     line_of_sight_nodes : int
         Gauss-Legendre nodes of the line-of-sight mixture (accuracy knob).
     """
@@ -241,6 +247,13 @@ class DiscreteLikelihood:
         empty = np.zeros(0)
         self._comp_r, self._comp_c = self.completeness or (empty, empty)
         self.n_stars = len(stars.R)
+        if "kappa" in self._idx and ("kappa_inner" in self._idx or "kappa_outer" in self._idx):
+            raise ValueError("give 'kappa' or 'kappa_inner' and 'kappa_outer', not both")
+        if ("kappa_inner" in self._idx) != ("kappa_outer" in self._idx):
+            raise ValueError("'kappa_inner' and 'kappa_outer' go together")
+        lo, hi = np.log(np.percentile(np.maximum(stars.R, r_lo), [10.0, 90.0]))
+        #: ln R [ln arcsec] where kappa_inner and kappa_outer hold (about the field centre)
+        self.kappa_anchors = (float(lo), float(max(hi, lo + 1e-6)))
 
     def _value(self, theta, name, default):
         i = self._idx.get(name)
@@ -468,6 +481,29 @@ class DiscreteLikelihood:
             ln_sig,
         )
 
+    def kappa_par(self, theta):
+        """``kappa_inner, kappa_outer, ln R_lo, ln R_hi`` of ``theta`` for the compiled
+        sums of :mod:`mavispm.dynamics.shape_law` (a global ``kappa``: both the same; no
+        kappa parameter: 0, the Gaussian law)."""
+        if "kappa_inner" in self._idx:
+            k_in, k_out = theta[self._idx["kappa_inner"]], theta[self._idx["kappa_outer"]]
+        else:
+            k_in = k_out = self._value(theta, "kappa", 0.0)
+        return np.array([k_in, k_out, *self.kappa_anchors], dtype=float)
+
+    def _shape_sums(self, theta, ln_a, ln_s2, ln_sig):
+        """``chi`` (``-sum(2 ln p + ln 2 pi)``) and the summed ln surface density of the
+        free-kurtosis law for the stars about the model centre and systemic motion."""
+        x0 = self.lnX_grid[0]
+        kpar = self.kappa_par(theta)
+        if not self._moving:
+            return shape_star_sums(
+                self.lnR - ln_a, float(ln_a), x0, self.step, ln_s2, ln_sig, self._v2, self._e2, kpar
+            )
+        return shape_star_sums_about(
+            *self._about_args(theta, ln_a), x0, self.step, ln_s2, ln_sig, kpar
+        )
+
     def _mixture_sums(self, theta, ln_a, mix_w, s2_r, s2_t, ln_sig):
         """Summed ln mixture density and ln surface density of the stars about the model
         centre and systemic motion of ``theta`` (:func:`mixture_star_sums`)."""
@@ -552,6 +588,9 @@ class DiscreteLikelihood:
         log_a = theta[self._idx["log_scale_radius"]]
         if not self._log_a_range[0] <= log_a <= self._log_a_range[1]:
             return -np.inf  # outside the radial grid (Gaussian prior tails)
+        for name in ("kappa", "kappa_inner", "kappa_outer"):
+            if name in self._idx and not KAPPA_LIMITS[0] < theta[self._idx[name]] < KAPPA_LIMITS[1]:
+                return -np.inf
         offset = float(np.hypot(self._value(theta, "x0", 0.0), self._value(theta, "y0", 0.0)))
         if offset >= 0.5 * self.stars.field_radius:
             return -np.inf
@@ -561,7 +600,10 @@ class DiscreteLikelihood:
             lnl, ln_sigma_stars = self._mixture_sums(theta, ln_a, mix_w, s2_r, s2_t, ln_sig)
         else:
             ln_s2, ln_sig, ln_proj = self.log_model_on_grid(theta)
-            chi, ln_sigma_stars = self._star_sums(theta, ln_a, ln_s2, ln_sig)
+            if self.velocity_law == "free_kurtosis":
+                chi, ln_sigma_stars = self._shape_sums(theta, ln_a, ln_s2, ln_sig)
+            else:
+                chi, ln_sigma_stars = self._star_sums(theta, ln_a, ln_s2, ln_sig)
             lnl = -0.5 * chi - self.n_stars * _LN_2PI
         if self.star_counts:
             ln_norm = self.ln_field_norm(ln_a, offset, ln_sig, ln_proj)

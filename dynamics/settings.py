@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from mavispm.core.config import unit_field
 from mavispm.dynamics.fast_stars import FastStarSettings
 from mavispm.dynamics.likelihood import VELOCITY_LAWS
+from mavispm.dynamics.shape_law import KAPPA_LIMITS
 from mavispm.dynamics.tracers import TRACERS
 
 __all__ = [
@@ -30,6 +31,8 @@ MODELS = {
     "imbh_dark": {"bh": True, "dark": True},
 }
 ANISOTROPY = ("constant", "osipkov-merritt", "general")
+#: Radial form of the fitted excess kurtosis (velocity_law = "free_kurtosis").
+KAPPA_PROFILES = ("constant", "radial")
 #: Where the posterior comes from: the nested-sampling run (default) or emcee.
 POSTERIORS = ("nested", "emcee")
 #: Where the star-count term's completeness comes from.
@@ -131,7 +134,10 @@ class DynamicsSettings:
     ``projection_nodes``, ``radial_points_per_efold``, ``truncation``,
     ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("line_of_sight": each star's
     motion is the mixture over its depth of Gaussian 3-D velocities; "gaussian": a
-    Gaussian with the projected dispersions). Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    Gaussian with the projected dispersions; "free_kurtosis": the projected dispersions
+    with a fitted excess kurtosis, uniform on ``kappa_range``, one value
+    (``kappa_profile = "constant"``) or inner and outer values linear in ln R
+    (``"radial"``); :mod:`~mavispm.dynamics.shape_law`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("nested", the
     default: the posterior from the nested-sampling run, no emcee; or "emcee"). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
@@ -155,6 +161,8 @@ class DynamicsSettings:
     log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
     anisotropy: str = "constant"
     velocity_law: str = "line_of_sight"
+    kappa_range: tuple[float, float] = (-1.5, 2.5)
+    kappa_profile: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)
     log_anisotropy_radius_range: tuple[float, float] = (0.0, 3.0)
     beta_inf_range: tuple[float, float] = (-0.5, 0.95)
@@ -219,6 +227,16 @@ class DynamicsSettings:
         if self.velocity_law not in VELOCITY_LAWS:
             raise ValueError(
                 f"velocity_law must be one of {VELOCITY_LAWS}, got {self.velocity_law!r}"
+            )
+        if self.kappa_profile not in KAPPA_PROFILES:
+            raise ValueError(
+                f"kappa_profile must be one of {KAPPA_PROFILES}, got {self.kappa_profile!r}"
+            )
+        lo, hi = self.kappa_range
+        if not (KAPPA_LIMITS[0] < lo < hi < KAPPA_LIMITS[1]):
+            raise ValueError(
+                f"kappa_range needs {KAPPA_LIMITS[0]} < lo < hi < {KAPPA_LIMITS[1]}, "
+                f"got {self.kappa_range}"
             )
         if self.anisotropy not in ANISOTROPY:
             raise ValueError(f"anisotropy must be one of {ANISOTROPY}, got {self.anisotropy!r}")

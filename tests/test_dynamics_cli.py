@@ -355,3 +355,28 @@ def test_only_the_products_reject_bits_drop_stars(tmp_path):
     everything = validate_settings({"field_radius": "17 arcsec", "use_flagged": True})
     assert load_stars(with_mask, everything)[0].R.size == 200
     assert PMFlag.REJECT & PMFlag.CLIPPED == 0 and PMFlag.REJECT & PMFlag.POOR_FIT
+
+
+def test_free_kurtosis_law_puts_kappa_in_the_products(pm_file, tmp_path):
+    """velocity_law = "free_kurtosis", kappa_profile = "radial": the summary and posterior
+    tables carry kappa_inner / kappa_outer of every model, and the attrs the law and the
+    anchor radii (the 10th / 90th percentiles of the fitted stars' radii)."""
+    cfg = {**TINY, "models": ["none", "imbh"], "max_steps": 30}
+    cfg.update(velocity_law="free_kurtosis", kappa_profile="radial", kappa_range=[-1.0, 2.0])
+    out = run_stage(pm_file, cfg, tmp_path / "k.h5", seed=3)
+    prod = read_product(out, "dynamics")
+    a, summ = prod.attrs, prod.tables["summary"]
+    assert a["velocity_law"] == "free_kurtosis"
+    for model in ("none", "imbh"):
+        rows = summ[summ["model"] == model]
+        names = list(rows["parameter"])
+        assert "kappa_inner" in names and "kappa_outer" in names
+        k = rows[names.index("kappa_outer")]
+        assert -1.0 <= k["lo68"] <= k["median"] <= k["hi68"] <= 2.0
+        assert "kappa_inner" in prod.tables[f"posterior_{model}"].colnames
+    stars, _ = load_stars(pm_file, validate_settings({"field_radius": "17 arcsec"}))
+    np.testing.assert_allclose(
+        a["kappa_anchor_radii"].to_value(u.arcsec),
+        np.percentile(np.maximum(stars.R, 0.01), [10, 90]),
+        rtol=1e-12,
+    )
