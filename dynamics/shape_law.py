@@ -47,7 +47,7 @@ import numba
 import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
-from mavispm.dynamics.star_sums import _star_about, cubic_point_weights
+from mavispm.dynamics.star_sums import _star_about, cubic_point_weights, fold_log
 
 __all__ = [
     "KAPPA_LIMITS",
@@ -183,13 +183,7 @@ def shape_star_sums(u, ln_a, x0, step, ln_s2, ln_sig, v2, e2, kappa_par):  # pra
             ln_v = w0 * row[k0] + w1 * row[k1] + w2 * row[k2] + w3 * row[k3]
             q, x, extra = _component(v2[c, i], np.exp(ln_v), e2[c, i], kappa)
             chi += x + extra
-            if q > 1e100 or q < 1e-100:
-                ln_acc += np.log(q)
-            else:
-                prod *= q
-                if not (1e-150 < prod < 1e150):  # also NaN: logged, and it propagates
-                    ln_acc += np.log(prod)
-                    prod = 1.0
+            prod, ln_acc = fold_log(q, prod, ln_acc)
         lsig += w0 * ln_sig[k0] + w1 * ln_sig[k1] + w2 * ln_sig[k2] + w3 * ln_sig[k3]
     return chi + ln_acc + np.log(prod), lsig
 

@@ -31,6 +31,7 @@ _SIXTH = 1.0 / 6.0
 
 __all__ = [
     "cubic_point_weights",
+    "fold_log",
     "star_sums",
     "star_sums_about",
     "star_sums_numpy",
@@ -61,6 +62,26 @@ def star_sums_numpy(u, x0, step, ln_s2, ln_sig, v2, e2):
     idx, w = cubic_weights(x0, step, ln_sig.size, u)
     var = np.exp(interpolate(ln_s2, idx, w)) + e2
     return float(np.sum(v2 / var + np.log(var))), float(np.sum(interpolate(ln_sig, idx, w)))
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def fold_log(q, prod, ln_acc):  # pragma: no cover - compiled
+    """Fold ``ln q`` into the running product ``prod`` and the logged part ``ln_acc``.
+
+    A factor outside [1e-100, 1e100] is logged on its own; the product is logged and
+    restarted when it leaves [1e-150, 1e150] (also NaN: logged, and it propagates).
+    ``ln_acc + ln(prod)`` is the sum of the logarithms folded so far (module notes).
+
+    Returns
+    -------
+    prod, ln_acc : float
+    """
+    if q > 1e100 or q < 1e-100:
+        return prod, ln_acc + np.log(q)
+    prod *= q
+    if not (1e-150 < prod < 1e150):
+        return 1.0, ln_acc + np.log(prod)
+    return prod, ln_acc
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
@@ -124,14 +145,7 @@ def star_sums(u, x0, step, ln_s2, ln_sig, v2, e2):  # pragma: no cover - compile
             ln_v = w0 * row[k0] + w1 * row[k1] + w2 * row[k2] + w3 * row[k3]
             var = np.exp(ln_v) + e2[c, i]
             chi += v2[c, i] / var
-            # ln var folded into a running product (module notes)
-            if var > 1e100 or var < 1e-100:
-                ln_acc += np.log(var)
-            else:
-                prod *= var
-                if not (1e-150 < prod < 1e150):  # also NaN: logged, and it propagates
-                    ln_acc += np.log(prod)
-                    prod = 1.0
+            prod, ln_acc = fold_log(var, prod, ln_acc)  # ln var (module notes)
         lsig += w0 * ln_sig[k0] + w1 * ln_sig[k1] + w2 * ln_sig[k2] + w3 * ln_sig[k3]
     return chi + ln_acc + np.log(prod), lsig
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mavispm.measure.stars.batched_fit import FLAG_FAILED, FLAG_NOT_CONVERGED
 from mavispm.measure.stars.crlb import safe_inverse
 from mavispm.measure.stars.odd_residual import odd_chi2
 from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
@@ -34,7 +35,7 @@ from mavispm.measure.stars.variable_psf import StampGeometry, VariableEPSF
 __all__ = ["RescueOptions", "Rescued", "rescue_stars"]
 
 #: Flags that make a star a rescue candidate: not converged (1) or failed (32).
-CANDIDATE_FLAGS = 1 | 32
+CANDIDATE_FLAGS = FLAG_NOT_CONVERGED | FLAG_FAILED
 
 #: Candidates refitted at once (memory: ~2 MB each).
 CHUNK = 512
