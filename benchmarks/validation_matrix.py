@@ -2,6 +2,7 @@
 
     python benchmarks/validation_matrix.py run OUT.jsonl [--seeds 200:210] [--cases a,b]
         [--masses 0,1500] [--workers 2] [--posterior nested] [--nlive 100] [--dlogz 0.5]
+        [--velocity-law line_of_sight]
     python benchmarks/validation_matrix.py table OUT.jsonl
 
 Each trial (``tests/dynamics_helpers.validation_trial``) is one four-model comparison
@@ -25,6 +26,9 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+
+from mavispm.dynamics.likelihood import VELOCITY_LAWS
+from mavispm.dynamics.settings import DynamicsSettings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
@@ -61,6 +65,7 @@ def run(args) -> None:
         "nlive": args.nlive,
         "dlogz": args.dlogz,
         "kinematic_evidence": args.kinematic_evidence,
+        "velocity_law": args.velocity_law,
     }
     jobs = [
         (seed, case, mass, knobs)
@@ -130,6 +135,12 @@ def main(argv=None) -> None:
     r.add_argument("--posterior", default="nested", choices=("nested", "emcee"))
     r.add_argument("--nlive", type=int, default=100)
     r.add_argument("--dlogz", type=float, default=0.5)
+    r.add_argument(
+        "--velocity-law",
+        default=DynamicsSettings.velocity_law,
+        choices=VELOCITY_LAWS,
+        help="the dynamics stage's velocity_law (default: the stage's)",
+    )
     r.add_argument(
         "--kinematic-evidence",
         action=argparse.BooleanOptionalAction,
