@@ -122,6 +122,8 @@ def parameter_space(
             params.append(Parameter("beta_inf", lo=lo, hi=hi))
         lo, hi = s.log_anisotropy_radius_range
         params.append(Parameter("log_anisotropy_radius", lo=lo, hi=hi))
+    if s.velocity_law == "line_of_sight_kurtosis":
+        params.append(Parameter("kappa", lo=s.kappa_range[0], hi=s.kappa_range[1]))
     if s.velocity_law == "free_kurtosis":
         lo, hi = s.kappa_range
         names = ("kappa",) if s.kappa_profile == "constant" else ("kappa_inner", "kappa_outer")

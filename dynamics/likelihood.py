@@ -15,7 +15,10 @@ velocities convolved with the errors (``velocity_law = "line_of_sight"``, the de
 (``velocity_law = "gaussian"``), or that Gaussian's variances with a fitted excess
 kurtosis ``kappa`` (``velocity_law = "free_kurtosis"``, :mod:`mavispm.dynamics.shape_law`;
 parameter ``kappa``, or ``kappa_inner`` and ``kappa_outer`` linear in ``ln R`` between the
-10th and 90th percentiles of the stars' radii about the field centre).
+10th and 90th percentiles of the stars' radii about the field centre), or the
+line-of-sight mixture with each depth node's Gaussian replaced by that two-Gaussian
+family with one fitted local excess kurtosis ``kappa``
+(``velocity_law = "line_of_sight_kurtosis"``, :mod:`mavispm.dynamics.line_of_sight_kurtosis`).
 
 ``N_field = int_field Sigma c dA`` is the tracer number inside the circular
 field of radius ``R_field`` about the *field* centre (exact for a model centre
@@ -50,6 +53,10 @@ from mavispm.dynamics.field_counts import ln_field_number
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans import G_PC_KMS2_MSUN, KMS_PER_MASYR_KPC, JeansProjector
 from mavispm.dynamics.line_of_sight import mixture_star_sums, mixture_star_sums_about
+from mavispm.dynamics.line_of_sight_kurtosis import (
+    kurtosis_mixture_star_sums,
+    kurtosis_mixture_star_sums_about,
+)
 from mavispm.dynamics.shape_law import KAPPA_LIMITS, shape_star_sums, shape_star_sums_about
 from mavispm.dynamics.star_sums import star_sums, star_sums_about, stars_about
 from mavispm.dynamics.tracers import make_tracer
@@ -66,7 +73,7 @@ PC_PER_ARCSEC_KPC = 1e3 * np.pi / (180.0 * 3600.0)
 _LN_2PI = np.log(2.0 * np.pi)
 _GL16 = np.polynomial.legendre.leggauss(16)
 #: Proper-motion distributions of a star at a projected radius (see DiscreteLikelihood).
-VELOCITY_LAWS = ("line_of_sight", "gaussian", "free_kurtosis")
+VELOCITY_LAWS = ("line_of_sight", "gaussian", "free_kurtosis", "line_of_sight_kurtosis")
 
 
 @dataclass(frozen=True)
@@ -144,13 +151,16 @@ class DiscreteLikelihood:
     completeness : (radii, values), optional
         Completeness of the sample against projected radius [arcsec] (linear
         interpolation, constant beyond the ends); used by the star-count term.
-    velocity_law : {"line_of_sight", "gaussian", "free_kurtosis"}
+    velocity_law : {"line_of_sight", "gaussian", "free_kurtosis", "line_of_sight_kurtosis"}
         Each star's proper-motion distribution: the mixture over its depth on the line
         of sight of Gaussian 3-D velocities (:mod:`mavispm.dynamics.line_of_sight`), a
         Gaussian with the projected dispersions (faster, calibrated only for data
         drawn from that Gaussian), or the projected dispersions with a fitted excess
         kurtosis (:mod:`mavispm.dynamics.shape_law`; parameters ``kappa`` or
-        ``kappa_inner`` and ``kappa_outer``; without them kappa = 0, the Gaussian law).
+        ``kappa_inner`` and ``kappa_outer``; without them kappa = 0, the Gaussian law), or
+        the line-of-sight mixture with each node's Gaussian replaced by that family with
+        one fitted local excess kurtosis ``kappa``
+        (:mod:`mavispm.dynamics.line_of_sight_kurtosis`; kappa = 0: the line-of-sight law).
     line_of_sight_nodes : int
         Gauss-Legendre nodes of the line-of-sight mixture (accuracy knob).
     """
@@ -508,6 +518,16 @@ class DiscreteLikelihood:
         """Summed ln mixture density and ln surface density of the stars about the model
         centre and systemic motion of ``theta`` (:func:`mixture_star_sums`)."""
         x0 = self.lnX_grid[0]
+        if self.velocity_law == "line_of_sight_kurtosis":
+            kappa = float(self._value(theta, "kappa", 0.0))
+            if not self._moving:
+                return kurtosis_mixture_star_sums(
+                    self.lnR - ln_a, x0, self.step, mix_w, s2_r, s2_t, ln_sig,
+                    self._v2, self._e2, kappa,
+                )  # fmt: skip
+            return kurtosis_mixture_star_sums_about(
+                *self._about_args(theta, ln_a), x0, self.step, mix_w, s2_r, s2_t, ln_sig, kappa
+            )
         if not self._moving:
             return mixture_star_sums(
                 self.lnR - ln_a, x0, self.step, mix_w, s2_r, s2_t, ln_sig, self._v2, self._e2
@@ -595,7 +615,7 @@ class DiscreteLikelihood:
         if offset >= 0.5 * self.stars.field_radius:
             return -np.inf
         ln_a = np.log(10.0) * log_a
-        if self.velocity_law == "line_of_sight":
+        if self.velocity_law in ("line_of_sight", "line_of_sight_kurtosis"):
             mix_w, s2_r, s2_t, ln_sig, ln_proj = self.line_of_sight_on_grid(theta)
             lnl, ln_sigma_stars = self._mixture_sums(theta, ln_a, mix_w, s2_r, s2_t, ln_sig)
         else:

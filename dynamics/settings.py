@@ -137,7 +137,10 @@ class DynamicsSettings:
     Gaussian with the projected dispersions; "free_kurtosis": the projected dispersions
     with a fitted excess kurtosis, uniform on ``kappa_range``, one value
     (``kappa_profile = "constant"``) or inner and outer values linear in ln R
-    (``"radial"``); :mod:`~mavispm.dynamics.shape_law`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    (``"radial"``); :mod:`~mavispm.dynamics.shape_law`; "line_of_sight_kurtosis": the
+    line-of-sight mixture with each node's Gaussian replaced by that family, one fitted
+    local ``kappa`` on ``kappa_range``, ``kappa_profile = "constant"`` only;
+    :mod:`~mavispm.dynamics.line_of_sight_kurtosis`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("nested", the
     default: the posterior from the nested-sampling run, no emcee; or "emcee"). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
@@ -231,6 +234,11 @@ class DynamicsSettings:
         if self.kappa_profile not in KAPPA_PROFILES:
             raise ValueError(
                 f"kappa_profile must be one of {KAPPA_PROFILES}, got {self.kappa_profile!r}"
+            )
+        if self.velocity_law == "line_of_sight_kurtosis" and self.kappa_profile != "constant":
+            raise ValueError(
+                "velocity_law 'line_of_sight_kurtosis' fits one kappa: kappa_profile must be "
+                f"'constant', got {self.kappa_profile!r}"
             )
         lo, hi = self.kappa_range
         if not (KAPPA_LIMITS[0] < lo < hi < KAPPA_LIMITS[1]):

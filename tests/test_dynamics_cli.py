@@ -380,3 +380,21 @@ def test_free_kurtosis_law_puts_kappa_in_the_products(pm_file, tmp_path):
         np.percentile(np.maximum(stars.R, 0.01), [10, 90]),
         rtol=1e-12,
     )
+
+
+def test_line_of_sight_kurtosis_law_puts_kappa_in_the_products(pm_file, tmp_path):
+    """velocity_law = "line_of_sight_kurtosis": one kappa in the summary and posterior
+    tables of every model, inside kappa_range; the attrs name the law."""
+    cfg = {**TINY, "models": ["none", "imbh"], "max_steps": 30}
+    cfg.update(velocity_law="line_of_sight_kurtosis", kappa_range=[-1.0, 2.0])
+    out = run_stage(pm_file, cfg, tmp_path / "k.h5", seed=3)
+    prod = read_product(out, "dynamics")
+    a, summ = prod.attrs, prod.tables["summary"]
+    assert a["velocity_law"] == "line_of_sight_kurtosis"
+    for model in ("none", "imbh"):
+        rows = summ[summ["model"] == model]
+        names = list(rows["parameter"])
+        assert "kappa" in names and "kappa_inner" not in names
+        k = rows[names.index("kappa")]
+        assert -1.0 <= k["lo68"] <= k["median"] <= k["hi68"] <= 2.0
+        assert "kappa" in prod.tables[f"posterior_{model}"].colnames
