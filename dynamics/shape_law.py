@@ -47,7 +47,7 @@ import numba
 import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
-from mavispm.dynamics.star_sums import _star_about, cubic_point_weights, fold_log
+from mavispm.dynamics.star_sums import cubic_point_weights, fold_log, stars_about
 
 __all__ = [
     "KAPPA_LIMITS",
@@ -215,13 +215,5 @@ def shape_star_sums_about(
     Arguments as :func:`mavispm.dynamics.star_sums.star_sums_about` plus ``kappa_par``
     (:func:`shape_star_sums`); ``kappa`` follows each star's radius about the fitted centre.
     """
-    n = x.size
-    u = np.empty(n)
-    v2 = np.empty((2, n))
-    e2 = np.empty((2, n))
-    for i in range(n):
-        ln_r, v2[0, i], v2[1, i], e2[0, i], e2[1, i] = _star_about(
-            x[i], y[i], pm_x[i], pm_y[i], cx[i], sy[i], er2[i], et2[i], x0, y0, mx0, my0, min_r
-        )
-        u[i] = ln_r - ln_a
-    return shape_star_sums(u, ln_a, grid_x0, step, ln_s2, ln_sig, v2, e2, kappa_par)
+    ln_r, v2, e2 = stars_about(x, y, pm_x, pm_y, cx, sy, er2, et2, x0, y0, mx0, my0, min_r)
+    return shape_star_sums(ln_r - ln_a, ln_a, grid_x0, step, ln_s2, ln_sig, v2, e2, kappa_par)
