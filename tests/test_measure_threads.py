@@ -47,6 +47,7 @@ def _fit(threads, image, sat, x0, y0):
     options = FitOptions(
         iterations=15, relative_tolerance=0.2, chunk=8, flux_passes=3,
         flux_refresh=True, check_cut_steps=True, crowded_window=4, threads=threads,
+        bisect_reversals=True,
     )  # fmt: skip
     psf = true_epsf(PSF, SHAPE)
     return fit_stars(

@@ -75,6 +75,10 @@ FLAG_CROWDED = 8
 FLAG_NO_MATCH = 16
 FLAG_FAILED = 32
 
+#: Cosine between a star's position step and its last below which the step reverses it
+#: (``FitOptions.bisect_reversals``).
+REVERSAL_COSINE = -0.8
+
 
 @dataclass(frozen=True)
 class FitOptions:
@@ -234,6 +238,20 @@ class FitOptions:
         the flux and sky rows alone on stamps kept from the first evaluation (the
         default; the same numbers to round-off, ~9 s less fit at 1e5 stars,
         docs/measure.md, "Scale", fifteenth pass).
+    bisect_reversals : bool
+        A position step that turns back on the star's last one (cosine below
+        :data:`REVERSAL_COSINE`) is held to half that last step's length, and the star's
+        trust radius (``max_step`` at first) keeps that limit, doubling again with each
+        step that keeps its direction and is cut by it. Such a step brackets the minimum
+        along the line between the last two positions: it counts as converged when it is
+        below the star's tolerance and (with ``check_cut_steps``) the Gauss-Newton step
+        at the solution across that line is too, instead of being judged as a cut step.
+        A step cut by a trust radius below ``max_step`` brackets it the same way. Without
+        it a star whose chi^2 is far from quadratic over ``max_step`` (a faint star
+        beside a mis-modelled neighbour) stepped back and forth between two positions in
+        every sweep: on the 1e5-star MAVIS frame 152 of the V < 25 stars left flagged 1
+        were in exact two-sweep cycles, and their neighbours moved with them
+        (docs/measure.md, "Scale", twenty-ninth pass).
     threads : int
         Threads the chunks of one colour (and of the uncertainties at the solution) are
         stepped on (:class:`~mavispm.measure.stars.chunk_pool.ChunkPool`); 0: every core
@@ -280,6 +298,7 @@ class FitOptions:
     halo_map_arc: float = 0.0
     halo_map_core: int = 0
     threads: int = 1
+    bisect_reversals: bool = False
 
 
 @dataclass
@@ -912,9 +931,20 @@ def _fit_stars(
             step = _limit_group_steps(step, single, a_d, together, opt.joint_trust)
         if not fixed:
             length = np.hypot(step[:, 0], step[:, 1])
-            shrink = np.minimum(1.0, opt.max_step / np.maximum(length, 1e-300))
+            limit = np.full(len(idx), opt.max_step)
+            if opt.bisect_reversals:
+                limit, reverse = _bisected_limit(step, last_step[idx], trust[idx], opt)
+            shrink = np.minimum(1.0, limit / np.maximum(length, 1e-300))
             step[:, :2] *= shrink[:, None]
             cut[idx] = shrink < 1.0
+            if opt.bisect_reversals:
+                # a step held to half the reversed last one brackets the minimum: it is
+                # judged by its length (and the solution's step across it), not as cut
+                bracketed[idx] = cut[idx] & (reverse | (limit < opt.max_step))
+                cut[idx] &= ~bracketed[idx]
+                # the trust radius regrows while the star keeps its direction
+                regrown = np.minimum(opt.max_step, np.where(shrink < 1.0, 2.0 * limit, limit))
+                trust[idx] = np.where(reverse, limit, regrown)
         elif opt.flux_passes > 1:
             # the flux step over the flux error at fixed positions (flux_passes)
             flux_moved[idx] = _step_over_error(a_d, step, 2)
@@ -939,6 +969,8 @@ def _fit_stars(
             # clamp, called converged; docs/measure.md, "Scale", thirteenth pass)
             cut[idx] |= pull < 1.0
         steps[idx] = np.hypot(dx, dy)
+        if not fixed:
+            last_step[idx, 0], last_step[idx, 1] = dx, dy
         return flux[idx, None] * (
             v.reshape(len(idx), -1)
             + dvx.reshape(len(idx), -1) * dx[:, None]
@@ -1117,6 +1149,9 @@ def _fit_stars(
     steps = np.zeros(n)
     thresh = np.full(n, opt.tolerance)
     cut = np.zeros(n, bool)  # the star's last position step was cut to max_step
+    last_step = np.zeros((n, 2))  # each star's last position step (bisect_reversals)
+    trust = np.full(n, float(opt.max_step))  # its trust radius [pixel]
+    bracketed = np.zeros(n, bool)  # its last step was held by a reversal or the trust
     fitted = np.zeros(n, bool)  # the star took at least one position step (not held)
     done = 0
     bar = tqdm(sweeps, desc="fit sweeps", disable=not opt.progress, leave=False)
@@ -1188,6 +1223,7 @@ def _fit_stars(
     fisher = np.zeros((n, 4, 4))
     weight = np.zeros((n, s * s))
     next_step = np.zeros(n)  # the position step each star would take at the solution
+    across = np.zeros(n)  # its part across the star's last step (bisect_reversals)
     # the position variance [px^2] per unit excess reduced chi^2 of a PSF-correlated
     # residual field on the stamp (:func:`_correlated_gain`), where a halo is
     gain = np.full((n, 2), np.nan)
@@ -1221,6 +1257,10 @@ def _fit_stars(
         if opt.check_cut_steps:
             step = _solve(_damped(a, opt.damping), b)
             next_step[idx] = np.hypot(step[:, 0], step[:, 1])
+            if opt.bisect_reversals:
+                # the part across the last step: a bracketed star has its minimum along it
+                unit = last_step[idx] / np.maximum(np.hypot(*last_step[idx].T), 1e-300)[:, None]
+                across[idx] = np.abs(step[:, 0] * unit[:, 1] - step[:, 1] * unit[:, 0])
         dof = np.maximum(valid[idx].sum(axis=1) - npar, 1)
         chi2[idx] = np.sum(w * resid**2, axis=1) / dof
         # odd parameters: the position (and the sky slopes); flux and sky are even
@@ -1258,6 +1298,9 @@ def _fit_stars(
             misfit = np.nan_to_num(crowding[all_idx], nan=1.0) if opt.chi2_tolerance else None
             final = _position_tolerance(plain, misfit, opt)
             flag[all_idx[cut[all_idx] & (next_step[all_idx] >= final)]] |= FLAG_NOT_CONVERGED
+            if opt.bisect_reversals:
+                off_line = bracketed[all_idx] & (across[all_idx] >= final)
+                flag[all_idx[off_line]] |= FLAG_NOT_CONVERGED
     flag[usable & (steps >= thresh)] |= FLAG_NOT_CONVERGED
     failed = ~usable | ~(flux > 0)
     if done:  # positions never fitted (held by min_snr in every position step)
@@ -1294,6 +1337,41 @@ def _fit_stars(
         if return_light
         else None,
     )
+
+
+def _bisected_limit(step, last, trust, opt):
+    """Each star's largest position step [pixel] with ``bisect_reversals``, and whether
+    its step reverses its last one.
+
+    A Gauss-Newton step that turns back on the star's last position step (cosine below
+    :data:`REVERSAL_COSINE`) says the minimum along that line lies between the last two
+    positions: the step is held to half the last step's length (bisection), and the
+    star's trust radius keeps that limit until a step that keeps its direction regrows
+    it. Without this a star whose chi^2 is far from quadratic over ``max_step`` (a faint
+    star, or its neighbour's misfit) steps back and forth between two positions for
+    ever (docs/measure.md, "Scale", twenty-ninth pass).
+
+    Parameters
+    ----------
+    step : ndarray, shape (N, P)
+        The Gauss-Newton steps, position first [pixel].
+    last : ndarray, shape (N, 2)
+        The stars' last position steps [pixel].
+    trust : ndarray, shape (N,)
+        Their trust radii [pixel].
+    opt : FitOptions
+
+    Returns
+    -------
+    limit : ndarray, shape (N,)
+    reverse : ndarray of bool, shape (N,)
+    """
+    length = np.hypot(step[:, 0], step[:, 1])
+    last_length = np.hypot(last[:, 0], last[:, 1])
+    dot = step[:, 0] * last[:, 0] + step[:, 1] * last[:, 1]
+    reverse = dot < REVERSAL_COSINE * length * last_length
+    limit = np.where(reverse, np.minimum(trust, 0.5 * last_length), trust)
+    return np.minimum(limit, opt.max_step), reverse
 
 
 def _step_over_error(a_d: np.ndarray, step: np.ndarray, k: int) -> np.ndarray:

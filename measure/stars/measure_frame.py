@@ -285,6 +285,7 @@ def fit_options(settings: MeasureSettings) -> FitOptions:
         flux_refresh=settings.flux_refresh,
         flux_passes=settings.flux_passes,
         check_cut_steps=settings.check_cut_steps,
+        bisect_reversals=settings.bisect_reversals,
         crowded_window=int(settings.crowded_window),
         crowded_ratio=settings.crowded_ratio,
         max_shift=settings.max_shift,
