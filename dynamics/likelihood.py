@@ -9,11 +9,11 @@ tangential components ``v_R, v_T`` with errors ``e_R, e_T`` give
          + sum_i  ln [ Sigma(R_i) c(R_i) / N_field ]             (star counts, optional)
 
 with ``p`` the mixture over the star's depth on the line of sight of Gaussian 3-D
-velocities convolved with the errors (``velocity_law = "line_of_sight"``, the default;
+velocities convolved with the errors (``velocity_law = "line_of_sight"``;
 :mod:`mavispm.dynamics.line_of_sight`), or the Gaussian with the projected dispersions
 ``N(v_R | 0, sigma_R(R)^2 + e_R^2) N(v_T | 0, sigma_T(R)^2 + e_T^2)``
 (``velocity_law = "gaussian"``), or that Gaussian's variances with a fitted excess
-kurtosis ``kappa`` (``velocity_law = "free_kurtosis"``, :mod:`mavispm.dynamics.shape_law`;
+kurtosis ``kappa`` (``velocity_law = "free_kurtosis"``, the default, :mod:`mavispm.dynamics.shape_law`;
 parameter ``kappa``, or ``kappa_inner`` and ``kappa_outer`` linear in ``ln R`` between the
 10th and 90th percentiles of the stars' radii about the field centre), or the
 line-of-sight mixture with each depth node's Gaussian replaced by that two-Gaussian
@@ -152,12 +152,14 @@ class DiscreteLikelihood:
         Completeness of the sample against projected radius [arcsec] (linear
         interpolation, constant beyond the ends); used by the star-count term.
     velocity_law : {"line_of_sight", "gaussian", "free_kurtosis", "line_of_sight_kurtosis"}
-        Each star's proper-motion distribution: the mixture over its depth on the line
-        of sight of Gaussian 3-D velocities (:mod:`mavispm.dynamics.line_of_sight`), a
-        Gaussian with the projected dispersions (faster, calibrated only for data
-        drawn from that Gaussian), or the projected dispersions with a fitted excess
-        kurtosis (:mod:`mavispm.dynamics.shape_law`; parameters ``kappa`` or
-        ``kappa_inner`` and ``kappa_outer``; without them kappa = 0, the Gaussian law), or
+        Each star's proper-motion distribution (the default is the stage's,
+        :class:`~mavispm.dynamics.settings.DynamicsSettings`): the projected dispersions
+        with a fitted excess kurtosis (:mod:`mavispm.dynamics.shape_law`; parameters
+        ``kappa`` or ``kappa_inner`` and ``kappa_outer``; without them kappa = 0, the
+        Gaussian law), the mixture over its depth on the line of sight of Gaussian 3-D
+        velocities (:mod:`mavispm.dynamics.line_of_sight`), a Gaussian with the projected
+        dispersions (calibrated on equilibrium velocities, too narrow on Gaussian 3-D
+        ones: docs/dynamics.md), or
         the line-of-sight mixture with each node's Gaussian replaced by that family with
         one fitted local excess kurtosis ``kappa``
         (:mod:`mavispm.dynamics.line_of_sight_kurtosis`; kappa = 0: the line-of-sight law).
@@ -182,7 +184,7 @@ class DiscreteLikelihood:
         star_counts: bool = True,
         points_per_efold: int = 24,
         completeness=None,
-        velocity_law: str = "line_of_sight",
+        velocity_law: str = "free_kurtosis",
         line_of_sight_nodes: int = 16,
     ):
         self.stars = stars

@@ -132,12 +132,14 @@ class DynamicsSettings:
     ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
     ``projection_nodes``, ``radial_points_per_efold``, ``truncation``,
-    ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("line_of_sight": each star's
-    motion is the mixture over its depth of Gaussian 3-D velocities; "gaussian": a
-    Gaussian with the projected dispersions; "free_kurtosis": the projected dispersions
-    with a fitted excess kurtosis, uniform on ``kappa_range``, one value
-    (``kappa_profile = "constant"``) or inner and outer values linear in ln R
-    (``"radial"``); :mod:`~mavispm.dynamics.shape_law`; "line_of_sight_kurtosis": the
+    ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("free_kurtosis", the default
+    since 2026-12-04: the projected dispersions with a fitted excess kurtosis, uniform on
+    ``kappa_range``, one value (``kappa_profile = "constant"``) or inner and outer values
+    linear in ln R (``"radial"``), :mod:`~mavispm.dynamics.shape_law`; "gaussian": a
+    Gaussian with the projected dispersions; "line_of_sight": each star's motion is the
+    mixture over its depth of Gaussian 3-D velocities (the default before 2026-12-04: low
+    on equilibrium velocities, docs/dynamics.md, "Calibration on equilibrium (DF)
+    velocities"); "line_of_sight_kurtosis": the
     line-of-sight mixture with each node's Gaussian replaced by that family, one fitted
     local ``kappa`` on ``kappa_range``, ``kappa_profile = "constant"`` only;
     :mod:`~mavispm.dynamics.line_of_sight_kurtosis`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
@@ -163,7 +165,7 @@ class DynamicsSettings:
     dark_mass_max: float = unit_field(2.0e4, "solMass", "upper edge of the uniform M_dark prior")
     log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
     anisotropy: str = "constant"
-    velocity_law: str = "line_of_sight"
+    velocity_law: str = "free_kurtosis"
     kappa_range: tuple[float, float] = (-1.5, 2.5)
     kappa_profile: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)

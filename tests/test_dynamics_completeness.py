@@ -134,8 +134,14 @@ def _star_count_term(stars, log_a, completeness):
         else dict(zip(("completeness_radius", "completeness"), completeness))
     )
     s = DynamicsSettings(
-        cusp=False, centre_error=0, systemic_error=0, distance_error=0, models=("none",), **kw
-    )
+        cusp=False,
+        centre_error=0,
+        systemic_error=0,
+        distance_error=0,
+        models=("none",),
+        velocity_law="gaussian",
+        **kw,
+    )  # the star-count term does not depend on the velocity law
     space = parameter_space(s, 4.6, "none")
     full = make_likelihood(stars, space, s, 4.6, star_counts=True)
     kin = make_likelihood(stars, space, s, 4.6, star_counts=False)

@@ -56,6 +56,7 @@ def test_reweighted_fit_agrees_with_the_direct_line_of_sight_fit():
         cusp=False, centre_error=0.0, systemic_error=0.0, distance_error=0.0,
         posterior="nested", nlive=60, dlogz=0.5, models=("imbh",), progress=False,
         log_scale_radius_prior=(2.08, 0.05), kinematic_evidence=False,
+        velocity_law="line_of_sight",
     )  # fmt: skip
     direct = fit_model(stars, s, SBC_DISTANCE, "imbh", 5)
     rew = fit_model(stars, dataclasses.replace(s, reweight=True), SBC_DISTANCE, "imbh", 5)
