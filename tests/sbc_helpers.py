@@ -21,12 +21,21 @@ Two velocity laws:
     each star gets a line-of-sight depth from the tracer and a Gaussian 3-D velocity
     with the dispersions at its 3-D radius (a real cluster's scale mixture along the
     line of sight): the SBC then also tests the likelihood's Gaussian approximation.
+``"df"``
+    each star gets a line-of-sight depth from the tracer and a 3-D velocity drawn from
+    the equilibrium distribution function of the tracer in the model's total potential
+    (cluster mass with the tracer's profile, IMBH, dark component): the constant-beta
+    Cuddeford DF ``f = L^(-2 beta) g(E)`` (Eddington's for beta = 0), ``g`` from the Abel
+    inversion of ``r^(2 beta) nu(Psi)`` (``cuddeford_g``), truncated at the escape speed
+    and platykurtic near a point mass as a real cluster's are. Its second moments are the
+    Jeans dispersions of ``sigma_r2_3d`` (the Jeans equation is the DF's moment).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.integrate import cumulative_trapezoid, trapezoid
+from scipy.special import gamma as gamma_fn
 
 G = 4.300917270e-3  # pc (km/s)^2 / Msun
 KMS = 4.740470463533348  # km/s per mas/yr per kpc
@@ -55,14 +64,26 @@ SBC_FULL_SETTINGS = dict(
 SBC_DISTANCE = 4.6
 SBC_FIELD_RADIUS = 15.0
 
+#: Priors where the constant-beta DF exists around a point mass, for the draws *and* the
+#: fits of the ``"df"`` SBC: gamma >= beta + 1/2 and gamma >= 2 beta at the centre (An &
+#: Evans 2006), and a cusp radius of 10^1.5-10^2.5" (0.26-2.6 Plummer radii): with a
+#: smaller one the tracer is flat between the cusp and the Plummer radius, inside the
+#: IMBH's influence radius, and the DF is negative there (53 % of 240 draws of the full
+#: U(-1, 2.5) range, 0 of 56 with r_c >= 10^1.5").
+SBC_DF_PRIORS = dict(
+    gamma_range=(0.75, 2.0), beta_range=(-0.5, 0.25), log_cusp_radius_range=(1.5, 2.5)
+)
 
-def sbc_space(model: str, velocity_law: str = "line_of_sight"):
-    """The fit's parameter space (and settings) for ``model`` (``imbh`` or ``imbh_dark``)
-    with the likelihood's ``velocity_law``."""
+
+def sbc_space(model: str, velocity_law: str = "line_of_sight", **overrides):
+    """The fit's parameter space (and settings) for ``model`` (``imbh``, ``imbh_dark`` or
+    ``none``) with the likelihood's ``velocity_law``; ``overrides`` replace settings
+    (e.g. ``SBC_DF_PRIORS``, ``kappa_profile``)."""
     from mavispm.dynamics.fit import parameter_space
     from mavispm.dynamics.settings import DynamicsSettings
 
-    s = DynamicsSettings(**SBC_FULL_SETTINGS, models=(model,), velocity_law=velocity_law)
+    kw = {**SBC_FULL_SETTINGS, **overrides}
+    s = DynamicsSettings(**kw, models=(model,), velocity_law=velocity_law)
     return parameter_space(s, SBC_DISTANCE, model, positions=True), s
 
 
@@ -88,16 +109,179 @@ def model_tables(p: dict):
     cum = inner + cumulative_trapezoid(dm, LN_X, initial=0.0)
     total = cum[-1] + 4.0 * np.pi * x[-1] ** -2 / 2.0  # the r^-5 tail
     nu, frac = shape / total, cum / total
-    mass = 10.0 ** p["log_mass"] * frac + p.get("bh_mass", 0.0)
-    if p.get("dark_mass", 0.0) > 0:
-        y = x * a / 10.0 ** p["log_dark_radius"]
-        mass = mass + p["dark_mass"] * y**3 / (1.0 + y * y) ** 1.5
+    mass = total_mass(p, x, frac)
     beta = p["beta"]
     f = x ** (2 * beta) * nu * mass / x**2 * x  # integrand in ln x
     outer = -cumulative_trapezoid(f[::-1], LN_X[::-1], initial=0.0)[::-1]  # int_x^x_max
     tail = mass[-1] * x[-1] ** (2 * beta - 6) / (6 - 2 * beta) / total
     nu_s2 = x ** (-2 * beta) * (outer + tail)
     return x, nu, frac, nu_s2
+
+
+def total_mass(p: dict, x: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """The model's gravitating mass [solMass] inside r / a = ``x`` (tracer's enclosed
+    fraction ``frac``): the cluster's, the point mass and the dark Plummer component."""
+    mass = 10.0 ** p["log_mass"] * frac + p.get("bh_mass", 0.0)
+    if p.get("dark_mass", 0.0) > 0:
+        y = x * 10.0 ** p["log_scale_radius"] / 10.0 ** p["log_dark_radius"]
+        mass = mass + p["dark_mass"] * y**3 / (1.0 + y * y) ** 1.5
+    return mass
+
+
+def tracer_log_slope(x, gamma, xc):
+    """d ln(tracer_shape) / d ln x, analytic (no cancellation in the core)."""
+    return -5.0 * x * x / (1.0 + x * x) - gamma * xc * xc / (x * x + xc * xc)
+
+
+def relative_potential(x: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    """Psi(x) = int_x^inf M(x') / x'^2 dx' [G solMass / a] (0 at infinity; M constant
+    beyond the grid), a trapezoid sum in ln x."""
+    lx = np.log(x)
+    inner = -cumulative_trapezoid((mass / x)[::-1], lx[::-1], initial=0.0)[::-1]
+    return inner + mass[-1] / x[-1]
+
+
+def cuddeford_g(x, rho_b, slope_b, mass, beta: float, n_energy: int = 2000):
+    """g(E) of the constant-beta DF ``f = L^(-2 beta) g(E)`` of the density ``nu`` with
+    ``rho_b = x^(2 beta) nu`` (and its analytic log slope ``slope_b``) in the potential of
+    ``mass`` (G = 1, lengths in units of the grid ``x``).
+
+    ``r^(2 beta) nu = C_beta int_0^Psi (Psi - E)^(1/2 - beta) g(E) dE`` (Cuddeford 1991) is
+    inverted in its second form,
+    ``g(E) = int_0^E (d^2 rho_b / d Psi^2) (E - Psi)^(beta - 1/2) dPsi / (C_beta
+    Gamma(3/2 - beta) Gamma(1/2 + beta))`` (``rho_b`` and its slope vanish at Psi = 0):
+    ``d rho_b / d Psi = -rho_b slope_b x / M`` on the grid, its derivative by central
+    differences in ln x, and the Abel integral by product integration (midpoint value of
+    the second derivative on each segment, the kernel integrated exactly), with the
+    part below the grid's last Psi from ``rho_b`` linear in Psi there (``rho_b'(Psi_min)
+    (E - Psi_min)^(k - 1) + c (E^(k - 1) - (E - Psi_min)^(k - 1))`` with ``c`` that slope;
+    negligible for a cluster, whose ``rho_b`` falls as ``Psi^5`` there).
+
+    Returns
+    -------
+    psi : ndarray
+        Psi on the grid ``x`` (descending).
+    energy, g : ndarray
+        Energies (Psi at ``n_energy`` grid radii, ascending) and g there (may be negative
+        where no DF of this family exists).
+    """
+    k = beta + 0.5
+    psi = relative_potential(x, mass)
+    lx = np.log(x)
+    d1 = -rho_b * slope_b * x / mass  # d rho_b / d Psi
+    d2 = np.gradient(d1, lx) / (-mass / x)  # d^2 rho_b / d Psi^2
+    ps, d2s = psi[::-1], d2[::-1]  # ascending Psi
+    slope0 = rho_b[-1] / ps[0]  # rho_b linear in Psi below the grid
+    lo, hi, mid = ps[:-1], ps[1:], 0.5 * (d2s[:-1] + d2s[1:])
+    pick = np.unique(np.linspace(0, x.size - 1, n_energy).astype(int))[::-1]
+    energy = psi[pick]
+    c_beta = 2.0 ** (1.5 - beta) * np.pi**1.5 * gamma_fn(1.0 - beta) / gamma_fn(1.5 - beta)
+    norm = c_beta * gamma_fn(1.5 - beta) * gamma_fn(0.5 + beta)
+    g = np.empty(energy.size)
+    for i0 in range(0, energy.size, 64):
+        e = energy[i0 : i0 + 64, None]
+        w = (np.clip(e - lo, 0, None) ** k - np.clip(e - hi, 0, None) ** k) / k
+        de = np.maximum(e[:, 0] - ps[0], 1e-300)
+        g[i0 : i0 + 64] = (
+            w @ mid
+            + np.where(e[:, 0] > ps[0], (d1[-1] - slope0) * de ** (k - 1.0), 0.0)
+            + slope0 * e[:, 0] ** (k - 1.0)
+        )
+    return psi, energy, g / norm
+
+
+def df_tables(p: dict, n_energy: int = 2000):
+    """The tracer's constant-beta DF in the model's total potential, for parameters ``p``.
+
+    Returns
+    -------
+    dict
+        ``x`` (grid r / a, from 1e-6), ``psi`` [G solMass / a_pc], ``energy``, ``g`` (the
+        inversion, normalised to the tracer's unit number), ``nu``, ``beta``,
+        ``min_g`` (most negative g over max g; < 0: no DF of this family for ``p``).
+    """
+    x, nu, frac, _ = model_tables(p)
+    keep = x >= 1e-6
+    x, nu, frac = x[keep], nu[keep], frac[keep]
+    a = 10.0 ** p["log_scale_radius"]
+    xc = 10.0 ** p["log_cusp_radius"] / a
+    beta = p["beta"]
+    mass = total_mass(p, x, frac)
+    slope = tracer_log_slope(x, p["gamma"], xc) + 2.0 * beta
+    psi, energy, g = cuddeford_g(x, x ** (2 * beta) * nu, slope, mass, beta, n_energy)
+    return dict(
+        x=x, psi=psi, energy=energy, g=g, nu=nu, beta=beta, min_g=min(g.min(), 0.0) / g.max()
+    )
+
+
+def df_velocities(energy, g, beta: float, psi_star, rng, n_u: int = 2048):
+    """3-D velocities from ``f = L^(-2 beta) g(E)`` at relative potentials ``psi_star``.
+
+    In speed ``v`` and the angle ``eta`` from the radial direction the density is
+    ``v^(2 - 2 beta) g(Psi - v^2/2) sin^(1 - 2 beta)(eta)``: separable. The speed is drawn
+    per star by inverting the cumulative sum on ``n_u`` nodes of ``u = v / v_esc``
+    (``v_esc = sqrt(2 Psi)``: no star exceeds it), ``eta`` from its tabulated CDF, the
+    tangential direction uniform. ``g <= 0`` counts as 0.
+
+    Returns
+    -------
+    v_r, v_1, v_2 : ndarray
+        Radial and the two tangential components, in units of sqrt(Psi's unit).
+    """
+    psi_star = np.asarray(psi_star, float)
+    ln_e = np.log(energy)
+    ln_g = np.log(np.maximum(g, 1e-300))
+    u = np.linspace(0.0, 1.0, n_u)
+    out = np.empty(psi_star.size)
+    for i0 in range(0, psi_star.size, 256):
+        ps = psi_star[i0 : i0 + 256, None]
+        e = ps * (1.0 - u * u)
+        weight = np.broadcast_to((u * u) ** (1.0 - beta), e.shape)
+        dens = np.zeros(e.shape)
+        ok = (e >= energy[0]) & (e <= energy[-1])
+        dens[ok] = np.exp(np.interp(np.log(e[ok]), ln_e, ln_g)) * weight[ok]
+        cdf = np.concatenate(
+            [np.zeros((dens.shape[0], 1)), np.cumsum(0.5 * (dens[:, 1:] + dens[:, :-1]), 1)], 1
+        )
+        cdf /= cdf[:, -1:]
+        q = rng.uniform(0.0, 1.0, dens.shape[0])
+        j = np.sum(cdf < q[:, None], axis=1).clip(1, n_u - 1)
+        rows = np.arange(dens.shape[0])
+        t = (q - cdf[rows, j - 1]) / np.maximum(cdf[rows, j] - cdf[rows, j - 1], 1e-300)
+        out[i0 : i0 + 256] = (u[j - 1] + t * (u[j] - u[j - 1])) * np.sqrt(2.0 * ps[:, 0])
+    eta_grid = np.linspace(0.0, np.pi, 4097)
+    w = np.sin(eta_grid) ** (1.0 - 2.0 * beta)
+    ceta = cumulative_trapezoid(w, eta_grid, initial=0.0)
+    eta = np.interp(rng.uniform(0.0, ceta[-1], psi_star.size), ceta, eta_grid)
+    phi = rng.uniform(0.0, 2.0 * np.pi, psi_star.size)
+    vt = out * np.sin(eta)
+    return out * np.cos(eta), vt * np.cos(phi), vt * np.sin(phi)
+
+
+def df_moments(energy, g, beta: float, psi_star, n_u: int = 20001):
+    """Density and radial / one-tangential velocity second moments of the DF at
+    potentials ``psi_star`` by quadrature over the speed (no sampling).
+
+    ``nu_b = r^(2 beta) nu = 2 pi int sin^(1-2 beta) deta int v^(2-2 beta) g dv`` and
+    ``<v_r^2> = <v^2> / (3 - 2 beta)``, ``<v_t1^2> = (1 - beta) <v^2> / (3 - 2 beta)``.
+    """
+    ln_e, ln_g = np.log(energy), np.log(np.maximum(g, 1e-300))
+    u = np.linspace(0.0, 1.0, n_u)
+    res = []
+    for ps in np.atleast_1d(psi_star):
+        e = ps * (1.0 - u * u)
+        gv = np.where(
+            (e >= energy[0]) & (e <= energy[-1]),
+            np.exp(np.interp(np.log(np.maximum(e, 1e-300)), ln_e, ln_g)),
+            0.0,
+        )
+        v = u * np.sqrt(2.0 * ps)
+        m0 = trapezoid(v ** (2 - 2 * beta) * gv, v)
+        m2 = trapezoid(v ** (4 - 2 * beta) * gv, v)
+        ang = np.sqrt(np.pi) * gamma_fn(1.0 - beta) / gamma_fn(1.5 - beta)
+        v2 = m2 / m0
+        res.append((2 * np.pi * ang * m0, v2 / (3 - 2 * beta), (1 - beta) * v2 / (3 - 2 * beta)))
+    return np.array(res).T
 
 
 def _dispersion_unit(p: dict) -> float:
@@ -135,9 +319,19 @@ def sigma_r2_3d(p: dict, x3: np.ndarray):
     return _dispersion_unit(p) * np.exp(ln_s2)
 
 
-def draw_sample(p: dict, n_stars: int, rng, velocities: str = "projected"):
-    """Stars inside the field (radius ``SBC_FIELD_RADIUS`` about the origin, the cluster
-    centre at ``(x0, y0)``) with noisy proper motions; a ``StarSample``."""
+def draw_sample(
+    p: dict,
+    n_stars: int,
+    rng,
+    velocities: str = "projected",
+    field_radius: float = SBC_FIELD_RADIUS,
+    df: dict | None = None,
+):
+    """Stars inside the field (radius ``field_radius`` [arcsec] about the origin, the
+    cluster centre at ``(x0, y0)``) with noisy proper motions; a ``StarSample``.
+    ``velocities``: "projected", "3d" or "df" (``df``: ``df_tables(p)`` if computed)."""
+    if velocities not in ("projected", "3d", "df"):
+        raise ValueError(f"velocities must be 'projected', '3d' or 'df', got {velocities!r}")
     from mavispm.dynamics.likelihood import StarSample
 
     x, _, frac, _ = model_tables(p)
@@ -151,7 +345,7 @@ def draw_sample(p: dict, n_stars: int, rng, velocities: str = "projected"):
         sth = np.sqrt(1 - cth**2)
         px = r * sth * np.cos(phi) + p["x0"]
         py = r * sth * np.sin(phi) + p["y0"]
-        keep = np.hypot(px, py) < SBC_FIELD_RADIUS
+        keep = np.hypot(px, py) < field_radius
         xs.append(px[keep])
         ys.append(py[keep])
         zs.append((r * cth)[keep])
@@ -166,9 +360,15 @@ def draw_sample(p: dict, n_stars: int, rng, velocities: str = "projected"):
         v_T = np.sqrt(s2t) * rng.standard_normal(n_stars)
     else:
         r3 = np.sqrt(Rc**2 + pz**2)
-        sr = np.sqrt(sigma_r2_3d(p, r3 / a))
-        st = sr * np.sqrt(1.0 - p["beta"])
-        v_r, v_1, v_2 = (sg * rng.standard_normal(n_stars) for sg in (sr, st, st))
+        if velocities == "3d":
+            sr = np.sqrt(sigma_r2_3d(p, r3 / a))
+            st = sr * np.sqrt(1.0 - p["beta"])
+            v_r, v_1, v_2 = (sg * rng.standard_normal(n_stars) for sg in (sr, st, st))
+        else:
+            df = df_tables(p) if df is None else df
+            psi_star = np.exp(np.interp(np.log(r3 / a), np.log(df["x"]), np.log(df["psi"])))
+            v = df_velocities(df["energy"], df["g"], p["beta"], psi_star, rng)
+            v_r, v_1, v_2 = (np.sqrt(_dispersion_unit(p)) * vi for vi in v)
         # sky-radial = r-hat and theta-hat mixed by the angle between R and r
         sin_i, cos_i = Rc / r3, pz / r3
         v_R = v_r * sin_i + v_1 * cos_i
@@ -186,7 +386,7 @@ def draw_sample(p: dict, n_stars: int, rng, velocities: str = "projected"):
         -pm_x * sy + pm_y * cx,
         err,
         err.copy(),
-        SBC_FIELD_RADIUS,
+        field_radius,
         x=px,
         y=py,
     )
@@ -206,46 +406,135 @@ def draw_prior(space, rng) -> dict:
     return out
 
 
+#: g / max(g) below this counts as a negative DF (the inversion's noise is ~1e-9).
+DF_NEGATIVE_TOLERANCE = 1e-6
+
+
+def draw_truth(space, rng, velocities: str, max_redraws: int = 100, bh_mass=None):
+    """A prior draw for ``velocities`` (with M_bh set to ``bh_mass`` if given); for "df"
+    redrawn (at most ``max_redraws`` times) while the DF of the draw is negative
+    somewhere. Returns (truth, df tables or None, number of redraws): any redraw truncates
+    the prior the fit does not know of."""
+    for n in range(max_redraws + 1):
+        truth = draw_prior(space, rng)
+        if bh_mass is not None:
+            truth["bh_mass"] = float(bh_mass)
+        if velocities != "df":
+            return truth, None, 0
+        df = df_tables(truth)
+        if df["min_g"] >= -DF_NEGATIVE_TOLERANCE:
+            return truth, df, n
+    raise RuntimeError(f"no prior draw with a positive DF in {max_redraws + 1} tries")
+
+
 def sbc_full_trial(
-    seed, model="imbh", n_stars=800, n_ranks=99, velocities="3d", velocity_law="line_of_sight"
+    seed,
+    model="imbh",
+    n_stars=800,
+    n_ranks=99,
+    velocities="3d",
+    velocity_law="line_of_sight",
+    field_radius=SBC_FIELD_RADIUS,
+    priors=None,
+    **law_settings,
 ):
     """One SBC draw of the full model: the prior draw, a sample, a nested fit, the ranks.
 
     ``velocities`` is the law the stars are drawn from, ``velocity_law`` the one the fit
     assumes (the SBC tests the fit where they agree: "3d" with "line_of_sight",
-    "projected" with "gaussian").
+    "projected" with "gaussian"; "df" is the equilibrium a real cluster has).
+    ``priors`` (e.g. ``SBC_DF_PRIORS``) replace settings of the prior for the draw *and*
+    the fit; ``law_settings`` (e.g. ``kappa_profile``) only the fit's. The truth is drawn
+    from the space of the line-of-sight law (no kappa), so every law sees the same data.
 
     Returns
     -------
     dict
         ``seed, model, velocities, truth`` (every parameter), ``rank`` of the true M_bh
-        among ``n_ranks`` posterior draws, ``ranks`` of every parameter, M_bh quantiles.
+        among ``n_ranks`` posterior draws, ``ranks`` of every parameter, M_bh quantiles,
+        ``df_redraws`` (prior draws rejected for a negative DF), kappa medians if fitted.
     """
     from mavispm.dynamics.evidence import run_dynesty
     from mavispm.dynamics.fit import make_likelihood, nested_chain
 
+    priors = priors or {}
     rng = np.random.default_rng([seed, 17])
-    space, s = sbc_space(model, velocity_law)
-    truth = draw_prior(space, rng)
-    stars = draw_sample(truth, n_stars, rng, velocities)
+    truth_space, _ = sbc_space(model, "line_of_sight", **priors)
+    space, s = sbc_space(model, velocity_law, **priors, **law_settings)
+    truth, df, redraws = draw_truth(truth_space, rng, velocities)
+    stars = draw_sample(truth, n_stars, rng, velocities, field_radius, df)
     like = make_likelihood(stars, space, s, SBC_DISTANCE)
     chain = nested_chain(run_dynesty(like, space, seed, nlive=s.nlive, dlogz=s.dlogz), space)
     pick = np.linspace(0, chain.samples.shape[0] - 1, n_ranks).astype(int)
-    ranks = {n: int(np.sum(chain.samples[pick, space.index(n)] < truth[n])) for n in space.names}
+    ranks = {
+        n: int(np.sum(chain.samples[pick, space.index(n)] < truth[n]))
+        for n in space.names
+        if n in truth
+    }
     bh = chain.samples[:, space.index("bh_mass")]
     q = np.percentile(bh, [2.5, 16, 50, 84, 97.5])
+    kappas = {
+        f"{n}_median": float(np.median(chain.samples[:, space.index(n)]))
+        for n in space.names
+        if n.startswith("kappa")
+    }
     return {
         "seed": seed,
         "model": model,
         "velocities": velocities,
         "velocity_law": velocity_law,
         "n_stars": n_stars,
+        "field_radius": field_radius,
+        "df_redraws": redraws,
         "truth": {k: float(v) for k, v in truth.items()},
         "bh_true": float(truth["bh_mass"]),
         "rank": ranks["bh_mass"],
         "ranks": ranks,
         "n_ranks": n_ranks,
+        **kappas,
         **{f"q{p:g}": float(v) for p, v in zip((2.5, 16, 50, 84, 97.5), q)},
+    }
+
+
+def null_df_trial(
+    seed,
+    n_stars=800,
+    velocity_law="line_of_sight",
+    field_radius=SBC_FIELD_RADIUS,
+    priors=None,
+    **law_settings,
+):
+    """A null draw (M_bh = 0, every other parameter from the prior) with DF velocities,
+    fitted with the models ``none`` and ``imbh`` by the stage's own ``fit_models`` and
+    ``compare`` (nested evidences, no separate kinematic evidence): ln B and verdict."""
+    from mavispm.dynamics.fit import compare, fit_models
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    priors = priors or {}
+    rng = np.random.default_rng([seed, 17])
+    truth_space, _ = sbc_space("imbh", "line_of_sight", **priors)
+    truth, df, redraws = draw_truth(truth_space, rng, "df", bh_mass=0.0)
+    stars = draw_sample(truth, n_stars, rng, "df", field_radius, df)
+    kw = {**SBC_FULL_SETTINGS, **priors, **law_settings}
+    s = DynamicsSettings(
+        **kw,
+        models=("none", "imbh"),
+        velocity_law=velocity_law,
+        evidence=True,
+        kinematic_evidence=False,
+    )
+    fits = fit_models(stars, s, SBC_DISTANCE, seed)
+    c = compare(fits, s.bh_mass_max)
+    return {
+        "seed": seed,
+        "velocity_law": velocity_law,
+        "n_stars": n_stars,
+        "field_radius": field_radius,
+        "df_redraws": redraws,
+        "truth": {k: float(v) for k, v in truth.items()},
+        "ln_b": float(c.ln_bayes_factor),
+        "ln_b_err": float(c.ln_bayes_factor_err),
+        "verdict": c.verdict,
     }
 
 
