@@ -77,7 +77,7 @@ def test_sbc_of_the_full_model(model, velocities, law):
     fit's prior and the stars from an independently written forward model
     (``sbc_helpers``): the rank histogram of the true M_bh is uniform (chi^2 p > 0.01).
     ``velocities = "3d"`` draws 3-D Gaussian velocities at each star's depth (a real
-    cluster's line-of-sight mixture), fitted with the default line-of-sight law;
+    cluster's line-of-sight mixture), fitted with the line-of-sight law (its own);
     ``"projected"`` draws the Gaussian of the projected dispersions, fitted with the
     Gaussian law."""
     n = int(os.environ.get("DYN_SBC_N", "100"))
