@@ -13,7 +13,7 @@ Resumable: every finished fit is a JSON line; a rerun skips the (case, seed) pai
 Usage::
 
     python benchmarks/sbc_df.py run OUT.jsonl --laws line_of_sight,gaussian,free_kurtosis \\
-        --seeds 3000:3060 [--field 15] [--stars 800] [--workers 2] [--null]
+        --seeds 3000:3060 [--field 15] [--stars 800] [--workers 2] [--null | --model imbh_dark]
     python benchmarks/sbc_df.py table OUT.jsonl
 """
 
@@ -41,7 +41,7 @@ LAWS = {
 
 
 def _job(args):
-    law, seed, field, n_stars, null = args
+    law, seed, field, n_stars, null, model = args
     import sbc_helpers as h
 
     velocity_law, kw = LAWS[law]
@@ -51,6 +51,7 @@ def _job(args):
     else:
         out = h.sbc_full_trial(
             seed,
+            model=model,
             n_stars=n_stars,
             velocities="df",
             velocity_law=velocity_law,
@@ -63,19 +64,26 @@ def _job(args):
 
 
 def _key(r) -> tuple:
-    return (r["law"], r["seed"], float(r["field_radius"]), r["n_stars"], bool(r["null"]))
+    return (
+        r["law"],
+        r["seed"],
+        float(r["field_radius"]),
+        r["n_stars"],
+        bool(r["null"]),
+        r.get("model", "imbh"),
+    )
 
 
-def run(path: Path, laws, seeds, field: float, n_stars: int, workers: int, null: bool):
+def run(path: Path, laws, seeds, field: float, n_stars: int, workers: int, null: bool, model: str):
     done = set()
     if path.exists():
         done = {_key(json.loads(line)) for line in path.read_text().splitlines() if line}
     # seed by seed over every law, so that an interrupted run leaves matched draws
     jobs = [
-        (law, s, field, n_stars, null)
+        (law, s, field, n_stars, null, model)
         for s in seeds
         for law in laws
-        if (law, s, float(field), n_stars, null) not in done
+        if (law, s, float(field), n_stars, null, model) not in done
     ]
     print(f"{len(jobs)} fits to run ({len(done)} done)", flush=True)
     if workers <= 1:
@@ -106,7 +114,8 @@ def table(path: Path, seeds=None):
     groups = {}
     for r in rows:
         if seeds is None or r["seed"] in seeds:
-            groups.setdefault((r["null"], r["field_radius"], r["n_stars"], r["law"]), []).append(r)
+            law = r["law"] if r.get("model", "imbh") == "imbh" else f"{r['law']} ({r['model']})"
+            groups.setdefault((r["null"], r["field_radius"], r["n_stars"], law), []).append(r)
     # keep the seeds every law of a (null, field, stars) group has, so that rows compare
     common = {}
     for (null, field, n, _law), rs in groups.items():
@@ -166,6 +175,9 @@ def main(argv=None):
     r.add_argument("--stars", type=int, default=800)
     r.add_argument("--workers", type=int, default=2)
     r.add_argument("--null", action="store_true", help="M_bh = 0, models none and imbh")
+    r.add_argument(
+        "--model", default="imbh", choices=("imbh", "imbh_dark"), help="the fitted model (SBC)"
+    )
     t = sub.add_parser("table")
     t.add_argument("out", type=Path)
     t.add_argument("--seeds", default=None)
@@ -180,7 +192,7 @@ def main(argv=None):
         for law in laws:
             if law not in LAWS:
                 raise SystemExit(f"unknown law {law!r}; one of {sorted(LAWS)}")
-        run(a.out, laws, seeds(a.seeds), a.field, a.stars, a.workers, a.null)
+        run(a.out, laws, seeds(a.seeds), a.field, a.stars, a.workers, a.null, a.model)
     else:
         table(a.out, None if a.seeds is None else set(seeds(a.seeds)))
 
