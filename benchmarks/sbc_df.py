@@ -37,6 +37,8 @@ LAWS = {
     "free_kurtosis": ("free_kurtosis", {}),
     "free_kurtosis_radial": ("free_kurtosis", {"kappa_profile": "radial"}),
     "line_of_sight_kurtosis": ("line_of_sight_kurtosis", {}),
+    # nulls only (the SBC fit does not go through fit_models): the two laws weighed
+    "weighed": ("free_kurtosis", {"compare_velocity_laws": ("free_kurtosis", "line_of_sight")}),
 }
 
 
@@ -192,6 +194,8 @@ def main(argv=None):
         for law in laws:
             if law not in LAWS:
                 raise SystemExit(f"unknown law {law!r}; one of {sorted(LAWS)}")
+        if "weighed" in laws and not a.null:
+            raise SystemExit("law 'weighed' is for --null runs (the SBC fit bypasses fit_models)")
         run(a.out, laws, seeds(a.seeds), a.field, a.stars, a.workers, a.null, a.model)
     else:
         table(a.out, None if a.seeds is None else set(seeds(a.seeds)))

@@ -614,9 +614,10 @@ def run_stage(
         "models": ",".join(f.name for f in fits),
         "evidence_computed": bool(settings.evidence),
         "velocity_law": settings.velocity_law,
+        "compare_velocity_laws": ",".join(settings.compare_velocity_laws),
         **source,
     }
-    if settings.velocity_law == "free_kurtosis" and fits:
+    if "free_kurtosis" in (settings.velocity_law, *settings.compare_velocity_laws) and fits:
         # where kappa_inner / kappa_outer of the summary table hold (radial profile)
         lo, hi = np.exp(fits[0].likelihood.kappa_anchors)
         attrs["kappa_anchor_radii"] = np.array([lo, hi]) * u.arcsec
@@ -645,6 +646,10 @@ def run_stage(
         attrs[f"aic_{n}"] = float(fit.criteria["aic"])
         attrs[f"bic_{n}"] = float(fit.criteria["bic"])
         attrs[f"max_log_like_{n}"] = float(fit.criteria["max_log_like"])
+        if "velocity_law" in fit.criteria:  # compare_velocity_laws: the law kept, each ln Z
+            attrs[f"velocity_law_{n}"] = fit.criteria["velocity_law"]
+            for law in settings.compare_velocity_laws:
+                attrs[f"log_z_{law}_{n}"] = float(fit.criteria[f"log_z_{law}"])
         for part, seconds in fit.wall_s.items():
             attrs[f"time_{part}_{n}"] = float(seconds) * u.s
         if fit.evidence is not None:

@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.special import logsumexp
 
 from mavispm.dynamics.evidence import (
     EvidenceResult,
@@ -405,6 +406,9 @@ def _fit_part(args):
 def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     """Fit every model of ``settings.models`` (in ``settings.workers`` processes).
 
+    With ``settings.compare_velocity_laws`` each model is fitted with each of those laws
+    (:func:`weigh_velocity_laws`); otherwise with ``settings.velocity_law``.
+
     With more than one worker each model's fit and its kinematics-only evidence
     are separate jobs, handed out longest first, so that the pool's tail is short.
 
@@ -426,6 +430,14 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     """
     import dataclasses
     from pathlib import Path
+
+    if settings.compare_velocity_laws:
+        per_law = {}
+        for law in settings.compare_velocity_laws:
+            one = dataclasses.replace(settings, velocity_law=law, compare_velocity_laws=())
+            stem = None if backend_stem is None else f"{backend_stem}-{law}"
+            per_law[law] = fit_models(stars, one, distance, seed, stem)
+        return weigh_velocity_laws(per_law)
 
     def backend(m):
         return None if backend_stem is None else Path(f"{backend_stem}-{m}.h5")
@@ -462,6 +474,62 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
             )
         fits.append(fit)
     return fits
+
+
+def _mean_evidence(evids: list) -> EvidenceResult:
+    """The evidence of a model under equal prior odds of the laws: the mean of the laws'
+    evidences, ``ln Z = logsumexp(ln Z_L) - ln n`` (error: the laws' errors weighted by
+    their shares); the rest of the result is the most probable law's."""
+    log_z = np.array([e.log_z for e in evids])
+    err = np.array([e.log_z_err for e in evids])
+    w = np.exp(log_z - log_z.max())
+    w /= w.sum()
+    best = evids[int(np.argmax(log_z))]
+    mean = float(logsumexp(log_z) - np.log(len(evids)))
+    return replace(best, log_z=mean, log_z_err=float(np.sqrt(np.sum((w * err) ** 2))))
+
+
+def weigh_velocity_laws(per_law: dict) -> list:
+    """Combine fits of the same models with several velocity laws.
+
+    Each model's evidence becomes the laws' mean (equal prior odds per law; the Bayes
+    factors between models then compare evidences marginalised over the laws), and its
+    posterior, likelihood and summary those of the law with the highest evidence (the
+    mixture of the laws' posteriors, when one law dominates as it does by ln Z of several
+    units on clusters that break the other's assumptions). The laws' own ln Z are kept in
+    ``criteria`` (``log_z_<law>``, and ``velocity_law``, the law kept).
+
+    Parameters
+    ----------
+    per_law : dict of str to list of ModelFit
+        For each law, the fits of the same models in the same order (with evidences).
+
+    Returns
+    -------
+    list of ModelFit
+    """
+    laws = list(per_law)
+    out = []
+    for fits in zip(*(per_law[law] for law in laws)):
+        if any(f.evidence is None for f in fits):
+            raise ValueError("weighing velocity laws needs each fit's nested evidence")
+        k = int(np.argmax([f.evidence.log_z for f in fits]))
+        kin = [f.evidence_kinematic for f in fits]
+        criteria = {
+            **fits[k].criteria,
+            "velocity_law": laws[k],
+            **{f"log_z_{law}": float(f.evidence.log_z) for law, f in zip(laws, fits)},
+        }
+        out.append(
+            replace(
+                fits[k],
+                evidence=_mean_evidence([f.evidence for f in fits]),
+                evidence_kinematic=None if None in kin else _mean_evidence(kin),
+                criteria=criteria,
+                wall_s={key: sum(f.wall_s.get(key, 0.0) for f in fits) for key in fits[k].wall_s},
+            )
+        )
+    return out
 
 
 def nested_chain(evid: EvidenceResult, space: ParameterSpace) -> ChainResult:

@@ -142,7 +142,10 @@ class DynamicsSettings:
     velocities"); "line_of_sight_kurtosis": the
     line-of-sight mixture with each node's Gaussian replaced by that family, one fitted
     local ``kappa`` on ``kappa_range``, ``kappa_profile = "constant"`` only;
-    :mod:`~mavispm.dynamics.line_of_sight_kurtosis`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    :mod:`~mavispm.dynamics.line_of_sight_kurtosis`); ``compare_velocity_laws`` (empty, the
+    default; or two or more laws: each model is fitted with each, its evidence is the laws'
+    mean, equal prior odds per law, and its posterior the law with the highest evidence;
+    :func:`~mavispm.dynamics.fit.fit_models`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("nested", the
     default: the posterior from the nested-sampling run, no emcee; or "emcee"). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
@@ -166,6 +169,7 @@ class DynamicsSettings:
     log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
     anisotropy: str = "constant"
     velocity_law: str = "free_kurtosis"
+    compare_velocity_laws: tuple[str, ...] = ()
     kappa_range: tuple[float, float] = (-1.5, 2.5)
     kappa_profile: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)
@@ -233,6 +237,22 @@ class DynamicsSettings:
             raise ValueError(
                 f"velocity_law must be one of {VELOCITY_LAWS}, got {self.velocity_law!r}"
             )
+        for law in self.compare_velocity_laws:
+            if law not in VELOCITY_LAWS:
+                raise ValueError(
+                    f"compare_velocity_laws: each law must be one of {VELOCITY_LAWS}, got {law!r}"
+                )
+        if self.compare_velocity_laws:
+            if len(set(self.compare_velocity_laws)) < 2:
+                raise ValueError(
+                    "compare_velocity_laws needs at least two different laws (or none), got "
+                    f"{self.compare_velocity_laws}"
+                )
+            if not self.evidence:
+                raise ValueError(
+                    "compare_velocity_laws weighs the laws by their nested evidences: it "
+                    "needs evidence = true"
+                )
         if self.kappa_profile not in KAPPA_PROFILES:
             raise ValueError(
                 f"kappa_profile must be one of {KAPPA_PROFILES}, got {self.kappa_profile!r}"

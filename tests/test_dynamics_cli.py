@@ -398,3 +398,18 @@ def test_line_of_sight_kurtosis_law_puts_kappa_in_the_products(pm_file, tmp_path
         k = rows[names.index("kappa")]
         assert -1.0 <= k["lo68"] <= k["median"] <= k["hi68"] <= 2.0
         assert "kappa" in prod.tables[f"posterior_{model}"].colnames
+
+
+def test_weighed_velocity_laws_name_each_models_law_in_the_products(pm_file, tmp_path):
+    """compare_velocity_laws: the attrs name the weighed laws, the law kept per model (the
+    one with the higher ln Z) and each law's ln Z; the model's ln Z is the laws' mean."""
+    cfg = {**TINY, "models": ["none", "imbh"], "max_steps": 30}
+    cfg.update(evidence=True, nlive=30, dlogz=5.0, kinematic_evidence=False)
+    cfg.update(compare_velocity_laws=["gaussian", "free_kurtosis"])
+    out = run_stage(pm_file, cfg, tmp_path / "w.h5", seed=3)
+    a = read_product(out, "dynamics").attrs
+    assert a["compare_velocity_laws"] == "gaussian,free_kurtosis"
+    for model in ("none", "imbh"):
+        lz = [a[f"log_z_{law}_{model}"] for law in ("gaussian", "free_kurtosis")]
+        assert a[f"velocity_law_{model}"] == ("gaussian", "free_kurtosis")[int(np.argmax(lz))]
+        assert a[f"log_z_{model}"] == pytest.approx(np.logaddexp(*lz) - np.log(2))

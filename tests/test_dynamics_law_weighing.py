@@ -1,0 +1,138 @@
+"""Weighing the velocity laws by their evidences (``compare_velocity_laws``).
+
+The combination is checked against its definition (equal prior odds per law: the mean of
+the laws' evidences) on hand-made evidences; the settings refuse what cannot be weighed;
+the slow test takes an equilibrium (DF) null cluster, written independently of the
+package (``sbc_helpers``), on which the projected laws alone claim an IMBH.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mavispm.core.errors import ConfigError
+from mavispm.dynamics.cli import validate_settings
+from mavispm.dynamics.evidence import EvidenceResult
+from mavispm.dynamics.fit import ModelFit, weigh_velocity_laws
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+def _fit(name, log_z, err=0.2, kin=None, wall=1.0):
+    ev = EvidenceResult(log_z=log_z, log_z_err=err, n_calls=10, max_log_like=log_z + 5)
+    kev = None if kin is None else EvidenceResult(kin, err, 10, kin + 5)
+    return ModelFit(
+        name=name,
+        space=None,
+        likelihood=None,
+        chain=None,
+        summary={"log_z": log_z},
+        evidence=ev,
+        evidence_kinematic=kev,
+        criteria={"aic": -log_z, "bic": -log_z, "max_log_like": log_z + 5},
+        wall_s={"evidence": wall},
+    )
+
+
+def test_each_model_gets_the_laws_mean_evidence_and_its_best_laws_posterior():
+    per_law = {
+        "free_kurtosis": [_fit("none", -100.0, 0.3, kin=-50.0), _fit("imbh", -90.0, 0.4, -40.0)],
+        "line_of_sight": [_fit("none", -95.0, 0.2, kin=-52.0), _fit("imbh", -91.0, 0.1, -45.0)],
+    }
+    none, imbh = weigh_velocity_laws(per_law)
+    # equal prior odds per law: Z = (Z_1 + Z_2) / 2
+    assert none.evidence.log_z == pytest.approx(np.log((np.exp(-100.0) + np.exp(-95.0)) / 2))
+    assert imbh.evidence.log_z == pytest.approx(np.log((np.exp(-90.0) + np.exp(-91.0)) / 2))
+    assert imbh.evidence_kinematic.log_z == pytest.approx(
+        np.log((np.exp(-40.0) + np.exp(-45.0)) / 2)
+    )
+    # the posterior (here the summary) of the law with the higher evidence
+    assert none.summary["log_z"] == -95.0 and none.criteria["velocity_law"] == "line_of_sight"
+    assert imbh.summary["log_z"] == -90.0 and imbh.criteria["velocity_law"] == "free_kurtosis"
+    assert none.criteria["log_z_free_kurtosis"] == -100.0
+    assert none.criteria["log_z_line_of_sight"] == -95.0
+    # error: the laws' errors by their shares (one law dominating: its own)
+    w = 1.0 / (1.0 + np.exp(-5.0))
+    assert none.evidence.log_z_err == pytest.approx(np.hypot(w * 0.2, (1 - w) * 0.3))
+    assert none.wall_s["evidence"] == 2.0
+    # one law: the mean is that law's evidence
+    (only,) = weigh_velocity_laws({"gaussian": [_fit("none", -7.0)]})
+    assert only.evidence.log_z == -7.0
+
+
+def test_equal_evidences_cost_ln_2_and_cancel_in_the_bayes_factor():
+    per_law = {law: [_fit("none", -10.0), _fit("imbh", -8.0)] for law in ("a", "b")}
+    none, imbh = weigh_velocity_laws(per_law)
+    assert none.evidence.log_z == pytest.approx(-10.0)
+    assert imbh.evidence.log_z - none.evidence.log_z == pytest.approx(2.0)
+
+
+def test_weighing_refuses_fits_without_evidence():
+    a = _fit("none", -1.0)
+    b = ModelFit("none", None, None, None, {}, evidence=None)
+    with pytest.raises(ValueError, match="evidence"):
+        weigh_velocity_laws({"gaussian": [a], "free_kurtosis": [b]})
+
+
+@pytest.mark.parametrize(
+    "cfg, words",
+    [
+        ({"compare_velocity_laws": ["free_kurtosis", "lorentzian"]}, "lorentzian"),
+        ({"compare_velocity_laws": ["gaussian", "gaussian"]}, "two different"),
+        (
+            {
+                "compare_velocity_laws": ["gaussian", "line_of_sight"],
+                "evidence": False,
+                "posterior": "emcee",
+            },
+            "evidence = true",
+        ),
+    ],
+)
+def test_settings_refuse_law_lists_that_cannot_be_weighed(cfg, words):
+    with pytest.raises(ConfigError, match="compare_velocity_laws") as err:
+        validate_settings(cfg)
+    assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_settings_take_a_list_of_laws():
+    s = validate_settings({"compare_velocity_laws": ["free_kurtosis", "line_of_sight"]})
+    assert s.compare_velocity_laws == ("free_kurtosis", "line_of_sight")
+    assert validate_settings({}).compare_velocity_laws == ()
+
+
+@pytest.mark.slow
+def test_weighed_laws_do_not_claim_an_imbh_in_a_df_null_that_fools_the_projected_laws():
+    """DF null draw 4020 of ``benchmarks/sbc_df.py`` (4" field inside a shallow cusp,
+    gamma 0.77, no IMBH; 800 stars, DF velocities): with ``free_kurtosis`` alone ln B =
+    +5.1 (``imbh``: the depth mixture's heavy tails read as an IMBH, kappa +1.9); the
+    line-of-sight law's evidence is higher by ~17-22 for both models, so weighing the two
+    laws gives ``no_imbh`` (ln B ~ -10) and keeps the line-of-sight law."""
+    import sbc_helpers as h
+
+    from mavispm.dynamics.fit import compare, fit_models
+    from mavispm.dynamics.settings import DynamicsSettings
+
+    rng = np.random.default_rng([4020, 17])
+    truth_space, _ = h.sbc_space("imbh", "line_of_sight", **h.SBC_DF_PRIORS)
+    truth, df, _ = h.draw_truth(truth_space, rng, "df", bh_mass=0.0)
+    stars = h.draw_sample(truth, 800, rng, "df", 4.0, df)
+    kw = {**h.SBC_FULL_SETTINGS, **h.SBC_DF_PRIORS}
+    common = dict(models=("none", "imbh"), evidence=True, kinematic_evidence=False)
+    alone = DynamicsSettings(**kw, **common, velocity_law="free_kurtosis")
+    c_alone = compare(fit_models(stars, alone, h.SBC_DISTANCE, 4020), alone.bh_mass_max)
+    both = DynamicsSettings(
+        **kw, **common, compare_velocity_laws=("free_kurtosis", "line_of_sight")
+    )
+    fits = fit_models(stars, both, h.SBC_DISTANCE, 4020)
+    c_both = compare(fits, both.bh_mass_max)
+    print(
+        f"ln B free_kurtosis {c_alone.ln_bayes_factor:+.2f}, weighed {c_both.ln_bayes_factor:+.2f}"
+    )
+    assert c_alone.verdict == "imbh"
+    assert c_both.verdict == "no_imbh" and c_both.ln_bayes_factor < -3
+    assert all(f.criteria["velocity_law"] == "line_of_sight" for f in fits)
