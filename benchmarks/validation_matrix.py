@@ -2,7 +2,7 @@
 
     python benchmarks/validation_matrix.py run OUT.jsonl [--seeds 200:210] [--cases a,b]
         [--masses 0,1500] [--workers 2] [--posterior nested] [--nlive 100] [--dlogz 0.5]
-        [--velocity-law line_of_sight]
+        [--velocity-law line_of_sight] [--compare-laws free_kurtosis,line_of_sight]
     python benchmarks/validation_matrix.py table OUT.jsonl
 
 Each trial (``tests/dynamics_helpers.validation_trial``) is one four-model comparison
@@ -66,6 +66,7 @@ def run(args) -> None:
         "dlogz": args.dlogz,
         "kinematic_evidence": args.kinematic_evidence,
         "velocity_law": args.velocity_law,
+        "compare_velocity_laws": tuple(filter(None, args.compare_laws.split(","))),
     }
     jobs = [
         (seed, case, mass, knobs)
@@ -140,6 +141,11 @@ def main(argv=None) -> None:
         default=DynamicsSettings.velocity_law,
         choices=VELOCITY_LAWS,
         help="the dynamics stage's velocity_law (default: the stage's)",
+    )
+    r.add_argument(
+        "--compare-laws",
+        default="",
+        help="comma-separated laws weighed by evidence (compare_velocity_laws; default none)",
     )
     r.add_argument(
         "--kinematic-evidence",
