@@ -306,6 +306,10 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
     """
     from threadpoolctl import threadpool_limits
 
+    if settings.compare_velocity_laws:
+        raise ValueError(
+            "fit_model fits one velocity law; compare_velocity_laws is weighed by fit_models"
+        )
     with threadpool_limits(limits=1, user_api="blas"):
         return _fit_model(stars, settings, distance, model, seed, backend_path)
 

@@ -78,6 +78,16 @@ def test_weighing_refuses_fits_without_evidence():
         weigh_velocity_laws({"gaussian": [a], "free_kurtosis": [b]})
 
 
+def test_fitting_one_model_refuses_weighed_laws():
+    """fit_model fits one law: settings asking for several are refused, not silently
+    fitted with ``velocity_law`` alone."""
+    from mavispm.dynamics.fit import fit_model
+
+    s = validate_settings({"compare_velocity_laws": ["free_kurtosis", "line_of_sight"]})
+    with pytest.raises(ValueError, match="fit_models"):
+        fit_model(None, s, 4.6, "none", 0)
+
+
 @pytest.mark.parametrize(
     "cfg, words",
     [
