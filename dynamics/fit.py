@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import logsumexp
+from scipy.special import logsumexp, softmax
 
 from mavispm.dynamics.evidence import (
     EvidenceResult,
@@ -438,7 +438,7 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     if settings.compare_velocity_laws:
         per_law = {}
         for law in settings.compare_velocity_laws:
-            one = dataclasses.replace(settings, velocity_law=law, compare_velocity_laws=())
+            one = replace(settings, velocity_law=law, compare_velocity_laws=())
             stem = None if backend_stem is None else f"{backend_stem}-{law}"
             per_law[law] = fit_models(stars, one, distance, seed, stem)
         return weigh_velocity_laws(per_law)
@@ -486,11 +486,12 @@ def _mean_evidence(evids: list) -> EvidenceResult:
     their shares); the rest of the result is the most probable law's."""
     log_z = np.array([e.log_z for e in evids])
     err = np.array([e.log_z_err for e in evids])
-    w = np.exp(log_z - log_z.max())
-    w /= w.sum()
-    best = evids[int(np.argmax(log_z))]
-    mean = float(logsumexp(log_z) - np.log(len(evids)))
-    return replace(best, log_z=mean, log_z_err=float(np.sqrt(np.sum((w * err) ** 2))))
+    share = softmax(log_z)
+    return replace(
+        evids[int(np.argmax(log_z))],
+        log_z=float(logsumexp(log_z) - np.log(len(evids))),
+        log_z_err=float(np.sqrt(np.sum((share * err) ** 2))),
+    )
 
 
 def weigh_velocity_laws(per_law: dict) -> list:
