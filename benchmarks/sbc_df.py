@@ -111,6 +111,30 @@ def _rank_p(ranks, n_ranks: int = 99, bins: int = 10):
     return h, float(chi2.sf(np.sum((h - e) ** 2 / e), bins - 1))
 
 
+#: the laws whose SBC rows are weighed by evidence (``compare_velocity_laws``'s choice)
+WEIGHED = ("free_kurtosis", "line_of_sight")
+
+
+def _add_weighed(groups: dict) -> None:
+    """Add, per SBC (field, stars) group with rows of both :data:`WEIGHED` laws that carry
+    ``log_z``, a row per common seed from the law with the higher evidence: the posterior
+    the stage's ``compare_velocity_laws`` keeps (CPU: both fits)."""
+    for (null, field, n, law), rs in list(groups.items()):
+        other = groups.get((null, field, n, WEIGHED[1]))
+        if null or law != WEIGHED[0] or other is None:
+            continue
+        by_seed = {r["seed"]: r for r in other if "log_z" in r}
+        rows = []
+        for r in rs:
+            o = by_seed.get(r["seed"])
+            if o is not None and "log_z" in r:
+                pick = r if r["log_z"] >= o["log_z"] else o
+                keep = {k: v for k, v in pick.items() if not k.startswith("kappa")}
+                rows.append({**keep, "cpu_s": r["cpu_s"] + o["cpu_s"]})
+        if rows:
+            groups[(null, field, n, "weighed (" + ", ".join(WEIGHED) + ")")] = rows
+
+
 def table(path: Path, seeds=None):
     rows = [json.loads(line) for line in path.read_text().splitlines() if line]
     groups = {}
@@ -118,6 +142,7 @@ def table(path: Path, seeds=None):
         if seeds is None or r["seed"] in seeds:
             law = r["law"] if r.get("model", "imbh") == "imbh" else f"{r['law']} ({r['model']})"
             groups.setdefault((r["null"], r["field_radius"], r["n_stars"], law), []).append(r)
+    _add_weighed(groups)
     # keep the seeds every law of a (null, field, stars) group has, so that rows compare
     common = {}
     for (null, field, n, _law), rs in groups.items():

@@ -464,7 +464,8 @@ def sbc_full_trial(
     truth, df, redraws = draw_truth(truth_space, rng, velocities)
     stars = draw_sample(truth, n_stars, rng, velocities, field_radius, df)
     like = make_likelihood(stars, space, s, SBC_DISTANCE)
-    chain = nested_chain(run_dynesty(like, space, seed, nlive=s.nlive, dlogz=s.dlogz), space)
+    evid = run_dynesty(like, space, seed, nlive=s.nlive, dlogz=s.dlogz)
+    chain = nested_chain(evid, space)
     pick = np.linspace(0, chain.samples.shape[0] - 1, n_ranks).astype(int)
     ranks = {
         n: int(np.sum(chain.samples[pick, space.index(n)] < truth[n]))
@@ -488,6 +489,7 @@ def sbc_full_trial(
         "df_redraws": redraws,
         "truth": {k: float(v) for k, v in truth.items()},
         "bh_true": float(truth["bh_mass"]),
+        "log_z": float(evid.log_z),
         "rank": ranks["bh_mass"],
         "ranks": ranks,
         "n_ranks": n_ranks,
