@@ -51,6 +51,7 @@ def trial(seed: int, case: str, models: list[str], scale_prior_mean: float | Non
     s = dataclasses.replace(
         validation_settings(),
         kinematic_evidence=False,
+        velocity_law="free_kurtosis",  # one law per fit_model (the default weighs two)
         log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
     )
     rows = []

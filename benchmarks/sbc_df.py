@@ -38,7 +38,7 @@ LAWS = {
     "free_kurtosis_radial": ("free_kurtosis", {"kappa_profile": "radial"}),
     "line_of_sight_kurtosis": ("line_of_sight_kurtosis", {}),
     # nulls only (the SBC fit does not go through fit_models): the two laws weighed
-    "weighed": ("free_kurtosis", {"compare_velocity_laws": ("free_kurtosis", "line_of_sight")}),
+    "weighed": ("weighed", {"compare_velocity_laws": ("free_kurtosis", "line_of_sight")}),
 }
 
 

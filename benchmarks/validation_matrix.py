@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mavispm.dynamics.likelihood import VELOCITY_LAWS
-from mavispm.dynamics.settings import DynamicsSettings
+from mavispm.dynamics.settings import WEIGHED, WEIGHED_LAWS, DynamicsSettings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
@@ -66,7 +66,11 @@ def run(args) -> None:
         "dlogz": args.dlogz,
         "kinematic_evidence": args.kinematic_evidence,
         "velocity_law": args.velocity_law,
-        "compare_velocity_laws": tuple(filter(None, args.compare_laws.split(","))),
+        "compare_velocity_laws": (
+            tuple(filter(None, args.compare_laws.split(",")))
+            if args.velocity_law == WEIGHED
+            else ()
+        ),
     }
     jobs = [
         (seed, case, mass, knobs)
@@ -139,13 +143,14 @@ def main(argv=None) -> None:
     r.add_argument(
         "--velocity-law",
         default=DynamicsSettings.velocity_law,
-        choices=VELOCITY_LAWS,
+        choices=(WEIGHED, *VELOCITY_LAWS),
         help="the dynamics stage's velocity_law (default: the stage's)",
     )
     r.add_argument(
         "--compare-laws",
-        default="",
-        help="comma-separated laws weighed by evidence (compare_velocity_laws; default none)",
+        default=",".join(WEIGHED_LAWS),
+        help="comma-separated laws weighed by evidence with --velocity-law weighed "
+        "(compare_velocity_laws; default the stage's)",
     )
     r.add_argument(
         "--kinematic-evidence",

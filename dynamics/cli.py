@@ -29,6 +29,7 @@ from mavispm.dynamics.profiles import dispersion_profile, radial_tangential
 from mavispm.dynamics.settings import (
     DYNAMICS_KNOB_HOMES,
     POSTERIORS,
+    WEIGHED,
     DynamicsKnobs,
     DynamicsSettings,
 )
@@ -603,6 +604,7 @@ def run_stage(
             truths[key] = truth_profile(path, stars.field_radius, settings, seed)
     fits = fit_models(stars, settings, distance, seed, output.with_name(output.name + ".emcee"))
     comp = compare(fits, settings.bh_mass_max, settings.ambiguous_ln_b)
+    weighed = settings.laws if settings.velocity_law == WEIGHED else ()
     attrs = {
         **comp.as_attrs(),
         "completeness_source": requested.completeness_source,
@@ -614,10 +616,10 @@ def run_stage(
         "models": ",".join(f.name for f in fits),
         "evidence_computed": bool(settings.evidence),
         "velocity_law": settings.velocity_law,
-        "compare_velocity_laws": ",".join(settings.compare_velocity_laws),
+        "compare_velocity_laws": ",".join(weighed),
         **source,
     }
-    if "free_kurtosis" in (settings.velocity_law, *settings.compare_velocity_laws) and fits:
+    if "free_kurtosis" in settings.laws and fits:
         # where kappa_inner / kappa_outer of the summary table hold (radial profile)
         lo, hi = np.exp(fits[0].likelihood.kappa_anchors)
         attrs["kappa_anchor_radii"] = np.array([lo, hi]) * u.arcsec
@@ -724,6 +726,15 @@ def _handler(args) -> int:
                 "mavispm dynamics: --no-evidence: posterior from emcee (the nested posterior "
                 "needs the nested-sampling run); its chains may not converge on the full model",
                 file=sys.stderr,
+            )
+        if settings.velocity_law == WEIGHED:
+            print(
+                f"mavispm dynamics: --no-evidence: velocity law {settings.laws[0]} alone "
+                "(weighing the laws needs their evidences)",
+                file=sys.stderr,
+            )
+            settings = dataclasses.replace(
+                settings, velocity_law=settings.laws[0], compare_velocity_laws=()
             )
         settings = dataclasses.replace(settings, evidence=False, posterior="emcee")
     if args.fast_stars and settings.fast_stars is None:

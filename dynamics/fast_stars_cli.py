@@ -62,7 +62,10 @@ def stored_fits(product, settings, stars, distance):
     distance : float
         [kpc]
     """
+    import dataclasses
+
     from mavispm.dynamics.fit import make_likelihood, parameter_space
+    from mavispm.dynamics.likelihood import VELOCITY_LAWS
 
     fits = []
     summary = product.tables.get("summary")
@@ -71,8 +74,19 @@ def stored_fits(product, settings, stars, distance):
             continue
         name = key.removeprefix("posterior_")
         names = [c for c in table.colnames if c != "log_like"]
+        # the law this posterior was drawn with (the law kept when the laws were weighed)
+        law = product.attrs.get(f"velocity_law_{name}", product.attrs.get("velocity_law"))
+        one = settings
+        if law in VELOCITY_LAWS:
+            one = dataclasses.replace(settings, velocity_law=law, compare_velocity_laws=())
+        elif settings.velocity_law not in VELOCITY_LAWS:
+            raise InputError(
+                f"no velocity_law_{name} attribute: which law posterior_{name} was drawn "
+                "with is unknown",
+                path=product.path,
+            )
         space = parameter_space(
-            settings, distance, name, positions=stars.x is not None and "x0" in names
+            one, distance, name, positions=stars.x is not None and "x0" in names
         )
         if set(space.names) != set(names):
             raise InputError(
@@ -90,7 +104,7 @@ def stored_fits(product, settings, stars, distance):
             }
             if set(rows) == set(names):
                 best = np.array([rows[n] for n in names])
-        like = make_likelihood(stars, space, settings, distance)
+        like = make_likelihood(stars, space, one, distance)
         fits.append(_StoredFit(name, space, like, _Chain(samples, best)))
     if not fits:
         raise InputError("no posterior tables (posterior_<model>)", path=product.path)

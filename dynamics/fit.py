@@ -27,7 +27,7 @@ from mavispm.dynamics.evidence import (
 from mavispm.dynamics.likelihood import DiscreteLikelihood, StarSample
 from mavispm.dynamics.parameters import Parameter, ParameterSpace
 from mavispm.dynamics.sampling import ChainResult, run_emcee, summarise
-from mavispm.dynamics.settings import MODELS, DynamicsSettings
+from mavispm.dynamics.settings import MODELS, WEIGHED, DynamicsSettings
 
 __all__ = [
     "Comparison",
@@ -98,6 +98,11 @@ def parameter_space(
         Whether star positions are available (needed for the centre and systemic motion).
     """
     s = settings
+    if s.velocity_law == WEIGHED:
+        raise ValueError(
+            "parameter_space is one velocity law's: set velocity_law to one law (the default "
+            "'weighed' fits each law of compare_velocity_laws in turn, fit_models)"
+        )
     parts = MODELS[_model_name(model)]
     params = [
         Parameter("log_mass", lo=s.log_mass_range[0], hi=s.log_mass_range[1]),
@@ -306,9 +311,10 @@ def fit_model(stars, settings, distance, model, seed, backend_path=None) -> Mode
     """
     from threadpoolctl import threadpool_limits
 
-    if settings.compare_velocity_laws:
+    if settings.velocity_law == WEIGHED:
         raise ValueError(
-            "fit_model fits one velocity law; compare_velocity_laws is weighed by fit_models"
+            "fit_model fits one velocity law; velocity_law = 'weighed' (the default) is "
+            "fitted by fit_models"
         )
     with threadpool_limits(limits=1, user_api="blas"):
         return _fit_model(stars, settings, distance, model, seed, backend_path)
@@ -410,8 +416,9 @@ def _fit_part(args):
 def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     """Fit every model of ``settings.models`` (in ``settings.workers`` processes).
 
-    With ``settings.compare_velocity_laws`` each model is fitted with each of those laws
-    (:func:`weigh_velocity_laws`); otherwise with ``settings.velocity_law``.
+    With ``settings.velocity_law = "weighed"`` (the default) each model is fitted with each
+    law of ``settings.compare_velocity_laws`` (:func:`weigh_velocity_laws`); otherwise
+    with ``settings.velocity_law``.
 
     With more than one worker each model's fit and its kinematics-only evidence
     are separate jobs, handed out longest first, so that the pool's tail is short.
@@ -435,7 +442,7 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     import dataclasses
     from pathlib import Path
 
-    if settings.compare_velocity_laws:
+    if settings.velocity_law == WEIGHED:
         per_law = {}
         for law in settings.compare_velocity_laws:
             one = replace(settings, velocity_law=law, compare_velocity_laws=())

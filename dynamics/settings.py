@@ -21,6 +21,8 @@ __all__ = [
     "DynamicsSettings",
     "MODELS",
     "POSTERIORS",
+    "WEIGHED",
+    "WEIGHED_LAWS",
 ]
 
 #: Mass models of the comparison: which dark central components each one has.
@@ -31,6 +33,11 @@ MODELS = {
     "imbh_dark": {"bh": True, "dark": True},
 }
 ANISOTROPY = ("constant", "osipkov-merritt", "general")
+#: The ``velocity_law`` that weighs the laws of ``compare_velocity_laws`` by evidence.
+WEIGHED = "weighed"
+#: The laws weighed by default: one calibrated on equilibrium velocities, one on Gaussian
+#: 3-D velocities (docs/dynamics.md, "Weighing the velocity laws by evidence").
+WEIGHED_LAWS = ("free_kurtosis", "line_of_sight")
 #: Radial form of the fitted excess kurtosis (velocity_law = "free_kurtosis").
 KAPPA_PROFILES = ("constant", "radial")
 #: Where the posterior comes from: the nested-sampling run (default) or emcee.
@@ -132,20 +139,22 @@ class DynamicsSettings:
     ``kinematic_evidence`` (also the evidence
     without the star counts). Numerics: ``grid_size``, ``projection_panels``,
     ``projection_nodes``, ``radial_points_per_efold``, ``truncation``,
-    ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("free_kurtosis", the default
-    since 2026-12-04: the projected dispersions with a fitted excess kurtosis, uniform on
+    ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("weighed", the default since
+    2026-12-04: each model is fitted with each law of ``compare_velocity_laws``, default
+    "free_kurtosis" and "line_of_sight", its evidence is the laws' mean, equal prior odds
+    per law, and its posterior the law with the highest evidence; needs ``evidence``;
+    docs/dynamics.md, "Weighing the velocity laws by evidence"), or one law:
+    "free_kurtosis" (the projected dispersions with a fitted excess kurtosis, uniform on
     ``kappa_range``, one value (``kappa_profile = "constant"``) or inner and outer values
-    linear in ln R (``"radial"``), :mod:`~mavispm.dynamics.shape_law`; "gaussian": a
-    Gaussian with the projected dispersions; "line_of_sight": each star's motion is the
-    mixture over its depth of Gaussian 3-D velocities (the default before 2026-12-04: low
-    on equilibrium velocities, docs/dynamics.md, "Calibration on equilibrium (DF)
-    velocities"); "line_of_sight_kurtosis": the
-    line-of-sight mixture with each node's Gaussian replaced by that family, one fitted
-    local ``kappa`` on ``kappa_range``, ``kappa_profile = "constant"`` only;
-    :mod:`~mavispm.dynamics.line_of_sight_kurtosis`); ``compare_velocity_laws`` (empty, the
-    default; or two or more laws: each model is fitted with each, its evidence is the laws'
-    mean, equal prior odds per law, and its posterior the law with the highest evidence;
-    :func:`~mavispm.dynamics.fit.fit_models`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    linear in ln R (``"radial"``), :mod:`~mavispm.dynamics.shape_law`; the default for a
+    few hours of 2026-12-04); "gaussian": a Gaussian with the projected dispersions;
+    "line_of_sight": each star's motion is the mixture over its depth of Gaussian 3-D
+    velocities (the default before 2026-12-04: low on equilibrium velocities,
+    docs/dynamics.md, "Calibration on equilibrium (DF) velocities");
+    "line_of_sight_kurtosis": the line-of-sight mixture with each node's Gaussian replaced
+    by that family, one fitted local ``kappa`` on ``kappa_range``, ``kappa_profile =
+    "constant"`` only; :mod:`~mavispm.dynamics.line_of_sight_kurtosis`
+    (:func:`~mavispm.dynamics.fit.fit_models`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("nested", the
     default: the posterior from the nested-sampling run, no emcee; or "emcee"). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
@@ -168,8 +177,8 @@ class DynamicsSettings:
     dark_mass_max: float = unit_field(2.0e4, "solMass", "upper edge of the uniform M_dark prior")
     log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
     anisotropy: str = "constant"
-    velocity_law: str = "free_kurtosis"
-    compare_velocity_laws: tuple[str, ...] = ()
+    velocity_law: str = WEIGHED
+    compare_velocity_laws: tuple[str, ...] = WEIGHED_LAWS
     kappa_range: tuple[float, float] = (-1.5, 2.5)
     kappa_profile: str = "constant"
     beta_range: tuple[float, float] = (-0.5, 0.5)
@@ -233,31 +242,41 @@ class DynamicsSettings:
                 "posterior = 'nested' (the default) needs evidence = true; set "
                 "posterior = 'emcee' for a fit without nested sampling (no ln B)"
             )
-        if self.velocity_law not in VELOCITY_LAWS:
+        if self.velocity_law not in (WEIGHED, *VELOCITY_LAWS):
             raise ValueError(
-                f"velocity_law must be one of {VELOCITY_LAWS}, got {self.velocity_law!r}"
+                f"velocity_law must be one of {(WEIGHED, *VELOCITY_LAWS)}, "
+                f"got {self.velocity_law!r}"
             )
-        for law in self.compare_velocity_laws:
+        laws = tuple(self.compare_velocity_laws)
+        object.__setattr__(self, "compare_velocity_laws", laws)
+        for law in laws:
             if law not in VELOCITY_LAWS:
                 raise ValueError(
                     f"compare_velocity_laws: each law must be one of {VELOCITY_LAWS}, got {law!r}"
                 )
-        if self.compare_velocity_laws:
-            if len(set(self.compare_velocity_laws)) < 2:
+        if self.velocity_law == WEIGHED:
+            if len(set(laws)) < 2:
                 raise ValueError(
-                    "compare_velocity_laws needs at least two different laws (or none), got "
-                    f"{self.compare_velocity_laws}"
+                    "compare_velocity_laws needs at least two different laws for velocity_law "
+                    f"= 'weighed' (the default), got {laws}; set velocity_law to one law to "
+                    "fit it alone"
                 )
             if not self.evidence:
                 raise ValueError(
-                    "compare_velocity_laws weighs the laws by their nested evidences: it "
-                    "needs evidence = true"
+                    "velocity_law = 'weighed' (the default) weighs the laws by their nested "
+                    "evidences: it needs evidence = true; set velocity_law to one law (e.g. "
+                    "'free_kurtosis') for a fit without evidence"
                 )
+        elif laws not in ((), WEIGHED_LAWS):
+            raise ValueError(
+                f"compare_velocity_laws {laws} is weighed with velocity_law = 'weighed' (the "
+                f"default), got velocity_law = {self.velocity_law!r}: drop one of the two"
+            )
         if self.kappa_profile not in KAPPA_PROFILES:
             raise ValueError(
                 f"kappa_profile must be one of {KAPPA_PROFILES}, got {self.kappa_profile!r}"
             )
-        if self.velocity_law == "line_of_sight_kurtosis" and self.kappa_profile != "constant":
+        if "line_of_sight_kurtosis" in self.laws and self.kappa_profile != "constant":
             raise ValueError(
                 "velocity_law 'line_of_sight_kurtosis' fits one kappa: kappa_profile must be "
                 f"'constant', got {self.kappa_profile!r}"
@@ -356,6 +375,12 @@ class DynamicsSettings:
             raise ValueError("pm_error_scale must be > 0 and pm_error_floor >= 0")
         if self.field_radius is not None and self.field_radius <= 0:
             raise ValueError("field_radius must be > 0")
+
+    @property
+    def laws(self) -> tuple[str, ...]:
+        """The velocity laws fitted: ``compare_velocity_laws`` when ``velocity_law`` is
+        "weighed", else ``velocity_law`` alone."""
+        return self.compare_velocity_laws if self.velocity_law == WEIGHED else (self.velocity_law,)
 
     def distance_sd(self, distance: float) -> float:
         """Gaussian prior width of the distance [kpc] (0: fixed)."""

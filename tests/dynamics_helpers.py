@@ -160,7 +160,7 @@ def recovery_spaces(bh_mass_max=1.0e4):
 
     # the mocks are cored Plummer spheres: the (free) cusp is switched off to keep
     # these optimiser tests short; the cusp is exercised on the generator catalogues
-    s = DynamicsSettings(bh_mass_max=bh_mass_max, cusp=False)
+    s = DynamicsSettings(bh_mass_max=bh_mass_max, cusp=False, velocity_law="free_kurtosis")
     return (
         s,
         parameter_space(s, RECOVERY_MOCK["distance"], "imbh", positions=False),
@@ -352,8 +352,11 @@ def generator_fit_settings(model="dehnen"):
             log_scale_radius_range=(1.0, 3.0),
             log_scale_radius_prior=prior,
             progress=False,
+            velocity_law="free_kurtosis",
         )
-    return DynamicsSettings(tracer="dehnen", cusp=True, progress=False)
+    return DynamicsSettings(
+        tracer="dehnen", cusp=True, progress=False, velocity_law="free_kurtosis"
+    )
 
 
 def generator_recovery_trial(
@@ -468,7 +471,12 @@ def sbc_trial(seed, n_stars=600, n_ranks=99, walkers=16, max_steps=3000, sampler
     )
     stars = StarSample(d["R"], d["pm_r"], d["pm_t"], d["pm_r_err"], d["pm_t_err"], 17.0)
     space = ParameterSpace([Parameter(k, lo=lo, hi=hi) for k, (lo, hi) in SBC_PRIOR.items()])
-    s = DynamicsSettings(cusp=False, distance_error=0.0, log_scale_radius_range=(1.0, 2.0))
+    s = DynamicsSettings(
+        cusp=False,
+        distance_error=0.0,
+        log_scale_radius_range=(1.0, 2.0),
+        velocity_law="free_kurtosis",
+    )
     like = make_likelihood(stars, space, s, 4.6)
     if sampler == "nested":
         from mavispm.dynamics.evidence import run_dynesty

@@ -115,6 +115,7 @@ def fit_settings():
     from mavispm.dynamics.settings import DynamicsSettings
 
     return DynamicsSettings(
+        velocity_law="free_kurtosis",
         tracer="king62",
         king_concentration=1.33,
         cusp=True,

@@ -21,6 +21,7 @@ TINY = {
     "check_every": 30,
     "evidence": False,
     "posterior": "emcee",  # the emcee path (the default posterior is nested)
+    "velocity_law": "free_kurtosis",  # one law: no evidences to weigh laws by
     "n_bootstrap": 5,
     "progress": False,
     "bin_size": 200,
@@ -270,7 +271,8 @@ def test_nested_posterior_reports_results_with_kinematic_evidence(pm_file, tmp_p
     # the default posterior is the nested one: evidence = false alone says what to set
     with pytest.raises(ConfigError, match="posterior = 'emcee'"):
         validate_settings({"evidence": False})
-    assert validate_settings({"evidence": False, "posterior": "emcee"}).evidence is False
+    one = {"evidence": False, "posterior": "emcee", "velocity_law": "free_kurtosis"}
+    assert validate_settings(one).evidence is False
 
 
 def test_fit_models_in_worker_processes_equals_serial():
@@ -401,15 +403,25 @@ def test_line_of_sight_kurtosis_law_puts_kappa_in_the_products(pm_file, tmp_path
 
 
 def test_weighed_velocity_laws_name_each_models_law_in_the_products(pm_file, tmp_path):
-    """compare_velocity_laws: the attrs name the weighed laws, the law kept per model (the
+    """velocity_law = "weighed": the attrs name the weighed laws, the law kept per model (the
     one with the higher ln Z) and each law's ln Z; the model's ln Z is the laws' mean."""
     cfg = {**TINY, "models": ["none", "imbh"], "max_steps": 30}
     cfg.update(evidence=True, nlive=30, dlogz=5.0, kinematic_evidence=False)
-    cfg.update(compare_velocity_laws=["gaussian", "free_kurtosis"])
+    cfg.update(velocity_law="weighed", compare_velocity_laws=["gaussian", "free_kurtosis"])
     out = run_stage(pm_file, cfg, tmp_path / "w.h5", seed=3)
     a = read_product(out, "dynamics").attrs
+    assert a["velocity_law"] == "weighed"
     assert a["compare_velocity_laws"] == "gaussian,free_kurtosis"
     for model in ("none", "imbh"):
         lz = [a[f"log_z_{law}_{model}"] for law in ("gaussian", "free_kurtosis")]
         assert a[f"velocity_law_{model}"] == ("gaussian", "free_kurtosis")[int(np.argmax(lz))]
         assert a[f"log_z_{model}"] == pytest.approx(np.logaddexp(*lz) - np.log(2))
+    # the fast-star test's stored fits rebuild each model with the law its posterior was
+    # drawn with (the product's settings say only "weighed")
+    from mavispm.dynamics.fast_stars_cli import stored_fits
+
+    prod = read_product(out, "dynamics")
+    settings = validate_settings(prod.attrs["config"])
+    stars, distance = load_stars(pm_file, settings)
+    for fit in stored_fits(prod, settings, stars, distance):
+        assert fit.likelihood.velocity_law == a[f"velocity_law_{fit.name}"]

@@ -1,4 +1,5 @@
-"""Weighing the velocity laws by their evidences (``compare_velocity_laws``).
+"""Weighing the velocity laws by their evidences (``velocity_law = "weighed"``, the
+default, over ``compare_velocity_laws``).
 
 The combination is checked against its definition (equal prior odds per law: the mean of
 the laws' evidences) on hand-made evidences; the settings refuse what cannot be weighed;
@@ -79,40 +80,62 @@ def test_weighing_refuses_fits_without_evidence():
 
 
 def test_fitting_one_model_refuses_weighed_laws():
-    """fit_model fits one law: settings asking for several are refused, not silently
-    fitted with ``velocity_law`` alone."""
-    from mavispm.dynamics.fit import fit_model
+    """fit_model fits one law: the default settings (laws weighed) are refused, not
+    silently fitted with one of them; so is a parameter space for them."""
+    from mavispm.dynamics.fit import fit_model, parameter_space
 
-    s = validate_settings({"compare_velocity_laws": ["free_kurtosis", "line_of_sight"]})
-    with pytest.raises(ValueError, match="fit_models"):
-        fit_model(None, s, 4.6, "none", 0)
+    for s in (validate_settings({}), validate_settings({"velocity_law": "weighed"})):
+        with pytest.raises(ValueError, match="fit_models"):
+            fit_model(None, s, 4.6, "none", 0)
+        with pytest.raises(ValueError, match="one law"):
+            parameter_space(s, 4.6, "imbh")
 
 
 @pytest.mark.parametrize(
-    "cfg, words",
+    "cfg, key, words",
     [
-        ({"compare_velocity_laws": ["free_kurtosis", "lorentzian"]}, "lorentzian"),
-        ({"compare_velocity_laws": ["gaussian", "gaussian"]}, "two different"),
+        ({"compare_velocity_laws": ["free_kurtosis", "lorentzian"]}, "compare", "lorentzian"),
+        ({"compare_velocity_laws": ["gaussian", "gaussian"]}, "compare", "two different"),
+        ({"compare_velocity_laws": []}, "compare", "set velocity_law to one law"),
         (
             {
                 "compare_velocity_laws": ["gaussian", "line_of_sight"],
                 "evidence": False,
                 "posterior": "emcee",
             },
+            "weighed",
             "evidence = true",
         ),
+        # the default weighs too: without evidences the message says what to set
+        ({"evidence": False, "posterior": "emcee"}, "weighed", "set velocity_law to one law"),
+        # a list of laws with one law asked for: which one was meant is unknown
+        (
+            {"velocity_law": "gaussian", "compare_velocity_laws": ["gaussian", "line_of_sight"]},
+            "compare",
+            "drop one of the two",
+        ),
+        ({"velocity_law": "lorentzian"}, "velocity_law", "weighed"),
     ],
 )
-def test_settings_refuse_law_lists_that_cannot_be_weighed(cfg, words):
-    with pytest.raises(ConfigError, match="compare_velocity_laws") as err:
+def test_settings_refuse_law_lists_that_cannot_be_weighed(cfg, key, words):
+    with pytest.raises(ConfigError, match=key) as err:
         validate_settings(cfg)
     assert words in str(err.value) and "\n" not in str(err.value)
 
 
-def test_settings_take_a_list_of_laws():
-    s = validate_settings({"compare_velocity_laws": ["free_kurtosis", "line_of_sight"]})
-    assert s.compare_velocity_laws == ("free_kurtosis", "line_of_sight")
-    assert validate_settings({}).compare_velocity_laws == ()
+def test_the_laws_are_weighed_by_default_and_one_law_is_fitted_alone():
+    """Default: free_kurtosis and line_of_sight weighed; a law asked for is fitted alone
+    (the quickstart's ``velocity_law = "gaussian"``), the default list then unused; an
+    emcee fit without evidences names its one law."""
+    default = validate_settings({})
+    assert default.velocity_law == "weighed"
+    assert default.laws == ("free_kurtosis", "line_of_sight")
+    s = validate_settings({"compare_velocity_laws": ["gaussian", "line_of_sight"]})
+    assert s.laws == ("gaussian", "line_of_sight")
+    one = validate_settings({"velocity_law": "gaussian"})
+    assert one.laws == ("gaussian",)
+    no_ev = {"evidence": False, "posterior": "emcee", "velocity_law": "free_kurtosis"}
+    assert validate_settings(no_ev).laws == ("free_kurtosis",)
 
 
 @pytest.mark.slow
@@ -135,9 +158,7 @@ def test_weighed_laws_do_not_claim_an_imbh_in_a_df_null_that_fools_the_projected
     common = dict(models=("none", "imbh"), evidence=True, kinematic_evidence=False)
     alone = DynamicsSettings(**kw, **common, velocity_law="free_kurtosis")
     c_alone = compare(fit_models(stars, alone, h.SBC_DISTANCE, 4020), alone.bh_mass_max)
-    both = DynamicsSettings(
-        **kw, **common, compare_velocity_laws=("free_kurtosis", "line_of_sight")
-    )
+    both = DynamicsSettings(**kw, **common)  # the default: the two laws weighed
     fits = fit_models(stars, both, h.SBC_DISTANCE, 4020)
     c_both = compare(fits, both.bh_mass_max)
     print(
