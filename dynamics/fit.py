@@ -222,6 +222,10 @@ class ModelFit:
         ``max_log_like``, ``aic``, ``bic``.
     wall_s : dict
         Wall-clock times of the emcee run and the nested sampling [s].
+    law_fits : tuple of ModelFit
+        With the velocity laws weighed: the model's fit with each law (each with its own
+        evidence), whose evidence-weighted mixture is the model's posterior
+        (:func:`marginal_bh_samples`); empty otherwise.
     """
 
     name: str
@@ -234,6 +238,8 @@ class ModelFit:
     criteria: dict = field(default_factory=dict)
     #: wall-clock seconds of the emcee run and of the nested sampling
     wall_s: dict = field(default_factory=dict)
+    #: the model's fit with each velocity law when the laws are weighed
+    law_fits: tuple = ()
 
     @property
     def has_bh(self) -> bool:
@@ -506,10 +512,11 @@ def weigh_velocity_laws(per_law: dict) -> list:
 
     Each model's evidence becomes the laws' mean (equal prior odds per law; the Bayes
     factors between models then compare evidences marginalised over the laws), and its
-    posterior, likelihood and summary those of the law with the highest evidence (the
-    mixture of the laws' posteriors, when one law dominates as it does by ln Z of several
-    units on clusters that break the other's assumptions). The laws' own ln Z are kept in
-    ``criteria`` (``log_z_<law>``, and ``velocity_law``, the law kept).
+    posterior tables, likelihood and summary those of the law with the highest evidence
+    (``criteria["velocity_law"]``); every law's fit is kept in ``law_fits``, so that the
+    M_BH marginal is the exact evidence-weighted mixture over models and laws
+    (:func:`marginal_bh_samples`). The laws' own ln Z are kept in ``criteria``
+    (``log_z_<law>``).
 
     Parameters
     ----------
@@ -539,6 +546,7 @@ def weigh_velocity_laws(per_law: dict) -> list:
                 evidence_kinematic=None if None in kin else _mean_evidence(kin),
                 criteria=criteria,
                 wall_s={key: sum(f.wall_s.get(key, 0.0) for f in fits) for key in fits[k].wall_s},
+                law_fits=tuple(fits),
             )
         )
     return out
@@ -652,7 +660,10 @@ def _ln_z(fits, name, key="evidence"):
 def marginal_bh_samples(fits, seed: int = 0) -> np.ndarray:
     """M_BH posterior samples marginalised over the IMBH models (evidence-weighted mixture).
 
-    Without evidences the IMBH models are weighted equally.
+    A model whose velocity laws were weighed (``law_fits``) enters as its laws' fits, each
+    weighted by its own evidence (equal prior odds of the laws and of the models: the
+    weight of model m with law L is proportional to Z_m,L). Without evidences the IMBH
+    models are weighted equally.
 
     Parameters
     ----------
@@ -666,7 +677,7 @@ def marginal_bh_samples(fits, seed: int = 0) -> np.ndarray:
     ndarray
         M_BH samples [solMass]; empty without an IMBH model.
     """
-    bh_fits = [f for f in fits if f.has_bh]
+    bh_fits = [part for f in fits if f.has_bh for part in (f.law_fits or (f,))]
     if not bh_fits:
         return np.empty(0)
     if all(f.evidence is not None for f in bh_fits):

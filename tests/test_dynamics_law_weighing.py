@@ -72,6 +72,45 @@ def test_equal_evidences_cost_ln_2_and_cancel_in_the_bayes_factor():
     assert imbh.evidence.log_z - none.evidence.log_z == pytest.approx(2.0)
 
 
+def _bh_fit(name, log_z, bh_mass, n=4000):
+    """A fitted IMBH model whose M_BH posterior is a point at ``bh_mass``."""
+    from types import SimpleNamespace
+
+    from mavispm.dynamics.parameters import Parameter, ParameterSpace
+
+    fit = _fit(name, log_z)
+    space = ParameterSpace(
+        [Parameter("log_mass", lo=4.0, hi=6.0), Parameter("bh_mass", lo=0.0, hi=1e4)]
+    )
+    samples = np.column_stack([np.full(n, 5.0), np.full(n, float(bh_mass))])
+    return ModelFit(**{**fit.__dict__, "space": space, "chain": SimpleNamespace(samples=samples)})
+
+
+def test_the_bh_mass_marginal_is_the_mixture_over_models_and_laws():
+    """With the laws weighed, M_BH is marginalised over every (model, law) pair with
+    weights Z_m,L (equal prior odds): not only the kept law's posterior."""
+    from mavispm.dynamics.fit import marginal_bh_samples
+
+    ln3 = np.log(3.0)
+    per_law = {
+        "free_kurtosis": [_fit("none", -100.0), _bh_fit("imbh", -90.0, 1000.0)],
+        "line_of_sight": [_fit("none", -95.0), _bh_fit("imbh", -90.0 + ln3, 2000.0)],
+    }
+    none, imbh = weigh_velocity_laws(per_law)
+    assert imbh.criteria["velocity_law"] == "line_of_sight"
+    assert np.all(imbh.chain.samples[:, 1] == 2000.0)  # the kept law's posterior
+    bh = marginal_bh_samples([none, imbh], seed=1)
+    assert bh.size == 4000
+    assert np.mean(bh == 2000.0) == pytest.approx(0.75, abs=1e-3)
+    assert np.mean(bh == 1000.0) == pytest.approx(0.25, abs=1e-3)
+    # with a second IMBH model (one law, its evidence e^2 times the first's total)
+    other = _bh_fit("imbh_dark", -90.0 + np.log(4.0) + 2.0, 3000.0)
+    bh = marginal_bh_samples([none, imbh, other], seed=1)
+    z = np.array([1.0, 3.0, 4.0 * np.exp(2.0)])  # in units of exp(-90)
+    for mass, share in zip((1000.0, 2000.0, 3000.0), z / z.sum()):
+        assert np.mean(bh == mass) == pytest.approx(share, abs=2e-3)
+
+
 def test_weighing_refuses_fits_without_evidence():
     a = _fit("none", -1.0)
     b = ModelFit("none", None, None, None, {}, evidence=None)
