@@ -13,12 +13,14 @@ velocities convolved with the errors (``velocity_law = "line_of_sight"``;
 :mod:`mavispm.dynamics.line_of_sight`), or the Gaussian with the projected dispersions
 ``N(v_R | 0, sigma_R(R)^2 + e_R^2) N(v_T | 0, sigma_T(R)^2 + e_T^2)``
 (``velocity_law = "gaussian"``), or that Gaussian's variances with a fitted excess
-kurtosis ``kappa`` (``velocity_law = "free_kurtosis"``, the default, :mod:`mavispm.dynamics.shape_law`;
+kurtosis ``kappa`` (``velocity_law = "free_kurtosis"``, :mod:`mavispm.dynamics.shape_law`;
 parameter ``kappa``, or ``kappa_inner`` and ``kappa_outer`` linear in ``ln R`` between the
 10th and 90th percentiles of the stars' radii about the field centre), or the
 line-of-sight mixture with each depth node's Gaussian replaced by that two-Gaussian
 family with one fitted local excess kurtosis ``kappa``
 (``velocity_law = "line_of_sight_kurtosis"``, :mod:`mavispm.dynamics.line_of_sight_kurtosis`).
+One likelihood has one law; the stage's default weighs the free-kurtosis and line-of-sight
+laws by their evidences (:func:`mavispm.dynamics.fit.fit_models`).
 
 ``N_field = int_field Sigma c dA`` is the tracer number inside the circular
 field of radius ``R_field`` about the *field* centre (exact for a model centre
