@@ -142,8 +142,10 @@ class DynamicsSettings:
     ``line_of_sight_nodes``. Velocities: ``velocity_law`` ("weighed", the default since
     2026-12-04: each model is fitted with each law of ``compare_velocity_laws``, default
     "free_kurtosis" and "line_of_sight", its evidence is the laws' mean, equal prior odds
-    per law, and its posterior the law with the highest evidence; needs ``evidence``;
-    docs/dynamics.md, "Weighing the velocity laws by evidence"), or one law:
+    per law, its posterior tables the law with the highest evidence and its M_BH marginal
+    the evidence-weighted mixture over models and laws; needs ``evidence``;
+    :func:`~mavispm.dynamics.fit.fit_models`; docs/dynamics.md, "Weighing the velocity
+    laws by evidence"), or one law:
     "free_kurtosis" (the projected dispersions with a fitted excess kurtosis, uniform on
     ``kappa_range``, one value (``kappa_profile = "constant"``) or inner and outer values
     linear in ln R (``"radial"``), :mod:`~mavispm.dynamics.shape_law`; the default for a
@@ -153,8 +155,7 @@ class DynamicsSettings:
     docs/dynamics.md, "Calibration on equilibrium (DF) velocities");
     "line_of_sight_kurtosis": the line-of-sight mixture with each node's Gaussian replaced
     by that family, one fitted local ``kappa`` on ``kappa_range``, ``kappa_profile =
-    "constant"`` only; :mod:`~mavispm.dynamics.line_of_sight_kurtosis`
-    (:func:`~mavispm.dynamics.fit.fit_models`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
+    "constant"`` only; :mod:`~mavispm.dynamics.line_of_sight_kurtosis`). Profile: ``bin_size``, ``n_bootstrap``. emcee:
     ``walkers``, ``max_steps``, ``tau_factor``, ``check_every``; ``posterior`` ("nested", the
     default: the posterior from the nested-sampling run, no emcee; or "emcee"). Evidence:
     ``evidence``, ``nlive``, ``dlogz``. Verdict: ``ambiguous_ln_b``. ``workers``: models
