@@ -8,7 +8,7 @@ from mavispm.core.products import read_product
 from mavispm.workflows.config import load_workflow
 
 
-@pytest.mark.slow  # ~3-6 min on 2 shared cores (8 nested runs on ~300 stars)
+@pytest.mark.slow  # ~5-16 min on 2 shared cores (16 nested runs on ~300 stars: two laws weighed)
 def test_default_settings_give_a_converged_interval_holding_the_injected_imbh(tmp_path):
     """``mavispm dynamics`` with no settings at all (four models, free cusp, centre,
     distance and systemic motion fitted) on the true motions of a quickstart-like
