@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mavispm.core.errors import ConfigError
 from mavispm.dynamics.cli import validate_settings
@@ -109,6 +111,32 @@ def test_the_bh_mass_marginal_is_the_mixture_over_models_and_laws():
     z = np.array([1.0, 3.0, 4.0 * np.exp(2.0)])  # in units of exp(-90)
     for mass, share in zip((1000.0, 2000.0, 3000.0), z / z.sum()):
         assert np.mean(bh == mass) == pytest.approx(share, abs=2e-3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    base=st.floats(-1e6, 0.0),
+    spread=st.lists(st.floats(-2e3, 2e3), min_size=4, max_size=4),
+)
+def test_weighed_evidence_and_mixture_stay_finite_and_bounded(base, spread):
+    """Evidences far below exp's range (ln Z ~ -1e6) and laws thousands of units apart:
+    each model's ln Z lies between its best law's minus ln 2 and its best law's, and the
+    M_BH mixture is finite, drawn only from the components that carry weight."""
+    from mavispm.dynamics.fit import marginal_bh_samples
+
+    lz = base + np.array(spread)
+    per_law = {
+        "free_kurtosis": [_fit("none", lz[0]), _bh_fit("imbh", lz[1], 1000.0, n=200)],
+        "line_of_sight": [_fit("none", lz[2]), _bh_fit("imbh", lz[3], 2000.0, n=200)],
+    }
+    fits = weigh_velocity_laws(per_law)
+    for fit, pair in zip(fits, ((lz[0], lz[2]), (lz[1], lz[3]))):
+        assert max(pair) - np.log(2) - 1e-9 <= fit.evidence.log_z <= max(pair) + 1e-9
+        assert np.isfinite(fit.evidence.log_z_err)
+    bh = marginal_bh_samples(fits, seed=0)
+    assert bh.size > 0 and np.all(np.isfinite(bh))
+    share_los = 1.0 / (1.0 + np.exp(np.clip(lz[1] - lz[3], -700, 700)))
+    assert np.mean(bh == 2000.0) == pytest.approx(share_los, abs=0.01)
 
 
 def test_weighing_refuses_fits_without_evidence():
