@@ -16,6 +16,7 @@ defaults.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 from collections.abc import Mapping
@@ -62,10 +63,9 @@ def stored_fits(product, settings, stars, distance):
     distance : float
         [kpc]
     """
-    import dataclasses
-
     from mavispm.dynamics.fit import make_likelihood, parameter_space
     from mavispm.dynamics.likelihood import VELOCITY_LAWS
+    from mavispm.dynamics.settings import WEIGHED
 
     fits = []
     summary = product.tables.get("summary")
@@ -79,7 +79,7 @@ def stored_fits(product, settings, stars, distance):
         one = settings
         if law in VELOCITY_LAWS:
             one = dataclasses.replace(settings, velocity_law=law, compare_velocity_laws=())
-        elif settings.velocity_law not in VELOCITY_LAWS:
+        elif settings.velocity_law == WEIGHED:
             raise InputError(
                 f"no velocity_law_{name} attribute: which law posterior_{name} was drawn "
                 "with is unknown",
@@ -149,8 +149,6 @@ def run(
     InputError
         When the product names no proper-motion product and none is given.
     """
-    import dataclasses
-
     from mavispm.core.products import read_product, write_product
     from mavispm.dynamics.cli import load_stars, validate_settings
     from mavispm.dynamics.fast_stars import FastStarSettings, run_on_fits
