@@ -1,4 +1,4 @@
-"""Scale benchmark of the stars stage (issue 14, deliverable 4; docs/measure.md, "Scale").
+"""Scale benchmark of the stars stage (issue 14, deliverable 4; docs/measure-scale.md).
 
 Run ``python benchmarks/bench_scale.py --n 10000 30000 100000 [--work DIR]`` with the
 repository on PYTHONPATH as ``mavispm``. For each N it makes (once, cached in the work
@@ -9,7 +9,7 @@ the process so far, the failed / not-converged fractions among stars with V < 25
 centres lie inside the frame (those outside fail by design), and the robust scatter
 over the CRLB and the robust std of the normalised residuals ``(x - x_true - offset) /
 x_err`` (the frame's common offset removed) per magnitude bin, and the same fractions
-by confusion class (docs/measure.md, "Scale", tenth pass): the stars with a comparable
+by confusion class (docs/measure-scale.md, tenth pass): the stars with a comparable
 neighbour (at most 1 mag fainter) within 1.5 FWHM of the frame's PSF model, and the
 isolated ones per magnitude bin; and the normalised residuals of the isolated stars
 within 60 px of a V < 15 star (fourteenth pass). ``--set key=json ...`` changes measure
@@ -133,7 +133,7 @@ def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
               f"{robust_sigma(dx) / cx:.2f} / {robust_sigma(dy) / cy:.2f}, "
               f"normalised residuals (robust) x / y {robust_sigma(nx_):.2f} / {robust_sigma(ny_):.2f}")  # fmt: skip
     # the isolated stars within 60 px of a V < 15 star (their errors must hold the
-    # bright stars' model misfit; docs/measure.md, "Scale", fourteenth pass)
+    # bright stars' model misfit; docs/measure-scale.md, fourteenth pass)
     bright15 = mag < 15
     near_bright = np.zeros(len(tx), bool)
     if bright15.any():

@@ -1,4 +1,4 @@
-"""Confusion classification and the two-star Cramér-Rao bound (docs/measure.md, "Scale",
+"""Confusion classification and the two-star Cramér-Rao bound (docs/measure-scale.md,
 tenth pass), each against an independent reference: the Poisson nearest-neighbour law
 and a brute-force pair search on a random field, and a finite-difference Fisher matrix
 of an analytically rendered pair."""

@@ -7,7 +7,7 @@ fitter converges for nearly all stars brighter than m = 23 and the converged sta
 are measured honestly (positions at the Cramér-Rao bound, fluxes within their
 errors). With 10 sweeps and a tolerance of 5 % of the position error about 9 % of
 them are still moving (block Gauss-Seidel converges slowly in tight groups;
-docs/measure.md, "Scale"); 60 sweeps converge them, and so do 15 with the stage's
+docs/measure-scale.md); 60 sweeps converge them, and so do 15 with the stage's
 default tolerance of 20 % (``relative_tolerance``).
 """
 
@@ -205,7 +205,7 @@ def test_misfit_crowd_converges_without_stopping_early():
     converged; with ``crowded_window`` 0.80 %, 0.40 %, 1.52; 2026-12-03, held positions
     retried and a never-fitted one failed: 0.80 %, 0.29 %, 1.59, while counting the
     never-fitted ones without the retry gave 1.72 % failed: they had sat at their start,
-    the truth, as converged; docs/measure.md, "Scale", tenth pass). The convergence test
+    the truth, as converged; docs/measure-scale.md, tenth pass). The convergence test
     counts a step against the position error that the neighbours' share of the stamp's
     misfit implies (``chi2_tolerance``): against the Fisher error alone 4.4 % were still
     moving after 40 sweeps (0.52 % failed, 1.66;
@@ -231,7 +231,7 @@ def test_misfit_crowd_fits_crowded_stars_on_their_central_window():
     frames (1.26 % against 1.38 %, 1.57 against 1.59: most of its gain here came from
     the wrong first steps that the later flux passes remove); on the 1e5-star MAVIS
     frame it still gains (with two passes failed + not converged at V < 25 4.09 -> 3.86
-    %; docs/measure.md, "Scale", twelfth pass)."""
+    %; docs/measure-scale.md, twelfth pass)."""
     options = dataclasses.replace(fit_options(validate_settings({})), flux_passes=1)
     assert options.crowded_window == 4
     unconverged, failed, spread, _ = _misfit_score(options)
@@ -306,7 +306,7 @@ def test_crowding_term_makes_the_errors_honest_in_a_misfit_crowd(n_stars):
     out what all peers share, so its errors were too small (robust normalised std 1.20 /
     1.41 at 120 / 180 stars on 160 x 160 px, measured 2026-12-02); with the crowding term
     (the peers' typical neighbour misfit) they are within 1 +- 0.15 (1.02 / 0.97). At
-    250 stars the term over-corrects (1.41 -> 0.76; docs/measure.md, "Scale"). With
+    250 stars the term over-corrects (1.41 -> 0.76; docs/measure-scale.md). With
     today's fit (2026-12-04) 1.08 / 1.10 with the term and 1.15 / 1.31 without
     (``bisect_reversals`` on; off: 1.08 / 1.11 and 1.15 / 1.31): the control's 1.12."""
     assert abs(_crowd_normalised_std(n_stars, True) - 1) <= 0.15

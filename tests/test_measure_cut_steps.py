@@ -3,8 +3,8 @@
 On the 1e5-star MAVIS frame 2.9 % of the V < 25 stars took one position step, cut to
 ``max_step`` (0.5 px), and counted as converged because their tolerance before that step
 (``relative_tolerance`` times an error inflated by the start's misfit) exceeded 0.5 px;
-they ended 6.7 times their error from the truth (issue 14, item 4; docs/measure.md,
-"Scale", ninth pass). With ``check_cut_steps`` such a star is flagged 1 when the step it
+they ended 6.7 times their error from the truth (issue 14, item 4; docs/measure-scale.md,
+ninth pass). With ``check_cut_steps`` such a star is flagged 1 when the step it
 would take at the solution is above its tolerance there. Here the tolerance is made
 large on purpose (an exact Gaussian PSF, isolated stars): the reference is the truth of
 the rendered frame.
@@ -81,7 +81,7 @@ def test_a_star_stopped_by_a_cut_step_is_flagged_not_converged():
 def test_a_star_resting_at_max_shift_is_flagged_not_converged():
     """A star whose free optimum lies beyond ``max_shift`` rests at the clamp: its last
     steps are pulled back to nothing and it was called converged (on the 1e5-star frame
-    683 of the V < 25 stars, 1.05 %; docs/measure.md, "Scale", thirteenth pass). The
+    683 of the V < 25 stars, 1.05 %; docs/measure-scale.md, thirteenth pass). The
     Gauss-Newton step at the solution (its own errors, no truth) says it is not at a free
     optimum: flagged 1. Stars started inside the clamp keep their flag. The truth of the
     rendered frame is the reference."""

@@ -8,7 +8,7 @@ the first position step is linearised at that flux (the position derivatives sca
 with it) and a wrong flux makes a wrong step, which the trust region cuts to 0.5 px.
 On the 1e5-star MAVIS frame 10 % of the V 24-25 stars left that pass with a flux below
 -1.3 times the truth and 2.4 % of the V < 25 stars ended unconverged 0.5 px from their
-start (docs/measure.md, "Scale", twelfth pass). With ``flux_passes`` the fluxes are
+start (docs/measure-scale.md, twelfth pass). With ``flux_passes`` the fluxes are
 fitted again (up to that many passes in all) before the first step. The frames: ``measure_helpers`` (exact pixel-integrated
 Gaussian PSF, Poisson and read noise), 250 stars on 160 x 160 px (1.6 x the 1e5-star
 frame's density), started at the truth; the reference is the truth and its Cramér-Rao

@@ -4,7 +4,7 @@ Before the first position step (the initial flux fit and ``flux_passes``) and in
 ``flux_refresh`` pass the positions are held: the fitter then solves the flux and sky
 (and slope) rows only, on ePSF stamps kept from their first evaluation while the
 positions have not moved, instead of the full system with the position rows frozen
-(docs/measure.md, "Scale", fifteenth pass). The references: the full system
+(docs/measure-scale.md, fifteenth pass). The references: the full system
 (``fixed_full_system``, the former path) and, for the fixed point of the passes, a
 weighted linear least-squares solve by numpy (``lstsq``) with the weights at the fit's
 model. Frames from ``measure_helpers`` (exact pixel-integrated Gaussian PSF, Poisson

@@ -253,7 +253,7 @@ def test_faint_fluxes_near_a_bright_star_with_a_broad_halo_are_unbiased(seed, sa
     ones and neighbours from 12 px on stay unbiased; closer, the saturated star's own
     stamp model and its halo's scale (its fitted flux) are wrong: not scored (0.89 at
     11 px for seed 3; scaling each halo to the light around it mended that here but
-    made the 1e5-star MAVIS frame worse, docs/measure.md "Scale")."""
+    made the 1e5-star MAVIS frame worse, docs/measure-scale.md)."""
     from mavispm.measure.stars import batched_fit
 
     image, x, y, flux, d, sky, rn2, saturated = _halo_frame(seed, saturate)

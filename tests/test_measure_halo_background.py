@@ -1,6 +1,6 @@
 """The frame's halo profile measured against a far background annulus
 (``FitOptions.halo_background``) and around saturated stars (``halo_saturated``), against
-the truth of a rendered frame (docs/measure.md, "Scale", twenty-sixth pass)."""
+the truth of a rendered frame (docs/measure-scale.md, twenty-sixth pass)."""
 
 from __future__ import annotations
 

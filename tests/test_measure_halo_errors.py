@@ -1,7 +1,7 @@
 """Honest position errors near bright stars: the bright stars' mis-modelled light (here
 PSF-scale speckles in their halos, absent from the model) is a correlated residual
 field, and the errors must hold it (``FitResult.correlated_gain``, ``halo_share``;
-docs/measure.md, "Scale", fourteenth pass). The truth of the rendered frame scores."""
+docs/measure-scale.md, fourteenth pass). The truth of the rendered frame scores."""
 
 from __future__ import annotations
 
@@ -102,8 +102,8 @@ def test_errors_hold_the_bright_stars_mis_modelled_light(seed):
     normalised residuals (x and y pooled) are 1.93 / 2.09 (seeds 0 / 1); with the
     correlated-misfit term 1.09 / 1.06, within 1 +- 0.15, and the far stars (no halo
     light) unchanged at 1.10 / 1.07. With speckles 0.5 / 1.0 of the halo's the new
-    errors are 1.12-1.15 / 1.29-1.36 in x (old 2.1-2.3): too small still (docs/measure.md,
-    "Scale", fourteenth pass). The near stars are a quarter of the faint ones: as on a
+    errors are 1.12-1.15 / 1.29-1.36 in x (old 2.1-2.3): too small still (docs/measure-scale.md,
+    fourteenth pass). The near stars are a quarter of the faint ones: as on a
     real frame, the peers that set the typical chi^2 are mostly far from bright stars."""
     near_new, far_new = _normalised(seed, True)
     near_old, far_old = _normalised(seed, False)

@@ -1,6 +1,6 @@
 """Each bright star's own 2-D misfit taken from its residual (``FitOptions.halo_map``):
 faint stars on a bright star's non-round halo structure, against the truth of a rendered
-frame (docs/measure.md, "Scale", twenty-seventh pass)."""
+frame (docs/measure-scale.md, twenty-seventh pass)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Each very bright star's own radial misfit (``FitOptions.halo_rings``) against the
-truth of a rendered frame (docs/measure.md, "Scale", eleventh pass)."""
+truth of a rendered frame (docs/measure-scale.md, eleventh pass)."""
 
 from __future__ import annotations
 

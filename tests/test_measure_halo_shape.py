@@ -1,6 +1,6 @@
 """The halo's non-round shape (measure/stars/halo_shape.py): the deposit against a direct
 sum, the modulation of an analytic image, and faint stars in a non-round halo against
-the truth of the injected frame (docs/measure.md, "Scale")."""
+the truth of the injected frame (docs/measure-scale.md)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The bright stars' common non-round light (``FitOptions.halo_stack``): a 2-D median of
 their residuals, stacked in their own frames, added to each bright star's model, against
-the truth of a rendered frame (docs/measure.md, "Scale", sixteenth pass)."""
+the truth of a rendered frame (docs/measure-scale.md, sixteenth pass)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The halo past ``halo_radius`` (``FitOptions.halo_tail``): continued as a seeing halo and
 added by FFT, against the truth of a rendered frame and a brute-force deposit
-(docs/measure.md, "Scale", seventeenth pass)."""
+(docs/measure-scale.md, seventeenth pass)."""
 
 from __future__ import annotations
 

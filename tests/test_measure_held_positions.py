@@ -1,4 +1,4 @@
-"""Stars whose positions the fitter held below ``min_snr`` (docs/measure.md, "Scale",
+"""Stars whose positions the fitter held below ``min_snr`` (docs/measure-scale.md,
 tenth pass): on the 1e5-star frame 5.8 % of the V < 25 stars had a negative or
 sub-``min_snr`` flux in their first position step, rested there as converged, and the
 last flux pass gave them SNR > 3 and flag 0 at their start position (the truth in the

@@ -3,7 +3,7 @@
 The reference is independent of the code under test: a frame whose background is known
 analytically (a tilted plane plus a broad bump, with Poisson stars on it, read noise and
 a masked patch of garbage pixels), and photutils' ``Background2D`` (the library whose
-algorithm ours repeats; kept as our own for its cost, docs/measure.md, "Scale").
+algorithm ours repeats; kept as our own for its cost, docs/measure-scale.md).
 """
 
 from __future__ import annotations

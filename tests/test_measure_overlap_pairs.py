@@ -2,7 +2,7 @@
 
 The fitter parks the stars off the frame at one position; searched with the others they
 formed a clique of ``K^2 / 2`` pairs and ``K`` colours that every sweep looped over, and
-the fit's cost grew as ``N^2`` (issue 14, item 4; docs/measure.md, "Scale"). The reference
+the fit's cost grew as ``N^2`` (issue 14, item 4; docs/measure-scale.md). The reference
 is a brute-force distance matrix.
 """
 

@@ -3,7 +3,7 @@
 On the 1e5-star frame the isolation test rated each neighbour by its box flux over the
 frame's *global* sky, which there holds the unresolved crowd's light: faint neighbours
 posed as bright and the pool emptied, so the correction kernels of the PSF-R model came
-from stars far from their nodes (docs/measure.md, "Scale", twentieth pass). References
+from stars far from their nodes (docs/measure-scale.md, twentieth pass). References
 are independent of the code under test: the rendered truth (positions, fluxes, the
 analytic PSF's widths) and brute-force distances.
 """

@@ -1,4 +1,4 @@
-"""The rescue pass (:mod:`mavispm.measure.stars.rescue`; docs/measure.md, "Scale",
+"""The rescue pass (:mod:`mavispm.measure.stars.rescue`; docs/measure-scale.md,
 twenty-eighth pass): stars the batched fit leaves unconverged or failed in blended pairs
 are refitted with their neighbours, against the rendered truth; the stars it does not
 rescue keep every value bit for bit."""

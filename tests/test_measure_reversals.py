@@ -4,7 +4,7 @@ On the 1e5-star MAVIS frame 152 of the V < 25 stars flagged not converged (1) we
 exact two-sweep cycles: a faint star whose chi^2 is far from quadratic over the 0.5 px
 trust region (next to a neighbour whose model misses light) took a cut Gauss-Newton step
 one way, then the same step back, in every sweep, and its neighbours moved with it
-(issue 14, item 4; docs/measure.md, "Scale", twenty-ninth pass). With
+(issue 14, item 4; docs/measure-scale.md, twenty-ninth pass). With
 ``bisect_reversals`` (the stage's default) a step that turns back on the last one is held
 to half of it, which brackets the minimum along that line.
 

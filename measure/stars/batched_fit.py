@@ -102,7 +102,7 @@ class FitOptions:
         implies, instead of the Fisher error alone. In a crowd a faint star kept taking
         steps "above tolerance" as it slid towards that light (on the 1e5-star MAVIS
         frame 4.7 % of the V < 25 stars ended > 1 px from the truth while flagged
-        converged, and 3.7 % were unconverged; docs/measure.md, "Scale").
+        converged, and 3.7 % were unconverged; docs/measure-scale.md).
     flux_refresh : bool
         After the last sweep, one more pass (positions held) refits every star's flux
         and sky against its neighbours' final models: a star that came to rest early
@@ -119,7 +119,7 @@ class FitOptions:
         wrong step. On the 1e5-star MAVIS frame 10 % of the V 24-25 stars left the first
         pass with a flux below -1.3 x the truth, and their first step, cut to
         ``max_step``, left 2.4 % of the V < 25 stars unconverged 0.5 px from their start
-        (docs/measure.md, "Scale", twelfth pass). 1: one pass (the fitter before
+        (docs/measure-scale.md, twelfth pass). 1: one pass (the fitter before
         2026-12-03).
     max_shift : float
         Largest allowed distance from the starting position [pixel].
@@ -132,7 +132,7 @@ class FitOptions:
         after the first pass). Only its fit uses the smaller window; its model still
         covers the whole stamp for its neighbours. In a crowd the outer stamp of a faint
         star holds mostly its neighbours' light, whose model errors bias its flux and
-        position more than that light informs them (docs/measure.md, "Scale").
+        position more than that light informs them (docs/measure-scale.md).
     crowded_ratio : float
         The own / neighbours' light ratio below which ``crowded_window`` applies.
     check_cut_steps : bool
@@ -150,7 +150,7 @@ class FitOptions:
         star still moves), and one never fitted at the end is flagged failed (32) even
         when the last flux pass raises its SNR above this (before 2026-12-03 such a star
         rested as converged after its first step and kept flag 0 at its start position:
-        5.8 % of the V < 25 stars of the 1e5-star frame; docs/measure.md, "Scale", tenth
+        5.8 % of the V < 25 stars of the 1e5-star frame; docs/measure-scale.md, tenth
         pass).
     chunk : int
         Stars evaluated at once (memory ~ chunk * S^2 * 16 * 8 bytes * mixing terms).
@@ -188,15 +188,15 @@ class FitOptions:
         model and halo) in 1-px annuli from the stamp edge to 34 px, outside the star's
         stamp, less its median at 28-34 px, tapered from 22 to 30 px; 0: none. On the
         1e5-star MAVIS frame the frame's one profile misses each V < 15 star's own
-        radial light by up to 2 faint-star fluxes at 12-20 px (docs/measure.md,
-        "Scale", eleventh pass).
+        radial light by up to 2 faint-star fluxes at 12-20 px (docs/measure-scale.md,
+        eleventh pass).
     halo_stack : float
         With ``halo_rings``: half-width [pixel] of a 2-D map of those stars' common
         non-round misfit (:func:`~mavispm.measure.stars.halo.stacked_residual`: the
         median over them of the residual per unit flux by pixel offset, each star's
         ring medians and the map's own ring means taken out), measured with the rings
         and added, times its flux, around the stars of ``halo_stack_stars``; 0 (or at most
-        ``radius``): none (docs/measure.md, "Scale", sixteenth pass).
+        ``radius``): none (docs/measure-scale.md, sixteenth pass).
     halo_stack_stars : float
         The map goes onto the stars whose halo at 20 px exceeds this many times the
         sky's pixel noise (0: every star with a halo)
@@ -206,14 +206,14 @@ class FitOptions:
         the light it was measured against; :func:`~mavispm.measure.stars.halo.halo_tail`),
         added around the same stars at once by FFT
         (:func:`~mavispm.measure.stars.halo.deposit_tail`); 0 (or at most
-        ``halo_radius``): none (docs/measure.md, "Scale", seventeenth pass).
+        ``halo_radius``): none (docs/measure-scale.md, seventeenth pass).
     halo_background : float
         The profile is measured out to this radius [pixel] (:func:`halo_radii`), its
         zero point the median of the annulus ``[halo_background, halo_background + 10)``;
         each star's own deposit uses it out to ``halo_radius``, the tail's fit all of it;
         at most ``halo_radius`` (0): the annulus just past ``halo_radius``; with a tail,
         below ``halo_tail``. Where fewer than 5 stars have that annulus in the frame, the
-        annulus just past ``halo_radius`` (docs/measure.md, "Scale", twenty-sixth pass).
+        annulus just past ``halo_radius`` (docs/measure-scale.md, twenty-sixth pass).
     halo_saturated : bool
         The profile is also measured around saturated stars (their saturated pixels
         left out); False: around unsaturated ones only.
@@ -221,7 +221,7 @@ class FitOptions:
         With ``halo_rings``: radius [pixel] of each ring star's own 2-D misfit map
         (:func:`~mavispm.measure.stars.halo.residual_maps`: block medians of its
         residual after the rings and the stacked map, interpolated), added to the model
-        once with them; 0 (or at most ``radius``): none (docs/measure.md, "Scale",
+        once with them; 0 (or at most ``radius``): none (docs/measure-scale.md,
         twenty-seventh pass).
     halo_map_block : int
         Side [pixel] of the median blocks of ``halo_map`` (odd); with ``halo_map_arc``
@@ -237,7 +237,7 @@ class FitOptions:
         position rows frozen) with freshly evaluated stamps and derivatives, instead of
         the flux and sky rows alone on stamps kept from the first evaluation (the
         default; the same numbers to round-off, ~9 s less fit at 1e5 stars,
-        docs/measure.md, "Scale", fifteenth pass).
+        docs/measure-scale.md, fifteenth pass).
     bisect_reversals : bool
         A position step that turns back on the star's last one (cosine below
         :data:`REVERSAL_COSINE`) is held to half that last step's length, and the star's
@@ -251,7 +251,7 @@ class FitOptions:
         beside a mis-modelled neighbour) stepped back and forth between two positions in
         every sweep: on the 1e5-star MAVIS frame 152 of the V < 25 stars left flagged 1
         were in exact two-sweep cycles, and their neighbours moved with them
-        (docs/measure.md, "Scale", twenty-ninth pass).
+        (docs/measure-scale.md, twenty-ninth pass).
     threads : int
         Threads the chunks of one colour (and of the uncertainties at the solution) are
         stepped on (:class:`~mavispm.measure.stars.chunk_pool.ChunkPool`); 0: every core
@@ -609,7 +609,7 @@ def overlap_pairs(x: np.ndarray, y: np.ndarray, keep: np.ndarray, distance: floa
     pairs and ``K`` colours (on the 1e5-star MAVIS frame 4,953 stars off the frame:
     12.3 million of the 12.4 million pairs and 4,955 colours where the stars on the frame
     need 8), every sweep looped over those colours and pairs, and the fit's cost grew as
-    ``N^2`` (docs/measure.md, "Scale").
+    ``N^2`` (docs/measure-scale.md).
 
     Parameters
     ----------
@@ -966,7 +966,7 @@ def _fit_stars(
         if not fixed and opt.check_cut_steps:
             # a step stopped by max_shift is cut too: its length says nothing about the
             # free optimum (on the 1e5-star frame 1 % of the V < 25 stars rested at the
-            # clamp, called converged; docs/measure.md, "Scale", thirteenth pass)
+            # clamp, called converged; docs/measure-scale.md, thirteenth pass)
             cut[idx] |= pull < 1.0
         steps[idx] = np.hypot(dx, dy)
         if not fixed:
@@ -1016,7 +1016,7 @@ def _fit_stars(
         # beyond its fitting stamp is barely constrained (on the 1e5-star MAVIS frame its
         # azimuthal mean was 10-25 % below the rendered light at 8-12 px, and splicing it
         # to the measured profile left a step at the footprint's edge that drove faint
-        # neighbours' fluxes negative; docs/measure.md, "Scale")
+        # neighbours' fluxes negative; docs/measure-scale.md)
         profile = measured[: len(radii)]
         limit = opt.wing_threshold * np.sqrt(max(sky0 + read_noise_var, 1e-300))
         bright = np.flatnonzero(usable & (flux * np.max(profile) > limit))
@@ -1183,7 +1183,7 @@ def _fit_stars(
             # star wakes by at most two of its pairs, chosen by the pairs' order. Waking it
             # by every moved neighbour (np.logical_or.at) was measured on the 1e5-star
             # frame: 47 % more star steps, +26 % fit CPU, V 24-25 scatter 130 -> 141 mpix,
-            # not converged 1.34 -> 1.75 % (docs/measure.md, "Scale"); not adopted
+            # not converged 1.34 -> 1.75 % (docs/measure-scale.md); not adopted
             active[pairs[:, 0]] |= moved[pairs[:, 1]]
             active[pairs[:, 1]] |= moved[pairs[:, 0]]
         # a group steps together: all its stars or none
@@ -1349,7 +1349,7 @@ def _bisected_limit(step, last, trust, opt):
     star's trust radius keeps that limit until a step that keeps its direction regrows
     it. Without this a star whose chi^2 is far from quadratic over ``max_step`` (a faint
     star, or its neighbour's misfit) steps back and forth between two positions for
-    ever (docs/measure.md, "Scale", twenty-ninth pass).
+    ever (docs/measure-scale.md, twenty-ninth pass).
 
     Parameters
     ----------
@@ -1434,7 +1434,7 @@ def _neighbour_misfit(
     model misfit is nearly centro-symmetric and barely moves it (a bright star's chi^2
     reaches 100-1000 on the MAVIS frames); its neighbours' mis-modelled light pulls it.
     With the whole chi^2 the bright stars stopped while still settling (V 15-17 on the
-    1e5-star frame: robust scatter 1.1 -> 1.5 mpix; docs/measure.md, "Scale").
+    1e5-star frame: robust scatter 1.1 -> 1.5 mpix; docs/measure-scale.md).
 
     Parameters
     ----------

@@ -6,7 +6,7 @@ strictly brighter), and the summed flux of all neighbours within a radius. On a 
 field whose stars are a Poisson process of surface density ``n(<m)`` the nearest
 comparable neighbour of a star of magnitude ``m`` lies within ``r`` with probability
 ``1 - exp(-pi r^2 n(<m + dmag))`` (:func:`poisson_within`): the analytic check of the
-classification (tests/test_measure_confusion.py). docs/measure.md, "Scale", tenth pass.
+classification (tests/test_measure_confusion.py). docs/measure-scale.md, tenth pass.
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ residual's part *odd* about the star (``chi2_odd``,
 whole chi^2's: a misfit even about the star (a width or wing error of a centred
 model) raises the chi^2 without moving the star, and with the 5 x 5 PSF-R grid the
 whole ratio made the V 17-20 position errors 1.2-1.3 x too large on the 1e4-star
-frame (normalised residuals 0.85 / 0.76; docs/measure.md, "Scale", twenty-fifth
+frame (normalised residuals 0.85 / 0.76; docs/measure-scale.md, twenty-fifth
 pass). The flux keeps the whole chi^2 (an even misfit biases the flux).
 """
 
@@ -391,7 +391,7 @@ def estimate_error_model(
         star's flux, ``c_typ(F)``: ``chi2_typ(F)`` holds the light of the crowd that
         every peer has, which the ratio divides out although it moves the stars
         (normalised residuals 2.2-2.8 at V 17-25 on the 1e5-star MAVIS frame; with
-        the term 1.15-1.4; docs/measure.md, "Scale"). The star's own excess is in the
+        the term 1.15-1.4; docs/measure-scale.md). The star's own excess is in the
         ratio already (the per-star value would count it twice).
     correlated_gain : ndarray, shape (N, 2), optional
         :attr:`~mavispm.measure.stars.batched_fit.FitResult.correlated_gain`: the
@@ -403,7 +403,7 @@ def estimate_error_model(
         the model light on the stamp, ``s(F) = chi2_typ(F) sqrt(2 / dof)`` the noise
         of a reduced chi^2 (only a significant excess counts). As white noise (the chi^2 ratio alone) the same
         misfit moved the stars within 60 px of a V < 15 star ~7x more than their
-        errors said on the 1e5-star frame (docs/measure.md, "Scale", fourteenth pass).
+        errors said on the 1e5-star frame (docs/measure-scale.md, fourteenth pass).
         None: no such term.
     halo_share : ndarray, shape (N,), optional
         :attr:`~mavispm.measure.stars.batched_fit.FitResult.halo_share` (needed with

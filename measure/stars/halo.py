@@ -44,7 +44,7 @@ RING_REFERENCE = 20.0
 #: ``RING_BACKGROUND`` out) and the raised-cosine taper that fades them out
 #: (``RING_TAPER``); chosen on the 1e5-star MAVIS frame, where the measured rings follow
 #: each star's own misfit (correlation 0.78-0.86) at 10-16 px but not beyond 25 px
-#: (docs/measure.md, "Scale", eleventh pass).
+#: (docs/measure-scale.md, eleventh pass).
 RING_OUTER = 34.0
 RING_BACKGROUND = 28.0
 RING_TAPER = (22.0, 30.0)
@@ -145,7 +145,7 @@ def halo_profile(
 #: (the MAVISIM paper, sections 2-3). On the 1e5-star MAVIS frame the light at 60-100 px,
 #: measured against the 100-110 px annulus, follows ``r^(-11/3)`` fitted at 48-60 px
 #: (6.9 / 1.5e-6 predicted at 70 / 90 px, 7.3 / 1.4e-6 measured; ``r^-3``: 8.8 / 2.2e-6;
-#: docs/measure.md, "Scale", seventeenth pass).
+#: docs/measure-scale.md, seventeenth pass).
 TAIL_SLOPE = 11.0 / 3.0
 #: Radii [pix] at the profile's end to which the tail's amplitude is fitted.
 TAIL_FIT = 12.0
@@ -591,7 +591,7 @@ def stacked_residual(pixels, shape, values, model, bad, cx, cy, flux, half, reac
     each 1-px annulus, so that only the non-round part is kept; zero inside the stamp
     and beyond ``reach``. Light that a round halo model and the prior's shape maps both
     miss, the same around every bright star (PSF structure), survives the median; each
-    star's own structure and its neighbours' light do not (docs/measure.md, "Scale",
+    star's own structure and its neighbours' light do not (docs/measure-scale.md,
     sixteenth pass: on the 1e5-star MAVIS frame two random halves of the V < 15 stars
     give maps that correlate 0.94-0.97 at 5-11 px and 0.85-0.91 at 20-45 px, 0.42 at
     45-60 px).

@@ -12,7 +12,7 @@ PSF-R fit found and sampled on the detector pixels, into a *modulation* map, the
 over its own azimuthal mean in 1-px annuli. The fitter multiplies the measured radial
 profile by it (bilinear in the field between the nodes and in the offset from the
 star), so the frame keeps the radial calibration and the prior adds only the shape
-(docs/measure.md, "Scale").
+(docs/measure-scale.md).
 """
 
 from __future__ import annotations

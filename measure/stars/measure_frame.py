@@ -534,7 +534,7 @@ def neighbour_rating(frame: Frame, x0, y0, flux: np.ndarray, settings: MeasureSe
     then pass as isolated. With ``psf_star_sky_mesh = 0``, not below the flux over the
     frame's global sky (before 2026-12-03: on the 1e5-star frame that flux holds the
     unresolved crowd's light, ~7.5 x a V 24-26 star's own, and the isolation test
-    emptied the PSF-star pool; docs/measure.md, "Scale", twentieth pass).
+    emptied the PSF-star pool; docs/measure-scale.md, twentieth pass).
 
     Parameters
     ----------

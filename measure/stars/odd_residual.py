@@ -4,7 +4,7 @@ A model misfit even about the star (a width or halo error of a centred model) ra
 stamp's chi^2 without moving it; one odd about it (a neighbour's light on one side, an
 asymmetric core) pulls the fitted position. The error model inflates the position
 errors by the odd part's excess over the star's peers and the flux error by the whole
-chi^2 (:mod:`mavispm.measure.stars.error_model`; docs/measure.md, "Scale", twenty-fifth
+chi^2 (:mod:`mavispm.measure.stars.error_model`; docs/measure-scale.md, twenty-fifth
 pass).
 """
 

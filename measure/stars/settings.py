@@ -69,13 +69,13 @@ class MeasureKnobs:
         raised by the bright candidate next to it. 0: the frame's global sky instead of
         the mesh (before 2026-12-03: on the 1e5-star frame the unresolved crowd's light
         made a V 24-26 neighbour read ~7.5 x its flux and the 12-px isolation left 1,132
-        PSF stars; docs/measure.md, "Scale", twentieth pass).
+        PSF stars; docs/measure-scale.md, twentieth pass).
     psfr_star_isolation : float [pix]
         Isolation radius of the PSF-R model's PSF stars (``psf_star_isolation`` stays the
         frame-built ePSF's, whose cut-outs are ``epsf_size`` wide): the kernel and position
         fits of the PSF-R build see only the stars' fit stamps (``stamp_radius``). 8 px (12
         before 2026-12-03): on the 1e5-star frame 5,752 PSF stars instead of 1,964, enough
-        for the 5 x 5 correction grid (docs/measure.md, "Scale", twentieth pass).
+        for the 5 x 5 correction grid (docs/measure-scale.md, twentieth pass).
     psf_star_min_snr : float
         Minimum flux SNR of PSF stars.
     psf_star_max_gradient : float
@@ -101,25 +101,25 @@ class MeasureKnobs:
         to its ``psf_stars_per_node x (3 / psfr_grid)^2`` nearest PSF stars (the 3 x 3
         grid's total). "auto" (default): 5 when every node's stars lie within half a
         node spacing of it, else 3 (:func:`~mavispm.measure.stars.measure_frame.psfr_grid_for`;
-        docs/measure.md, "Scale", twentieth pass).
+        docs/measure-scale.md, twentieth pass).
     stamp_radius : int
         Fit stamp half-width [pixel].
     iterations : int
         Maximum fitter sweeps (converged stars rest: more sweeps cost only the stars
         still moving; 10 left 12.7 % of the V < 25 stars of the 1e5-star frame
-        unconverged, 40 leave 3.8 %; docs/measure.md, "Scale").
+        unconverged, 40 leave 3.8 %; docs/measure-scale.md).
     tolerance : float [pix]
         Convergence threshold on position steps.
     relative_tolerance : float
         ... or this fraction of the star's position error (0.2: on the 3e4 / 1e5-star
         NGC 3201 frames the unconverged stars fall from 6.5 / 22.5 % with 0.05 to
-        4.3 / 14.4 %, the scatter unchanged; docs/measure.md, "Scale").
+        4.3 / 14.4 %, the scatter unchanged; docs/measure-scale.md).
     chi2_tolerance : bool
         That position error is inflated by the stamp's misfit that the neighbours' light
         explains (:class:`~mavispm.measure.stars.batched_fit.FitOptions`): on the
         1e5-star frame the V < 25 stars unconverged fall from 3.7 % to 1.3 % and those
         ending > 1 px from the truth while called converged from 4.7 % to 1.9 %
-        (docs/measure.md, "Scale").
+        (docs/measure-scale.md).
     flux_refresh : bool
         After the last sweep, one pass at fixed positions refits every star's flux and
         sky against its neighbours' final models.
@@ -130,7 +130,7 @@ class MeasureKnobs:
         sees neither the halos nor the fluxes of the neighbours fitted after the star
         (:class:`~mavispm.measure.stars.batched_fit.FitOptions`). On the 1e5-star frame
         failed / not converged at V < 25 go from 1.71 / 3.85 % (one pass) to 1.70 / 1.80
-        %, the scatter 3-8 % lower at V 20-26 (docs/measure.md, "Scale", twelfth pass).
+        %, the scatter 3-8 % lower at V 20-26 (docs/measure-scale.md, twelfth pass).
     crowded_window : int
         Half-width of the fitting window of a crowded star (0: the whole stamp): one
         whose own light on its stamp outside it is below ``crowded_ratio`` times its
@@ -138,7 +138,7 @@ class MeasureKnobs:
         the 1e5-star frame failed / not converged at V < 25 2.02 / 4.55 -> 1.78 / 4.24 %,
         the V 22-26 scatter 6-9 % lower; 1e4 and 3e4 as good or better (3: 1.66 / 4.00
         %, 10-17 %, but 12 % more scatter on the misfit crowd of
-        ``tests/test_measure_crowded_convergence.py``; docs/measure.md, "Scale").
+        ``tests/test_measure_crowded_convergence.py``; docs/measure-scale.md).
     crowded_ratio : float
         That light ratio.
     check_cut_steps : bool
@@ -146,16 +146,16 @@ class MeasureKnobs:
         not converged (1) when the step it would take at the solution exceeds its
         tolerance there (:class:`~mavispm.measure.stars.batched_fit.FitOptions`): on the
         1e5-star frame 2.9 % of the V < 25 stars were called converged after one cut
-        step, 6.7 x their error from the truth (docs/measure.md, "Scale"). A last step
+        step, 6.7 x their error from the truth (docs/measure-scale.md). A last step
         held back by ``max_shift`` counts as cut (since 2026-12-03: 1.05 % of the V < 25
-        stars rested at the clamp called converged; "Scale", thirteenth pass).
+        stars rested at the clamp called converged; docs/measure-scale.md, thirteenth pass).
     bisect_reversals : bool
         A star whose position step turns back on its last one takes at most half that
         step (its trust radius shrinks; bisection), and such a bracketed step counts as
         converged when below its tolerance
         (:class:`~mavispm.measure.stars.batched_fit.FitOptions`): on the 1e5-star frame
         152 of the V < 25 stars flagged 1 stepped back and forth between two positions
-        in every sweep; with it not converged 1.74 -> 1.50 % (docs/measure.md, "Scale",
+        in every sweep; with it not converged 1.74 -> 1.50 % (docs/measure-scale.md,
         twenty-ninth pass). False: the fitter before 2026-12-04.
     max_shift : float [pix]
         Largest allowed move from the forced position.
@@ -164,19 +164,19 @@ class MeasureKnobs:
         profile measured on the frame around its brightest stars, out to
         ``halo_radius``) into the model their neighbours see, for stars where
         it peaks above this many times the sky's pixel noise; 0: off
-        (:mod:`mavispm.measure.stars.halo`; docs/measure.md, "Scale").
+        (:mod:`mavispm.measure.stars.halo`; docs/measure-scale.md).
     halo_radius : float [pix]
         Outer radius of that light.
     halo_rings : float
         Stars whose halo at 20 px exceeds this many times the sky's pixel noise (1000:
         V < 15 on the MAVIS frames) get
         their own radial correction, the residual's medians in 1-px annuli out to 30
-        px after the first pass (docs/measure.md, "Scale", eleventh pass); 0: off.
+        px after the first pass (docs/measure-scale.md, eleventh pass); 0: off.
     halo_field_radial : bool
         PSF-R model: the halo's maps also carry the prior's radial variation over the
         field (each star's own profile, not only its shape;
-        :func:`~mavispm.measure.stars.halo_shape.prior_halo_shape`; docs/measure.md,
-        "Scale", thirteenth pass).
+        :func:`~mavispm.measure.stars.halo_shape.prior_halo_shape`; docs/measure-scale.md,
+        thirteenth pass).
     halo_stack : float [pix]
         With ``halo_rings``: half-width of a 2-D map of the ring stars' common non-round
         misfit (the median over them of the residual per unit flux by pixel offset, their
@@ -184,8 +184,8 @@ class MeasureKnobs:
         ``halo_stack_stars``; 0: off. 45 px: on the 1e5-star MAVIS frame two random
         halves of the V < 15 stars give maps that correlate 0.85-0.97 out to 45 px and
         0.42 beyond; maps of 20 / 45 / 60 px onto the V < 15 stars gave 4.18 / 4.09 /
-        4.11 % failed or not converged at V < 25 (4.22 % without; docs/measure.md,
-        "Scale", sixteenth pass).
+        4.11 % failed or not converged at V < 25 (4.22 % without; docs/measure-scale.md,
+        sixteenth pass).
     halo_stack_stars : float
         The stars whose halo at 20 px exceeds this many times the sky's pixel noise get
         that map (0: every star with a halo). 20 (5,028 stars at 1e5, V < ~18.5): the
@@ -198,7 +198,7 @@ class MeasureKnobs:
         out to this radius, added at once by FFT; 0: off. 150 px: there a V 12 star's tail
         curves by about the sky's pixel noise across a stamp; at 1e5 failed or not
         converged at V < 25 3.66 % against 4.06 % without (fit alone), 150 and 250 px the
-        same within 0.01 point (docs/measure.md, "Scale", seventeenth pass).
+        same within 0.01 point (docs/measure-scale.md, seventeenth pass).
     halo_background : float [pix]
         The frame's halo profile is measured out to this radius, against the median of
         the annulus ``[halo_background, halo_background + 10)`` (its zero point), and kept
@@ -208,7 +208,7 @@ class MeasureKnobs:
         still ~80 % of that at 59 px, and the default profile (with its tail) is 76-89 % of
         the rendered light at 15-40 px and 34-46 % at 50-60 px; with 120 px and
         ``halo_saturated`` it is 95-100 % at 8-70 px, but the failed / not-converged
-        fractions move by < 0.1 point (docs/measure.md, "Scale", twenty-sixth pass: not
+        fractions move by < 0.1 point (docs/measure-scale.md, twenty-sixth pass: not
         the default). Must lie inside ``halo_tail``.
     halo_saturated : bool
         The halo profile is also measured around saturated stars (their pixels left
@@ -218,7 +218,7 @@ class MeasureKnobs:
     halo_map : float [pix]
         With ``halo_rings``: each ring star's own 2-D misfit out to this radius (block
         medians of its residual after the first pass, interpolated) added to its halo;
-        0 (the default): none (docs/measure.md, "Scale", twenty-seventh pass).
+        0 (the default): none (docs/measure-scale.md, twenty-seventh pass).
     halo_map_block : int [pix]
         Side of those median blocks (odd); with ``halo_map_arc`` the polar bins' radial
         length.
@@ -472,7 +472,7 @@ class MeasureSettings:
         the halo's share of the model light on the stamp; fast engine only;
         :func:`mavispm.measure.stars.error_model.estimate_error_model`). False: the chi^2
         ratio alone (before 2026-12-03: the stars within 60 px of a V < 15 star on the
-        1e5-star frame had errors ~7x too small; docs/measure.md, "Scale", fourteenth pass).
+        1e5-star frame had errors ~7x too small; docs/measure-scale.md, fourteenth pass).
     progress : bool
         Show progress bars.
     knobs : MeasureKnobs

@@ -57,7 +57,7 @@ def sky_mesh(frame: Frame, mesh: int) -> SkyMesh:
     256 MB traced peak (its float32 copy of the frame included; 304 MB with its default
     sigma clipping) against 0.4-0.65 s and < 5 MB here (one block row at a time), for the
     same PSF-star pool (4,332 of 4,332 at 1e4 stars, 5,752 of 5,753 at 1e5; loaded host;
-    docs/measure.md, "Scale", mesh sky). A block without usable pixels is filled as the
+    docs/measure-scale.md, mesh sky). A block without usable pixels is filled as the
     library fills it. Where the two differ, by choice:
 
     * edges: the mesh is padded by odd reflection (``2 edge - inner``) before the 3 x 3
