@@ -6,14 +6,16 @@ exists; the same prior in the fit), stars at their 3-D radii with velocities dra
 the tracer's Cuddeford DF in the model's total potential, a nested fit (100 / 0.5) with
 each velocity law, the rank of the true M_bh. The same seeds (data) for every law.
 ``null``: M_bh = 0, fitted with the models ``none`` and ``imbh`` (the stage's
-``fit_models`` and ``compare``): ln B and verdict per law.
+``fit_models`` and ``compare``): ln B and verdict per law; with ``--model imbh_dark`` the
+stage's four models (``none``, ``imbh``, ``dark``, ``imbh_dark``), the verdict between the
+best with an IMBH and the best without.
 
 Resumable: every finished fit is a JSON line; a rerun skips the (case, seed) pairs done.
 
 Usage::
 
     python benchmarks/sbc_df.py run OUT.jsonl --laws line_of_sight,gaussian,free_kurtosis \\
-        --seeds 3000:3060 [--field 15] [--stars 800] [--workers 2] [--null | --model imbh_dark]
+        --seeds 3000:3060 [--field 15] [--stars 800] [--workers 2] [--null] [--model imbh_dark]
     python benchmarks/sbc_df.py table OUT.jsonl
 """
 
@@ -41,6 +43,9 @@ LAWS = {
     "weighed": ("weighed", {"compare_velocity_laws": ("free_kurtosis", "line_of_sight")}),
 }
 
+#: the models a null fits, by ``--model``: the two of the IMBH test, or the stage's four
+NULL_MODELS = {"imbh": ("none", "imbh"), "imbh_dark": ("none", "imbh", "dark", "imbh_dark")}
+
 
 def _job(args):
     law, seed, field, n_stars, null, model = args
@@ -49,7 +54,10 @@ def _job(args):
     velocity_law, kw = LAWS[law]
     t0 = time.process_time()
     if null:
-        out = h.null_df_trial(seed, n_stars, velocity_law, field, h.SBC_DF_PRIORS, **kw)
+        models = NULL_MODELS[model]
+        out = h.null_df_trial(
+            seed, n_stars, velocity_law, field, h.SBC_DF_PRIORS, models=models, **kw
+        )
     else:
         out = h.sbc_full_trial(
             seed,
@@ -61,7 +69,9 @@ def _job(args):
             priors=h.SBC_DF_PRIORS,
             **kw,
         )
-    out.update(law=law, null=null, cpu_s=time.process_time() - t0, load=os.getloadavg()[0])
+    out.update(
+        law=law, null=null, model=model, cpu_s=time.process_time() - t0, load=os.getloadavg()[0]
+    )
     return out
 
 
@@ -203,7 +213,10 @@ def main(argv=None):
     r.add_argument("--workers", type=int, default=2)
     r.add_argument("--null", action="store_true", help="M_bh = 0, models none and imbh")
     r.add_argument(
-        "--model", default="imbh", choices=("imbh", "imbh_dark"), help="the fitted model (SBC)"
+        "--model",
+        default="imbh",
+        choices=("imbh", "imbh_dark"),
+        help="the fitted model (SBC); with --null, imbh_dark fits the stage's four models",
     )
     t = sub.add_parser("table")
     t.add_argument("out", type=Path)

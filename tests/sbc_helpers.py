@@ -504,11 +504,13 @@ def null_df_trial(
     velocity_law="line_of_sight",
     field_radius=SBC_FIELD_RADIUS,
     priors=None,
+    models=("none", "imbh"),
     **law_settings,
 ):
-    """A null draw (M_bh = 0, every other parameter from the prior) with DF velocities,
-    fitted with the models ``none`` and ``imbh`` by the stage's own ``fit_models`` and
-    ``compare`` (nested evidences, no separate kinematic evidence): ln B and verdict."""
+    """A null draw (M_bh = 0, every other parameter from the prior, no dark component)
+    with DF velocities, fitted with ``models`` (default ``none`` and ``imbh``; the stage's
+    four add ``dark`` and ``imbh_dark``) by the stage's own ``fit_models`` and ``compare``
+    (nested evidences, no separate kinematic evidence): ln B and verdict."""
     from mavispm.dynamics.fit import compare, fit_models
     from mavispm.dynamics.settings import DynamicsSettings
 
@@ -520,7 +522,7 @@ def null_df_trial(
     kw = {**SBC_FULL_SETTINGS, **priors, **law_settings}
     s = DynamicsSettings(
         **kw,
-        models=("none", "imbh"),
+        models=tuple(models),
         velocity_law=velocity_law,
         evidence=True,
         kinematic_evidence=False,
@@ -534,9 +536,11 @@ def null_df_trial(
         "field_radius": field_radius,
         "df_redraws": redraws,
         "truth": {k: float(v) for k, v in truth.items()},
+        "models": list(models),
         "ln_b": float(c.ln_bayes_factor),
         "ln_b_err": float(c.ln_bayes_factor_err),
         "verdict": c.verdict,
+        "log_z": {f.name: float(f.evidence.log_z) for f in fits},
     }
 
 
