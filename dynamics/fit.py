@@ -426,8 +426,9 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     law of ``settings.compare_velocity_laws`` (:func:`weigh_velocity_laws`); otherwise
     with ``settings.velocity_law``.
 
-    With more than one worker each model's fit and its kinematics-only evidence
-    are separate jobs, handed out longest first, so that the pool's tail is short.
+    With more than one worker each model's fit and its kinematics-only evidence (with each
+    law) are separate jobs of one process pool, handed out longest first, so that the
+    pool's tail is short.
 
     Parameters
     ----------
@@ -445,52 +446,85 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     list of ModelFit
         In the order of ``settings.models``; the result does not depend on ``workers``.
     """
+    per_law = _fit_laws(stars, settings, distance, seed, backend_stem)
+    if settings.velocity_law == WEIGHED:
+        return weigh_velocity_laws(per_law)
+    return per_law[settings.velocity_law]
+
+
+#: laws whose likelihood is a mixture over each star's depth: the dearest (on the
+#: ngc3201-nbody validation matrix 2.8-4.3x ``free_kurtosis``'s CPU per trial;
+#: docs/dynamics.md), handed out first in a shared pool
+_DEPTH_MIXTURE_LAWS = ("line_of_sight", "line_of_sight_kurtosis")
+
+
+def _fit_laws(stars, settings, distance, seed, backend_stem=None) -> dict:
+    """Each law of ``settings.laws`` fitted with every model: ``{law: [ModelFit, ...]}``.
+
+    With more than one worker every (law, model, part) is one job of a single process pool,
+    the dearest first (the depth-mixture laws, then the models with the most parameters,
+    a fit before a lone kinematics-only evidence), so that neither a law's pool start-up
+    nor its tail waits for the next law. The fits do not depend on ``workers``.
+    """
     import dataclasses
     from pathlib import Path
 
-    if settings.velocity_law == WEIGHED:
-        per_law = {}
-        for law in settings.compare_velocity_laws:
-            one = replace(settings, velocity_law=law, compare_velocity_laws=())
-            stem = None if backend_stem is None else f"{backend_stem}-{law}"
-            per_law[law] = fit_models(stars, one, distance, seed, stem)
-        return weigh_velocity_laws(per_law)
+    weighed = settings.velocity_law == WEIGHED
+    one = {
+        law: replace(settings, velocity_law=law, compare_velocity_laws=()) for law in settings.laws
+    }
 
-    def backend(m):
-        return None if backend_stem is None else Path(f"{backend_stem}-{m}.h5")
+    def backend(law, m):
+        if backend_stem is None:
+            return None
+        return Path(f"{backend_stem}-{law}-{m}.h5" if weighed else f"{backend_stem}-{m}.h5")
 
     workers = int(settings.workers)
-    if workers <= 1 or len(settings.models) * (1 + _separate_kinematic_evidence(settings)) <= 1:
-        return [fit_model(stars, settings, distance, m, seed, backend(m)) for m in settings.models]
+    parts = ("fit", "kinematic") if _separate_kinematic_evidence(settings) else ("fit",)
+    if workers <= 1 or len(one) * len(settings.models) * len(parts) <= 1:
+        return {
+            law: [fit_model(stars, s, distance, m, seed, backend(law, m)) for m in s.models]
+            for law, s in one.items()
+        }
     import concurrent.futures as cf
     import multiprocessing as mp
 
-    quiet = dataclasses.replace(settings, progress=False)  # no bars from worker processes
-    parts = ("fit", "kinematic") if _separate_kinematic_evidence(settings) else ("fit",)
     jobs = [
-        (stars, quiet, distance, m, seed, backend(m), part)
-        for m in settings.models
+        (stars, dataclasses.replace(s, progress=False), distance, m, seed, backend(law, m), part)
+        for law, s in one.items()
+        for m in s.models
         for part in parts
-    ]
-    # the longest jobs (most parameters; an emcee fit before a lone evidence) first
-    order = sorted(range(len(jobs)), key=lambda i: (-_n_extra(jobs[i][3]), jobs[i][6]))
+    ]  # no bars from worker processes
+    order = sorted(
+        range(len(jobs)),
+        key=lambda i: (
+            jobs[i][1].velocity_law not in _DEPTH_MIXTURE_LAWS,
+            -_n_extra(jobs[i][3]),
+            jobs[i][6],
+        ),
+    )
     with cf.ProcessPoolExecutor(
         min(workers, len(jobs)), mp_context=mp.get_context("spawn")
     ) as pool:
         futures = {i: pool.submit(_fit_part, jobs[i]) for i in order}
-        results = {(jobs[i][3], jobs[i][6]): futures[i].result() for i in order}
-    fits = []
-    for m in settings.models:
-        fit = results[(m, "fit")]
-        if "kinematic" in parts:
-            evid_kin, wall_kin = results[(m, "kinematic")]
-            fit = dataclasses.replace(
-                fit,
-                evidence_kinematic=evid_kin,
-                wall_s={**fit.wall_s, "evidence_kinematic": wall_kin},
-            )
-        fits.append(fit)
-    return fits
+        done = {
+            (jobs[i][1].velocity_law, jobs[i][3], jobs[i][6]): futures[i].result() for i in order
+        }
+    per_law = {}
+    for law, s in one.items():
+        fits = []
+        for m in s.models:
+            fit = done[(law, m, "fit")]
+            if "kinematic" in parts:
+                evid_kin, wall_kin = done[(law, m, "kinematic")]
+                fit = dataclasses.replace(
+                    fit,
+                    evidence_kinematic=evid_kin,
+                    wall_s={**fit.wall_s, "evidence_kinematic": wall_kin},
+                )
+            fits.append(fit)
+        per_law[law] = fits
+    return per_law
 
 
 def _mean_evidence(evids: list) -> EvidenceResult:

@@ -276,9 +276,10 @@ def test_nested_posterior_reports_results_with_kinematic_evidence(pm_file, tmp_p
 
 
 def test_fit_models_in_worker_processes_equals_serial():
-    """Two worker processes (each model's fit and its kinematics-only evidence as separate
-    jobs) give the same evidences, posterior samples and kinematics-only evidences as one
-    process: the split of the work changes nothing but its schedule."""
+    """Two worker processes (each law's fit of each model and its kinematics-only evidence
+    as separate jobs of one pool) give the same evidences, posterior samples and
+    kinematics-only evidences, law by law, as one process: the split of the work changes
+    nothing but its schedule."""
     from dynamics_helpers import mock_pm_stars
 
     from mavispm.dynamics.fit import fit_models
@@ -307,6 +308,13 @@ def test_fit_models_in_worker_processes_equals_serial():
         assert a.evidence_kinematic is not a.evidence
         np.testing.assert_array_equal(a.chain.samples, b.chain.samples)
         assert set(b.wall_s) == {"evidence", "evidence_kinematic"}
+        # the default weighs two laws: every (law, model, part) a job of the one pool
+        assert [f.likelihood.velocity_law for f in b.law_fits] == list(s.laws)
+        assert len(s.laws) == 2
+        for la, lb in zip(a.law_fits, b.law_fits, strict=True):
+            assert la.evidence.log_z == lb.evidence.log_z
+            assert la.evidence_kinematic.log_z == lb.evidence_kinematic.log_z
+            np.testing.assert_array_equal(la.chain.samples, lb.chain.samples)
 
 
 def test_verdict_words_follow_kass_raftery_and_quote_the_error():
