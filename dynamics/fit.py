@@ -636,6 +636,10 @@ class Comparison:
         ``imbh`` against ``dark``.
     imbh_extended_indistinguishable : bool
         A dark centre is favoured but an IMBH and an extended one are not told apart.
+    dark_radius_at_prior_edge : bool
+        The ``dark`` model's scale radius (posterior median) lies within
+        :data:`DARK_EDGE_DEX` of the lower edge of its prior: its "extended" component is as
+        compact as the prior allows, below what the stars resolve.
     delta_ln_likelihood, delta_aic, delta_bic : float
         Best with minus best without an IMBH.
     savage_dickey_ln_b : float
@@ -660,6 +664,7 @@ class Comparison:
     ln_b_dark_centre: float = np.nan
     ln_b_imbh_vs_extended: float = np.nan
     imbh_extended_indistinguishable: bool = False
+    dark_radius_at_prior_edge: bool = False
     delta_ln_likelihood: float = np.nan
     delta_aic: float = np.nan
     delta_bic: float = np.nan
@@ -672,6 +677,11 @@ class Comparison:
     def as_attrs(self) -> dict:
         """Root attributes for the dynamics product."""
         return dict(self.__dict__)
+
+
+#: how close [dex] to the lower edge of its prior the ``dark`` model's scale radius must
+#: sit to count as unresolved (a tenth of the default prior's 2 dex)
+DARK_EDGE_DEX = 0.2
 
 
 def _best(fits, key="evidence"):
@@ -760,6 +770,11 @@ def compare(fits, bh_mass_max: float, ambiguous_ln_b: float = 1.0) -> Comparison
         if bd is not None and np.isfinite(_ln_z(fits, "none")):
             out.ln_b_dark_centre = bd[1] - _ln_z(fits, "none")
     out.ln_b_imbh_vs_extended = _ln_z(fits, "imbh") - _ln_z(fits, "dark")
+    dark = next((f for f in fits if f.name == "dark"), None)
+    if dark is not None and "log_dark_radius" in dark.space.names:
+        i = dark.space.index("log_dark_radius")
+        median = float(np.median(dark.chain.samples[:, i]))
+        out.dark_radius_at_prior_edge = bool(median - dark.space.params[i].lo < DARK_EDGE_DEX)
     ml1 = max((f.criteria["max_log_like"] for f in with_bh), default=np.nan)
     ml0 = max((f.criteria["max_log_like"] for f in without), default=np.nan)
     out.delta_ln_likelihood = ml1 - ml0
@@ -843,4 +858,18 @@ def _verdict(c: Comparison, unconverged, thr: float):
     else:
         word = "undecided"
         head = f"the data cannot decide whether there is an IMBH (ln B = {lnb:.2f}{err})"
+    dark_best = c.best_model_without_imbh == "dark" and c.best_model == "dark"
+    if word != "imbh" and dark_best and c.ln_b_dark_centre > thr:
+        # "no IMBH" must not read as "no dark centre": say what the data do favour
+        text = (
+            f"a dark central mass is favoured over none (ln B = {c.ln_b_dark_centre:.2f}), "
+            "spread in an extended dark component rather than a point mass"
+        )
+        if c.dark_radius_at_prior_edge:
+            text += (
+                ", but that component is as compact as its prior allows (its scale radius "
+                "at the prior's lower edge, below what the stars resolve): whether the compact "
+                "dark mass is an IMBH rests on the few innermost stars"
+            )
+        parts.append(text)
     return word, "; ".join([head + kin_txt, *parts])
