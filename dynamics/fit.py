@@ -858,8 +858,7 @@ def _verdict(c: Comparison, unconverged, thr: float):
     else:
         word = "undecided"
         head = f"the data cannot decide whether there is an IMBH (ln B = {lnb:.2f}{err})"
-    dark_best = c.best_model_without_imbh == "dark" and c.best_model == "dark"
-    if word != "imbh" and dark_best and c.ln_b_dark_centre > thr:
+    if word != "imbh" and c.best_model == "dark" and c.ln_b_dark_centre > thr:
         # "no IMBH" must not read as "no dark centre": say what the data do favour
         text = (
             f"a dark central mass is favoured over none (ln B = {c.ln_b_dark_centre:.2f}), "
