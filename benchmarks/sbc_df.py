@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mavispm.dynamics.settings import DynamicsSettings
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 #: law names of this script: the package's, plus the radial free-kurtosis profile
@@ -44,7 +46,7 @@ LAWS = {
 }
 
 #: the models a null fits, by ``--model``: the two of the IMBH test, or the stage's four
-NULL_MODELS = {"imbh": ("none", "imbh"), "imbh_dark": ("none", "imbh", "dark", "imbh_dark")}
+NULL_MODELS = {"imbh": ("none", "imbh"), "imbh_dark": DynamicsSettings.models}
 
 
 def _job(args):

@@ -466,7 +466,6 @@ def _fit_laws(stars, settings, distance, seed, backend_stem=None) -> dict:
     a fit before a lone kinematics-only evidence), so that neither a law's pool start-up
     nor its tail waits for the next law. The fits do not depend on ``workers``.
     """
-    import dataclasses
     from pathlib import Path
 
     weighed = settings.velocity_law == WEIGHED
@@ -490,7 +489,7 @@ def _fit_laws(stars, settings, distance, seed, backend_stem=None) -> dict:
     import multiprocessing as mp
 
     jobs = [
-        (stars, dataclasses.replace(s, progress=False), distance, m, seed, backend(law, m), part)
+        (stars, replace(s, progress=False), distance, m, seed, backend(law, m), part)
         for law, s in one.items()
         for m in s.models
         for part in parts
@@ -517,7 +516,7 @@ def _fit_laws(stars, settings, distance, seed, backend_stem=None) -> dict:
             fit = done[(law, m, "fit")]
             if "kinematic" in parts:
                 evid_kin, wall_kin = done[(law, m, "kinematic")]
-                fit = dataclasses.replace(
+                fit = replace(
                     fit,
                     evidence_kinematic=evid_kin,
                     wall_s={**fit.wall_s, "evidence_kinematic": wall_kin},
