@@ -6,8 +6,8 @@
 
 Each row is one model's nested-sampling fit (``validation_settings``, no kinematics-only
 evidence) to one ``ngc3201-nbody`` catalogue with an IMBH of ``--mass`` solMass (1500 by
-default; luminous stars
-inside 15", true motions plus 15 microarcsec/yr errors), from the validation matrix's
+default; luminous stars inside 15", true motions plus 15 microarcsec/yr errors), fitted
+with the velocity law ``--law`` (``free_kurtosis`` by default), from the validation matrix's
 observer's footing (``observer_priors``: centre, distance and scale-radius prior means
 drawn about the literature values). ``--scale-prior-mean`` moves every trial's
 scale-radius prior mean by the same amount, so that its mean is the given log10 a
@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from mavispm.dynamics.likelihood import VELOCITY_LAWS
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
@@ -132,7 +134,9 @@ def main(argv=None) -> None:
     run.add_argument("--models", default="imbh,imbh_dark")
     run.add_argument("--scale-prior-mean", type=float, default=None)
     run.add_argument("--mass", type=float, default=DEFAULT_MASS, help="IMBH mass [solMass]")
-    run.add_argument("--law", default="free_kurtosis", help="velocity law of every fit")
+    run.add_argument(
+        "--law", default="free_kurtosis", choices=VELOCITY_LAWS, help="velocity law of every fit"
+    )
     tab = sub.add_parser("table", help="print the summary")
     tab.add_argument("paths", type=Path, nargs="+")
     args = ap.parse_args(argv)
