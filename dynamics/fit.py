@@ -24,7 +24,7 @@ from mavispm.dynamics.evidence import (
     run_dynesty,
     savage_dickey,
 )
-from mavispm.dynamics.likelihood import DiscreteLikelihood, StarSample
+from mavispm.dynamics.likelihood import DEPTH_MIXTURE_LAWS, DiscreteLikelihood, StarSample
 from mavispm.dynamics.parameters import Parameter, ParameterSpace
 from mavispm.dynamics.sampling import ChainResult, run_emcee, summarise
 from mavispm.dynamics.settings import MODELS, WEIGHED, DynamicsSettings
@@ -452,12 +452,6 @@ def fit_models(stars, settings, distance, seed, backend_stem=None) -> list:
     return per_law[settings.velocity_law]
 
 
-#: laws whose likelihood is a mixture over each star's depth: the dearest (on the
-#: ngc3201-nbody validation matrix 2.8-4.3x ``free_kurtosis``'s CPU per trial;
-#: docs/dynamics.md), handed out first in a shared pool
-_DEPTH_MIXTURE_LAWS = ("line_of_sight", "line_of_sight_kurtosis")
-
-
 def _fit_laws(stars, settings, distance, seed, backend_stem=None) -> dict:
     """Each law of ``settings.laws`` fitted with every model: ``{law: [ModelFit, ...]}``.
 
@@ -497,7 +491,7 @@ def _fit_laws(stars, settings, distance, seed, backend_stem=None) -> dict:
     order = sorted(
         range(len(jobs)),
         key=lambda i: (
-            jobs[i][1].velocity_law not in _DEPTH_MIXTURE_LAWS,
+            jobs[i][1].velocity_law not in DEPTH_MIXTURE_LAWS,
             -_n_extra(jobs[i][3]),
             jobs[i][6],
         ),

@@ -65,6 +65,7 @@ from mavispm.dynamics.tracers import make_tracer
 
 __all__ = [
     "VELOCITY_LAWS",
+    "DEPTH_MIXTURE_LAWS",
     "DiscreteLikelihood",
     "PC_PER_ARCSEC_KPC",
     "StarSample",
@@ -76,6 +77,10 @@ _LN_2PI = np.log(2.0 * np.pi)
 _GL16 = np.polynomial.legendre.leggauss(16)
 #: Proper-motion distributions of a star at a projected radius (see DiscreteLikelihood).
 VELOCITY_LAWS = ("line_of_sight", "gaussian", "free_kurtosis", "line_of_sight_kurtosis")
+#: The laws whose likelihood is a mixture over each star's depth on the line of sight (the
+#: dearest: on the ngc3201-nbody validation matrix 2.8-4.3x ``free_kurtosis``'s CPU per
+#: trial; docs/dynamics.md).
+DEPTH_MIXTURE_LAWS = ("line_of_sight", "line_of_sight_kurtosis")
 
 
 @dataclass(frozen=True)
@@ -619,7 +624,7 @@ class DiscreteLikelihood:
         if offset >= 0.5 * self.stars.field_radius:
             return -np.inf
         ln_a = np.log(10.0) * log_a
-        if self.velocity_law in ("line_of_sight", "line_of_sight_kurtosis"):
+        if self.velocity_law in DEPTH_MIXTURE_LAWS:
             mix_w, s2_r, s2_t, ln_sig, ln_proj = self.line_of_sight_on_grid(theta)
             lnl, ln_sigma_stars = self._mixture_sums(theta, ln_a, mix_w, s2_r, s2_t, ln_sig)
         else:
