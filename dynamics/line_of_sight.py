@@ -46,7 +46,7 @@ from scipy.special import logsumexp
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
 from mavispm.dynamics.jeans_kernel import _floor, _project_row, jeans_columns
-from mavispm.dynamics.star_sums import cubic_point_weights, stars_about
+from mavispm.dynamics.star_sums import cubic_point_weights, stars_about, sum4
 from mavispm.dynamics.vector_exp import exp_nonpositive
 
 __all__ = [
@@ -237,24 +237,6 @@ def _component_table(mix_w, s2_r, s2_t):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
-def _sum4(x, n):  # pragma: no cover - compiled
-    """Sum of ``x[:n]`` in four interleaved partial sums (four independent addition chains
-    instead of one: the same sum to rounding, a quarter of the latency)."""
-    t0 = t1 = t2 = t3 = 0.0
-    k = 0
-    while k + 4 <= n:
-        t0 += x[k]
-        t1 += x[k + 1]
-        t2 += x[k + 2]
-        t3 += x[k + 3]
-        k += 4
-    while k < n:
-        t0 += x[k]
-        k += 1
-    return (t0 + t1) + (t2 + t3)
-
-
-@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
 def _star_terms(buf, n_k, tk, v2r, v2t, e2r, e2t):  # pragma: no cover - compiled
     """One star's mixture terms from its interpolated components ``buf`` (weights,
     ``s_R^2``, ``s_T^2`` side by side; errors added here).
@@ -262,7 +244,8 @@ def _star_terms(buf, n_k, tk, v2r, v2t, e2r, e2t):  # pragma: no cover - compile
     On return ``buf`` holds the weights clipped at zero, the exponents
     ``-(v_R^2 / V_R + v_T^2 / V_T) / 2`` and the amplitudes ``w / sqrt(V_R V_T)``, and
     ``tk`` the terms ``amplitude * exp(exponent)`` (the caller sums ``tk`` and the
-    weights with :func:`_sum4`: with the sums in the caller the star loop ran ~10% faster).
+    weights with :func:`~mavispm.dynamics.star_sums.sum4`: with the sums in the caller the star
+    loop ran ~10% faster).
 
     The loops are branch-free and free of reductions, with one division per component
     (``1 / (V_R V_T)``, each variance floored at ``_LEAST_VARIANCE`` so that the
@@ -338,7 +321,7 @@ def mixture_ln_densities(u, x0, step, mix_w, s2_r, s2_t, v2, e2):  # pragma: no 
         j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
         _interpolate_rows(w0, w1, w2, w3, j, table, buf)
         _star_terms(buf, n_k, tk, v2[0, i], v2[1, i], e2[0, i], e2[1, i])
-        total, wsum = _sum4(tk, n_k), _sum4(buf, n_k)
+        total, wsum = sum4(tk, n_k), sum4(buf, n_k)
         if not wsum > 0.0:
             out[i] = -np.inf
         elif total > _UNDERFLOW:
@@ -433,7 +416,7 @@ def mixture_star_sums(u, x0, step, mix_w, s2_r, s2_t, ln_sig, v2, e2):  # pragma
             j = rows_s[i]
             _interpolate_rows(lw[0, i], lw[1, i], lw[2, i], lw[3, i], j, table, buf)
             _star_terms(buf, n_k, tk, v2s[0, i], v2s[1, i], e2s[0, i], e2s[1, i])
-            ln_acc += _ln_underflowed(buf, n_k) - np.log(_sum4(buf, n_k))
+            ln_acc += _ln_underflowed(buf, n_k) - np.log(sum4(buf, n_k))
             continue
         f = total[i] / wsum[i]
         if not 1e-100 <= f <= 1e100:  # also NaN: logged, and it propagates

@@ -33,10 +33,12 @@ stops the kurtosis at ~2.4, so it was not used; docs/dynamics.md.)
 Radial dependence (``kappa_inner``, ``kappa_outer``): ``kappa`` is linear in ``ln R``
 between two anchor radii and constant outside them (one global ``kappa``: equal values).
 
-:func:`shape_star_sums` is the compiled per-star loop (the counterpart of
+:func:`shape_star_sums` is the compiled sum over the stars (the counterpart of
 :func:`mavispm.dynamics.star_sums.star_sums`, with its ``chi`` convention:
-``ln L_kin = -chi / 2 - N ln 2 pi``); :func:`shape_star_sums_numpy` its numpy
-reference; :func:`shape_density` the density of one component.
+``ln L_kin = -chi / 2 - N ln 2 pi``), branch-free so that it runs on the vector units (the
+pair's ``-2 ln cosh`` as ``-2 |v| mu / W - 2 ln[(1 + exp(-2 |v| mu / W)) / 2]``, which
+cannot overflow); :func:`shape_star_sums_numpy` its numpy reference; :func:`shape_density`
+the density of one component.
 """
 
 from __future__ import annotations
@@ -47,7 +49,8 @@ import numba
 import numpy as np
 
 from mavispm.dynamics.interpolation import cubic_weights, interpolate
-from mavispm.dynamics.star_sums import cubic_point_weights, fold_log, stars_about
+from mavispm.dynamics.star_sums import cubic_point_weights, stars_about, sum4
+from mavispm.dynamics.vector_exp import exp_bounded, exp_nonpositive, log_positive
 
 __all__ = [
     "KAPPA_LIMITS",
@@ -155,37 +158,131 @@ def _component(v2, s2, e2, kappa):  # pragma: no cover - compiled
     return w / (c * c), (v2 + mu2) / w, 0.0
 
 
+#: Floor of a component's variance factor ``q`` [(mas/yr)^2] before two are multiplied
+#: (as the line-of-sight law's ``_LEAST_VARIANCE``): their product stays a normal double.
+_LEAST_FACTOR = 1e-150
+
+
+@numba.njit(nogil=True, cache=True, inline="always", fastmath={"contract"}, error_model="numpy")
+def _scale_factor(v2, s2, e2, k):  # pragma: no cover - compiled
+    """``(q, x)`` of one component of the scale mixture (``kappa >= 0``, ``k = sqrt(kappa
+    / 3)``): ``-2 ln p - ln 2 pi = ln q + x`` with ``q = B / Q^2``, ``x = v^2 / B``,
+    ``Q = (1 + sqrt(B / A) exp(-v^2 (1/A - 1/B) / 2)) / 2``; branch-free (vectorises)."""
+    a = (1.0 - k) * s2 + e2
+    b = (1.0 + k) * s2 + e2
+    ia = 1.0 / a
+    ib = 1.0 / b
+    q = 0.5 * (1.0 + np.sqrt(b * ia) * exp_nonpositive(-0.5 * v2 * (ia - ib)))
+    f = b / (q * q)
+    return (_LEAST_FACTOR if f < _LEAST_FACTOR else f), v2 * ib  # NaN propagates
+
+
+@numba.njit(nogil=True, cache=True, inline="always", fastmath={"contract"}, error_model="numpy")
+def _pair_factor(v2, s2, e2, m):  # pragma: no cover - compiled
+    """``(q, x)`` of one component of the displaced pair (``kappa < 0``, ``m = sqrt(-kappa
+    / 2)``): ``-2 ln p - ln 2 pi = ln q + x`` with ``q = 4 W / (1 + exp(-2 |v| mu / W))^2``
+    and ``x = (|v| - mu)^2 / W`` (``-2 ln cosh`` written without overflow); branch-free."""
+    mu = np.sqrt(m * s2)
+    w = (1.0 - m) * s2 + e2
+    iw = 1.0 / w
+    av = np.sqrt(v2)
+    d = av - mu
+    h = 1.0 + exp_nonpositive(-2.0 * av * mu * iw)
+    f = 4.0 * w / (h * h)
+    return (_LEAST_FACTOR if f < _LEAST_FACTOR else f), d * d * iw
+
+
+@numba.njit(nogil=True, cache=True, error_model="numpy")
+def _star_values(
+    u, ln_a, x0, step, ln_s2, ln_sig, kappa_par, ln_s2r, ln_s2t, kappa, lsig
+):  # pragma: no cover - compiled
+    """Each star's interpolated ``ln s^2`` (radial, tangential), ``kappa`` and ln surface
+    density (cubic weights of :func:`~mavispm.dynamics.star_sums.cubic_point_weights`)."""
+    n = ln_sig.size
+    k_in, k_out, t_lo, t_hi = kappa_par[0], kappa_par[1], kappa_par[2], kappa_par[3]
+    dk = k_out - k_in
+    inv = 1.0 / (t_hi - t_lo)
+    row_r = ln_s2[0]
+    row_t = ln_s2[1]
+    for i in range(u.size):
+        j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
+        # unsigned indices (j >= 1): no negative-index wraparound checks in the loads
+        k0 = np.uint64(j - 1)
+        k1, k2, k3 = k0 + np.uint64(1), k0 + np.uint64(2), k0 + np.uint64(3)
+        ln_s2r[i] = w0 * row_r[k0] + w1 * row_r[k1] + w2 * row_r[k2] + w3 * row_r[k3]
+        ln_s2t[i] = w0 * row_t[k0] + w1 * row_t[k1] + w2 * row_t[k2] + w3 * row_t[k3]
+        lsig[i] = w0 * ln_sig[k0] + w1 * ln_sig[k1] + w2 * ln_sig[k2] + w3 * ln_sig[k3]
+        kappa[i] = k_in + dk * min(max((u[i] + ln_a - t_lo) * inv, 0.0), 1.0)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _scale_terms(v2r, v2t, e2r, e2t, ln_s2r, ln_s2t, kappa, out):  # pragma: no cover
+    """Each star's ``-2 ln p - 2 ln 2 pi`` (both components) where every ``kappa >= 0``."""
+    for i in range(out.size):
+        k = np.sqrt(kappa[i] * (1.0 / 3.0))
+        qr, xr = _scale_factor(v2r[i], exp_bounded(ln_s2r[i]), e2r[i], k)
+        qt, xt = _scale_factor(v2t[i], exp_bounded(ln_s2t[i]), e2t[i], k)
+        out[i] = log_positive(qr * qt) + xr + xt
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _pair_terms(v2r, v2t, e2r, e2t, ln_s2r, ln_s2t, kappa, out):  # pragma: no cover
+    """Each star's ``-2 ln p - 2 ln 2 pi`` (both components) where every ``kappa < 0``."""
+    for i in range(out.size):
+        m = np.sqrt(-0.5 * kappa[i])
+        qr, xr = _pair_factor(v2r[i], exp_bounded(ln_s2r[i]), e2r[i], m)
+        qt, xt = _pair_factor(v2t[i], exp_bounded(ln_s2t[i]), e2t[i], m)
+        out[i] = log_positive(qr * qt) + xr + xt
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def _mixed_terms(v2r, v2t, e2r, e2t, ln_s2r, ln_s2t, kappa, out):  # pragma: no cover
+    """As :func:`_scale_terms` for ``kappa`` of either sign: both forms, one selected per
+    star (twice the arithmetic, still branch-free)."""
+    for i in range(out.size):
+        kp = kappa[i]
+        k = np.sqrt(max(kp, 0.0) * (1.0 / 3.0))
+        m = np.sqrt(max(-kp, 0.0) * 0.5)
+        s2r = exp_bounded(ln_s2r[i])
+        s2t = exp_bounded(ln_s2t[i])
+        qr, xr = _scale_factor(v2r[i], s2r, e2r[i], k)
+        qt, xt = _scale_factor(v2t[i], s2t, e2t[i], k)
+        pr, yr = _pair_factor(v2r[i], s2r, e2r[i], m)
+        pt, yt = _pair_factor(v2t[i], s2t, e2t[i], m)
+        neg = kp < 0.0
+        out[i] = log_positive(pr * pt if neg else qr * qt) + (yr + yt if neg else xr + xt)
+
+
 @numba.njit(nogil=True, cache=True)
 def shape_star_sums(u, ln_a, x0, step, ln_s2, ln_sig, v2, e2, kappa_par):  # pragma: no cover
-    """Fused :func:`shape_star_sums_numpy` (same arguments and results).
+    """Compiled :func:`shape_star_sums_numpy` (same arguments and results to rounding).
 
-    The ``ln q`` terms are summed as the logarithm of running products, as in
-    :func:`mavispm.dynamics.star_sums.star_sums`.
+    Two passes over the stars: their interpolated values (:func:`_star_values`), then
+    their terms in a branch-free loop (:func:`_scale_terms`, :func:`_pair_terms` or, where
+    ``kappa`` changes sign over the stars, :func:`_mixed_terms`) that runs on the vector
+    units, with the two components' ``ln q`` in one logarithm; each ``q`` is floored at
+    ``_LEAST_FACTOR`` (1e-150 (mas/yr)^2, far below any dispersion).
     """
     n = ln_sig.size
     if n < 4 or ln_s2.shape[1] != n:
         raise ValueError("shape_star_sums needs ln_s2 (2, n) and ln_sig (n,) with n >= 4")
-    k_in, k_out, t_lo, t_hi = kappa_par[0], kappa_par[1], kappa_par[2], kappa_par[3]
-    dk = k_out - k_in
-    inv = 1.0 / (t_hi - t_lo)
-    chi = 0.0
-    lsig = 0.0
-    prod = 1.0
-    ln_acc = 0.0
-    for i in range(u.size):
-        j, w0, w1, w2, w3 = cubic_point_weights(u[i], x0, step, n)
-        k0 = np.uint64(j - 1)
-        k1, k2, k3 = k0 + np.uint64(1), k0 + np.uint64(2), k0 + np.uint64(3)
-        t = min(max((u[i] + ln_a - t_lo) * inv, 0.0), 1.0)
-        kappa = k_in + dk * t
-        for c in range(2):
-            row = ln_s2[c]
-            ln_v = w0 * row[k0] + w1 * row[k1] + w2 * row[k2] + w3 * row[k3]
-            q, x, extra = _component(v2[c, i], np.exp(ln_v), e2[c, i], kappa)
-            chi += x + extra
-            prod, ln_acc = fold_log(q, prod, ln_acc)
-        lsig += w0 * ln_sig[k0] + w1 * ln_sig[k1] + w2 * ln_sig[k2] + w3 * ln_sig[k3]
-    return chi + ln_acc + np.log(prod), lsig
+    size = u.size
+    ln_s2r = np.empty(size)
+    ln_s2t = np.empty(size)
+    kappa = np.empty(size)
+    lsig = np.empty(size)
+    out = np.empty(size)
+    _star_values(u, ln_a, x0, step, ln_s2, ln_sig, kappa_par, ln_s2r, ln_s2t, kappa, lsig)
+    terms = (v2[0], v2[1], e2[0], e2[1], ln_s2r, ln_s2t, kappa, out)
+    if kappa_par[0] >= 0.0 and kappa_par[1] >= 0.0:
+        _scale_terms(*terms)
+    elif kappa_par[0] < 0.0 and kappa_par[1] < 0.0:
+        _pair_terms(*terms)
+    elif kappa_par[0] == kappa_par[0] and kappa_par[1] == kappa_par[1]:
+        _mixed_terms(*terms)
+    else:  # NaN kappa: NaN, as every other NaN parameter
+        return np.nan, sum4(lsig, size)
+    return sum4(out, size), sum4(lsig, size)
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")

@@ -110,6 +110,36 @@ def test_compiled_sums_equal_numpy_reference_and_direct_density(kpar):
     np.testing.assert_allclose(kappa_at(u + ln_a, *kpar), kappa, rtol=1e-14)
 
 
+def test_compiled_sums_far_in_the_pairs_tails_and_nan_kappa():
+    """Where ``|v| mu / W`` is far beyond ``cosh``'s range (the pair of a star with a tiny
+    error at a strongly negative kappa) the compiled sums equal the log-space density
+    ``ln W - 2 logaddexp(-(|v| - mu)^2 / 2W, -(|v| + mu)^2 / 2W) + 2 ln 2`` (no overflow);
+    a NaN kappa gives a NaN sum, as any NaN parameter."""
+    n = 64
+    rng = np.random.default_rng(11)
+    u = rng.uniform(-2.0, 0.5, n)
+    ln_s2 = np.full((2, 40), np.log(4.0))
+    ln_sig = np.zeros(40)
+    v2 = rng.uniform(1.0, 16.0, (2, n))
+    e2 = np.full((2, n), 1e-6)
+    kappa = -1.99
+    kpar = np.array([kappa, kappa, 0.0, 1.0])
+    got, _ = shape_star_sums(u, 0.3, -7.0, 0.25, ln_s2, ln_sig, v2, e2, kpar)
+    m = np.sqrt(-kappa / 2.0)
+    mu, w = np.sqrt(m * 4.0), (1.0 - m) * 4.0 + 1e-6
+    av = np.sqrt(v2)
+    assert np.max(av * mu / w) > 300.0
+    ref = np.sum(
+        np.log(w)
+        - 2 * np.logaddexp(-((av - mu) ** 2) / (2 * w), -((av + mu) ** 2) / (2 * w))
+        + 2 * np.log(2.0)
+    )
+    assert np.isfinite(got)
+    assert got == pytest.approx(ref, rel=1e-12)
+    nan_par = np.array([np.nan, np.nan, 0.0, 1.0])
+    assert np.isnan(shape_star_sums(u, 0.3, -7.0, 0.25, ln_s2, ln_sig, v2, e2, nan_par)[0])
+
+
 def test_compiled_sums_about_a_moved_centre():
     """shape_star_sums_about == stars_about then shape_star_sums."""
     rng = np.random.default_rng(4)
