@@ -67,6 +67,7 @@ def run_dynesty(
     progress: bool = False,
     target: Callable[[np.ndarray], float] | None = None,
     n_draws: int = 4000,
+    walks: int = 0,
 ):
     """Evidence of one model with dynesty's static nested sampler.
 
@@ -91,6 +92,9 @@ def run_dynesty(
         The likelihood wanted, when ``loglike`` is its cheap proposal.
     n_draws : int
         Proposal posterior draws reweighted to ``target``.
+    walks : int
+        Random-walk steps per new live point where dynesty's own choice of sampler is the
+        random walk (10-20 parameters); 0: dynesty's default, ``ndim + 20``.
     """
     import dynesty
 
@@ -98,17 +102,21 @@ def run_dynesty(
         val = loglike(v)
         return val if np.isfinite(val) else -1e300
 
+    ndim = len(space)
+    # dynesty's "auto" random walk takes ndim + 20 steps and ignores ``walks``: name it
+    steps = {"sample": "rwalk", "walks": int(walks)} if walks and 10 <= ndim <= 20 else {}
     sampler = dynesty.NestedSampler(
         ll,
         space.from_unit,
-        len(space),
+        ndim,
         nlive=nlive,
         rstate=np.random.default_rng(seed),
+        **steps,
     )
     sampler.run_nested(dlogz=dlogz, print_progress=progress)
     res = sampler.results
     if target is not None:
-        return _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws)
+        return _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws, walks)
     return EvidenceResult(
         log_z=float(res.logz[-1]),
         log_z_err=float(res.logzerr[-1]),
@@ -119,7 +127,7 @@ def run_dynesty(
     )
 
 
-def _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws):
+def _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws, walks):
     """The proposal run ``res`` reweighted to ``target``, or a direct run of ``target`` when
     the reweighting is unreliable (Pareto shape > :data:`~mavispm.dynamics.reweighting.K_MAX`)."""
     from mavispm.dynamics.reweighting import K_MAX, reweight_samples
@@ -129,7 +137,9 @@ def _reweighted(res, space, target, seed, nlive, dlogz, progress, n_draws):
     pick = rng.choice(logw.size, size=n_draws, replace=True, p=np.exp(logw) / np.exp(logw).sum())
     rw = reweight_samples(res.samples[pick], res.logl[pick], target, rng)
     if not rw["pareto_k"] <= K_MAX:
-        direct = run_dynesty(target, space, seed, nlive=nlive, dlogz=dlogz, progress=progress)
+        direct = run_dynesty(
+            target, space, seed, nlive=nlive, dlogz=dlogz, progress=progress, walks=walks
+        )
         direct.n_calls += int(np.sum(res.ncall)) + rw["n_calls"]
         direct.pareto_k = rw["pareto_k"]
         return direct

@@ -464,7 +464,7 @@ def sbc_full_trial(
     truth, df, redraws = draw_truth(truth_space, rng, velocities)
     stars = draw_sample(truth, n_stars, rng, velocities, field_radius, df)
     like = make_likelihood(stars, space, s, SBC_DISTANCE)
-    evid = run_dynesty(like, space, seed, nlive=s.nlive, dlogz=s.dlogz)
+    evid = run_dynesty(like, space, seed, nlive=s.nlive, dlogz=s.dlogz, walks=s.walks)
     chain = nested_chain(evid, space)
     pick = np.linspace(0, chain.samples.shape[0] - 1, n_ranks).astype(int)
     ranks = {

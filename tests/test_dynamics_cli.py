@@ -173,6 +173,28 @@ def test_dynesty_evidence_of_gaussian_likelihood():
     assert res.samples.shape[1] == 2 and abs(np.std(res.samples[:, 0]) - 1) < 0.2
 
 
+def test_dynesty_walks_sets_the_random_walk_and_keeps_the_evidence():
+    """``walks`` (DynamicsKnobs): in 12 dimensions (dynesty's random walk) the calls scale
+    with it, and ln Z of a unit Gaussian in a [-5, 5]^12 prior stays its analytic
+    ``-12 ln 10`` with 12 or with dynesty's own ndim + 20 = 32 steps; below 10 dimensions
+    (dynesty's uniform sampler, no walk) it changes nothing."""
+    sp = ParameterSpace([Parameter(f"p{i}", lo=-5, hi=5) for i in range(12)])
+
+    def like(v):
+        return -0.5 * np.sum(v**2) - 6 * np.log(2 * np.pi)
+
+    runs = {w: run_dynesty(like, sp, seed=5, nlive=100, dlogz=0.5, walks=w) for w in (0, 12)}
+    for res in runs.values():
+        assert res.log_z == pytest.approx(-12 * np.log(10.0), abs=4 * res.log_z_err + 0.1)
+    assert 0.25 < runs[12].n_calls / runs[0].n_calls < 0.55  # 12 / 32 steps, same iterations
+    small = ParameterSpace([Parameter(f"p{i}", lo=-5, hi=5) for i in range(3)])
+    a, b = (
+        run_dynesty(lambda v: -0.5 * np.sum(v**2), small, seed=5, nlive=50, dlogz=0.5, walks=w)
+        for w in (0, 12)
+    )
+    assert a.n_calls == b.n_calls and a.log_z == b.log_z
+
+
 def test_emcee_recovers_gaussian_and_reports_tau():
     sp = ParameterSpace([Parameter("a", lo=-10, hi=10), Parameter("b", lo=-10, hi=10)])
     res = run_emcee(

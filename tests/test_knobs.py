@@ -116,6 +116,8 @@ def test_knobs_read_as_before():
         (validate_dynamics, {"knobs": {"nlivee": 80}}, "dynamics.knobs.nlivee"),
         (validate_dynamics, {"knobs": {"nlive": 80}, "nlive": 80}, "dynamics.nlive"),
         (validate_dynamics, {"knobs": 3}, "dynamics.knobs"),
+        (validate_dynamics, {"knobs": {"walks": -1}}, "dynamics"),
+        (validate_dynamics, {"knobs": {"walks": 2.5}}, "dynamics.knobs.walks"),
     ],
 )
 def test_a_bad_knob_is_a_one_line_error_naming_the_key(validate, mapping, key):
