@@ -399,15 +399,8 @@ def _run_evidence(stars, space, settings, distance, like, seed, star_counts=None
         target = like
         gaussian = replace(settings, velocity_law="gaussian")
         like = make_likelihood(stars, space, gaussian, distance, star_counts=star_counts)
-    return run_dynesty(
-        like,
-        space,
-        seed,
-        nlive=settings.nlive,
-        dlogz=settings.dlogz,
-        target=target,
-        walks=settings.walks,
-    )
+    sampler = {"nlive": settings.nlive, "dlogz": settings.dlogz, "walks": settings.walks}
+    return run_dynesty(like, space, seed, target=target, **sampler)
 
 
 def _n_extra(model: str) -> int:
