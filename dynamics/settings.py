@@ -87,7 +87,7 @@ class DynamicsKnobs:
     walks : int
         dynesty random-walk steps per new live point, where dynesty walks (10-20
         parameters, its own choice of sampler); 0: dynesty's default, ``ndim + 20``
-        (30-35 for the four models with every nuisance fitted). 25 (default since
+        (31-35 for the four models with every nuisance fitted). 25 (default since
         2026-12-04): ~20 % fewer likelihood calls, the same ln Z and M_BH posterior
         within their errors (docs/dynamics.md, "Speed").
     workers : int
