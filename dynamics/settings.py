@@ -86,10 +86,11 @@ class DynamicsKnobs:
         dynesty stopping criterion on the remaining ln Z.
     walks : int
         dynesty random-walk steps per new live point, where dynesty walks (10-20
-        parameters, its own choice of sampler); 0: dynesty's default, ``ndim + 20``
-        (31-35 for the four models with every nuisance fitted). 25 (default since
-        2026-12-04): ~20 % fewer likelihood calls, the same ln Z and M_BH posterior
-        within their errors (docs/dynamics.md, "Speed").
+        parameters, its own choice of sampler); 0 (default): dynesty's ``ndim + 20``
+        (31-35 for the four models with every nuisance fitted). Fewer steps make fewer
+        likelihood calls but can miss a model's best region: with 25 the extended dark
+        component's was missed on one matrix trial, a false ``imbh`` verdict
+        (docs/dynamics.md, "Speed", "Fewer random-walk steps: refused").
     workers : int
         Models fitted in parallel processes (the result does not depend on it).
     """
@@ -110,7 +111,7 @@ class DynamicsKnobs:
     posterior: str = "nested"
     nlive: int = 250
     dlogz: float = 0.1
-    walks: int = 25
+    walks: int = 0
     workers: int = 1
 
 
