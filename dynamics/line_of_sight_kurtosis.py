@@ -80,9 +80,9 @@ def kurtosis_mixture_ln_densities(
             s2t = max(buf[2 * n_k + k], 0.0)
             e2r = max(e2[0, i], _LEAST_VARIANCE - s2r)
             e2t = max(e2[1, i], _LEAST_VARIANCE - s2t)
-            qr, xr, er = _component(v2[0, i], s2r, e2r, kappa)
-            qt, xt, et = _component(v2[1, i], s2t, e2t, kappa)
-            lt[k] = np.log(w) - 0.5 * (np.log(qr) + np.log(qt) + xr + er + xt + et)
+            qr, xr = _component(v2[0, i], s2r, e2r, kappa)
+            qt, xt = _component(v2[1, i], s2t, e2t, kappa)
+            lt[k] = np.log(w) - 0.5 * (np.log(qr) + np.log(qt) + xr + xt)
             best = max(best, lt[k])
         if not wsum > 0.0 or best == -np.inf:
             out[i] = -np.inf

@@ -137,27 +137,6 @@ def shape_star_sums_numpy(u, ln_a, x0, step, ln_s2, ln_sig, v2, e2, kappa_par):
     return float(chi), float(np.sum(interpolate(ln_sig, idx, w)))
 
 
-@numba.njit(nogil=True, cache=True, inline="always")
-def _component(v2, s2, e2, kappa):  # pragma: no cover - compiled
-    """``(q, x, extra)`` of one component: ``-2 ln p - ln 2 pi = ln q + x + extra``, with
-    ``q`` a variance over a squared positive factor (folded into a running product) and
-    ``extra`` a log term used only where the factor would overflow."""
-    if kappa >= 0.0:
-        k = math.sqrt(kappa / 3.0)
-        a = (1.0 - k) * s2 + e2
-        b = (1.0 + k) * s2 + e2
-        q = 0.5 * (1.0 + math.sqrt(b / a) * math.exp(-0.5 * v2 * (1.0 / a - 1.0 / b)))
-        return b / (q * q), v2 / b, 0.0
-    m = math.sqrt(-0.5 * kappa)
-    mu2 = m * s2
-    w = (1.0 - m) * s2 + e2
-    arg = math.sqrt(v2 * mu2) / w
-    if arg > 300.0:  # ln cosh(arg) = arg - ln 2 to rounding
-        return w, (v2 + mu2) / w, -2.0 * (arg - math.log(2.0))
-    c = math.cosh(arg)
-    return w / (c * c), (v2 + mu2) / w, 0.0
-
-
 #: Floor of a component's variance factor ``q`` [(mas/yr)^2] before two are multiplied
 #: (as the line-of-sight law's ``_LEAST_VARIANCE``): their product stays a normal double.
 _LEAST_FACTOR = 1e-150
@@ -190,6 +169,15 @@ def _pair_factor(v2, s2, e2, m):  # pragma: no cover - compiled
     h = 1.0 + exp_nonpositive(-2.0 * av * mu * iw)
     f = 4.0 * w / (h * h)
     return (_LEAST_FACTOR if f < _LEAST_FACTOR else f), d * d * iw
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _component(v2, s2, e2, kappa):  # pragma: no cover - compiled
+    """``(q, x)`` of one component at ``kappa`` of either sign (one branch; the scalar
+    counterpart of the term loops below): ``-2 ln p - ln 2 pi = ln q + x``."""
+    if kappa >= 0.0:
+        return _scale_factor(v2, s2, e2, math.sqrt(kappa / 3.0))
+    return _pair_factor(v2, s2, e2, math.sqrt(-0.5 * kappa))
 
 
 @numba.njit(nogil=True, cache=True, error_model="numpy")
