@@ -82,12 +82,12 @@ class Plummer(_ClosedFormEnclosedMass):
         Parameters
         ----------
         x : array_like
-            3-D radii [scale radiuss].
+            3-D radii [scale radii].
 
         Returns
         -------
         ndarray
-            Density (unit total mass, per unit volume in scale radiuss cubed).
+            Density (unit total mass, per unit volume in scale radii cubed).
         """
         x = np.asarray(x, dtype=float)
         return 3.0 / _FOUR_PI * (1.0 + x * x) ** -2.5
@@ -98,7 +98,7 @@ class Plummer(_ClosedFormEnclosedMass):
         Parameters
         ----------
         x : array_like
-            3-D radii [scale radiuss].
+            3-D radii [scale radii].
 
         Returns
         -------
@@ -114,12 +114,12 @@ class Plummer(_ClosedFormEnclosedMass):
         Parameters
         ----------
         X : array_like
-            Projected radii [scale radiuss].
+            Projected radii [scale radii].
 
         Returns
         -------
         ndarray
-            Surface density (unit total mass, per unit area in scale radiuss squared).
+            Surface density (unit total mass, per unit area in scale radii squared).
         """
         X = np.asarray(X, dtype=float)
         return 1.0 / np.pi * (1.0 + X * X) ** -2
@@ -130,7 +130,7 @@ class Plummer(_ClosedFormEnclosedMass):
         Parameters
         ----------
         X : array_like
-            Projected radii [scale radiuss].
+            Projected radii [scale radii].
 
         Returns
         -------
@@ -169,12 +169,12 @@ class Dehnen:
         Parameters
         ----------
         x : array_like
-            3-D radii [scale radiuss].
+            3-D radii [scale radii].
 
         Returns
         -------
         ndarray
-            Density (unit total mass, per unit volume in scale radiuss cubed).
+            Density (unit total mass, per unit volume in scale radii cubed).
         """
         x = np.asarray(x, dtype=float)
         g = self.gamma
@@ -186,7 +186,7 @@ class Dehnen:
         Parameters
         ----------
         x : array_like
-            3-D radii [scale radiuss].
+            3-D radii [scale radii].
 
         Returns
         -------
@@ -265,12 +265,12 @@ class King62(_ClosedFormEnclosedMass):
         Parameters
         ----------
         x : array_like
-            3-D radii [core radiuss].
+            3-D radii [core radii].
 
         Returns
         -------
         ndarray
-            Density (unit total mass, per unit volume in core radiuss cubed).
+            Density (unit total mass, per unit volume in core radii cubed).
         """
         return self._raw_density(x) / _king_table(self.concentration)[2]
 
@@ -280,7 +280,7 @@ class King62(_ClosedFormEnclosedMass):
         Parameters
         ----------
         x : array_like
-            3-D radii [core radiuss].
+            3-D radii [core radii].
 
         Returns
         -------
@@ -301,12 +301,12 @@ class King62(_ClosedFormEnclosedMass):
         Parameters
         ----------
         X : array_like
-            Projected radii [core radiuss].
+            Projected radii [core radii].
 
         Returns
         -------
         ndarray
-            Surface density (unit total mass, per unit area in core radiuss squared).
+            Surface density (unit total mass, per unit area in core radii squared).
         """
         X = np.asarray(X, dtype=float)
         c = 1.0 / np.sqrt(1.0 + self.tidal_radius**2)
@@ -325,7 +325,7 @@ class King62(_ClosedFormEnclosedMass):
         Parameters
         ----------
         X : array_like
-            Projected radii [core radiuss].
+            Projected radii [core radii].
 
         Returns
         -------
@@ -672,12 +672,12 @@ class Cusped:
         Parameters
         ----------
         x : array_like
-            3-D radii [scale radiuss].
+            3-D radii [scale radii].
 
         Returns
         -------
         ndarray
-            Density (unit total mass, per unit volume in scale radiuss cubed).
+            Density (unit total mass, per unit volume in scale radii cubed).
         """
         return self._evaluate(x)[0]
 
@@ -687,7 +687,7 @@ class Cusped:
         Parameters
         ----------
         x : array_like
-            3-D radii [scale radiuss].
+            3-D radii [scale radii].
 
         Returns
         -------
