@@ -43,6 +43,11 @@ LAWS = {
     "line_of_sight_kurtosis": ("line_of_sight_kurtosis", {}),
     # nulls only (the SBC fit does not go through fit_models): the two laws weighed
     "weighed": ("weighed", {"compare_velocity_laws": ("free_kurtosis", "line_of_sight")}),
+    # the same with the general anisotropy profile (beta_0, beta_inf, r_a) in every model
+    "weighed_general": (
+        "weighed",
+        {"compare_velocity_laws": ("free_kurtosis", "line_of_sight"), "anisotropy": "general"},
+    ),
 }
 
 #: the models a null fits, by ``--model``: the two of the IMBH test, or the stage's four
