@@ -399,8 +399,10 @@ def _run_evidence(stars, space, settings, distance, like, seed, star_counts=None
         target = like
         gaussian = replace(settings, velocity_law="gaussian")
         like = make_likelihood(stars, space, gaussian, distance, star_counts=star_counts)
-    sampler = {"nlive": settings.nlive, "dlogz": settings.dlogz, "walks": settings.walks}
-    return run_dynesty(like, space, seed, target=target, **sampler)
+    s = settings
+    return run_dynesty(
+        like, space, seed, nlive=s.nlive, dlogz=s.dlogz, target=target, walks=s.walks
+    )
 
 
 def _n_extra(model: str) -> int:

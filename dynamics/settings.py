@@ -90,7 +90,8 @@ class DynamicsKnobs:
         (31-35 for the four models with every nuisance fitted). Fewer steps make fewer
         likelihood calls but can miss a model's best region: with 25 the extended dark
         component's was missed on one matrix trial, a false ``imbh`` verdict
-        (docs/dynamics.md, "Speed", "Fewer random-walk steps: refused").
+        (docs/dynamics.md, "Speed", "Faster free-kurtosis sums; fewer random-walk steps
+        tried and refused").
     workers : int
         Models fitted in parallel processes (the result does not depend on it).
     """
