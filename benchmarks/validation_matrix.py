@@ -3,6 +3,7 @@
     python benchmarks/validation_matrix.py run OUT.jsonl [--seeds 200:210] [--cases a,b]
         [--masses 0,1500] [--workers 2] [--posterior nested] [--nlive 100] [--dlogz 0.5]
         [--velocity-law line_of_sight] [--compare-laws free_kurtosis,line_of_sight]
+        [--anisotropy general]
     python benchmarks/validation_matrix.py table OUT.jsonl
 
 Each trial (``tests/dynamics_helpers.validation_trial``) is one four-model comparison
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from mavispm.dynamics.likelihood import VELOCITY_LAWS
-from mavispm.dynamics.settings import WEIGHED, WEIGHED_LAWS, DynamicsSettings
+from mavispm.dynamics.settings import ANISOTROPY, WEIGHED, WEIGHED_LAWS, DynamicsSettings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
@@ -65,6 +66,7 @@ def run(args) -> None:
         "nlive": args.nlive,
         "dlogz": args.dlogz,
         "kinematic_evidence": args.kinematic_evidence,
+        "anisotropy": args.anisotropy,
         "velocity_law": args.velocity_law,
         "compare_velocity_laws": (
             tuple(filter(None, args.compare_laws.split(",")))
@@ -151,6 +153,13 @@ def main(argv=None) -> None:
         default=",".join(WEIGHED_LAWS),
         help="comma-separated laws weighed by evidence with --velocity-law weighed "
         "(compare_velocity_laws; default the stage's)",
+    )
+    r.add_argument(
+        "--anisotropy",
+        default=DynamicsSettings.anisotropy,
+        choices=ANISOTROPY,
+        help="the dynamics stage's anisotropy model (default: the stage's); the out file's "
+        "finished trials are keyed by seed, case and mass only: one file per setting",
     )
     r.add_argument(
         "--kinematic-evidence",
