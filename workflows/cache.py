@@ -164,7 +164,7 @@ def node_keys(nodes: Mapping[str, Node], registry: StageRegistry) -> dict[str, s
             inputs[name] = "file:" + file_digest(path)
         spec = registry[node.stage]
         canonical = resolve(spec.canonical)
-        settings = node.settings if canonical is None else canonical(node.settings)
+        settings = node.settings if canonical is None else canonical(node.settings, node.stage)
         record = {
             "stage": node.stage,
             "code": spec.code_version(),

@@ -116,8 +116,9 @@ class StageSpec:
         data (progress bars, thread counts); they are left out of the task key,
         so toggling them reuses the cached products.
     canonical : str or None
-        ``"module:function"`` mapping the stage's settings table to one canonical
-        spelling before it is hashed (the knobs moved to their home keys, so that
+        ``"module:function"``, called as ``f(settings, stage)`` with the stage's
+        settings table and name, returning the table's one canonical spelling before it
+        is hashed (the knobs moved to their home keys, so that
         ``[x.knobs] k = 1`` and ``[x] k = 1`` share a key); None: hashed as given.
     """
 

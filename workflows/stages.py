@@ -40,13 +40,7 @@ __all__ = [
     "KNOB_STAGES",
     "STAGE_MODULES",
     "UI_KEYS",
-    "canonical_cluster",
-    "canonical_frames",
-    "canonical_optics",
-    "canonical_dynamics",
-    "canonical_propermotions",
     "canonical_settings",
-    "canonical_stars",
     "default_registry",
     "product_metrics",
     "run_calibration",
@@ -119,7 +113,7 @@ def default_registry() -> StageRegistry:
                 code=COMMON_CODE + code,
                 exclusive=name == "dynamics",  # draws plots with pyplot
                 ui_keys=UI_KEYS.get(name, ()),
-                canonical=f"{_THIS}:canonical_{name}" if name in KNOB_STAGES else None,
+                canonical=f"{_THIS}:canonical_settings" if name in KNOB_STAGES else None,
             )
         )
     return StageRegistry.of(specs)
@@ -175,106 +169,6 @@ def canonical_settings(settings: Mapping, stage: str) -> dict:
     if stage not in KNOB_STAGES:
         return dict(settings)
     return _scatter(settings, stage)
-
-
-# The registry names these six by string (default_registry: ``canonical_<stage>``), so
-# that a stage spec stays a picklable reference; keep them.
-
-
-def canonical_cluster(settings: Mapping) -> dict:
-    """:func:`canonical_settings` of a ``[cluster]`` table.
-
-    Parameters
-    ----------
-    settings : mapping
-        The table.
-
-    Returns
-    -------
-    dict
-        Its canonical spelling.
-    """
-    return canonical_settings(settings, "cluster")
-
-
-def canonical_optics(settings: Mapping) -> dict:
-    """:func:`canonical_settings` of a ``[scene.optics]`` table.
-
-    Parameters
-    ----------
-    settings : mapping
-        The table.
-
-    Returns
-    -------
-    dict
-        Its canonical spelling.
-    """
-    return canonical_settings(settings, "optics")
-
-
-def canonical_frames(settings: Mapping) -> dict:
-    """:func:`canonical_settings` of a ``[scene]`` table (its ``optics`` sub-table).
-
-    Parameters
-    ----------
-    settings : mapping
-        The table.
-
-    Returns
-    -------
-    dict
-        Its canonical spelling.
-    """
-    return canonical_settings(settings, "frames")
-
-
-def canonical_stars(settings: Mapping) -> dict:
-    """:func:`canonical_settings` of a ``[measure]`` table.
-
-    Parameters
-    ----------
-    settings : mapping
-        The table.
-
-    Returns
-    -------
-    dict
-        Its canonical spelling.
-    """
-    return canonical_settings(settings, "stars")
-
-
-def canonical_propermotions(settings: Mapping) -> dict:
-    """:func:`canonical_settings` of a ``[propermotions]`` table.
-
-    Parameters
-    ----------
-    settings : mapping
-        The table.
-
-    Returns
-    -------
-    dict
-        Its canonical spelling.
-    """
-    return canonical_settings(settings, "propermotions")
-
-
-def canonical_dynamics(settings: Mapping) -> dict:
-    """:func:`canonical_settings` of a ``[dynamics]`` table.
-
-    Parameters
-    ----------
-    settings : mapping
-        The table.
-
-    Returns
-    -------
-    dict
-        Its canonical spelling.
-    """
-    return canonical_settings(settings, "dynamics")
 
 
 def run_cluster(
