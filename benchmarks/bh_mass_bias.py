@@ -2,12 +2,14 @@
 
     python benchmarks/bh_mass_bias.py run OUT.jsonl [--seeds 200:230] [--case segregated]
         [--models imbh,imbh_dark] [--mass 1500] [--law free_kurtosis] [--scale-prior-mean 2.21]
+        [--anisotropy general]
     python benchmarks/bh_mass_bias.py table OUT.jsonl [OUT2.jsonl ...]
 
 Each row is one model's nested-sampling fit (``validation_settings``, no kinematics-only
 evidence) to one ``ngc3201-nbody`` catalogue with an IMBH of ``--mass`` solMass (1500 by
 default; luminous stars inside 15", true motions plus 15 microarcsec/yr errors), fitted
-with the velocity law ``--law`` (``free_kurtosis`` by default), from the validation matrix's
+with the velocity law ``--law`` (``free_kurtosis`` by default) and the anisotropy model
+``--anisotropy`` (the stage's by default), from the validation matrix's
 observer's footing (``observer_priors``: centre, distance and scale-radius prior means
 drawn about the literature values). ``--scale-prior-mean`` moves every trial's
 scale-radius prior mean by the same amount, so that its mean is the given log10 a
@@ -31,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from mavispm.dynamics.likelihood import VELOCITY_LAWS
+from mavispm.dynamics.settings import ANISOTROPY, DynamicsSettings
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
@@ -52,9 +55,10 @@ def trial(
     scale_prior_mean: float | None,
     mass: float = DEFAULT_MASS,
     law: str = "free_kurtosis",
+    anisotropy: str = DynamicsSettings.anisotropy,
 ) -> list[dict]:
-    """One cluster's fits with an IMBH of ``mass`` [solMass] and the velocity ``law``, one
-    row per model."""
+    """One cluster's fits with an IMBH of ``mass`` [solMass], the velocity ``law`` and the
+    ``anisotropy`` model, one row per model."""
     from mavispm.dynamics.fit import fit_model
     from mavispm.simulate.cluster.presets import get_preset
 
@@ -66,6 +70,7 @@ def trial(
         validation_settings(),
         kinematic_evidence=False,
         velocity_law=law,  # one law per fit_model (the stage's default weighs two)
+        anisotropy=anisotropy,
         log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
     )
     rows = []
@@ -81,6 +86,7 @@ def trial(
                 "model": m,
                 "imbh_mass": mass,
                 "velocity_law": law,
+                "anisotropy": anisotropy,
                 "n_stars": int(stars.R.size),
                 "log_scale_radius_prior": log_a,
                 "ln_z": f.evidence.log_z,
@@ -137,6 +143,12 @@ def main(argv=None) -> None:
     run.add_argument(
         "--law", default="free_kurtosis", choices=VELOCITY_LAWS, help="velocity law of every fit"
     )
+    run.add_argument(
+        "--anisotropy",
+        default=DynamicsSettings.anisotropy,
+        choices=ANISOTROPY,
+        help="anisotropy model of every fit (default: the stage's)",
+    )
     tab = sub.add_parser("table", help="print the summary")
     tab.add_argument("paths", type=Path, nargs="+")
     args = ap.parse_args(argv)
@@ -146,7 +158,13 @@ def main(argv=None) -> None:
     lo, hi = (int(v) for v in args.seeds.split(":"))
     for seed in range(lo, hi):
         rows = trial(
-            seed, args.case, args.models.split(","), args.scale_prior_mean, args.mass, args.law
+            seed,
+            args.case,
+            args.models.split(","),
+            args.scale_prior_mean,
+            args.mass,
+            args.law,
+            args.anisotropy,
         )
         for row in rows:
             with open(args.out, "a") as fh:

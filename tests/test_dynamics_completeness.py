@@ -140,8 +140,9 @@ def _star_count_term(stars, log_a, completeness):
         distance_error=0,
         models=("none",),
         velocity_law="gaussian",
+        anisotropy="constant",
         **kw,
-    )  # the star-count term does not depend on the velocity law
+    )  # the star-count term depends on neither the velocity law nor the anisotropy
     space = parameter_space(s, 4.6, "none")
     full = make_likelihood(stars, space, s, 4.6, star_counts=True)
     kin = make_likelihood(stars, space, s, 4.6, star_counts=False)
