@@ -132,9 +132,11 @@ class DynamicsSettings:
     ``king_concentration`` (King 1962 ``log10 r_t/r_c``). Mass: cluster (tracer shape,
     ``log_mass_range``) + point mass (``bh_mass_max``, uniform) + dark Plummer sphere
     (``dark_mass_max``, uniform; ``log_dark_radius_range`` log10 arcsec), combined per
-    ``models``. ``anisotropy``: "constant" (``beta_range``), "osipkov-merritt"
-    (``log_anisotropy_radius_range``, log10 arcsec) or "general" (``beta_0`` in
-    ``beta_range``, ``beta_inf`` in ``beta_inf_range``, ``r_a``: both as special cases). Nuisances: ``log_scale_radius_range``
+    ``models``. ``anisotropy``: "general" (the default since 2026-12-05: ``beta_0`` in
+    ``beta_range``, ``beta_inf`` in ``beta_inf_range``, ``r_a`` in
+    ``log_anisotropy_radius_range``; holds the other two as special cases), "constant"
+    (``beta_range``; the default before) or "osipkov-merritt"
+    (``log_anisotropy_radius_range``, log10 arcsec). Nuisances: ``log_scale_radius_range``
     or ``log_scale_radius_prior`` (mean, sd; e.g. from the surface-brightness profile);
     ``distance`` [kpc] overrides the product's, ``distance_error`` [kpc] (None: 3 % of the
     distance; 0: fixed); ``centre_error`` [arcsec] and ``systemic_error`` [mas/yr]
@@ -186,7 +188,7 @@ class DynamicsSettings:
     bh_mass_max: float = unit_field(1.0e4, "solMass", "upper edge of the uniform M_bh prior")
     dark_mass_max: float = unit_field(2.0e4, "solMass", "upper edge of the uniform M_dark prior")
     log_dark_radius_range: tuple[float, float] = (-0.5, 1.5)
-    anisotropy: str = "constant"
+    anisotropy: str = "general"
     velocity_law: str = WEIGHED
     compare_velocity_laws: tuple[str, ...] = WEIGHED_LAWS
     kappa_range: tuple[float, float] = (-1.5, 2.5)
