@@ -24,7 +24,6 @@ docs/dynamics.md, "Validation matrix").
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -66,8 +65,7 @@ def trial(
     if scale_prior_mean is not None:
         log_a += scale_prior_mean - OBSERVER_LOG_SCALE_RADIUS[0]
     stars, _ = realistic_stars(seed, case, mass, centre=centre)
-    s = dataclasses.replace(
-        validation_settings(),
+    s = validation_settings(
         kinematic_evidence=False,
         velocity_law=law,  # one law per fit_model (the stage's default weighs two)
         anisotropy=anisotropy,
