@@ -1,15 +1,19 @@
 """Simulation-based calibration of the full dynamical model (issue 13, item 7).
 
 Every parameter of a model of the validation matrix (cluster mass and Plummer scale,
-free density cusp, IMBH, optional extended dark Plummer component, constant anisotropy,
+free density cusp, IMBH, optional extended dark Plummer component, constant anisotropy
+or the general profile beta(r) = beta_0 + (beta_inf - beta_0) r^2 / (r^2 + r_a^2),
 distance, centre and systemic motion) is drawn from the prior the fit uses, a proper-
 motion sample is drawn from the model, and the fit's posterior rank of the true M_bh
 is recorded (Talts et al. 2018: uniform over many draws if the posterior is calibrated).
 
 The forward model is written here, independently of ``mavispm.dynamics``: the cusped
-tracer, its enclosed mass, the Jeans integral of constant-beta anisotropy and the
-line-of-sight projections are dense trapezoid sums on fine logarithmic grids (the
-package uses Gauss-Legendre panels, cubic grid interpolation and compiled kernels).
+tracer, its enclosed mass, the Jeans integral (its integrating factor exp(int 2 beta / r dr)
+itself a trapezoid sum, so that constant and radius-dependent beta take one path) and the
+line-of-sight projections (beta taken at each depth) are dense trapezoid sums on fine
+logarithmic grids (the package uses Gauss-Legendre panels, a closed-form integrating
+factor, cubic grid interpolation and compiled kernels). The ``"df"`` draws exist for
+constant beta only.
 
 Two velocity laws:
 
@@ -110,12 +114,34 @@ def model_tables(p: dict):
     total = cum[-1] + 4.0 * np.pi * x[-1] ** -2 / 2.0  # the r^-5 tail
     nu, frac = shape / total, cum / total
     mass = total_mass(p, x, frac)
-    beta = p["beta"]
-    f = x ** (2 * beta) * nu * mass / x**2 * x  # integrand in ln x
+    ln_g = ln_integrating_factor(p, x)
+    peak = ln_g.max()  # scaled out of g so that it stays finite on the whole grid
+    f = np.exp(ln_g - peak) * nu * mass / x**2 * x  # integrand in ln x
     outer = -cumulative_trapezoid(f[::-1], LN_X[::-1], initial=0.0)[::-1]  # int_x^x_max
-    tail = mass[-1] * x[-1] ** (2 * beta - 6) / (6 - 2 * beta) / total
-    nu_s2 = x ** (-2 * beta) * (outer + tail)
+    # beyond the grid nu ~ x^-5 / total, the mass is constant and g ~ x^(2 beta_inf)
+    b_out = float(anisotropy_at(p, x[-1]))
+    tail = f[-1] / (6 - 2 * b_out)
+    nu_s2 = np.exp(peak - ln_g) * (outer + tail)
     return x, nu, frac, nu_s2
+
+
+def anisotropy_at(p: dict, x):
+    """beta at r / a = ``x`` for parameters ``p``: constant (``beta``) or the general profile
+    beta_0 + (beta_inf - beta_0) r^2 / (r^2 + r_a^2) (``beta_0``, ``beta_inf``,
+    ``log_anisotropy_radius`` in log10 arcsec)."""
+    x = np.asarray(x, dtype=float)
+    if "beta" in p:
+        return np.full_like(x, p["beta"])
+    xa = 10.0 ** p["log_anisotropy_radius"] / 10.0 ** p["log_scale_radius"]
+    return p["beta_0"] + (p["beta_inf"] - p["beta_0"]) * x * x / (x * x + xa * xa)
+
+
+def ln_integrating_factor(p: dict, x: np.ndarray) -> np.ndarray:
+    """ln g(x), g = exp(int 2 beta / x dx), of the Jeans equation for ``p``: written as the
+    cumulative trapezoid sum of 2 beta over ``ln x`` (no closed form used)."""
+    two_beta = 2.0 * anisotropy_at(p, x)
+    lx = np.log(x)
+    return two_beta[0] * lx[0] + cumulative_trapezoid(two_beta, lx, initial=0.0)
 
 
 def total_mass(p: dict, x: np.ndarray, frac: np.ndarray) -> np.ndarray:
@@ -200,6 +226,8 @@ def df_tables(p: dict, n_energy: int = 2000):
         inversion, normalised to the tracer's unit number), ``nu``, ``beta``,
         ``min_g`` (most negative g over max g; < 0: no DF of this family for ``p``).
     """
+    if "beta" not in p:
+        raise ValueError("the DF draws are written for constant beta only (parameter 'beta')")
     x, nu, frac, _ = model_tables(p)
     keep = x >= 1e-6
     x, nu, frac = x[keep], nu[keep], frac[keep]
@@ -305,9 +333,9 @@ def projected_dispersions(p: dict, X: np.ndarray, n_t: int = 3000):
     lr = np.log(r)
     sig = trapezoid(np.exp(np.interp(lr, lx, np.log(nu))) * r, t, axis=1)
     s2 = np.exp(np.interp(lr, lx, np.log(nu_s2))) * r
-    beta = p["beta"]
-    t_part = (1.0 - beta) * trapezoid(s2, t, axis=1)
-    r_part = t_part + beta * trapezoid(s2 / np.cosh(t) ** 2, t, axis=1)
+    beta = anisotropy_at(p, r)
+    t_part = trapezoid((1.0 - beta) * s2, t, axis=1)
+    r_part = t_part + trapezoid(beta * s2 / np.cosh(t) ** 2, t, axis=1)
     scale = _dispersion_unit(p)
     return scale * r_part / sig, scale * t_part / sig
 
@@ -362,7 +390,7 @@ def draw_sample(
         r3 = np.sqrt(Rc**2 + pz**2)
         if velocities == "3d":
             sr = np.sqrt(sigma_r2_3d(p, r3 / a))
-            st = sr * np.sqrt(1.0 - p["beta"])
+            st = sr * np.sqrt(1.0 - anisotropy_at(p, r3 / a))
             v_r, v_1, v_2 = (sg * rng.standard_normal(n_stars) for sg in (sr, st, st))
         else:
             df = df_tables(p) if df is None else df
@@ -604,7 +632,7 @@ def independent_line_of_sight_ln_likelihood(p: dict, stars, n_t: int = 4000):
     ln_w = np.interp(lr, lx, np.log(nu)) + np.log(r)  # nu dz / dt = nu x
     ln_w[:, [0, -1]] += np.log(0.5)  # trapezoid ends (uniform t per star)
     s2 = _dispersion_unit(p) * np.exp(np.interp(lr, lx, np.log(nu_s2) - np.log(nu)))
-    beta = p["beta"]
+    beta = anisotropy_at(p, r)
     var_R = s2 * ((1.0 - beta) + beta / np.cosh(t) ** 2) + e2_R[:, None]
     var_T = (1.0 - beta) * s2 + e2_T[:, None]
     ln_g = -0.5 * (v_R[:, None] ** 2 / var_R + v_T[:, None] ** 2 / var_T + np.log(var_R * var_T))

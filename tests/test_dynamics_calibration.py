@@ -64,14 +64,16 @@ def test_sbc_rank_histogram_of_bh_mass_is_uniform():
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "model, velocities, law",
+    "model, velocities, law, anisotropy",
     [
-        ("imbh", "3d", "line_of_sight"),
-        ("imbh_dark", "3d", "line_of_sight"),
-        ("imbh", "projected", "gaussian"),
+        ("imbh", "3d", "line_of_sight", "constant"),
+        ("imbh_dark", "3d", "line_of_sight", "constant"),
+        ("imbh", "projected", "gaussian", "constant"),
+        ("imbh", "3d", "line_of_sight", "general"),
+        ("imbh_dark", "3d", "line_of_sight", "general"),
     ],
 )
-def test_sbc_of_the_full_model(model, velocities, law):
+def test_sbc_of_the_full_model(model, velocities, law, anisotropy):
     """>= 100 fits of the full model (cusp, anisotropy, distance, centre, systemic motion;
     with ``imbh_dark`` the extended dark component too), every parameter drawn from the
     fit's prior and the stars from an independently written forward model
@@ -79,13 +81,24 @@ def test_sbc_of_the_full_model(model, velocities, law):
     ``velocities = "3d"`` draws 3-D Gaussian velocities at each star's depth (a real
     cluster's line-of-sight mixture), fitted with the line-of-sight law (its own);
     ``"projected"`` draws the Gaussian of the projected dispersions, fitted with the
-    Gaussian law."""
+    Gaussian law. ``anisotropy``: constant beta, or the stage's default general profile
+    (beta_0, beta_inf and r_a drawn from their priors, beta(r) in the forward model's
+    Jeans integral and at each depth)."""
     n = int(os.environ.get("DYN_SBC_N", "100"))
-    fn = functools.partial(sbc_full_trial, model=model, velocities=velocities, velocity_law=law)
+    fn = functools.partial(
+        sbc_full_trial,
+        model=model,
+        velocities=velocities,
+        velocity_law=law,
+        priors={"anisotropy": anisotropy},
+    )
     rows = _run(fn, [(s,) for s in range(3000, 3000 + n)])
     p = rank_uniformity_p([r["rank"] for r in rows], rows[0]["n_ranks"])
     cov68 = np.mean([r["q16"] <= r["bh_true"] <= r["q84"] for r in rows])
-    print(f"SBC {model} {velocities}: {n} fits, chi2 p = {p:.3f}, coverage 68% {cov68:.2f}")
+    print(
+        f"SBC {model} {velocities} {anisotropy}: {n} fits, chi2 p = {p:.3f}, "
+        f"coverage 68% {cov68:.2f}"
+    )
     assert p > 0.01
 
 
