@@ -93,8 +93,16 @@ def run_dynesty(
     n_draws : int
         Proposal posterior draws reweighted to ``target``.
     walks : int
-        Random-walk steps per new live point where dynesty's own choice of sampler is the
-        random walk (10-20 parameters); 0: dynesty's default, ``ndim + 20``.
+        Random-walk steps per new live point (up to 20 parameters, where the sampler is
+        dynesty's random walk); 0: dynesty's default, ``ndim + 20``.
+
+    Notes
+    -----
+    Up to 20 parameters new live points come from dynesty's random walk (``"rwalk"``,
+    dynesty's own choice for 10-20); above 20 dynesty's own choice (slice sampling).
+    Below 10 parameters dynesty would draw uniformly inside bootstrapped ellipsoids
+    (``"unif"``), which on a small field's weakly constrained anisotropy profile took
+    2-35 times the CPU for the same evidence (docs/dynamics.md, "Speed").
     """
     import dynesty
 
@@ -103,8 +111,11 @@ def run_dynesty(
         return val if np.isfinite(val) else -1e300
 
     ndim = len(space)
-    # dynesty's "auto" random walk takes ndim + 20 steps and ignores ``walks``: name it
-    steps = {"sample": "rwalk", "walks": int(walks)} if walks and 10 <= ndim <= 20 else {}
+    # dynesty's "auto" random walk (10-20 parameters) takes ndim + 20 steps and ignores
+    # ``walks``: name it; below 10 parameters its "auto" is "unif" (see Notes)
+    steps = {"sample": "rwalk"} if ndim <= 20 else {}
+    if walks and ndim <= 20:
+        steps["walks"] = int(walks)
     sampler = dynesty.NestedSampler(
         ll,
         space.from_unit,

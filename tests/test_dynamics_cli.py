@@ -174,26 +174,25 @@ def test_dynesty_evidence_of_gaussian_likelihood():
     assert res.samples.shape[1] == 2 and abs(np.std(res.samples[:, 0]) - 1) < 0.2
 
 
-def test_dynesty_walks_sets_the_random_walk_and_keeps_the_evidence():
-    """``walks`` (DynamicsKnobs): in 12 dimensions (dynesty's random walk) the calls scale
-    with it, and ln Z of a unit Gaussian in a [-5, 5]^12 prior stays its analytic
-    ``-12 ln 10`` with 12 or with dynesty's own ndim + 20 = 32 steps; below 10 dimensions
-    (dynesty's uniform sampler, no walk) it changes nothing."""
-    sp = ParameterSpace([Parameter(f"p{i}", lo=-5, hi=5) for i in range(12)])
+@pytest.mark.parametrize("ndim, nlive", [(12, 100), (3, 50)])
+def test_dynesty_walks_sets_the_random_walk_and_keeps_the_evidence(ndim, nlive):
+    """``walks`` (DynamicsKnobs): with 12 parameters and with 3 (the random walk below 10
+    parameters too, where dynesty's own choice would be uniform draws in ellipsoids) the
+    calls scale with it, and ln Z of a unit Gaussian in a [-5, 5]^ndim prior stays its
+    analytic ``-ndim ln 10`` with 12 steps or dynesty's own ndim + 20."""
+    sp = ParameterSpace([Parameter(f"p{i}", lo=-5, hi=5) for i in range(ndim)])
 
     def like(v):
-        return -0.5 * np.sum(v**2) - 6 * np.log(2 * np.pi)
+        return -0.5 * np.sum(v**2) - 0.5 * ndim * np.log(2 * np.pi)
 
-    runs = {w: run_dynesty(like, sp, seed=5, nlive=100, dlogz=0.5, walks=w) for w in (0, 12)}
+    runs = {w: run_dynesty(like, sp, seed=5, nlive=nlive, dlogz=0.5, walks=w) for w in (0, 12)}
     for res in runs.values():
-        assert res.log_z == pytest.approx(-12 * np.log(10.0), abs=4 * res.log_z_err + 0.1)
-    assert 0.25 < runs[12].n_calls / runs[0].n_calls < 0.55  # 12 / 32 steps, same iterations
-    small = ParameterSpace([Parameter(f"p{i}", lo=-5, hi=5) for i in range(3)])
-    a, b = (
-        run_dynesty(lambda v: -0.5 * np.sum(v**2), small, seed=5, nlive=50, dlogz=0.5, walks=w)
-        for w in (0, 12)
-    )
-    assert a.n_calls == b.n_calls and a.log_z == b.log_z
+        assert res.log_z == pytest.approx(-ndim * np.log(10.0), abs=4 * res.log_z_err + 0.1)
+    ratio = runs[12].n_calls / runs[0].n_calls
+    if ndim == 12:
+        assert 0.25 < ratio < 0.55  # 12 / 32 steps per new live point, same iterations
+    else:  # the first iterations draw from the prior (no walk): 0.79 measured, not 12 / 23
+        assert ratio < 0.9
 
 
 def test_emcee_recovers_gaussian_and_reports_tau():
