@@ -438,13 +438,19 @@ def draw_prior(space, rng) -> dict:
 DF_NEGATIVE_TOLERANCE = 1e-6
 
 
+#: The truth of the nuisances a fit may hold fixed (``distance_error``, ``centre_error``,
+#: ``systemic_error`` zero): the fit's own values.
+FIXED_NUISANCES = dict(distance=SBC_DISTANCE, x0=0.0, y0=0.0, pm_x0=0.0, pm_y0=0.0)
+
+
 def draw_truth(space, rng, velocities: str, max_redraws: int = 100, bh_mass=None):
-    """A prior draw for ``velocities`` (with M_bh set to ``bh_mass`` if given); for "df"
+    """A prior draw for ``velocities`` (with M_bh set to ``bh_mass`` if given; nuisances
+    the space holds fixed at ``FIXED_NUISANCES``); for "df"
     redrawn (at most ``max_redraws`` times) while the DF of the draw is negative
     somewhere. Returns (truth, df tables or None, number of redraws): any redraw truncates
     the prior the fit does not know of."""
     for n in range(max_redraws + 1):
-        truth = draw_prior(space, rng)
+        truth = {**FIXED_NUISANCES, **draw_prior(space, rng)}
         if bh_mass is not None:
             truth["bh_mass"] = float(bh_mass)
         if velocities != "df":
