@@ -102,7 +102,8 @@ def run_dynesty(
     dynesty's own choice for 10-20); above 20 dynesty's own choice (slice sampling).
     Below 10 parameters dynesty would draw uniformly inside bootstrapped ellipsoids
     (``"unif"``), which on a small field's weakly constrained anisotropy profile took
-    2-35 times the CPU for the same evidence (docs/dynamics.md, "Speed").
+    2-35 times the CPU for the same evidence (docs/dynamics.md, "Random walk below ten
+    parameters").
     """
     import dynesty
 
