@@ -112,11 +112,8 @@ def run_dynesty(
         return val if np.isfinite(val) else -1e300
 
     ndim = len(space)
-    # dynesty's "auto" random walk (10-20 parameters) takes ndim + 20 steps and ignores
-    # ``walks``: name it; below 10 parameters its "auto" is "unif" (see Notes)
-    steps = {"sample": "rwalk"} if ndim <= 20 else {}
-    if walks and ndim <= 20:
-        steps["walks"] = int(walks)
+    # the random walk named up to 20 parameters (see Notes); walks None: dynesty's ndim + 20
+    steps = {"sample": "rwalk", "walks": int(walks) or None} if ndim <= 20 else {}
     sampler = dynesty.NestedSampler(
         ll,
         space.from_unit,

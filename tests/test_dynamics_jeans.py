@@ -442,20 +442,29 @@ def test_full_model_dispersions_match_independent_forward_model(model):
     it, point mass, extended dark Plummer component, constant beta, distance) against the
     SBC's forward model, written independently as dense trapezoid sums on fine log grids
     (``sbc_helpers``), for parameter vectors drawn from the prior: agree to 1e-4."""
-    from sbc_helpers import SBC_DISTANCE, draw_prior, draw_sample, projected_dispersions, sbc_space
-
-    from mavispm.dynamics.fit import make_likelihood
+    from sbc_helpers import draw_prior, sbc_space
 
     space, s = sbc_space(model)
     R = np.geomspace(0.02, 20.0, 7)
     for seed in range(3):
         rng = np.random.default_rng([seed, 5])
         p = draw_prior(space, rng)
-        like = make_likelihood(draw_sample(p, 50, rng), space, s, SBC_DISTANCE)
-        theta = np.array([p[n] for n in space.names])
-        a = 10.0 ** p["log_scale_radius"]
-        ref = np.sqrt(np.array(projected_dispersions(p, R / a)))
-        np.testing.assert_allclose(like.dispersion_at(theta, R), ref, rtol=1e-4)
+        got, ref = _dispersions_against_forward_model(space, s, p, rng, R, 50)
+        np.testing.assert_allclose(got, ref, rtol=1e-4)
+
+
+def _dispersions_against_forward_model(space, s, p, rng, R, n_stars):
+    """Projected dispersions [mas/yr] at ``R`` [arcsec] for parameters ``p``: the
+    likelihood's (on a sample of ``n_stars`` drawn with ``rng``) and the SBC forward
+    model's (``sbc_helpers``, written apart from the package)."""
+    from sbc_helpers import SBC_DISTANCE, draw_sample, projected_dispersions
+
+    from mavispm.dynamics.fit import make_likelihood
+
+    like = make_likelihood(draw_sample(p, n_stars, rng), space, s, SBC_DISTANCE)
+    theta = np.array([p[n] for n in space.names])
+    ref = np.sqrt(np.array(projected_dispersions(p, R / 10.0 ** p["log_scale_radius"])))
+    return like.dispersion_at(theta, R), ref
 
 
 #: General anisotropy profiles (beta_0, beta_inf, log10 r_a [arcsec]) whose anisotropy radius
@@ -470,9 +479,7 @@ def test_general_anisotropy_dispersions_match_independent_forward_model(model):
     projected dispersions of the likelihood against the SBC forward model (its integrating
     factor a trapezoid sum of 2 beta over ln r, beta(r) projected depth by depth), for prior
     draws and for profiles turning inside the field: agree to 1e-4 (measured 3e-5)."""
-    from sbc_helpers import SBC_DISTANCE, draw_prior, draw_sample, projected_dispersions, sbc_space
-
-    from mavispm.dynamics.fit import make_likelihood
+    from sbc_helpers import draw_prior, sbc_space
 
     space, s = sbc_space(model, anisotropy="general")
     R = np.geomspace(0.02, 20.0, 7)
@@ -482,11 +489,8 @@ def test_general_anisotropy_dispersions_match_independent_forward_model(model):
         p = draw_prior(space, rng)
         if profile is not None:
             p.update(zip(("beta_0", "beta_inf", "log_anisotropy_radius"), profile))
-        like = make_likelihood(draw_sample(p, 50, rng), space, s, SBC_DISTANCE)
-        theta = np.array([p[n] for n in space.names])
-        a = 10.0 ** p["log_scale_radius"]
-        ref = np.sqrt(np.array(projected_dispersions(p, R / a)))
-        np.testing.assert_allclose(like.dispersion_at(theta, R), ref, rtol=1e-4)
+        got, ref = _dispersions_against_forward_model(space, s, p, rng, R, 50)
+        np.testing.assert_allclose(got, ref, rtol=1e-4)
 
 
 def test_full_model_ln_likelihood_matches_independent_sum():
@@ -529,18 +533,12 @@ def test_general_anisotropy_dispersions_across_the_prior_box(beta_0, beta_inf, l
     beta_inf to 0.95), every other parameter a prior draw (``imbh_dark``): the likelihood's
     projected dispersions from 0.01" to 20" are finite and within 2e-4 of the SBC forward
     model (measured up to 8e-5, at the corner beta_0 = -0.5, beta_inf = 0.95, r_a = 1")."""
-    from sbc_helpers import SBC_DISTANCE, draw_prior, draw_sample, projected_dispersions, sbc_space
-
-    from mavispm.dynamics.fit import make_likelihood
+    from sbc_helpers import draw_prior, sbc_space
 
     space, s = sbc_space("imbh_dark", anisotropy="general")
     rng = np.random.default_rng([seed, 8])
     p = draw_prior(space, rng)
     p.update(beta_0=beta_0, beta_inf=beta_inf, log_anisotropy_radius=log_r_a)
-    like = make_likelihood(draw_sample(p, 20, rng), space, s, SBC_DISTANCE)
-    theta = np.array([p[n] for n in space.names])
-    R = np.geomspace(0.01, 20.0, 6)
-    got = like.dispersion_at(theta, R)
+    got, ref = _dispersions_against_forward_model(space, s, p, rng, np.geomspace(0.01, 20.0, 6), 20)
     assert np.all(np.isfinite(got)) and np.all(got > 0)
-    ref = np.sqrt(np.array(projected_dispersions(p, R / 10.0 ** p["log_scale_radius"])))
     np.testing.assert_allclose(got, ref, rtol=2e-4)
