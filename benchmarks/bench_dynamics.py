@@ -10,7 +10,9 @@ Run ``python benchmarks/bench_dynamics.py [--quick]`` from the repository root
    cost and error against its nodes (and the Gaussian law's cost);
 3. emcee to convergence (walkers, steps, tau, wall time) and posterior width;
 4. dynesty evidence per model (calls, wall time, ln Z error);
-5. with ``--comparison``: one model's evidence with each velocity law (Gaussian,
+5. with ``--node-evidence``: each model's ln Z with 16 against 64 line-of-sight nodes on
+   two radially anisotropic validation-matrix clusters;
+6. with ``--comparison``: one model's evidence with each velocity law (Gaussian,
    line-of-sight direct, reweighted) and the full four-model comparison against the number of
    stars and with the cheap knobs (no cusp, centre/systemic fixed, no kinematic
    evidence).
@@ -170,6 +172,62 @@ def bench_tracers(quick):
     print(
         f"grid model (imbh_dark, cusp): compiled {1e3 * t_c:.3f} ms, numpy moments {1e3 * t_n:.3f} ms"
     )
+
+
+def bench_line_of_sight_evidence(seed=206, case="radial_anisotropy", imbh_mass=500.0,
+                                 models=("none", "imbh", "dark"), n_draws=600):  # fmt: skip
+    """Do the line-of-sight nodes move the evidences? Nested runs with the default 16 nodes
+    (line-of-sight law, the default general anisotropy, ``validation_settings`` and the
+    matrix's observer priors) on one validation-matrix cluster, then each model's ln Z
+    corrected to 64 nodes by importance weights over ``n_draws`` posterior draws,
+    ``ln E_post[L_64 / L_16]`` (docs/dynamics.md, "Nor the evidences on realistic radially
+    anisotropic clusters")."""
+    import dataclasses
+
+    from dynamics_helpers import (
+        OBSERVER_LOG_SCALE_RADIUS,
+        observer_priors,
+        realistic_stars,
+        validation_settings,
+    )
+    from scipy.special import logsumexp
+
+    from mavispm.dynamics.fit import fit_model, make_likelihood
+    from mavispm.simulate.cluster.presets import get_preset
+
+    centre, dist, log_a = observer_priors(seed, get_preset("ngc3201-nbody").distance)
+    stars, _ = realistic_stars(seed, case, imbh_mass, centre=centre)
+    s = dataclasses.replace(
+        validation_settings(workers=1),
+        velocity_law="line_of_sight",
+        kinematic_evidence=False,
+        log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
+    )
+    print(
+        f"\n# line-of-sight nodes and the evidences: {case}, seed {seed}, {imbh_mass:g} solMass, "
+        f"{stars.R.size} stars, anisotropy {s.anisotropy}"
+    )
+    print(f"{'model':>10} {'ln Z (16)':>12} {'err':>5} {'dlnL 64-16: median (range)':>30} "
+          f"{'dlnZ':>7} {'beta_inf':>8} {'CPU s':>6}")  # fmt: skip
+    for model in models:
+        c0 = time.process_time()
+        fit = fit_model(stars, s, dist, model, seed)
+        rng = np.random.default_rng(0)
+        samples = fit.chain.samples
+        draws = samples[rng.choice(len(samples), min(n_draws, len(samples)), replace=False)]
+        ln_l = {}
+        for nodes in (16, 64):
+            knobs = dataclasses.replace(s, line_of_sight_nodes=nodes)
+            like = make_likelihood(stars, fit.space, knobs, dist)
+            ln_l[nodes] = np.array([like(theta) for theta in draws])
+        d = ln_l[64] - ln_l[16]
+        shift = logsumexp(d) - np.log(d.size)
+        beta_inf = np.median(samples[:, fit.space.index("beta_inf")])
+        print(
+            f"{model:>10} {fit.evidence.log_z:12.2f} {fit.evidence.log_z_err:5.2f} "
+            f"{np.median(d):+10.3f} ({d.min():+.3f} to {d.max():+.3f}) {shift:+7.3f} "
+            f"{beta_inf:8.2f} {time.process_time() - c0:6.0f}"
+        )
 
 
 def _stars(n, seed=1):
@@ -379,6 +437,11 @@ def main(argv=None):
         help="time issue 13's speed target, the four-model comparison at 3,500 stars (slow)",
     )
     parser.add_argument(
+        "--node-evidence",
+        action="store_true",
+        help="ln Z with 16 against 64 line-of-sight nodes on radially anisotropic clusters (slow)",
+    )
+    parser.add_argument(
         "--reweighting",
         action="store_true",
         help="overlap of the Gaussian and line-of-sight posteriors on SBC draws (slow)",
@@ -393,6 +456,9 @@ def main(argv=None):
         bench_samplers(args.quick)
     if args.reweighting:
         bench_reweighting_overlap()
+    if args.node_evidence:
+        bench_line_of_sight_evidence(200, imbh_mass=1500.0, models=("none", "imbh"))
+        bench_line_of_sight_evidence(206, imbh_mass=500.0)
     if args.target:
         bench_target_comparison()
     if args.comparison:
