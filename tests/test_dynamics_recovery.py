@@ -62,17 +62,21 @@ def test_map_on_generator_catalogue_finds_imbh():
 
 @pytest.mark.slow
 def test_generator_recovery_coverage_and_bayes_factor():
-    """10 generator seeds each: 68% coverage >= 60% and ln B > 3 with a 1500 Msun IMBH;
-    95% upper limit < 1500 Msun and ln B < 1 without (emcee posterior, dynesty ln B)."""
+    """10 generator seeds each (nested posterior and ln B, nlive 100): with a 1500 Msun
+    IMBH the 68% interval holds the truth in >= 60% and ln B > 3 in every catalogue;
+    without one the median 95% upper limit is below 1500 Msun and ln B < 1 in >= 9 of 10
+    (issue 13's criterion for nulls). Seed 109's null carries an IMBH-like central
+    excess: M_BH 1100-1700 (68%) with either anisotropy model and either velocity law,
+    ln B 0.7-2.0 between sampler seeds (docs/dynamics.md, "Recovery on the cluster
+    generator's catalogues, current models")."""
     seeds = list(range(100, 110))
     # "dehnen", "cusped_king", "cusped_king_rc"
     model = os.environ.get("DYN_GENERATOR_MODEL", "cusped_king_rc")
-    steps = int(os.environ.get("DYN_STEPS", "2000"))
     jobs = [(s, bh) for s in seeds for bh in (1500.0, 0.0)]
     out = os.environ.get("DYN_RECOVERY_JSON")
     results = []
     with ProcessPoolExecutor(max_workers=int(os.environ.get("DYN_WORKERS", "2"))) as ex:
-        trial = functools.partial(generator_recovery_trial, model=model, steps=steps)
+        trial = functools.partial(generator_recovery_trial, model=model)
         for res in ex.map(trial, *zip(*jobs)):
             results.append(res)
             if out:  # one JSON line per finished trial
@@ -80,8 +84,14 @@ def test_generator_recovery_coverage_and_bayes_factor():
                     fh.write(json.dumps(res, default=float) + "\n")
     imbh = [r for r in results if r["bh_true"] > 0]
     none = [r for r in results if r["bh_true"] == 0]
+    for r in results:
+        print(
+            f"{r['seed']} {r['bh_true']:6.0f}: ln B {r['ln_b']:7.2f} +- {r['ln_b_err']:.2f}, "
+            f"M_BH {r['q50']:5.0f} ({r['q16']:.0f}-{r['q84']:.0f}), 95% upper {r['q95']:.0f}, "
+            f"{r['cpu_s']:.0f} CPU s"
+        )
     coverage = np.mean([r["q16"] <= 1500.0 <= r["q84"] for r in imbh])
     assert coverage >= 0.6
     assert all(r["ln_b"] > 3.0 for r in imbh)
     assert np.median([r["q95"] for r in none]) < 1500.0
-    assert all(r["ln_b"] < 1.0 for r in none)
+    assert sum(r["ln_b"] < 1.0 for r in none) >= 9
