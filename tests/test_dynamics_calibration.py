@@ -116,7 +116,8 @@ def test_sbc_below_ten_parameters(anisotropy, n_stars, field_radius, draws):
     look's kind of field (200 stars in 2.5") with either profile, and the general profile
     in the 15" field. The general profile in 2.5" takes 400 draws: its first 100 (seeds
     3000-3099) gave p = 0.022, the next three hundreds 0.37, 0.58 and 0.90, all 400 0.34
-    (constant beta 0.80; docs/dynamics.md, "Random walk below ten parameters").
+    (constant beta 0.80; docs/dynamics.md, "The general profile on a small field, 400
+    draws").
     ``DYN_SBC_N`` replaces the number of draws."""
     n = int(os.environ.get("DYN_SBC_N", draws))
     fixed = {"centre_error": 0.0, "systemic_error": 0.0, "distance_error": 0.0}
