@@ -68,7 +68,10 @@ def bench_likelihood(quick):
     print("\n# likelihood: cost vs stars and radial grid size (Plummer, no cusp, IMBH model)")
     stars, (sp1, _), _ = mock_likelihoods(1, 1500.0)
     truth = {"log_mass": 4.7, "log_scale_radius": np.log10(25.0), "bh_mass": 1500.0}
-    truth.update(beta=0.0, distance=4.6)
+    # isotropic in whichever anisotropy model the settings take (constant or general),
+    # Gaussian in shape (kappa 0) with the free-kurtosis law
+    truth.update(beta=0.0, beta_0=0.0, beta_inf=0.0, log_anisotropy_radius=1.0, kappa=0.0)
+    truth.update(distance=4.6)
     theta = np.array([truth[n] for n in sp1.names])
     rng = np.random.default_rng(0)
     ref_like = None
