@@ -227,17 +227,23 @@ def map_trial(
 
 
 def posterior_trial(
-    seed: int, variant: str = "plain", alpha: float = 0.00135, anisotropy="general"
+    seed: int,
+    bh_mass: float = 0.0,
+    variant: str = "plain",
+    alpha: float = 0.00135,
+    anisotropy: str = "general",
+    models: tuple = ("none",),
 ):
-    """The stage's fast-star test of one no-IMBH generator catalogue: the ``none`` model's
-    nested posterior (nlive 100, dlogz 0.5; the helper's settings with ``anisotropy``) and
+    """The stage's fast-star test of one generator catalogue: the nested posteriors of
+    ``models`` (nlive 100, dlogz 0.5; the helper's settings with ``anisotropy``) and
     :func:`mavispm.dynamics.fast_stars.run_on_fits`, the escape velocity's quantile over
-    the posterior as the stage takes it.
+    the no-IMBH posterior and the lower limit against the deepest stellar potential of
+    the IMBH model's posterior (when ``models`` holds ``imbh``), as the stage takes them.
 
     Returns
     -------
     dict
-        ``result`` (FastStarResult), ``log_mass`` (the posterior's 1 / 50 / 99 %
+        As :func:`map_trial`, plus ``log_mass`` (the ``none`` posterior's 1 / 50 / 99 %
         quantiles of log10 M [solMass]).
     """
     import dataclasses
@@ -245,7 +251,8 @@ def posterior_trial(
     from mavispm.dynamics.fast_stars import FastStarSettings, run_on_fits
     from mavispm.dynamics.fit import fit_model
 
-    stars, truth, params = generator_catalogue(seed, 0.0, variant)
+    stars, truth, params = generator_catalogue(seed, bh_mass, variant)
+    d = params["distance"]
     s = dataclasses.replace(
         fit_settings(anisotropy),
         posterior="nested",
@@ -255,7 +262,15 @@ def posterior_trial(
         fast_stars=FastStarSettings(alpha=alpha, n_monte_carlo=2000),
     )
     sample = star_sample(stars, truth["x"], truth["y"], s)
-    fit = fit_model(sample, s, params["distance"], "none", seed)
-    res = run_on_fits(None, s, [fit], params["distance"], FIELD["radius"], seed, stars=sample)
-    log_mass = fit.chain.samples[:, fit.space.index("log_mass")]
-    return {"result": res, "log_mass": np.percentile(log_mass, [1.0, 50.0, 99.0])}
+    fits = [fit_model(sample, s, d, model, seed) for model in models]
+    res = run_on_fits(None, s, fits, d, FIELD["radius"], seed, stars=sample)
+    log_mass = fits[0].chain.samples[:, fits[0].space.index("log_mass")]
+    fast_ids = set(np.asarray(res.table["id"])[np.asarray(res.table["fast"], bool)])
+    return {
+        "result": res,
+        "truth": truth,
+        "stars": stars,
+        "fast": np.array([i in fast_ids for i in np.arange(stars.R.size)]),
+        "distance": d,
+        "log_mass": np.percentile(log_mass, [1.0, 50.0, 99.0]),
+    }

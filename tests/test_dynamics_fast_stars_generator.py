@@ -29,7 +29,7 @@ def _check_no_imbh(seeds, variant="plain", method="map"):
         if method == "map":
             trial = map_trial(seed, 0.0, ALPHA, imbh_model=False, variant=variant)
         else:
-            trial = posterior_trial(seed, variant, ALPHA)
+            trial = posterior_trial(seed, 0.0, variant, ALPHA)
         res = trial["result"]
         assert res.possible
         n_fast += res.attrs["fast_n_significant"]
@@ -44,12 +44,17 @@ def _check_no_imbh(seeds, variant="plain", method="map"):
     assert catalogues_with_fast <= max(ALPHA * len(seeds), 0)
 
 
-def _check_imbh(seeds):
-    """Lower limit vs truth; detected stars bound (all) and needing the IMBH (counted)."""
+def _check_imbh(seeds, method="map"):
+    """Lower limit vs truth; detected stars bound (all) and needing the IMBH (counted).
+    ``method``: the MAP no-IMBH model with constant beta, or the stage's posterior path
+    (no-IMBH and IMBH models, the general profile)."""
     below = detected = n_fast = n_needs = 0
     rows = []
     for seed in seeds:
-        trial = map_trial(seed, BH, ALPHA, imbh_model=False)
+        if method == "map":
+            trial = map_trial(seed, BH, ALPHA, imbh_model=False)
+        else:
+            trial = posterior_trial(seed, BH, alpha=ALPHA, models=("none", "imbh"))
         res, truth, fast = trial["result"], trial["truth"], trial["fast"]
         lim = res.attrs["bh_mass_lower_limit"].to_value(u.Msun)
         below += lim <= BH
@@ -96,8 +101,9 @@ def test_no_imbh_false_positive_rate_20_seeds(variant, method):
 
 
 @pytest.mark.slow
-def test_imbh_lower_limit_20_seeds():
-    detected, n_fast, n_needs, rows = _check_imbh(range(200, 220))
+@pytest.mark.parametrize("method", ["map", "posterior"])
+def test_imbh_lower_limit_20_seeds(method):
+    detected, n_fast, n_needs, rows = _check_imbh(range(200, 220), method)
     print("seed, n_fast, n_needing_the_imbh, lower limit [Msun]:", rows)
     assert detected >= 10, rows
     # the MAP no-IMBH model fitted to IMBH data can sit below the true stellar
