@@ -187,25 +187,13 @@ def bench_line_of_sight_evidence(seed=206, case="radial_anisotropy", imbh_mass=5
     anisotropic clusters")."""
     import dataclasses
 
-    from dynamics_helpers import (
-        OBSERVER_LOG_SCALE_RADIUS,
-        observer_priors,
-        realistic_stars,
-        validation_settings,
-    )
+    from dynamics_helpers import observer_trial_inputs, validation_settings
     from scipy.special import logsumexp
 
     from mavispm.dynamics.fit import fit_model, make_likelihood
-    from mavispm.simulate.cluster.presets import get_preset
 
-    centre, dist, log_a = observer_priors(seed, get_preset("ngc3201-nbody").distance)
-    stars, _ = realistic_stars(seed, case, imbh_mass, centre=centre)
-    s = dataclasses.replace(
-        validation_settings(workers=1),
-        velocity_law="line_of_sight",
-        kinematic_evidence=False,
-        log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
-    )
+    base = validation_settings(workers=1, velocity_law="line_of_sight", kinematic_evidence=False)
+    stars, dist, s, _ = observer_trial_inputs(seed, case, imbh_mass, base)
     print(
         f"\n# line-of-sight nodes and the evidences: {case}, seed {seed}, {imbh_mass:g} solMass, "
         f"{stars.R.size} stars, anisotropy {s.anisotropy}"

@@ -38,8 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from dynamics_helpers import (  # noqa: E402
     OBSERVER_LOG_SCALE_RADIUS,
-    observer_priors,
-    realistic_stars,
+    observer_trial_inputs,
     validation_settings,
 )
 
@@ -59,18 +58,14 @@ def trial(
     """One cluster's fits with an IMBH of ``mass`` [solMass], the velocity ``law`` and the
     ``anisotropy`` model, one row per model."""
     from mavispm.dynamics.fit import fit_model
-    from mavispm.simulate.cluster.presets import get_preset
 
-    centre, dist, log_a = observer_priors(seed, get_preset("ngc3201-nbody").distance)
-    if scale_prior_mean is not None:
-        log_a += scale_prior_mean - OBSERVER_LOG_SCALE_RADIUS[0]
-    stars, _ = realistic_stars(seed, case, mass, centre=centre)
-    s = validation_settings(
+    shift = 0.0 if scale_prior_mean is None else scale_prior_mean - OBSERVER_LOG_SCALE_RADIUS[0]
+    base = validation_settings(
         kinematic_evidence=False,
         velocity_law=law,  # one law per fit_model (the stage's default weighs two)
         anisotropy=anisotropy,
-        log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
     )
+    stars, dist, s, draws = observer_trial_inputs(seed, case, mass, base, shift)
     rows = []
     for m in models:
         t0 = time.process_time()
@@ -86,7 +81,7 @@ def trial(
                 "velocity_law": law,
                 "anisotropy": anisotropy,
                 "n_stars": int(stars.R.size),
-                "log_scale_radius_prior": log_a,
+                "log_scale_radius_prior": draws["log_a"],
                 "ln_z": f.evidence.log_z,
                 "bh": bh.tolist(),
                 "bh_max_like": float(f.chain.map_params[i]),

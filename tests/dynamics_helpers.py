@@ -606,6 +606,33 @@ def validation_settings(**knobs):
     return DynamicsSettings(**{**base, **knobs})
 
 
+def observer_trial_inputs(seed, case, imbh_mass, settings, log_a_shift=0.0):
+    """One realistic cluster from an observer's footing: the stars about the literature
+    centre and the settings with the trial's scale-radius prior (``observer_priors``
+    drawn about the truth; ``log_a_shift`` [dex] moves the prior mean).
+
+    Returns
+    -------
+    stars : StarSample
+    distance : float
+        The prior mean of the distance [kpc] (the fit's distance).
+    settings : DynamicsSettings
+        ``settings`` with ``log_scale_radius_prior`` the trial's.
+    draws : dict
+        ``centre`` (the assumed centre's offset [arcsec]), ``distance_true`` [kpc] and
+        ``log_a`` (the scale-radius prior mean, log10 arcsec).
+    """
+    import dataclasses
+
+    from mavispm.simulate.cluster.presets import get_preset
+
+    centre, dist, log_a = observer_priors(seed, get_preset("ngc3201-nbody").distance)
+    log_a += log_a_shift
+    stars, true_distance = realistic_stars(seed, case, imbh_mass, centre=centre)
+    s = dataclasses.replace(settings, log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]))
+    return stars, dist, s, {"centre": centre, "distance_true": true_distance, "log_a": log_a}
+
+
 def validation_trial(seed, case, imbh_mass, settings=None):
     """Four-model comparison on one realistic cluster from an observer's footing (prior
     means of centre, distance and scale radius drawn by ``observer_priors``); the verdict
@@ -614,16 +641,13 @@ def validation_trial(seed, case, imbh_mass, settings=None):
     import time
 
     from mavispm.dynamics.fit import compare, fit_models, marginal_bh_samples
-    from mavispm.simulate.cluster.presets import get_preset
 
     t0 = time.process_time()
-    centre, dist, log_a = observer_priors(seed, get_preset("ngc3201-nbody").distance)
-    stars, true_distance = realistic_stars(seed, case, imbh_mass, centre=centre)
-    s = dataclasses.replace(
+    base = dataclasses.replace(
         settings or validation_settings(),
-        log_scale_radius_prior=(log_a, OBSERVER_LOG_SCALE_RADIUS[1]),
         workers=1,  # trials run in parallel, each in one process
     )
+    stars, dist, s, draws = observer_trial_inputs(seed, case, imbh_mass, base)
     fits = fit_models(stars, s, dist, seed)  # the stage's own (velocity laws weighed)
     c = compare(fits, s.bh_mass_max, s.ambiguous_ln_b)
     bh = marginal_bh_samples(fits, seed)
@@ -633,10 +657,10 @@ def validation_trial(seed, case, imbh_mass, settings=None):
         "case": case,
         "imbh_mass": imbh_mass,
         "n_stars": int(stars.R.size),
-        "centre_offset": float(np.hypot(*centre)),
+        "centre_offset": float(np.hypot(*draws["centre"])),
         "distance_prior": dist,
-        "distance_true": true_distance,
-        "log_scale_radius_prior": log_a,
+        "distance_true": draws["distance_true"],
+        "log_scale_radius_prior": draws["log_a"],
         "ln_b": c.ln_bayes_factor,
         "ln_b_kin": c.ln_bayes_factor_kinematic,
         "ln_b_dark": c.ln_b_dark_centre,

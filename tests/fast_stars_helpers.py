@@ -170,6 +170,12 @@ def likelihoods(stars, x, y, distance, settings=None):
     return out
 
 
+def fast_flags(result, ids) -> np.ndarray:
+    """Per star of ``ids`` (in order): whether the fast-star ``result`` calls it fast."""
+    table = result.table
+    return np.isin(ids, np.asarray(table["id"])[np.asarray(table["fast"], bool)])
+
+
 def map_trial(
     seed: int,
     bh_mass: float,
@@ -221,8 +227,7 @@ def map_trial(
         seed=seed,
         **imbh,
     )
-    fast_ids = set(np.asarray(res.table["id"])[np.asarray(res.table["fast"], bool)])
-    fast = np.array([i in fast_ids for i in stars.id])
+    fast = fast_flags(res, stars.id)
     return {"result": res, "truth": truth, "stars": stars, "fast": fast, "distance": d}
 
 
@@ -265,12 +270,11 @@ def posterior_trial(
     fits = [fit_model(sample, s, d, model, seed) for model in models]
     res = run_on_fits(None, s, fits, d, FIELD["radius"], seed, stars=sample)
     log_mass = fits[0].chain.samples[:, fits[0].space.index("log_mass")]
-    fast_ids = set(np.asarray(res.table["id"])[np.asarray(res.table["fast"], bool)])
     return {
         "result": res,
         "truth": truth,
         "stars": stars,
-        "fast": np.array([i in fast_ids for i in np.arange(stars.R.size)]),
+        "fast": fast_flags(res, np.arange(stars.R.size)),  # the sample's ids: row numbers
         "distance": d,
         "log_mass": np.percentile(log_mass, [1.0, 50.0, 99.0]),
     }

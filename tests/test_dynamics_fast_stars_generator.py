@@ -21,16 +21,22 @@ ALPHA = 0.00135
 BH = 1500.0
 
 
+def _trial(seed, bh_mass, variant, method):
+    """One catalogue's fast-star test: the MAP no-IMBH model with constant beta (``"map"``)
+    or the stage's posterior path with the general profile (``"posterior"``; the IMBH model
+    too when the catalogue has one)."""
+    if method == "map":
+        return map_trial(seed, bh_mass, ALPHA, imbh_model=False, variant=variant)
+    models = ("none", "imbh") if bh_mass > 0 else ("none",)
+    return posterior_trial(seed, bh_mass, variant, ALPHA, models=models)
+
+
 def _check_no_imbh(seeds, variant="plain", method="map"):
     """No significant fast star in no-IMBH catalogues, with the MAP stand-in (constant
     beta) or the stage's posterior path (the default general anisotropy profile)."""
     n_fast = n_stars = catalogues_with_fast = 0
     for seed in seeds:
-        if method == "map":
-            trial = map_trial(seed, 0.0, ALPHA, imbh_model=False, variant=variant)
-        else:
-            trial = posterior_trial(seed, 0.0, variant, ALPHA)
-        res = trial["result"]
+        res = _trial(seed, 0.0, variant, method)["result"]
         assert res.possible
         n_fast += res.attrs["fast_n_significant"]
         n_stars += res.attrs["fast_n_stars"]
@@ -51,10 +57,7 @@ def _check_imbh(seeds, method="map"):
     below = detected = n_fast = n_needs = 0
     rows = []
     for seed in seeds:
-        if method == "map":
-            trial = map_trial(seed, BH, ALPHA, imbh_model=False)
-        else:
-            trial = posterior_trial(seed, BH, alpha=ALPHA, models=("none", "imbh"))
+        trial = _trial(seed, BH, "plain", method)
         res, truth, fast = trial["result"], trial["truth"], trial["fast"]
         lim = res.attrs["bh_mass_lower_limit"].to_value(u.Msun)
         below += lim <= BH
