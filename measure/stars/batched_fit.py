@@ -666,6 +666,7 @@ def fit_stars(
     halo: np.ndarray | None = None,
     halo_shape: HaloShape | None = None,
     return_light: bool = False,
+    hold_positions: np.ndarray | None = None,
 ) -> FitResult:
     """Fit positions, fluxes and local skies of all stars simultaneously.
 
@@ -707,6 +708,12 @@ def fit_stars(
         profile times this modulation. None (default): round.
     return_light : bool
         Also return :attr:`FitResult.light_image` (the model with the halos).
+    hold_positions : ndarray of bool, shape (N,), optional
+        Stars whose positions stay at their start (forced photometry: their flux and
+        local sky are fitted, their light is in their neighbours' model). They count
+        as converged, are flagged failed (32) only for their flux (non-positive or
+        below ``min_snr``), and their position errors are NaN (not measured). None
+        (default): every position is fitted.
 
     Returns
     -------
@@ -717,12 +724,13 @@ def fit_stars(
         return _fit_stars(
             image, psf, x0, y0, read_noise_var, sky0, flux0, bad, saturated, opt,
             return_model, uncertainties, halo, halo_shape, pool, return_light,
+            hold_positions,
         )  # fmt: skip
 
 
 def _fit_stars(
     image, psf, x0, y0, read_noise_var, sky0, flux0, bad, saturated, opt, return_model,
-    uncertainties, halo, halo_shape, pool, return_light=False,
+    uncertainties, halo, halo_shape, pool, return_light=False, hold_positions=None,
 ):  # fmt: skip
     """:func:`fit_stars` with its options resolved, the chunks on ``pool``."""
     image = np.asarray(image)
@@ -734,6 +742,9 @@ def _fit_stars(
     if x0.shape != y0.shape or x0.ndim != 1:
         raise InputError(f"x0 and y0 must be 1-D of equal length, got {x0.shape} and {y0.shape}")
     n = len(x0)
+    hold = np.zeros(n, bool) if hold_positions is None else np.asarray(hold_positions, bool)
+    if hold.shape != (n,):
+        raise InputError(f"hold_positions has shape {hold.shape}; expected ({n},), one per star")
     for name, m in (("bad", bad), ("saturated", saturated)):
         if m is not None and np.shape(m) != image.shape:
             raise InputError(
@@ -902,7 +913,8 @@ def _fit_stars(
             )
             thresh[idx] = _position_tolerance(cov, misfit, opt)
             frozen = ~ok | ~(snr > opt.min_snr)
-            fitted[idx[~frozen]] = True
+            fitted[idx[~frozen | hold[idx]]] = True
+            frozen |= hold[idx]
         # positions of frozen stars held: identity rows, no right-hand side
         a_d[frozen, :2, :] = 0.0
         a_d[frozen, :, :2] = 0.0
@@ -1312,6 +1324,7 @@ def _fit_stars(
     y_out = np.where(usable, y, y0)
     for arr in (x_err, y_err, f_err, s_err):
         arr[failed] = np.nan
+    x_err[hold] = y_err[hold] = np.nan  # held, not measured
     return FitResult(
         x=x_out,
         y=y_out,

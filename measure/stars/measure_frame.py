@@ -344,6 +344,7 @@ def run_engine(
     halo: np.ndarray | None = None,
     halo_shape: HaloShape | None = None,
     return_light: bool = False,
+    hold_positions: np.ndarray | None = None,
 ) -> FitResult:
     """Fit all stars with the selected engine.
 
@@ -370,6 +371,10 @@ def run_engine(
     return_light : bool
         The fast engine also returns all its modelled light
         (:attr:`FitResult.light_image`, for the rescue pass).
+    hold_positions : ndarray of bool, optional
+        The fast engine holds these stars' positions at their start
+        (:func:`~mavispm.measure.stars.batched_fit.fit_stars`); the photutils engine
+        refuses them.
 
     Returns
     -------
@@ -399,9 +404,12 @@ def run_engine(
             halo=halo,
             halo_shape=halo_shape,
             return_light=return_light,
+            hold_positions=hold_positions,
             **common,
         )
     if engine == "photutils":
+        if hold_positions is not None:
+            raise InputError("hold_positions needs engine 'fast'; photutils fits every position")
         opt = PhotutilsOptions(
             radius=settings.stamp_radius,
             fitter=settings.photutils_fitter,
