@@ -1,9 +1,10 @@
 """Oracle fits of the scale frame: how far below 1 % a perfect model could take the fit
 (issue 14, deliverable 4; docs/measure-scale.md, thirty-first pass).
 
-Run ``python benchmarks/bench_scale_oracles.py [--n 100000] [--work DIR]`` with the
-repository on PYTHONPATH as ``mavispm`` (the frame of ``bench_scale.py``, made once and
-cached in the same work folder). The PSF is built once on the frame, as the stage builds
+Run ``python benchmarks/bench_scale_oracles.py [--n 100000] [--work DIR] [--set
+key=json ...]`` with the repository on PYTHONPATH as ``mavispm`` (the frame of
+``bench_scale.py``, made once and cached in the same work folder; ``--set`` changes
+measure settings, e.g. ``--set iterations=160``). The PSF is built once on the frame, as the stage builds
 it (forced from the input list, the optics' PSF grid as the PSF-R prior); then the fit
 (the stage's ``run_engine`` with the stage defaults) runs four times:
 
@@ -20,13 +21,14 @@ It prints the failed (32) / not converged (1) fractions and their union among th
 with ``--bright-mag`` <= V < 25 whose centres lie inside the frame (the subtracted stars
 themselves are left out of every row, so the rows compare), split into the stars with a
 comparable neighbour (at most 1 mag fainter) within 1.5 FWHM and the isolated ones, and
-into those within / beyond 60 px of a ``--bright-mag`` star. The truth is used to build
+into those within / beyond 60 px of a ``--bright-mag`` star, and the isolated ones beyond. The truth is used to build
 the oracles and to score, never by the stage itself.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -82,10 +84,18 @@ def main(argv=None):
     ap.add_argument("--work", type=Path, default=Path("bench_scale_work"))
     ap.add_argument("--bright-mag", type=float, default=15.0)
     ap.add_argument("--faint-mag", type=float, default=25.0)
+    ap.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=JSON",
+        help="measure settings beside the defaults, e.g. iterations=160",
+    )
     args = ap.parse_args(argv)
+    extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
     path = make_frame(args.n, args.work)
     frame = read_frame(path)
-    settings = validate_settings({"psf_prior": str(args.work / "psf.h5")})
+    settings = validate_settings({"psf_prior": str(args.work / "psf.h5"), **extra})
     x0, y0 = starting_positions(frame, settings, np.random.default_rng(0))
     t0 = time.perf_counter()
     frame_psf = build_psf(frame, x0, y0, settings)
@@ -113,7 +123,7 @@ def main(argv=None):
     faint = mag > args.faint_mag
     print(
         "  failed / not converged (union): all | blends | isolated | within "
-        f"{NEAR_BRIGHT:g} px of a bright star | beyond"
+        f"{NEAR_BRIGHT:g} px of a bright star | beyond | isolated beyond"
     )
     for name, image, hold in (
         ("stage", frame.image, None),
@@ -129,7 +139,7 @@ def main(argv=None):
         wall = time.perf_counter() - t0
         print(
             f"  {name:>26}: " + " | ".join(
-                fractions(fit.flag, sel & part) for part in (True, blend, ~blend, close, ~close)
+                fractions(fit.flag, sel & part) for part in (True, blend, ~blend, close, ~close, ~blend & ~close)
             ) + f"  [fit {wall:.1f} s]"
         )  # fmt: skip
 
