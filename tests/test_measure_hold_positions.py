@@ -100,3 +100,28 @@ def test_hold_positions_of_the_wrong_length_is_refused():
             sky0=0.0,
             hold_positions=np.array([True]),
         )
+
+
+def test_the_photutils_engine_refuses_held_positions():
+    """Only the fast engine holds positions; the photutils engine says so in one line."""
+    from mavispm.core.frame import Frame
+    from mavispm.measure.stars.cli import validate_settings
+    from mavispm.measure.stars.measure_frame import run_engine
+
+    psf = SynthPSF(1.2)
+    frame = Frame(
+        image=np.zeros(SHAPE),
+        saturated=np.zeros(SHAPE, bool),
+        sky=0.0,
+        read_noise_var=1.0,
+        pixel_scale=0.00736,
+    )
+    with pytest.raises(InputError, match="hold_positions needs engine 'fast'"):
+        run_engine(
+            frame,
+            true_epsf(psf, SHAPE),
+            np.array([50.0]),
+            np.array([50.0]),
+            validate_settings({"engine": "photutils"}),
+            hold_positions=np.array([True]),
+        )
