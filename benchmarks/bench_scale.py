@@ -155,10 +155,8 @@ def measure(path: Path, prior: Path, extra: dict | None = None) -> None:
     )
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--n", type=int, nargs="+", default=[10000, 30000, 100000])
-    ap.add_argument("--work", type=Path, default=Path("bench_scale_work"))
+def add_set_option(ap: argparse.ArgumentParser) -> None:
+    """The ``--set key=json ...`` option: measure settings beside the defaults."""
     ap.add_argument(
         "--set",
         nargs="*",
@@ -166,8 +164,20 @@ def main(argv=None):
         metavar="KEY=JSON",
         help="measure settings beside the defaults, e.g. correlated_misfit=false",
     )
+
+
+def set_settings(items: list[str]) -> dict:
+    """The settings of ``--set`` items ``key=json``."""
+    return {k: json.loads(v) for k, v in (item.split("=", 1) for item in items)}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, nargs="+", default=[10000, 30000, 100000])
+    ap.add_argument("--work", type=Path, default=Path("bench_scale_work"))
+    add_set_option(ap)
     args = ap.parse_args(argv)
-    extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
+    extra = set_settings(args.set)
     for n in args.n:
         measure(make_frame(n, args.work), args.work / "psf.h5", extra)
 

@@ -28,14 +28,13 @@ the oracles and to score, never by the stage itself.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import astropy.units as u
 import numpy as np
-from bench_scale import make_frame
+from bench_scale import add_set_option, make_frame, set_settings
 from scipy.spatial import cKDTree
 
 from mavispm.core.catalogue import read_catalogue
@@ -84,15 +83,9 @@ def main(argv=None):
     ap.add_argument("--work", type=Path, default=Path("bench_scale_work"))
     ap.add_argument("--bright-mag", type=float, default=15.0)
     ap.add_argument("--faint-mag", type=float, default=25.0)
-    ap.add_argument(
-        "--set",
-        nargs="*",
-        default=[],
-        metavar="KEY=JSON",
-        help="measure settings beside the defaults, e.g. iterations=160",
-    )
+    add_set_option(ap)
     args = ap.parse_args(argv)
-    extra = {k: json.loads(v) for k, v in (item.split("=", 1) for item in args.set)}
+    extra = set_settings(args.set)
     path = make_frame(args.n, args.work)
     frame = read_frame(path)
     settings = validate_settings({"psf_prior": str(args.work / "psf.h5"), **extra})

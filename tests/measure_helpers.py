@@ -113,6 +113,23 @@ def noisy_frame(noiseless, det: Detector, rng):
     return image.astype(np.float32), saturated
 
 
+def fit_noisy_frame(image, saturated, det: Detector, psf, x0, y0, **kwargs):
+    """``fit_stars`` on a :func:`noisy_frame` (adu -> electron, the stack's read noise and
+    sky); ``kwargs`` go to ``fit_stars`` (``options``, ``flux0``, ``hold_positions``)."""
+    from mavispm.measure.stars.batched_fit import fit_stars
+
+    return fit_stars(
+        image * det.gain,
+        psf,
+        x0,
+        y0,
+        read_noise_var=det.read_noise**2 * det.nexp,
+        sky0=det.sky,
+        saturated=saturated,
+        **kwargs,
+    )
+
+
 def write_frames(
     path,
     shape,

@@ -9,9 +9,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from measure_helpers import Detector, SynthPSF, grid_positions, noisy_frame, render_image, true_epsf
+from measure_helpers import (
+    Detector,
+    SynthPSF,
+    fit_noisy_frame,
+    grid_positions,
+    noisy_frame,
+    render_image,
+    true_epsf,
+)
 
-from mavispm.measure.stars.batched_fit import FLAG_FAILED, FitOptions, fit_stars
+from mavispm.measure.stars.batched_fit import FLAG_FAILED, FitOptions
 
 SHAPE = (200, 200)
 
@@ -28,17 +36,11 @@ def _fit(iterations):
     angle = rng.uniform(0, 2 * np.pi, len(x))
     x0, y0 = x + 0.3 * np.cos(angle), y + 0.3 * np.sin(angle)
     negative = np.arange(len(x)) % 3 == 0
-    res = fit_stars(
-        image * det.gain,
-        true_epsf(psf, SHAPE),
-        x0,
-        y0,
-        read_noise_var=det.read_noise**2 * det.nexp,
-        sky0=det.sky,
+    res = fit_noisy_frame(
+        image, sat, det, true_epsf(psf, SHAPE), x0, y0,
         flux0=np.where(negative, -0.5 * flux, flux),
-        saturated=sat,
         options=FitOptions(wing_threshold=0.0, iterations=iterations),
-    )
+    )  # fmt: skip
     ok = (res.flag & FLAG_FAILED) == 0
     return res, ok, np.hypot(res.x - x, res.y - y), negative, flux
 

@@ -6,9 +6,9 @@ thirty-first pass). Against the rendered truth."""
 
 from __future__ import annotations
 
+import measure_helpers as mh
 import numpy as np
 import pytest
-from measure_helpers import Detector, SynthPSF, grid_positions, noisy_frame, render_image, true_epsf
 
 from mavispm.core.errors import InputError
 from mavispm.measure.stars.batched_fit import (
@@ -25,28 +25,21 @@ def _scene(hold, offset=0.3):
     """Bright stars, each with a star 3 mag fainter 2.5 px away; the faint ones start
     ``offset`` px off their truth, the bright ones at it."""
     rng = np.random.default_rng(11)
-    psf, det = SynthPSF(1.2, profile="moffat"), Detector()
-    bx, by = grid_positions(SHAPE, 24, 12, rng)
+    psf, det = mh.SynthPSF(1.2, profile="moffat"), mh.Detector()
+    bx, by = mh.grid_positions(SHAPE, 24, 12, rng)
     angle = rng.uniform(0, 2 * np.pi, len(bx))
     fx, fy = bx + 2.5 * np.cos(angle), by + 2.5 * np.sin(angle)
     x, y = np.concatenate([bx, fx]), np.concatenate([by, fy])
     flux = np.concatenate([np.full(len(bx), 2e5), np.full(len(bx), 2e5 / 10**1.2)])
-    image, sat = noisy_frame(render_image(SHAPE, x, y, flux, psf), det, rng)
+    image, sat = mh.noisy_frame(mh.render_image(SHAPE, x, y, flux, psf), det, rng)
     faint = np.arange(len(x)) >= len(bx)
     turn = rng.uniform(0, 2 * np.pi, len(x))
     x0 = np.where(faint, x + offset * np.cos(turn), x)
     y0 = np.where(faint, y + offset * np.sin(turn), y)
-    res = fit_stars(
-        image * det.gain,
-        true_epsf(psf, SHAPE),
-        x0,
-        y0,
-        read_noise_var=det.read_noise**2 * det.nexp,
-        sky0=det.sky,
-        saturated=sat,
-        options=FitOptions(wing_threshold=0.0),
-        hold_positions=faint if hold else None,
-    )
+    res = mh.fit_noisy_frame(
+        image, sat, det, mh.true_epsf(psf, SHAPE), x0, y0,
+        options=FitOptions(wing_threshold=0.0), hold_positions=faint if hold else None,
+    )  # fmt: skip
     return res, x, y, x0, y0, flux, faint
 
 
@@ -89,11 +82,11 @@ def test_without_the_hold_the_same_stars_move_to_their_truth():
 
 
 def test_hold_positions_of_the_wrong_length_is_refused():
-    psf = SynthPSF(1.2)
+    psf = mh.SynthPSF(1.2)
     with pytest.raises(InputError, match="hold_positions"):
         fit_stars(
             np.zeros(SHAPE),
-            true_epsf(psf, SHAPE),
+            mh.true_epsf(psf, SHAPE),
             np.array([50.0, 60.0]),
             np.array([50.0, 60.0]),
             read_noise_var=1.0,
@@ -108,7 +101,7 @@ def test_the_photutils_engine_refuses_held_positions():
     from mavispm.measure.stars.cli import validate_settings
     from mavispm.measure.stars.measure_frame import run_engine
 
-    psf = SynthPSF(1.2)
+    psf = mh.SynthPSF(1.2)
     frame = Frame(
         image=np.zeros(SHAPE),
         saturated=np.zeros(SHAPE, bool),
@@ -119,7 +112,7 @@ def test_the_photutils_engine_refuses_held_positions():
     with pytest.raises(InputError, match="hold_positions needs engine 'fast'"):
         run_engine(
             frame,
-            true_epsf(psf, SHAPE),
+            mh.true_epsf(psf, SHAPE),
             np.array([50.0]),
             np.array([50.0]),
             validate_settings({"engine": "photutils"}),
