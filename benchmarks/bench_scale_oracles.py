@@ -118,11 +118,12 @@ def main(argv=None):
         "  failed / not converged (union): all | blends | isolated | within "
         f"{NEAR_BRIGHT:g} px of a bright star | beyond | isolated beyond"
     )
+    exact = frame.image - light
     for name, image, hold in (
         ("stage", frame.image, None),
-        ("bright light exact", frame.image - light, None),
+        ("bright light exact", exact, None),
         (f"V > {args.faint_mag:g} held at input", frame.image, faint),
-        ("both", frame.image - light, faint),
+        ("both", exact, faint),
     ):
         t0 = time.perf_counter()
         fit = run_engine(

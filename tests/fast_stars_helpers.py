@@ -141,19 +141,14 @@ def star_sample(stars, x, y, settings):
     """The dynamics likelihood's :class:`StarSample` of PM stars at positions x, y
     [arcsec]: motions and errors along and across the radius."""
     from mavispm.dynamics.likelihood import StarSample
+    from mavispm.measure.propermotions.motion_fit import radial_tangential
 
-    R = np.maximum(np.hypot(x, y), 1e-9)
-    c, sn = x / R, y / R
-    ex, ey = stars.pm_x_err, stars.pm_y_err
+    var_x, var_y = stars.pm_x_err**2, stars.pm_y_err**2
+    v_r, v_t, e_r, e_t, R, _ = radial_tangential(
+        x, y, stars.pm_x, stars.pm_y, var_x, var_y, np.zeros_like(var_x)
+    )
     return StarSample(
-        np.maximum(R, settings.min_radius),
-        stars.pm_x * c + stars.pm_y * sn,
-        -stars.pm_x * sn + stars.pm_y * c,
-        np.sqrt((ex * c) ** 2 + (ey * sn) ** 2),
-        np.sqrt((ex * sn) ** 2 + (ey * c) ** 2),
-        FIELD["radius"],
-        x=x,
-        y=y,
+        np.maximum(R, settings.min_radius), v_r, v_t, e_r, e_t, FIELD["radius"], x=x, y=y
     )
 
 

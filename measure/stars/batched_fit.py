@@ -913,8 +913,9 @@ def _fit_stars(
             )
             thresh[idx] = _position_tolerance(cov, misfit, opt)
             frozen = ~ok | ~(snr > opt.min_snr)
-            fitted[idx[~frozen | hold[idx]]] = True
-            frozen |= hold[idx]
+            pinned = hold[idx]
+            fitted[idx[~frozen | pinned]] = True
+            frozen |= pinned
         # positions of frozen stars held: identity rows, no right-hand side
         a_d[frozen, :2, :] = 0.0
         a_d[frozen, :, :2] = 0.0
